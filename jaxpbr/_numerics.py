@@ -1,0 +1,132 @@
+"""Numerically safe building blocks shared by every kernel.
+
+Each helper states *why* it exists. The recurring pattern is the "double where": masking only the
+output of `jnp.where(ok, f(x), 0)` still evaluates `f` (and its derivative) on the bad lanes, and
+because NaN * 0 = NaN the NaN leaks into the gradient. So the *input* is first replaced by a benign
+value on the bad lanes, then the output is masked (MATH.md §8.10; JAX FAQ "gradients contain NaN
+where using where").
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+__all__ = [
+    "Vec3",
+    "as_float",
+    "cross",
+    "dot",
+    "eps",
+    "is_concrete",
+    "pack3",
+    "safe_normalize",
+    "safe_sqrt",
+    "saturate",
+    "unpack3",
+    "vcross",
+    "vdot",
+    "vnormalize",
+]
+
+
+def as_float(x) -> jax.Array:
+    """`jnp.asarray` that keeps float arrays as they are and turns ints/bools into the default float.
+
+    Why: integer inputs (e.g. `metallic=1`) would otherwise make `1 - metallic` integer arithmetic.
+    Python scalars stay weakly typed, so they never promote a float32 computation to float64.
+    """
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+def eps(dtype) -> float:
+    """Machine epsilon of a float dtype (1.19e-7 for float32, 2.2e-16 for float64)."""
+    return float(jnp.finfo(dtype).eps)
+
+
+# ------------------------------------------------------------------------------------------
+# 3-vectors as structures of arrays.
+#
+# Why: kernels written on (..., 3) arrays reduce over a size-3 minor axis (`jnp.sum(a*b, -1)`),
+# and mix (..., 3) with (...) shapes; XLA:CPU then splits a shading kernel into ~50-100 separate
+# passes over memory. Carrying a vector as a tuple of three (...) planes keeps every
+# intermediate the same shape, so the whole kernel fuses into one loop (measured 13x faster on a
+# 1080p G-buffer). Public functions take (..., 3) arrays and convert at the boundary.
+# ------------------------------------------------------------------------------------------
+
+Vec3 = tuple  # (x, y, z), each an array of the same broadcastable batch shape
+
+
+def unpack3(x: jax.Array) -> Vec3:
+    """(..., 3) array -> tuple of three (...) arrays."""
+    return (x[..., 0], x[..., 1], x[..., 2])
+
+
+def pack3(t: Vec3) -> jax.Array:
+    """Tuple of three broadcastable (...) arrays -> (..., 3) array."""
+    shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in t))
+    return jnp.stack([jnp.broadcast_to(c, shape) for c in t], axis=-1)
+
+
+def vdot(a: Vec3, b: Vec3) -> jax.Array:
+    """Dot product of two Vec3 -> (...)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def vcross(a: Vec3, b: Vec3) -> Vec3:
+    """Cross product of two Vec3."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def vnormalize(a: Vec3) -> Vec3:
+    """a / |a| for a Vec3; vectors shorter than the dtype's epsilon map to the zero vector.
+
+    Why: `x / jnp.linalg.norm(x)` is NaN in value *and* gradient at x = 0 (e.g. the half vector
+    v + l when v = -l, or a zero-length normal). Below |x| = eps the direction is rounding noise;
+    the threshold also keeps d(x/|x|)/dx ~ 1/|x| far from float overflow (a `tiny`-based threshold
+    would make the rsqrt derivative |x|^-3 overflow float32). Double where: the rsqrt is taken of
+    a benign 1 on the zero lanes so its derivative is finite there.
+    """
+    sq = vdot(a, a)
+    ok = sq > eps(jnp.result_type(*a)) ** 2
+    inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    return (a[0] * inv, a[1] * inv, a[2] * inv)
+
+
+def dot(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Dot product of (..., 3) arrays -> (...), per component (fusion-friendly, see Vec3)."""
+    return vdot(unpack3(a), unpack3(b))
+
+
+def cross(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Cross product of (..., 3) arrays, per component."""
+    return pack3(vcross(unpack3(a), unpack3(b)))
+
+
+def safe_normalize(x: jax.Array) -> jax.Array:
+    """x / |x| over the last axis of a (..., 3) array; see `vnormalize` for the zero case."""
+    return pack3(vnormalize(unpack3(x)))
+
+
+def saturate(x: jax.Array) -> jax.Array:
+    """Clamp to [0, 1] (GLSL `clamp(x, 0, 1)`); the gradient is 0 outside the interval."""
+    return jnp.clip(x, 0.0, 1.0)
+
+
+def safe_sqrt(x: jax.Array) -> jax.Array:
+    """sqrt(max(x, 0)) with a finite gradient everywhere.
+
+    Why: d sqrt/dx = inf at 0 and 0 * inf = NaN in the backward pass, even when the value is masked.
+    The gradient at x <= 0 is defined as 0.
+    """
+    ok = x > 0
+    safe = jnp.where(ok, x, 1.0)
+    return jnp.where(ok, jnp.sqrt(safe), 0.0)
+
+
+def is_concrete(x) -> bool:
+    """True if `x` holds actual values (not a tracer under jit/vmap/grad), so it can be validated."""
+    return not isinstance(x, jax.core.Tracer)

@@ -1,0 +1,393 @@
+"""Punctual lights (KHR_lights_punctual) and the direct-lighting sum.
+
+Units follow KHR_lights_punctual: point and spot `intensity` in candela (lm/sr), directional in lux
+(lm/m^2); `color` is a linear RGB filter. A light at distance d delivers irradiance
+`E_perp = color * intensity * window(d) / d^2` on a plane facing it (directional: `color *
+intensity`), and the reflected radiance is `f_r(v, l) * E_perp * max(n.l, 0)`.
+
+Any mix of lights is packed into one `LightSet`: a struct of arrays with a leading light axis, in
+which a point light is a spot light with no cone and a directional light a flag. `shade_direct`
+then evaluates all lights in one traced program: a static, unrolled sum for a few lights (XLA fuses
+it into a single pass over the pixels) and a `lax.scan` over lights beyond `UNROLL_MAX_LIGHTS`, so
+the program size does not grow with the number of lights.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Iterable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._numerics import Vec3, as_float, is_concrete, pack3, saturate, unpack3, vdot, vnormalize
+from .brdf import MIN_ROUGHNESS, brdf_soa, check_options, geometry_soa
+from .material import Material
+
+__all__ = [
+    "DirectionalLight",
+    "LightSet",
+    "PointLight",
+    "SpotLight",
+    "UNROLL_MAX_LIGHTS",
+    "MIN_LIGHT_DISTANCE",
+    "pack_lights",
+    "shade_direct",
+]
+
+#: Up to this many lights the sum over lights is unrolled at trace time (fused by XLA);
+#: beyond it a `lax.scan` keeps the traced program constant-size.
+UNROLL_MAX_LIGHTS = 8
+
+#: Distances to point/spot lights below this (scene units) are clamped in the inverse square law,
+#: so a light sitting on the surface gives a huge but finite irradiance.
+MIN_LIGHT_DISTANCE = 1e-4
+
+# KHR_lights_punctual: lightAngleScale = 1 / max(0.001, cos(inner) - cos(outer)).
+_MIN_CONE_COS_DELTA = 1e-3
+
+
+class _Pytree:
+    """Small immutable pytree base: fields are leaves; unflatten bypasses __init__ (see Material)."""
+
+    _fields: tuple[str, ...] = ()
+    __slots__ = ()
+
+    def tree_flatten(self):
+        return tuple(getattr(self, f) for f in self._fields), None
+
+    @classmethod
+    def tree_unflatten(cls, aux, children):
+        obj = object.__new__(cls)
+        for f, c in zip(cls._fields, children):
+            object.__setattr__(obj, f, c)
+        return obj
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"{type(self).__name__} is immutable.")
+
+    def _set(self, **values):
+        for name, value in values.items():
+            object.__setattr__(self, name, value)
+
+    def __repr__(self) -> str:
+        shapes = ", ".join(f"{f}={list(getattr(getattr(self, f), 'shape', ()))}" for f in self._fields)
+        return f"{type(self).__name__}({shapes})"
+
+
+def _vec3(name: str, x) -> jax.Array:
+    x = as_float(x)
+    if x.ndim == 0 or x.shape[-1] != 3:
+        raise ValueError(f"{name} must have a trailing axis of 3, got shape {x.shape}.")
+    return x
+
+
+def _check(name: str, x: jax.Array, *, lo: float | None = None, hi: float | None = None, finite=True):
+    """Validate concrete values; tracers pass through unchecked."""
+    if not is_concrete(x):
+        return
+    a = np.asarray(x)
+    if finite and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or Inf; pass finite values.")
+    if lo is not None and a.size and a.min() < lo:
+        raise ValueError(f"{name} must be >= {lo:g}, got {a.min():g}.")
+    if hi is not None and a.size and a.max() > hi:
+        raise ValueError(f"{name} must be <= {hi:g}, got {a.max():g}.")
+
+
+def _range_arg(range_) -> jax.Array:
+    """KHR `range`: None / inf / 0 mean unlimited; stored as 1/range (0 = unlimited)."""
+    if range_ is None:
+        return as_float(0.0)
+    rng = as_float(range_)
+    if is_concrete(rng):
+        a = np.asarray(rng)
+        if np.any(np.isnan(a)) or np.any(a < 0):
+            raise ValueError(f"light range must be > 0 (or None/inf for unlimited), got {a.min():g}.")
+        return jnp.where(jnp.isinf(rng) | (rng == 0), 0.0, 1.0 / jnp.where(rng > 0, rng, 1.0))
+    return 1.0 / rng
+
+
+@jax.tree_util.register_pytree_node_class
+class PointLight(_Pytree):
+    """Point light. position (..., 3) [scene units]; color (..., 3) linear RGB; intensity (...) [cd];
+    range (...) or None: KHR smooth window `clamp(1 - (d/range)^4, 0, 1)^2` (None = unlimited)."""
+
+    _fields = ("position", "color", "intensity", "inv_range")
+    __slots__ = _fields
+
+    def __init__(self, position, color=(1.0, 1.0, 1.0), intensity=1.0, range=None):
+        self._set(
+            position=_vec3("PointLight.position", position),
+            color=_vec3("PointLight.color", color),
+            intensity=as_float(intensity),
+            inv_range=_range_arg(range),
+        )
+        _check("PointLight.position", self.position)
+        _check("PointLight.color", self.color, lo=0.0)
+        _check("PointLight.intensity", self.intensity, lo=0.0)
+
+
+@jax.tree_util.register_pytree_node_class
+class DirectionalLight(_Pytree):
+    """Directional light (sun). direction (..., 3): the direction the light *travels* (KHR: the
+    node's -Z), so the unit vector towards the light is `-direction`; color (..., 3);
+    intensity (...) [lux]."""
+
+    _fields = ("direction", "color", "intensity")
+    __slots__ = _fields
+
+    def __init__(self, direction, color=(1.0, 1.0, 1.0), intensity=1.0):
+        self._set(
+            direction=_vec3("DirectionalLight.direction", direction),
+            color=_vec3("DirectionalLight.color", color),
+            intensity=as_float(intensity),
+        )
+        _check("DirectionalLight.direction", self.direction)
+        if is_concrete(self.direction) and np.any(np.linalg.norm(np.asarray(self.direction), axis=-1) == 0):
+            raise ValueError("DirectionalLight.direction must be a non-zero vector.")
+        _check("DirectionalLight.color", self.color, lo=0.0)
+        _check("DirectionalLight.intensity", self.intensity, lo=0.0)
+
+
+@jax.tree_util.register_pytree_node_class
+class SpotLight(_Pytree):
+    """Spot light (KHR_lights_punctual). position, direction (the cone axis, pointing away from the
+    light), color (..., 3); intensity (...) [cd]; inner/outer cone angles in radians with
+    0 <= inner < outer <= pi/2 (KHR defaults 0 and pi/4); optional range as for `PointLight`.
+
+    Angular falloff (KHR): `t = saturate(cos(angle) * s + o)`, `s = 1/max(1e-3, cos(inner) -
+    cos(outer))`, `o = -cos(outer) * s`, attenuation `t^2`.
+    """
+
+    _fields = ("position", "direction", "color", "intensity", "inner_cone_angle", "outer_cone_angle", "inv_range")
+    __slots__ = _fields
+
+    def __init__(
+        self,
+        position,
+        direction,
+        color=(1.0, 1.0, 1.0),
+        intensity=1.0,
+        inner_cone_angle=0.0,
+        outer_cone_angle=math.pi / 4,
+        range=None,
+    ):
+        self._set(
+            position=_vec3("SpotLight.position", position),
+            direction=_vec3("SpotLight.direction", direction),
+            color=_vec3("SpotLight.color", color),
+            intensity=as_float(intensity),
+            inner_cone_angle=as_float(inner_cone_angle),
+            outer_cone_angle=as_float(outer_cone_angle),
+            inv_range=_range_arg(range),
+        )
+        _check("SpotLight.position", self.position)
+        _check("SpotLight.color", self.color, lo=0.0)
+        _check("SpotLight.intensity", self.intensity, lo=0.0)
+        _check("SpotLight.inner_cone_angle", self.inner_cone_angle, lo=0.0)
+        _check("SpotLight.outer_cone_angle", self.outer_cone_angle, lo=0.0, hi=math.pi / 2 + 1e-12)
+        if is_concrete(self.inner_cone_angle) and is_concrete(self.outer_cone_angle):
+            if np.any(np.asarray(self.inner_cone_angle) >= np.asarray(self.outer_cone_angle)):
+                raise ValueError(
+                    "SpotLight.inner_cone_angle must be smaller than outer_cone_angle "
+                    "(KHR_lights_punctual); both are in radians."
+                )
+
+
+@jax.tree_util.register_pytree_node_class
+class LightSet(_Pytree):
+    """Any mix of punctual lights as a struct of arrays with one leading light axis (N, ...).
+
+    position (N, 3); direction (N, 3) (travel direction; used by directional and spot lights);
+    radiant (N, 3) = color * intensity; inv_range (N,); cone_scale, cone_offset (N,) (a point
+    light has scale 0, offset 1); directional (N,) bool.
+    """
+
+    _fields = ("position", "direction", "radiant", "inv_range", "cone_scale", "cone_offset", "directional")
+    __slots__ = _fields
+
+    def __init__(self, position, direction, radiant, inv_range, cone_scale, cone_offset, directional):
+        self._set(
+            position=position,
+            direction=direction,
+            radiant=radiant,
+            inv_range=inv_range,
+            cone_scale=cone_scale,
+            cone_offset=cone_offset,
+            directional=directional,
+        )
+
+    @property
+    def num_lights(self) -> int:
+        return self.radiant.shape[0]
+
+
+def _flat(x, shape_tail: tuple[int, ...]) -> jax.Array:
+    x = jnp.asarray(x)
+    return x.reshape((-1,) + shape_tail)
+
+
+def _pack_one(light) -> LightSet:
+    if isinstance(light, LightSet):
+        return light
+    if isinstance(light, PointLight):
+        radiant = light.color * light.intensity[..., None]
+        batch = radiant.shape[:-1]
+        b = lambda x, tail=(): _flat(jnp.broadcast_to(x, batch + tail), tail)  # noqa: E731
+        return LightSet(
+            position=b(light.position, (3,)),
+            direction=b(jnp.zeros(3, radiant.dtype), (3,)),
+            radiant=b(radiant, (3,)),
+            inv_range=b(light.inv_range),
+            cone_scale=b(jnp.zeros((), radiant.dtype)),
+            cone_offset=b(jnp.ones((), radiant.dtype)),
+            directional=b(jnp.zeros((), bool)),
+        )
+    if isinstance(light, DirectionalLight):
+        radiant = light.color * light.intensity[..., None]
+        batch = radiant.shape[:-1]
+        b = lambda x, tail=(): _flat(jnp.broadcast_to(x, batch + tail), tail)  # noqa: E731
+        return LightSet(
+            position=b(jnp.zeros(3, radiant.dtype), (3,)),
+            direction=b(light.direction, (3,)),
+            radiant=b(radiant, (3,)),
+            inv_range=b(jnp.zeros((), radiant.dtype)),
+            cone_scale=b(jnp.zeros((), radiant.dtype)),
+            cone_offset=b(jnp.ones((), radiant.dtype)),
+            directional=b(jnp.ones((), bool)),
+        )
+    if isinstance(light, SpotLight):
+        radiant = light.color * light.intensity[..., None]
+        batch = radiant.shape[:-1]
+        b = lambda x, tail=(): _flat(jnp.broadcast_to(x, batch + tail), tail)  # noqa: E731
+        cos_outer = jnp.cos(light.outer_cone_angle)
+        scale = 1.0 / jnp.maximum(_MIN_CONE_COS_DELTA, jnp.cos(light.inner_cone_angle) - cos_outer)
+        return LightSet(
+            position=b(light.position, (3,)),
+            direction=b(light.direction, (3,)),
+            radiant=b(radiant, (3,)),
+            inv_range=b(light.inv_range),
+            cone_scale=b(scale),
+            cone_offset=b(-cos_outer * scale),
+            directional=b(jnp.zeros((), bool)),
+        )
+    raise TypeError(
+        f"expected PointLight, DirectionalLight, SpotLight or LightSet, got {type(light).__name__}."
+    )
+
+
+def pack_lights(lights: Any) -> LightSet:
+    """Pack one light, a (possibly batched) light object, a LightSet, or a list of them into a
+    single `LightSet` with a flat leading light axis. Works inside jit (shapes are static)."""
+    if isinstance(lights, (PointLight, DirectionalLight, SpotLight, LightSet)):
+        return _pack_one(lights)
+    if not isinstance(lights, (list, tuple)):
+        raise TypeError(
+            f"lights must be a light, a LightSet or a list of lights, got {type(lights).__name__}."
+        )
+    if len(lights) == 0:
+        raise ValueError("lights is empty; pass at least one light (or skip direct lighting).")
+    sets = [_pack_one(x) for x in lights]
+    dtype = jnp.result_type(*[s.radiant for s in sets])
+    return LightSet(
+        *[
+            jnp.concatenate(
+                [getattr(s, f).astype(bool if f == "directional" else dtype) for s in sets], axis=0
+            )
+            for f in LightSet._fields
+        ]
+    )
+
+
+def light_incidence_soa(light: LightSet, p: Vec3) -> tuple[Vec3, jax.Array, tuple]:
+    """For ONE light (fields without the leading axis) and points `p` (Vec3): the unit direction
+    towards the light `l` (Vec3), and the attenuation plane `a` such that the perpendicular
+    irradiance is `E_perp = radiant * a` (returned as the per-channel tuple too)."""
+    to_light = tuple(light.position[i] - p[i] for i in range(3))
+    d2 = vdot(to_light, to_light)
+    l_local = vnormalize(to_light)
+    d2_safe = jnp.maximum(d2, MIN_LIGHT_DISTANCE**2)
+    # KHR range window clamp(1 - (d/range)^4, 0, 1)^2; inv_range = 0 means unlimited.
+    x = d2 * light.inv_range**2
+    window = saturate(1.0 - x * x) ** 2
+    # Spot cone: cos of the angle between the cone axis and the direction light -> point.
+    axis = vnormalize(unpack3(light.direction))
+    cd = -vdot(axis, l_local)
+    cone = saturate(cd * light.cone_scale + light.cone_offset) ** 2
+    atten = jnp.where(light.directional, 1.0, window * cone / d2_safe)
+    l = tuple(jnp.where(light.directional, -axis[i], l_local[i]) for i in range(3))
+    e = tuple(light.radiant[i] * atten for i in range(3))
+    return l, atten, e
+
+
+def light_incidence(light: LightSet, p: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """For ONE light (fields without the leading axis) and points p (..., 3): the unit direction
+    towards the light `l` (..., 3) and the perpendicular irradiance `E_perp` (..., 3)."""
+    l, _, e = light_incidence_soa(light, unpack3(p))
+    return pack3(l), pack3(e)
+
+
+def shade_direct(
+    p: jax.Array,
+    n: jax.Array,
+    v: jax.Array,
+    m: Material,
+    lights: Any,
+    *,
+    model: str = "gltf",
+    ambient: Any = 0.0,
+    min_roughness: float = MIN_ROUGHNESS,
+    **brdf_options,
+) -> jax.Array:
+    """Outgoing radiance from punctual lights: `sum_i f_r(v, l_i) E_i max(n.l_i, 0)
+    + ambient * base_color * occlusion + emissive`, shape (..., 3).
+
+    Args:
+      p: (..., 3) surface positions; n: (..., 3) normals; v: (..., 3) directions to the viewer.
+      m: `Material` broadcasting with the pixel axes.
+      lights: a light, a list of mixed lights, or a `LightSet` (see `pack_lights`).
+      model: "gltf" | "learnopengl" (see `brdf`).
+      ambient: constant ambient radiance (scalar or (3,)), applied as LearnOpenGL's
+        `ambient * albedo * ao` (not physically based; use IBL for that). Default 0.
+      min_roughness, **brdf_options: passed to `brdf` (smith, diffuse, shader_epsilon).
+    """
+    check_options(model, min_roughness, brdf_options.get("smith", "correlated"), brdf_options.get("diffuse", "lambert"))
+    unknown = set(brdf_options) - {"smith", "diffuse", "shader_epsilon"}
+    if unknown:
+        raise TypeError(f"shade_direct got unknown option(s) {sorted(unknown)}.")
+    ls = pack_lights(lights)
+    num = ls.num_lights
+    p3 = unpack3(p)
+    n3 = vnormalize(unpack3(n))
+    v3 = vnormalize(unpack3(v))
+    base = unpack3(m.base_color)
+
+    def one(light: LightSet) -> Vec3:
+        l3, _, e = light_incidence_soa(light, p3)
+        g = geometry_soa(n3, v3, l3)
+        f = brdf_soa(g, base, m.metallic, m.roughness, model=model, min_roughness=min_roughness, **brdf_options)
+        # g.n_dot_l is the clamped cosine on front lanes; f is 0 elsewhere.
+        return tuple(f[i] * e[i] * g.n_dot_l for i in range(3))
+
+    def add(a: Vec3, b: Vec3) -> Vec3:
+        return tuple(x + y for x, y in zip(a, b))
+
+    take = lambda i: jax.tree_util.tree_map(lambda x: x[i], ls)  # noqa: E731
+    out = one(take(0))
+    if num <= UNROLL_MAX_LIGHTS:
+        for i in range(1, num):
+            out = add(out, one(take(i)))
+    else:
+        shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in out))
+        out = tuple(jnp.broadcast_to(c, shape) for c in out)
+        rest = jax.tree_util.tree_map(lambda x: x[1:], ls)
+        out, _ = jax.lax.scan(lambda acc, light: (add(acc, one(light)), None), out, rest)
+
+    if not (isinstance(ambient, (int, float)) and ambient == 0):  # static zero: no ambient code
+        amb = as_float(ambient)
+        amb3 = unpack3(jnp.broadcast_to(amb, amb.shape[:-1] + (3,)) if amb.ndim else jnp.broadcast_to(amb, (3,)))
+        out = tuple(out[i] + amb3[i] * base[i] * m.occlusion for i in range(3))
+    emissive = unpack3(m.emissive)
+    return pack3(tuple(out[i] + emissive[i] for i in range(3)))
