@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 __all__ = [
     "Vec3",
@@ -31,11 +32,19 @@ __all__ = [
 
 
 def as_float(x) -> jax.Array:
-    """`jnp.asarray` that keeps float arrays as they are and turns ints/bools into the default float.
+    """`jnp.asarray` for user inputs: float arrays unchanged, ints/bools -> default float, and
+    Python numbers *or short sequences of Python numbers* (e.g. `base_color=(0.9, 0.6, 0.2)`)
+    kept weakly typed.
 
-    Why: integer inputs (e.g. `metallic=1`) would otherwise make `1 - metallic` integer arithmetic.
-    Python scalars stay weakly typed, so they never promote a float32 computation to float64.
+    Why: a tuple would otherwise become a strongly typed float64 array when x64 is enabled and
+    silently promote a float32 computation to float64; weakly typed values take the dtype of the
+    arrays they meet, like Python scalars do.
     """
+    if isinstance(x, (list, tuple)):
+        flat = np.asarray(x, dtype=object).ravel()
+        if 0 < flat.size <= 16 and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in flat):
+            shape = np.shape(x)
+            return jnp.stack([jnp.asarray(float(e)) for e in flat]).reshape(shape)
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
