@@ -5,9 +5,9 @@ metallic-roughness and LearnOpenGL/UE4 models), punctual direct lighting, colour
 Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` and the README.
 """
 
-from . import brdf as brdf_terms
+from . import brdf_terms
 from . import color, image, scene
-from .brdf import MIN_ROUGHNESS, MODELS, brdf
+from .brdf_terms import MIN_ROUGHNESS, MODELS, brdf
 from .conventions import CONVENTIONS
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight, pack_lights, shade_direct
 from .material import Material

@@ -216,17 +216,19 @@ def blinn_phong(n_dot_h, shininess, *, normalized: bool = False):
 def fresnel_mix(v_dot_h, base, layer, f0=F0_DIELECTRIC):
     """glTF `fresnel_mix(ior=1.5, base, layer)` = mix(base, layer, f0 + (1 - f0)(1 - VoH)^5).
 
-    `base` (..., 3) (the diffuse BRDF), `layer` (...) or (..., 3) (the specular BRDF).
+    `v_dot_h` (...); `base` (..., 3) the diffuse BRDF (colour); `layer` (...) the specular BRDF,
+    a per-sample scalar (glTF's specular_brdf is achromatic). Returns (..., 3).
     """
     fr = (f0 + (1.0 - f0) * schlick_weight(v_dot_h))[..., None]
-    layer = layer[..., None] if jnp.ndim(layer) < jnp.ndim(base) else layer
-    return base * (1.0 - fr) + layer * fr
+    return base * (1.0 - fr) + jnp.asarray(layer)[..., None] * fr
 
 
 def conductor_fresnel(v_dot_h, f0, bsdf):
-    """glTF `conductor_fresnel(f0, bsdf)` = bsdf * (f0 + (1 - f0)(1 - VoH)^5), `f0` (..., 3)."""
-    bsdf = bsdf[..., None] if jnp.ndim(bsdf) < jnp.ndim(f0) else bsdf
-    return bsdf * fresnel_schlick(v_dot_h[..., None], f0)
+    """glTF `conductor_fresnel(f0, bsdf)` = bsdf * (f0 + (1 - f0)(1 - VoH)^5).
+
+    `v_dot_h` (...); `f0` (..., 3) colour; `bsdf` (...) per-sample scalar. Returns (..., 3).
+    """
+    return jnp.asarray(bsdf)[..., None] * fresnel_schlick(jnp.asarray(v_dot_h)[..., None], f0)
 
 
 # --------------------------------------------------------------------------------------------
