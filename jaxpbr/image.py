@@ -1,0 +1,555 @@
+"""Image files: OpenEXR, Radiance ``.hdr`` and PNG reading and writing (host side, NumPy).
+
+Formats
+-------
+``.exr``
+    Linear float data through the OpenEXR package (``OpenEXR.File``): float32 or half, 1/3/4 channels stored as
+    ``Y`` / ``RGB`` / ``RGBA``, ZIP compression, metadata as header attributes.
+``.hdr``
+    Radiance RGBE through OpenImageIO: linear, 3 channels, non-negative; each pixel shares one 8-bit exponent, so
+    every channel is stored to within about 1/256 of the pixel's *largest* channel. No metadata.
+``.png``
+    Display-encoded 8- or 16-bit code values through OpenImageIO. :func:`write` encodes linear input
+    (``encoding="srgb"`` through colour-science, or ``"gamma2.2"``) and :func:`read` returns the code values
+    scaled to ``[0, 1]`` *without* decoding them (call :func:`jaxpbr.color.srgb_decode` for sRGB files).
+    Alpha is stored straight (unassociated) and is never encoded. Metadata as text chunks (values come back as
+    strings).
+
+Images are ``(H, W, C)`` arrays, row 0 at the top. Reads always return float32 ``(H, W, C)`` (``C = 1`` for
+single-channel files). Writes accept NumPy or JAX arrays ``(H, W)`` or ``(H, W, C)`` with ``C`` in {1, 3, 4},
+refuse NaN/Inf (and values the format cannot hold) with a message saying how many pixels are bad, and are atomic:
+the file is written under a temporary name in the destination directory and renamed into place, so a failed
+write leaves no file behind and never a half-written one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import color
+
+__all__ = ["SUPPORTED_EXTENSIONS", "read", "read_with_metadata", "write"]
+
+#: File extensions (lower case) that :func:`read` and :func:`write` understand.
+SUPPORTED_EXTENSIONS = (".exr", ".hdr", ".png")
+
+_HALF_MAX = 65504.0  # largest finite IEEE binary16 value
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+_INT32_RANGE = (-(2**31), 2**31 - 1)
+
+# Structural EXR header attributes: written by the library itself, never returned or accepted as metadata.
+_EXR_RESERVED = frozenset(
+    {
+        "channels",
+        "compression",
+        "dataWindow",
+        "displayWindow",
+        "lineOrder",
+        "pixelAspectRatio",
+        "screenWindowCenter",
+        "screenWindowWidth",
+        "tiles",
+        "type",
+        "name",
+        "version",
+        "chunkCount",
+        "view",
+        "maxSamplesPerPixel",
+    }
+)
+_EXR_CHANNELS = {1: "Y", 3: "RGB", 4: "RGBA"}
+_PNG_COLORSPACE = {"srgb": "sRGB", "gamma2.2": "Gamma2.2"}  # tags OIIO turns into the sRGB / gAMA chunks
+
+
+# -------------------------------------------------------------------------------------------------- helpers
+
+
+def _oiio():
+    import OpenImageIO
+
+    return OpenImageIO
+
+
+def _exr():
+    import OpenEXR
+
+    return OpenEXR
+
+
+def _extension(path: Path) -> str:
+    ext = path.suffix.lower()
+    if ext not in SUPPORTED_EXTENSIONS:
+        raise ValueError(
+            f"unsupported image file extension {path.suffix or '(none)'!r} in {str(path)!r}; "
+            f"supported: {', '.join(SUPPORTED_EXTENSIONS)}"
+        )
+    return ext
+
+
+def _check_readable(path: Path) -> None:
+    if not path.exists():
+        raise FileNotFoundError(f"image file {str(path)!r} does not exist")
+    if not path.is_file():
+        raise ValueError(f"{str(path)!r} is not a regular file")
+    if not os.access(path, os.R_OK):
+        raise PermissionError(f"image file {str(path)!r} is not readable (check its permissions)")
+
+
+# ------------------------------------------------------------------------------------------------------ read
+
+
+def read(path, *, channels=None) -> np.ndarray:
+    """Read an image file into a float32 ``(H, W, C)`` array.
+
+    Args:
+      path: ``.exr``, ``.hdr`` or ``.png`` file (``str`` or path-like; the extension picks the format).
+      channels: ``.exr`` only: the channel names to read, in order (e.g. ``["Z"]`` or
+        ``["diffuse.R", "diffuse.G", "diffuse.B"]``). By default ``R, G, B`` (plus ``A`` if present) are read;
+        otherwise ``Y`` (plus ``A``); otherwise the only channel; otherwise the ``R, G, B(, A)`` of the one
+        layer that has them.
+
+    Returns:
+      ``.exr``: the (first part's) data window, half/uint promoted to float32. ``.hdr``: linear radiance
+      ``(H, W, 3)``. ``.png``: code values divided by 255 or 65535 — still display-encoded (apply
+      :func:`jaxpbr.color.srgb_decode` to an sRGB image to get linear values); grey files give ``C = 1``,
+      grey+alpha ``C = 2``; alpha is straight (not premultiplied).
+
+    Raises:
+      FileNotFoundError: the file does not exist.
+      ValueError: unsupported extension, or the file is corrupt / not in the format its extension says.
+    """
+    return _read(path, channels, want_metadata=False)[0]
+
+
+def read_with_metadata(path, *, channels=None) -> tuple[np.ndarray, dict]:
+    """Like :func:`read`, and also return the file's metadata.
+
+    Returns:
+      ``(image, metadata)``. For ``.exr`` the header's string, int, float and double attributes other than the
+      structural ones (channels, compression, windows, ...); values written by :func:`write` as JSON
+      (dicts/lists/bools) come back as their JSON strings (``json.loads`` them). For ``.png`` the text
+      attributes (all values are strings). For ``.hdr`` an empty dict.
+    """
+    return _read(path, channels, want_metadata=True)
+
+
+def _read(path, channels, want_metadata):
+    path = Path(os.fspath(path))
+    ext = _extension(path)
+    _check_readable(path)
+    if channels is not None and ext != ".exr":
+        raise ValueError(f"channels= selects EXR channels by name; {str(path)!r} is a {ext} file")
+    if ext == ".exr":
+        img, meta = _read_exr(path, channels)
+    else:
+        img, meta = _read_oiio(path, ext)
+    if img.ndim != 3 or img.shape[0] == 0 or img.shape[1] == 0:
+        raise ValueError(f"{str(path)!r} holds an empty or malformed image of shape {img.shape}")
+    return img, (meta if want_metadata else {})
+
+
+def _read_exr(path: Path, channels):
+    OpenEXR = _exr()
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            header = dict(f.header())
+            chans = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+    except Exception as e:  # the binding raises RuntimeError for garbage, truncated or unsupported (deep) files
+        raise ValueError(f"could not read {str(path)!r} as an OpenEXR image (corrupt or truncated?): {e}") from e
+
+    names = _select_exr_channels(path, list(chans), channels)
+    planes = [chans[n] for n in names]
+    shapes = {p.shape for p in planes}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
+        raise ValueError(
+            f"{str(path)!r}: channels {names} have different or non-2-D pixel shapes {sorted(shapes)} "
+            "(subsampled or deep channels are not supported)"
+        )
+    img = np.stack([p.astype(np.float32, copy=False) for p in planes], axis=-1)
+
+    meta = {}
+    for key, value in header.items():
+        if key in _EXR_RESERVED:
+            continue
+        if isinstance(value, str):
+            meta[key] = value
+        elif isinstance(value, (bool, np.bool_)):
+            continue
+        elif isinstance(value, (int, float)):
+            meta[key] = value
+        elif isinstance(value, np.ndarray) and value.dtype == np.float64 and value.size == 1:
+            meta[key] = float(value.reshape(()))  # a `double` attribute (how write() stores Python floats)
+    return img, meta
+
+
+def _select_exr_channels(path: Path, names: list[str], requested):
+    if requested is not None:
+        requested = [requested] if isinstance(requested, str) else list(requested)
+        missing = [n for n in requested if n not in names]
+        if missing or not requested:
+            raise ValueError(
+                f"{str(path)!r} has no channel(s) {missing or requested}; its channels are {sorted(names)}"
+            )
+        return requested
+    have = set(names)
+
+    def rgba(prefix):
+        rgb = [prefix + c for c in "RGB"]
+        if not set(rgb) <= have:
+            return None
+        return rgb + ([prefix + "A"] if prefix + "A" in have else [])
+
+    if (sel := rgba("")) is not None:
+        return sel
+    if "Y" in have and not ({"RY", "BY"} & have):
+        return ["Y"] + (["A"] if "A" in have else [])
+    if len(names) == 1:
+        return names
+    layers = {n.rsplit(".", 1)[0] + "." for n in names if n.endswith(".R")}
+    found = [sel for p in sorted(layers) if (sel := rgba(p)) is not None]
+    if len(found) == 1:
+        return found[0]
+    raise ValueError(
+        f"{str(path)!r} has no unambiguous RGB/RGBA/Y channel set; its channels are {sorted(names)}. "
+        "Pass channels=[...] to choose."
+    )
+
+
+def _read_oiio(path: Path, ext: str):
+    oiio = _oiio()
+    config = oiio.ImageSpec()
+    # PNG stores straight alpha; without this hint OIIO premultiplies RGB by alpha on read.
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    kind = "a Radiance .hdr" if ext == ".hdr" else "a PNG"
+    inp = oiio.ImageInput.open(str(path), config)
+    if inp is None:
+        raise ValueError(f"could not read {str(path)!r} as {kind} image (corrupt or truncated?): {oiio.geterror()}")
+    try:
+        spec = inp.spec()
+        if ext == ".hdr":
+            orientation = spec.getattribute("Orientation")
+            if orientation not in (None, 1):
+                raise ValueError(
+                    f"{str(path)!r} uses Radiance orientation code {orientation} (not '-Y H +X W'); "
+                    "re-save it in the standard orientation (e.g. `oiiotool in.hdr --reorient -o out.hdr`)"
+                )
+            fmt = oiio.FLOAT
+        else:
+            fmt = spec.format
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        error = inp.geterror()
+    finally:
+        inp.close()
+    if pixels is None or not isinstance(pixels, np.ndarray) or pixels.size == 0:
+        raise ValueError(f"could not read the pixels of {str(path)!r} (corrupt or truncated?): {error}")
+    if pixels.ndim == 2:
+        pixels = pixels[..., None]
+
+    if ext == ".hdr":
+        img = pixels.astype(np.float32, copy=False)
+    else:
+        if pixels.dtype == np.uint8:
+            scale = 255.0
+        elif pixels.dtype == np.uint16:
+            scale = 65535.0
+        else:  # pragma: no cover - PNG is 1/2/4/8/16-bit and OIIO delivers those as uint8/uint16
+            raise ValueError(f"{str(path)!r}: unexpected PNG sample type {pixels.dtype}")
+        img = (pixels.astype(np.float64) / scale).astype(np.float32)
+
+    meta = {}
+    if ext == ".png":
+        for attr in spec.extra_attribs:
+            if str(attr.type) == "string" and not attr.name.lower().startswith("oiio:"):
+                meta[attr.name] = attr.value
+    return img, meta
+
+
+# ----------------------------------------------------------------------------------------------------- write
+
+
+def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb") -> None:
+    """Write an image atomically; the extension picks the format.
+
+    Args:
+      path: destination ``.exr``, ``.hdr`` or ``.png`` (its directory must exist and be writable).
+      img: ``(H, W)`` or ``(H, W, C)`` NumPy/JAX array, ``C`` in {1, 3, 4} (grey / RGB / RGBA), no NaN or Inf.
+        ``.exr`` and ``.hdr`` take linear values (``.hdr``: RGB only, no negative values). ``.png`` takes linear
+        values in ``[0, 1]`` scale that are encoded per ``encoding`` (alpha excepted), clipped to ``[0, 1]`` and
+        rounded to the nearest code value (ties to even).
+      metadata: optional dict of ``str -> value``. ``.exr``: written as header attributes — ``str`` as string,
+        ``int`` as int (must fit 32 bits), ``float`` as double; ``dict``/``list``/``tuple``/``bool``/``None`` as
+        JSON strings. ``.png``: text chunks (numbers written as their ``repr``, the rest as above). ``.hdr``
+        cannot store it (a warning says so).
+      half: ``.exr`` only: store IEEE half floats (values must satisfy ``|x| <= 65504``).
+      bits: ``.png`` only: 8 or 16 bits per channel.
+      encoding: ``.png`` only: ``"srgb"`` (IEC 61966-2-1 through colour-science, :func:`jaxpbr.color.srgb_encode_np`),
+        ``"gamma2.2"`` (``max(c, 0) ** (1/2.2)``) or ``"linear"`` (values written as given — pass data that is
+        already display-encoded, or non-colour data). The file is tagged sRGB (sRGB chunk) or gamma 2.2 (gAMA
+        chunk) accordingly; ``"linear"`` keeps OpenImageIO's default sRGB tag.
+
+    Raises:
+      ValueError: bad shape, channel count, dtype, NaN/Inf or out-of-range values, bad options or metadata.
+      FileNotFoundError / NotADirectoryError / PermissionError: the destination directory is missing, is not a
+        directory, or is not writable.
+      OSError: the library failed to write the file (nothing is left behind).
+    """
+    path = Path(os.fspath(path))
+    ext = _extension(path)
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16 (PNG bit depth); got {bits!r}")
+    if encoding not in color.TRANSFERS:
+        raise ValueError(
+            f"unknown PNG encoding {encoding!r}; choose one of {', '.join(map(repr, color.TRANSFERS))}"
+        )
+    if half and ext != ".exr":
+        raise ValueError(f"half=True only applies to .exr files; {str(path)!r} is a {ext} file")
+
+    arr = _validated_image(img)
+    if ext == ".exr":
+        payload = _exr_payload(arr, half)
+        header = _exr_metadata(metadata)
+        writer = lambda tmp: _write_exr(tmp, payload, header)  # noqa: E731
+    elif ext == ".hdr":
+        payload = _hdr_payload(arr)
+        if metadata:
+            warnings.warn(
+                f"Radiance .hdr files cannot store metadata; {len(metadata)} key(s) were not written to "
+                f"{str(path)!r} (use .exr to keep them)",
+                UserWarning,
+                stacklevel=2,
+            )
+        writer = lambda tmp: _write_oiio(tmp, "hdr", payload, {})  # noqa: E731
+    else:
+        payload = _png_payload(arr, bits, encoding)
+        attrs = _png_metadata(metadata)
+        attrs["oiio:UnassociatedAlpha"] = 1  # store alpha as given (OIIO would otherwise un-premultiply)
+        if encoding in _PNG_COLORSPACE:
+            attrs["oiio:ColorSpace"] = _PNG_COLORSPACE[encoding]
+        writer = lambda tmp: _write_oiio(tmp, "png", payload, attrs)  # noqa: E731
+    _atomic_write(path, writer)
+
+
+def _validated_image(img) -> np.ndarray:
+    arr = np.asarray(img)
+    if arr.dtype.kind not in "fiu":
+        raise ValueError(f"image must be a real float or integer array; got dtype {arr.dtype}")
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3:
+        raise ValueError(f"image must have shape (H, W) or (H, W, C); got shape {arr.shape}")
+    if arr.shape[-1] not in (1, 3, 4):
+        raise ValueError(
+            f"image must have 1 (grey), 3 (RGB) or 4 (RGBA) channels in its last axis; got shape {arr.shape}"
+        )
+    if arr.shape[0] == 0 or arr.shape[1] == 0:
+        raise ValueError(f"image is empty: shape {arr.shape}")
+    if arr.dtype.kind == "f":
+        finite = np.isfinite(arr)
+        if not finite.all():
+            bad_pixels = int(np.count_nonzero(~finite.all(axis=-1)))
+            n_nan = int(np.count_nonzero(np.isnan(arr)))
+            n_inf = int(arr.size - np.count_nonzero(finite) - n_nan)
+            raise ValueError(
+                f"image has {bad_pixels} of {arr.shape[0] * arr.shape[1]} pixels with non-finite values "
+                f"({n_nan} NaN and {n_inf} Inf values); refusing to write. Find where they come from, or replace them "
+                "explicitly (e.g. np.nan_to_num) if that is what you want."
+            )
+    return arr
+
+
+def _count_pixels(mask: np.ndarray) -> int:
+    return int(np.count_nonzero(mask.any(axis=-1)))
+
+
+def _exr_payload(arr: np.ndarray, half: bool) -> dict:
+    limit, name = (_HALF_MAX, "float16 (half)") if half else (_FLOAT32_MAX, "float32")
+    too_big = np.abs(arr) > limit
+    if too_big.any():
+        fix = "Write float32 (half=False) or scale the image down" if half else "Scale the image down"
+        raise ValueError(
+            f"{_count_pixels(too_big)} pixels have values beyond the {name} maximum {limit:g} "
+            f"(largest |value| {float(np.abs(arr).max()):g}); they would become Inf. {fix}."
+        )
+    dtype = np.float16 if half else np.float32
+    name = _EXR_CHANNELS[arr.shape[-1]]
+    # C-contiguous copies: the OpenEXR binding ignores NumPy strides and would scramble a strided view.
+    data = np.ascontiguousarray(arr[..., 0] if name == "Y" else arr, dtype=dtype)
+    return {name: data}
+
+
+def _hdr_payload(arr: np.ndarray) -> np.ndarray:
+    if arr.shape[-1] != 3:
+        raise ValueError(
+            f"Radiance .hdr stores RGB only; got {arr.shape[-1]} channels (write .exr for grey or RGBA images)"
+        )
+    negative = arr < 0
+    if negative.any():
+        raise ValueError(
+            f"{_count_pixels(negative)} pixels have negative values, which Radiance RGBE cannot store "
+            "(write .exr, or clip them explicitly if that is what you want)"
+        )
+    too_big = arr > _FLOAT32_MAX
+    if too_big.any():
+        raise ValueError(f"{_count_pixels(too_big)} pixels have values beyond the float32 maximum; scale them down")
+    return np.ascontiguousarray(arr, dtype=np.float32)
+
+
+def _png_payload(arr: np.ndarray, bits: int, encoding: str) -> np.ndarray:
+    if arr.dtype.kind != "f":
+        raise ValueError(
+            f"PNG writing takes float values in [0, 1] scale; got integer dtype {arr.dtype} "
+            "(divide 8-bit code values by 255 and pass encoding='linear')"
+        )
+    x = arr.astype(np.float64)
+    n_color = 3 if x.shape[-1] == 4 else x.shape[-1]  # alpha is coverage, never transfer-encoded
+    if encoding == "srgb":
+        x[..., :n_color] = color.srgb_encode_np(x[..., :n_color])
+    elif encoding == "gamma2.2":
+        x[..., :n_color] = np.maximum(x[..., :n_color], 0.0) ** (1.0 / 2.2)
+    top = 2**bits - 1
+    codes = np.rint(np.clip(x, 0.0, 1.0) * top)
+    return np.ascontiguousarray(codes, dtype=np.uint8 if bits == 8 else np.uint16)
+
+
+def _metadata_items(metadata):
+    if metadata is None:
+        return []
+    if not isinstance(metadata, dict):
+        raise ValueError(f"metadata must be a dict of str -> value; got {type(metadata).__name__}")
+    for key in metadata:
+        if not isinstance(key, str) or not key:
+            raise ValueError(f"metadata keys must be non-empty strings; got {key!r}")
+        if key.lower().startswith("oiio:"):
+            raise ValueError(f"metadata key {key!r} is reserved for OpenImageIO's own settings; rename it")
+    return list(metadata.items())
+
+
+def _json(key, value) -> str:
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    try:
+        return json.dumps(value, allow_nan=False)
+    except (TypeError, ValueError) as e:
+        raise ValueError(
+            f"metadata value for {key!r} ({type(value).__name__}) cannot be stored: {e}. "
+            "Use str, int, float, or JSON-serialisable dict/list values."
+        ) from e
+
+
+def _exr_metadata(metadata) -> dict:
+    OpenEXR = _exr()
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    for key, value in _metadata_items(metadata):
+        if key in _EXR_RESERVED:
+            raise ValueError(
+                f"metadata key {key!r} is a structural OpenEXR header attribute set by the writer; rename it"
+            )
+        if isinstance(value, str):
+            header[key] = value
+        elif isinstance(value, (bool, np.bool_)) or value is None:
+            header[key] = _json(key, bool(value) if value is not None else None)
+        elif isinstance(value, (int, np.integer)):
+            v = int(value)
+            if not _INT32_RANGE[0] <= v <= _INT32_RANGE[1]:
+                raise ValueError(
+                    f"metadata value {key!r} = {v} does not fit a 32-bit EXR int attribute; pass it as a str"
+                )
+            header[key] = v
+        elif isinstance(value, (float, np.floating)):
+            # A 0-d float64 array becomes an EXR `double` attribute; a Python float would be cut to 32 bits.
+            header[key] = np.array(float(value), dtype=np.float64)
+        else:
+            header[key] = _json(key, value)
+    return header
+
+
+def _png_metadata(metadata) -> dict:
+    attrs = {}
+    for key, value in _metadata_items(metadata):
+        if isinstance(value, str):
+            attrs[key] = value
+        elif isinstance(value, (bool, np.bool_)) or value is None:
+            attrs[key] = _json(key, bool(value) if value is not None else None)
+        elif isinstance(value, (int, np.integer)):
+            attrs[key] = str(int(value))
+        elif isinstance(value, (float, np.floating)):
+            attrs[key] = repr(float(value))
+        else:
+            attrs[key] = _json(key, value)
+    return attrs
+
+
+def _write_exr(tmp: str, channels: dict, header: dict) -> None:
+    OpenEXR = _exr()
+    try:
+        with OpenEXR.File(header, channels) as f:
+            f.write(tmp)
+    except Exception as e:
+        raise OSError(f"OpenEXR failed to write the image: {e}") from e
+
+
+def _write_oiio(tmp: str, fmt: str, pixels: np.ndarray, attrs: dict) -> None:
+    oiio = _oiio()
+    h, w, c = pixels.shape
+    typedesc = {np.dtype(np.float32): oiio.FLOAT, np.dtype(np.uint8): oiio.UINT8, np.dtype(np.uint16): oiio.UINT16}
+    spec = oiio.ImageSpec(w, h, c, typedesc[pixels.dtype])
+    for key, value in attrs.items():
+        spec.attribute(key, value)
+    out = oiio.ImageOutput.create(fmt)
+    if out is None:
+        raise OSError(f"OpenImageIO has no {fmt} writer: {oiio.geterror()}")
+    if not out.open(tmp, spec):
+        raise OSError(f"OpenImageIO could not open the file for writing: {out.geterror()}")
+    ok = out.write_image(pixels)
+    error = out.geterror()
+    closed = out.close()
+    if not ok or not closed:
+        raise OSError(f"OpenImageIO failed to write the {fmt} image: {error or out.geterror()}")
+
+
+def _atomic_write(path: Path, writer) -> None:
+    """Write through ``writer(tmp_path)`` to a temp file next to ``path``, then rename it over ``path``."""
+    parent = path.parent
+    if not parent.exists():
+        raise FileNotFoundError(
+            f"cannot write {str(path)!r}: directory {str(parent)!r} does not exist (create it first)"
+        )
+    if not parent.is_dir():
+        raise NotADirectoryError(f"cannot write {str(path)!r}: {str(parent)!r} is not a directory")
+    if path.is_dir():
+        raise IsADirectoryError(f"cannot write {str(path)!r}: it is an existing directory")
+
+    # Hidden name in the same directory (so os.replace is an atomic rename on one file system), keeping the
+    # extension last. Created with O_EXCL and mode 0o666 so the umask applies as for any new file.
+    for _ in range(100):
+        tmp = parent / f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            break
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise type(e)(
+                e.errno, f"cannot write {str(path)!r}: directory {str(parent)!r} is not writable ({e.strerror})"
+            ) from e
+    else:  # pragma: no cover - 100 random collisions
+        raise OSError(f"cannot create a temporary file in {str(parent)!r}")
+    os.close(fd)
+
+    try:
+        writer(str(tmp))
+        os.replace(tmp, path)
+    except BaseException as e:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, PermissionError)):
+            raise OSError(f"failed to write {str(path)!r}: {e}") from e
+        raise
