@@ -41,14 +41,29 @@ def as_float(x) -> jax.Array:
     arrays they meet, like Python scalars do.
     """
     if isinstance(x, (list, tuple)):
-        flat = np.asarray(x, dtype=object).ravel()
-        if 0 < flat.size <= 16 and all(isinstance(e, (int, float)) and not isinstance(e, bool) for e in flat):
-            shape = np.shape(x)
-            return jnp.stack([jnp.asarray(float(e)) for e in flat]).reshape(shape)
+        flat = _python_numbers(x)
+        if flat is not None and 0 < len(flat) <= 16:
+            return jnp.stack([jnp.asarray(float(e)) for e in flat]).reshape(np.shape(x))
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
+
+
+def _python_numbers(x) -> list | None:
+    """The flattened Python numbers of a nested list/tuple, or None if anything else is inside."""
+    out = []
+    for e in x:
+        if isinstance(e, (list, tuple)):
+            sub = _python_numbers(e)
+            if sub is None:
+                return None
+            out.extend(sub)
+        elif isinstance(e, (int, float)) and not isinstance(e, bool):
+            out.append(e)
+        else:
+            return None
+    return out
 
 
 def eps(dtype) -> float:

@@ -29,6 +29,8 @@ import warnings
 import jax.numpy as jnp
 import numpy as np
 
+from ._numerics import as_float as _as_float
+
 __all__ = [
     "TONEMAP_OPERATORS",
     "TRANSFERS",
@@ -66,14 +68,6 @@ _ACES_OUTPUT = (
     (-0.10208, 1.10813, -0.00605),
     (-0.00327, -0.07276, 1.07602),
 )
-
-
-def _as_float(x):
-    """``x`` as a JAX array with a floating dtype (floats keep theirs; ints/bools go to the default float)."""
-    x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        x = x.astype(jnp.result_type(float))
-    return x
 
 
 def _check_rgb(c, name):

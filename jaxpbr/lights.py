@@ -224,58 +224,33 @@ class LightSet(_Pytree):
         return self.radiant.shape[0]
 
 
-def _flat(x, shape_tail: tuple[int, ...]) -> jax.Array:
-    x = jnp.asarray(x)
-    return x.reshape((-1,) + shape_tail)
-
-
 def _pack_one(light) -> LightSet:
+    """One light object (leaves possibly batched) -> LightSet with a flat leading light axis."""
     if isinstance(light, LightSet):
         return light
-    if isinstance(light, PointLight):
-        radiant = light.color * light.intensity[..., None]
-        batch = radiant.shape[:-1]
-        b = lambda x, tail=(): _flat(jnp.broadcast_to(x, batch + tail), tail)  # noqa: E731
-        return LightSet(
-            position=b(light.position, (3,)),
-            direction=b(jnp.zeros(3, radiant.dtype), (3,)),
-            radiant=b(radiant, (3,)),
-            inv_range=b(light.inv_range),
-            cone_scale=b(jnp.zeros((), radiant.dtype)),
-            cone_offset=b(jnp.ones((), radiant.dtype)),
-            directional=b(jnp.zeros((), bool)),
+    if not isinstance(light, (PointLight, DirectionalLight, SpotLight)):
+        raise TypeError(
+            f"expected PointLight, DirectionalLight, SpotLight or LightSet, got {type(light).__name__}."
         )
+    radiant = light.color * light.intensity[..., None]
+    dtype, batch = radiant.dtype, radiant.shape[:-1]
+    zero3, zero, one = jnp.zeros(3, dtype), jnp.zeros((), dtype), jnp.ones((), dtype)
+    fields = dict(radiant=radiant, cone_scale=zero, cone_offset=one)  # no cone: point/directional
     if isinstance(light, DirectionalLight):
-        radiant = light.color * light.intensity[..., None]
-        batch = radiant.shape[:-1]
-        b = lambda x, tail=(): _flat(jnp.broadcast_to(x, batch + tail), tail)  # noqa: E731
-        return LightSet(
-            position=b(jnp.zeros(3, radiant.dtype), (3,)),
-            direction=b(light.direction, (3,)),
-            radiant=b(radiant, (3,)),
-            inv_range=b(jnp.zeros((), radiant.dtype)),
-            cone_scale=b(jnp.zeros((), radiant.dtype)),
-            cone_offset=b(jnp.ones((), radiant.dtype)),
-            directional=b(jnp.ones((), bool)),
-        )
+        fields.update(position=zero3, direction=light.direction, inv_range=zero, directional=True)
+    else:
+        fields.update(position=light.position, inv_range=light.inv_range, directional=False)
+        fields["direction"] = light.direction if isinstance(light, SpotLight) else zero3
     if isinstance(light, SpotLight):
-        radiant = light.color * light.intensity[..., None]
-        batch = radiant.shape[:-1]
-        b = lambda x, tail=(): _flat(jnp.broadcast_to(x, batch + tail), tail)  # noqa: E731
         cos_outer = jnp.cos(light.outer_cone_angle)
         scale = 1.0 / jnp.maximum(_MIN_CONE_COS_DELTA, jnp.cos(light.inner_cone_angle) - cos_outer)
-        return LightSet(
-            position=b(light.position, (3,)),
-            direction=b(light.direction, (3,)),
-            radiant=b(radiant, (3,)),
-            inv_range=b(light.inv_range),
-            cone_scale=b(scale),
-            cone_offset=b(-cos_outer * scale),
-            directional=b(jnp.zeros((), bool)),
-        )
-    raise TypeError(
-        f"expected PointLight, DirectionalLight, SpotLight or LightSet, got {type(light).__name__}."
-    )
+        fields.update(cone_scale=scale, cone_offset=-cos_outer * scale)
+    out = {}
+    for name in LightSet._fields:
+        x = jnp.asarray(fields[name])
+        tail = (3,) if name in ("position", "direction", "radiant") else ()
+        out[name] = jnp.broadcast_to(x, batch + tail).reshape((-1,) + tail)
+    return LightSet(**out)
 
 
 def pack_lights(lights: Any) -> LightSet:
