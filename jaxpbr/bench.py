@@ -75,7 +75,6 @@ def shade_numpy(g: dict[str, np.ndarray], lights: list[dict], min_roughness: flo
     a = r * r
     a2 = a * a
     nv = np.sum(n * v, axis=-1)
-    f0 = 0.04 * (1.0 - metal) + base * metal
     diffuse = base * (1.0 / math.pi)
     out = np.zeros_like(base)
     for light in lights:

@@ -12,7 +12,7 @@ Models (`brdf(..., model=...)`):
   it: Schlick-GGX with `k = (r+1)^2/8`, `F0 = mix(0.04, albedo, metallic)`,
   `kD = (1 - F)(1 - metallic)`, `f = kD*albedo/pi + D*G*F / (4*NoV*NoL + shader_epsilon)`.
 
-Stiff inputs (MATH.md §8) are handled once, in `_geometry`: directions are normalised safely, the
+Stiff inputs (MATH.md §8) are handled once, in `geometry_soa`: directions are normalised safely, the
 half vector of v = -l is the zero vector, and lanes where the surface does not see both the viewer
 and the light (NoV <= 0 or NoL <= 0) get benign stand-in values before anything divides, then a
 BRDF of exactly 0. Roughness is floored at `min_roughness` (default 0.045, Filament's desktop

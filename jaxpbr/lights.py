@@ -15,7 +15,7 @@ the program size does not grow with the number of lights.
 from __future__ import annotations
 
 import math
-from typing import Any, Iterable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -276,10 +276,9 @@ def pack_lights(lights: Any) -> LightSet:
     )
 
 
-def light_incidence_soa(light: LightSet, p: Vec3) -> tuple[Vec3, jax.Array, tuple]:
+def light_incidence_soa(light: LightSet, p: Vec3) -> tuple[Vec3, Vec3]:
     """For ONE light (fields without the leading axis) and points `p` (Vec3): the unit direction
-    towards the light `l` (Vec3), and the attenuation plane `a` such that the perpendicular
-    irradiance is `E_perp = radiant * a` (returned as the per-channel tuple too)."""
+    towards the light `l` and the per-channel perpendicular irradiance `E_perp` (both Vec3)."""
     to_light = tuple(light.position[i] - p[i] for i in range(3))
     d2 = vdot(to_light, to_light)
     l_local = vnormalize(to_light)
@@ -294,13 +293,13 @@ def light_incidence_soa(light: LightSet, p: Vec3) -> tuple[Vec3, jax.Array, tupl
     atten = jnp.where(light.directional, 1.0, window * cone / d2_safe)
     l = tuple(jnp.where(light.directional, -axis[i], l_local[i]) for i in range(3))
     e = tuple(light.radiant[i] * atten for i in range(3))
-    return l, atten, e
+    return l, e
 
 
 def light_incidence(light: LightSet, p: jax.Array) -> tuple[jax.Array, jax.Array]:
     """For ONE light (fields without the leading axis) and points p (..., 3): the unit direction
     towards the light `l` (..., 3) and the perpendicular irradiance `E_perp` (..., 3)."""
-    l, _, e = light_incidence_soa(light, unpack3(p))
+    l, e = light_incidence_soa(light, unpack3(p))
     return pack3(l), pack3(e)
 
 
@@ -340,7 +339,7 @@ def shade_direct(
     base = unpack3(m.base_color)
 
     def one(light: LightSet) -> Vec3:
-        l3, _, e = light_incidence_soa(light, p3)
+        l3, e = light_incidence_soa(light, p3)
         g = geometry_soa(n3, v3, l3)
         f = brdf_soa(g, base, m.metallic, m.roughness, model=model, min_roughness=min_roughness, **brdf_options)
         # g.n_dot_l is the clamped cosine on front lanes; f is 0 elsewhere.
