@@ -93,7 +93,6 @@ def _check_output_path(path: Path) -> None:
 
 
 def _cmd_render(args) -> int:
-    import jax.numpy as jnp
     import numpy as np
 
     from . import color, image
@@ -106,12 +105,12 @@ def _cmd_render(args) -> int:
     encoding = args.encoding or ("gamma2.2" if args.model == "learnopengl" else "srgb")
 
     t0 = time.perf_counter()
-    hdr = render_demo(args.width, args.height, model=args.model)
-    hdr = np.asarray(hdr)
+    hdr_device = render_demo(args.width, args.height, model=args.model)
+    display = np.asarray(color.tonemap(color.exposure(hdr_device, args.exposure), tonemap))
+    hdr = np.asarray(hdr_device)  # one device -> host copy of each image
     t_render = time.perf_counter() - t0
     if not np.all(np.isfinite(hdr)):
         raise CLIError("the render produced non-finite values; this is a bug, please report it")
-    display = np.asarray(color.tonemap(color.exposure(jnp.asarray(hdr), args.exposure), tonemap))
     metadata = {
         "software": "jaxpbr",
         "jaxpbr:scene": "demo sphere grid (7x7, metallic by row, roughness by column), 4 point lights",

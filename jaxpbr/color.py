@@ -363,6 +363,15 @@ def _np_float(c):
     return c
 
 
+def _cctf_np(c, function_name: str):
+    """Apply colour-science's sRGB ``cctf_encoding`` / ``cctf_decoding`` in float64, keeping c's float dtype."""
+    colour = _colour()
+    c = _np_float(c)
+    with colour.domain_range_scale("ignore"):
+        out = getattr(colour, function_name)(c.astype(np.float64), function="sRGB")
+    return np.asarray(out, dtype=c.dtype)
+
+
 def srgb_encode_np(c):
     """Host-side linear → sRGB encoding through colour-science (``colour.cctf_encoding(c, function="sRGB")``).
 
@@ -375,11 +384,7 @@ def srgb_encode_np(c):
     Returns:
       NumPy array of encoded values, same shape; same floating dtype as the input (integers give float64).
     """
-    colour = _colour()
-    c = _np_float(c)
-    with colour.domain_range_scale("ignore"):
-        out = colour.cctf_encoding(c.astype(np.float64), function="sRGB")
-    return np.asarray(out, dtype=c.dtype)
+    return _cctf_np(c, "cctf_encoding")
 
 
 def srgb_decode_np(c):
@@ -391,8 +396,4 @@ def srgb_decode_np(c):
     Returns:
       NumPy array of linear values, same shape; same floating dtype as the input (integers give float64).
     """
-    colour = _colour()
-    c = _np_float(c)
-    with colour.domain_range_scale("ignore"):
-        out = colour.cctf_decoding(c.astype(np.float64), function="sRGB")
-    return np.asarray(out, dtype=c.dtype)
+    return _cctf_np(c, "cctf_decoding")

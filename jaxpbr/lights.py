@@ -97,16 +97,17 @@ def _check(name: str, x: jax.Array, *, lo: float | None = None, hi: float | None
 
 
 def _range_arg(range_) -> jax.Array:
-    """KHR `range`: None / inf / 0 mean unlimited; stored as 1/range (0 = unlimited)."""
+    """KHR `range` (> 0): None or inf mean unlimited; stored as 1/range (0 = unlimited)."""
     if range_ is None:
         return as_float(0.0)
     rng = as_float(range_)
     if is_concrete(rng):
         a = np.asarray(rng)
-        if np.any(np.isnan(a)) or np.any(a < 0):
-            raise ValueError(f"light range must be > 0 (or None/inf for unlimited), got {a.min():g}.")
-        return jnp.where(jnp.isinf(rng) | (rng == 0), 0.0, 1.0 / jnp.where(rng > 0, rng, 1.0))
-    return 1.0 / rng
+        if np.any(np.isnan(a)) or np.any(a <= 0):
+            raise ValueError(
+                f"light range must be > 0 (KHR_lights_punctual), or None/inf for unlimited; got {a.min():g}."
+            )
+    return 1.0 / rng  # 1/inf = 0: unlimited
 
 
 @jax.tree_util.register_pytree_node_class

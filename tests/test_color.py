@@ -381,17 +381,8 @@ def test_exposure_exact_powers_of_two_and_broadcasting():
 # ------------------------------------------------------------------------------- dtype, batching, jit
 
 
-ELEMENTWISE = {
-    "srgb_encode": color.srgb_encode,
-    "srgb_decode": color.srgb_decode,
-    "gamma_encode": color.gamma_encode,
-    "gamma_decode": color.gamma_decode,
-    "reinhard": color.reinhard,
-    "aces_narkowicz": color.aces_narkowicz,
-    "exposure": lambda c: color.exposure(c, -1.25),
-    "tonemap_clamp": lambda c: color.tonemap(c, "clamp"),
-    "encode_srgb": lambda c: color.encode(c, "srgb"),
-}
+# The per-element functions of the gradient tests, plus the `encode` dispatcher.
+ELEMENTWISE = {**SCALAR_FNS, "encode_srgb": lambda c: color.encode(c, "srgb")}
 RGB = {
     "aces_fitted": color.aces_fitted,
     "tonemap_aces": lambda c: color.tonemap(c, "aces"),

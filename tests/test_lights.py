@@ -136,6 +136,7 @@ def test_learnopengl_model_through_shade_direct():
         (lambda: jp.PointLight(position=(0, 1.0)), "trailing axis of 3"),
         (lambda: jp.PointLight(position=(0, 0, np.nan)), "NaN"),
         (lambda: jp.PointLight(position=(0, 0, 1.0), range=-2.0), "range"),
+        (lambda: jp.PointLight(position=(0, 0, 1.0), range=0.0), "range must be > 0"),
         (lambda: jp.DirectionalLight(direction=(0, 0, 0.0)), "non-zero"),
         (lambda: jp.pack_lights([]), "empty"),
     ],
@@ -163,3 +164,11 @@ def test_float32_preserved_and_jit_equals_nojit():
     jitted = jax.jit(lambda *a: jp.shade_direct(*a, m, lights))(*args)
     assert eager.dtype == jitted.dtype == jnp.float32
     np.testing.assert_allclose(eager, jitted, rtol=1e-6)
+
+
+def test_infinite_range_equals_no_range():
+    p = np.array([0.1, 0.2, 0.0])
+    a = jp.shade_direct(p, N, V, MAT, jp.PointLight(position=(0.0, 1.0, 5.0), intensity=10.0, range=np.inf))
+    b = jp.shade_direct(p, N, V, MAT, jp.PointLight(position=(0.0, 1.0, 5.0), intensity=10.0))
+    np.testing.assert_array_equal(a, b)
+    assert np.all(np.asarray(a) > 0)
