@@ -1,0 +1,598 @@
+"""Cube maps: direction <-> texel, exact texel solid angles, seam-aware lookup, pyramids, equirect.
+
+Conventions (DESIGN.md; written into every output's metadata):
+
+* Faces in the order +X, -X, +Y, -Y, +Z, -Z with the OpenGL / KTX orientation (the major-axis table
+  of the OpenGL spec, "Cube Map Texture Selection"): for a direction r with major axis ma,
+
+      face | sc   tc   ma          face | sc   tc   ma
+      +X   | -rz  -ry  rx          -Y   | +rx  -rz  ry
+      -X   | +rz  -ry  rx          +Z   | +rx  -ry  rz
+      +Y   | +rx  +rz  ry          -Z   | -rx  -ry  rz
+
+  s = (sc/|ma| + 1)/2, t = (tc/|ma| + 1)/2, and `levels[m][f, i, j]` is the texel of face f whose
+  centre is s = (j + 0.5)/S, t = (i + 0.5)/S.
+* Equirect (lat-long) images (H, 2H, C): row 0 is the top (+Y); for a direction d,
+  u = 0.5 + atan2(d.z, d.x)/(2 pi), v_up = 0.5 + asin(d.y)/pi, column = u W, row = (1 - v_up) H.
+* A texel's value is the mean radiance over its footprint (area filter); pyramids average the four
+  children weighted by their exact solid angles, so every level carries the same total power.
+
+Lookups are seam-aware: every level is padded by one texel taken from the neighbouring faces (the
+three texels meeting at a cube corner are averaged into the corner pad), so bilinear filtering is
+continuous across edges and corners, like GL's TEXTURE_CUBE_MAP_SEAMLESS.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any, Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._numerics import is_concrete
+
+__all__ = [
+    "FACE_NAMES",
+    "Cubemap",
+    "dir_to_equirect",
+    "dir_to_face",
+    "equirect_directions",
+    "equirect_to_dir",
+    "face_to_dir",
+    "texel_directions",
+    "texel_solid_angles",
+]
+
+FACE_NAMES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+
+
+# ------------------------------------------------------------------------------------------
+# Direction <-> (face, s, t)
+# ------------------------------------------------------------------------------------------
+
+
+def face_to_dir(face, s, t, xp=jnp):
+    """(face, s, t) -> un-normalised direction on the unit cube, (..., 3).
+
+    `face` int array (0..5), `s, t` in [0, 1] (values outside extend the face's plane, which the
+    seam padding uses). The inverse of the major-axis table in the module docstring.
+    """
+    sc = 2.0 * s - 1.0
+    tc = 2.0 * t - 1.0
+    coef = _FACE_TABLE if xp is np else jnp.asarray(_FACE_TABLE)
+    T = coef[xp.asarray(face).astype(np.int32)]  # (..., 3 out, 3 in: sc, tc, 1)
+    return T[..., 0] * sc[..., None] + T[..., 1] * tc[..., None] + T[..., 2]
+
+
+# direction = T[face] @ (sc, tc, 1): the inverse of the major-axis table.
+_FACE_TABLE = np.array(
+    [
+        [[0, 0, 1], [0, -1, 0], [-1, 0, 0]],  # +X: ( 1, -tc, -sc)
+        [[0, 0, -1], [0, -1, 0], [1, 0, 0]],  # -X: (-1, -tc,  sc)
+        [[1, 0, 0], [0, 0, 1], [0, 1, 0]],  # +Y: (sc,   1,  tc)
+        [[1, 0, 0], [0, 0, -1], [0, -1, 0]],  # -Y: (sc,  -1, -tc)
+        [[1, 0, 0], [0, -1, 0], [0, 0, 1]],  # +Z: (sc, -tc,   1)
+        [[-1, 0, 0], [0, -1, 0], [0, 0, -1]],  # -Z: (-sc, -tc, -1)
+    ],
+    dtype=np.float64,
+)
+
+
+def dir_to_face(d, xp=jnp):
+    """Direction (..., 3) (any length > 0) -> (face int32 (...), s (...), t (...)), s, t in [0, 1].
+
+    Ties between axes (exact diagonals) go to x before y before z. A zero vector maps to the centre
+    of +X (finite value and gradient; the direction is undefined there).
+    """
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    ax, ay, az = xp.abs(x), xp.abs(y), xp.abs(z)
+    is_x = (ax >= ay) & (ax >= az)
+    is_y = ~is_x & (ay >= az)
+    ma = xp.where(is_x, ax, xp.where(is_y, ay, az))
+    face = xp.where(is_x, xp.where(x >= 0, 0, 1), xp.where(is_y, xp.where(y >= 0, 2, 3), xp.where(z >= 0, 4, 5)))
+    sc = xp.where(is_x, xp.where(x >= 0, -z, z), xp.where(is_y, x, xp.where(z >= 0, x, -x)))
+    tc = xp.where(is_x, -y, xp.where(is_y, xp.where(y >= 0, z, -z), -y))
+    # Double where: 0/0 at the zero vector would poison the gradient.
+    ok = ma > 0
+    inv = xp.where(ok, 1.0 / xp.where(ok, ma, 1.0), 0.0)
+    s = xp.clip(0.5 * (sc * inv + 1.0), 0.0, 1.0)
+    t = xp.clip(0.5 * (tc * inv + 1.0), 0.0, 1.0)
+    return face.astype(np.int32), s, t
+
+
+@functools.lru_cache(maxsize=32)
+def _texel_directions_np(size: int) -> np.ndarray:
+    c = (np.arange(size, dtype=np.float64) + 0.5) / size
+    s = np.broadcast_to(c[None, None, :], (6, size, size))
+    t = np.broadcast_to(c[None, :, None], (6, size, size))
+    face = np.broadcast_to(np.arange(6)[:, None, None], (6, size, size))
+    d = face_to_dir(face, s, t, xp=np)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    d.setflags(write=False)
+    return d
+
+
+def texel_directions(size: int) -> np.ndarray:
+    """Unit directions of every texel centre of a `size`^2 cube face set, float64 (6, S, S, 3)."""
+    return _texel_directions_np(_positive_int(size, "size"))
+
+
+@functools.lru_cache(maxsize=32)
+def _solid_angles_np(size: int) -> np.ndarray:
+    # Exact: the solid angle of the region [0,x]x[0,y] of the plane z = 1 seen from the origin is
+    # A(x, y) = atan2(x y, sqrt(x^2 + y^2 + 1)); a texel is the signed sum over its four corners
+    # (MATH.md 3.4; Filament CubemapUtils::solidAngle). The six faces are identical.
+    e = np.linspace(-1.0, 1.0, size + 1, dtype=np.float64)
+    x0, x1 = e[None, :-1], e[None, 1:]
+    y0, y1 = e[:-1, None], e[1:, None]
+    area = lambda x, y: np.arctan2(x * y, np.sqrt(x * x + y * y + 1.0))
+    om = area(x0, y0) - area(x0, y1) - area(x1, y0) + area(x1, y1)
+    om = np.broadcast_to(om, (6, size, size)).copy()
+    om.setflags(write=False)
+    return om
+
+
+def texel_solid_angles(size: int) -> np.ndarray:
+    """Exact solid angle (sr) of every texel, float64 (6, S, S); they sum to 4 pi."""
+    return _solid_angles_np(_positive_int(size, "size"))
+
+
+# ------------------------------------------------------------------------------------------
+# Equirect <-> direction
+# ------------------------------------------------------------------------------------------
+
+
+def equirect_to_dir(u, v_up, xp=jnp):
+    """(u, v_up) in [0, 1] -> unit direction (..., 3), the inverse of `dir_to_equirect`."""
+    phi = (u - 0.5) * (2.0 * math.pi)
+    lat = (v_up - 0.5) * math.pi
+    phi, lat = xp.broadcast_arrays(phi, lat)
+    c = xp.cos(lat)
+    return xp.stack([c * xp.cos(phi), xp.sin(lat), c * xp.sin(phi)], axis=-1)
+
+
+def dir_to_equirect(d):
+    """Unit direction (..., 3) -> (u, v_up): u = 0.5 + atan2(z, x)/(2 pi), v_up = 0.5 + asin(y)/pi."""
+    u = 0.5 + jnp.arctan2(d[..., 2], d[..., 0]) / (2.0 * math.pi)
+    v_up = 0.5 + jnp.arcsin(jnp.clip(d[..., 1], -1.0, 1.0)) / math.pi
+    return u, v_up
+
+
+def equirect_directions(height: int, width: int | None = None) -> np.ndarray:
+    """Unit directions of the pixel centres of an equirect image, float64 (H, W, 3)."""
+    height = _positive_int(height, "height")
+    width = 2 * height if width is None else _positive_int(width, "width")
+    u = (np.arange(width) + 0.5) / width
+    v_up = 1.0 - (np.arange(height) + 0.5) / height
+    return equirect_to_dir(u[None, :], v_up[:, None], xp=np)
+
+
+def _equirect_row_solid_angles(height: int, width: int) -> np.ndarray:
+    # Exact per-pixel solid angle of row k: (2 pi / W)(cos(pi k/H) - cos(pi (k+1)/H)) (MATH.md 3.4).
+    k = np.arange(height + 1)
+    return (2.0 * math.pi / width) * -np.diff(np.cos(np.pi * k / height))
+
+
+# ------------------------------------------------------------------------------------------
+# Seam padding and lookup
+# ------------------------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=64)
+def _pad_index(size: int) -> np.ndarray:
+    """Flat source indices (6, S+2, S+2, 3) into a (6*S*S) face array for the one-texel seam pad.
+
+    Interior pads repeat their own index 3 times; an edge pad is the nearest texel of the
+    neighbouring face (found by extending the face plane one half texel past the edge and
+    re-projecting); a corner pad averages the three texels that meet at the cube corner.
+    """
+    S = size
+    idx = np.empty((6, S + 2, S + 2, 3), dtype=np.int64)
+    ii, jj = np.meshgrid(np.arange(-1, S + 1), np.arange(-1, S + 1), indexing="ij")
+
+    def nearest(face, i, j):
+        d = face_to_dir(np.full(np.shape(i), face), (j + 0.5) / S, (i + 0.5) / S, xp=np)
+        f2, s2, t2 = dir_to_face(d, xp=np)
+        j2 = np.clip(np.floor(s2 * S).astype(np.int64), 0, S - 1)
+        i2 = np.clip(np.floor(t2 * S).astype(np.int64), 0, S - 1)
+        return (f2 * S + i2) * S + j2
+
+    for f in range(6):
+        ci, cj = np.clip(ii, 0, S - 1), np.clip(jj, 0, S - 1)
+        own = (f * S + ci) * S + cj
+        inside_i = (ii >= 0) & (ii < S)
+        inside_j = (jj >= 0) & (jj < S)
+        edge_a = nearest(f, ii, cj)  # out in i only (or corner: the texel across the i edge)
+        edge_b = nearest(f, ci, jj)  # out in j only (or corner: the texel across the j edge)
+        interior = inside_i & inside_j
+        out_i_only = ~inside_i & inside_j
+        out_j_only = inside_i & ~inside_j
+        corner = ~inside_i & ~inside_j
+        for k in range(3):
+            idx[f, ..., k] = np.where(interior, own, 0)
+        for k in range(3):
+            idx[f, ..., k] = np.where(out_i_only, edge_a, idx[f, ..., k])
+            idx[f, ..., k] = np.where(out_j_only, edge_b, idx[f, ..., k])
+        idx[f, ..., 0] = np.where(corner, own, idx[f, ..., 0])
+        idx[f, ..., 1] = np.where(corner, edge_a, idx[f, ..., 1])
+        idx[f, ..., 2] = np.where(corner, edge_b, idx[f, ..., 2])
+    idx.setflags(write=False)
+    return idx
+
+
+def _pad_level(level: jax.Array) -> jax.Array:
+    """(6, S, S, C) -> (6, S+2, S+2, C) with the seam pad of `_pad_index`."""
+    S, C = level.shape[1], level.shape[3]
+    flat = level.reshape(6 * S * S, C)
+    idx = jnp.asarray(_pad_index(S), dtype=jnp.int32)
+    g = flat[idx]  # (6, S+2, S+2, 3, C)
+    return (g[..., 0, :] + g[..., 1, :] + g[..., 2, :]) * (1.0 / 3.0)
+
+
+class _Pyramid:
+    """All levels padded and concatenated into one flat (N, C) buffer, for gathers at dynamic LOD."""
+
+    def __init__(self, levels: Sequence[jax.Array] | None, *, flat=None, sizes=None):
+        if levels is not None:
+            sizes = [lv.shape[1] for lv in levels]
+            pads = [_pad_level(lv) for lv in levels]
+            flat = jnp.concatenate([p.reshape(-1, p.shape[-1]) for p in pads], axis=0)
+        self.flat = flat
+        offs = np.cumsum([0] + [6 * (s + 2) ** 2 for s in sizes])[:-1]
+        self.offsets = np.asarray(offs, np.int32)
+        self.sizes = np.asarray(sizes, np.int32)
+        self.num_levels = len(sizes)
+
+    def bilinear(self, face, s, t, level):
+        """Bilinear lookup at integer `level` (array, same shape as s), -> (..., C)."""
+        if self.num_levels == 1:
+            S = float(self.sizes[0])
+            off = 0
+            Si = int(self.sizes[0])
+        else:
+            Si = jnp.asarray(self.sizes)[level]
+            S = Si.astype(s.dtype)
+            off = jnp.asarray(self.offsets)[level]
+        W = Si + 2
+        # Padded texel coordinates: centre of texel j sits at j + 1.
+        x = s * S + 0.5
+        y = t * S + 0.5
+        x0f = jnp.clip(jnp.floor(x), 0, S)
+        y0f = jnp.clip(jnp.floor(y), 0, S)
+        fx = x - x0f
+        fy = y - y0f
+        x0 = x0f.astype(jnp.int32)
+        y0 = y0f.astype(jnp.int32)
+        base = off + (face * W + y0) * W + x0
+        f = self.flat
+        v00 = f[base]
+        v01 = f[base + 1]
+        v10 = f[base + W]
+        v11 = f[base + W + 1]
+        fx = fx[..., None]
+        fy = fy[..., None]
+        top = v00 + (v01 - v00) * fx
+        bot = v10 + (v11 - v10) * fx
+        return top + (bot - top) * fy
+
+    def sample(self, dirs, lod):
+        face, s, t = dir_to_face(dirs)
+        if self.num_levels == 1:
+            return self.bilinear(face, s, t, 0)
+        lod = jnp.clip(jnp.asarray(lod, s.dtype), 0.0, self.num_levels - 1)
+        lod = jnp.broadcast_to(lod, s.shape)
+        m0f = jnp.floor(jax.lax.stop_gradient(lod))
+        m0 = m0f.astype(jnp.int32)
+        m1 = jnp.minimum(m0 + 1, self.num_levels - 1)
+        w = (lod - m0f)[..., None]
+        a = self.bilinear(face, s, t, m0)
+        b = self.bilinear(face, s, t, m1)
+        return a + (b - a) * w
+
+
+# ------------------------------------------------------------------------------------------
+# Pyramid
+# ------------------------------------------------------------------------------------------
+
+
+def downsample(level: jax.Array) -> jax.Array:
+    """One area-correct pyramid step: (6, S, S, C) -> (6, S/2, S/2, C), S even.
+
+    parent = sum(Omega_c L_c) / sum(Omega_c) over its four children with exact solid angles, so the
+    power sum(L Omega) is preserved exactly (texel edges of the two levels coincide).
+    """
+    S = level.shape[1]
+    if S % 2:
+        raise ValueError(f"cannot halve a cube face of odd size {S}; use a power-of-two face size")
+    om = jnp.asarray(texel_solid_angles(S), level.dtype)[..., None]
+    w = (level * om).reshape(6, S // 2, 2, S // 2, 2, -1).sum((2, 4))
+    ow = om.reshape(6, S // 2, 2, S // 2, 2, 1).sum((2, 4))
+    return w / ow
+
+
+def _mip_count(size: int) -> int:
+    n = 1
+    while size % 2 == 0 and size > 1:
+        size //= 2
+        n += 1
+    return n
+
+
+# ------------------------------------------------------------------------------------------
+# The pytree
+# ------------------------------------------------------------------------------------------
+
+
+@jax.tree_util.register_pytree_node_class
+class Cubemap:
+    """Six square faces with an optional mip chain: `levels[m]` is (6, S >> m, S >> m, C).
+
+    `info` is static metadata (a tuple of (key, value) string pairs), e.g. what a prefiltered map's
+    levels mean; it travels with the pytree as auxiliary data.
+    """
+
+    __slots__ = ("levels", "info")
+
+    def __init__(self, levels: Sequence[Any], info: Any = ()):
+        if isinstance(levels, (jax.Array, np.ndarray)):
+            levels = (levels,)
+        levels = tuple(jnp.asarray(lv) for lv in levels)
+        if not levels:
+            raise ValueError("a Cubemap needs at least one level")
+        S = None
+        for m, lv in enumerate(levels):
+            if lv.ndim != 4 or lv.shape[0] != 6 or lv.shape[1] != lv.shape[2]:
+                raise ValueError(
+                    f"cube level {m} has shape {lv.shape}; expected (6, S, S, C): six square faces "
+                    "+X,-X,+Y,-Y,+Z,-Z"
+                )
+            if not jnp.issubdtype(lv.dtype, jnp.floating):
+                raise ValueError(f"cube level {m} has dtype {lv.dtype}; expected a float array of radiance")
+            if m == 0:
+                S = lv.shape[1]
+            elif lv.shape[1] != max(1, S >> m) or lv.shape[3] != levels[0].shape[3]:
+                raise ValueError(
+                    f"cube level {m} has shape {lv.shape}; level m must be (6, S>>m, S>>m, C) with "
+                    f"S = {S}, C = {levels[0].shape[3]}"
+                )
+        self.levels = levels
+        self.info = tuple(info.items()) if isinstance(info, dict) else tuple(info)
+
+    # pytree ---------------------------------------------------------------------------------
+    def tree_flatten(self):
+        return self.levels, self.info
+
+    @classmethod
+    def tree_unflatten(cls, info, levels):
+        obj = object.__new__(cls)
+        obj.levels = tuple(levels)
+        obj.info = info
+        return obj
+
+    # properties -----------------------------------------------------------------------------
+    @property
+    def face_size(self) -> int:
+        return int(self.levels[0].shape[1])
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.levels)
+
+    @property
+    def channels(self) -> int:
+        return int(self.levels[0].shape[3])
+
+    @property
+    def dtype(self):
+        return self.levels[0].dtype
+
+    @property
+    def metadata(self) -> dict:
+        return dict(self.info)
+
+    def __repr__(self) -> str:
+        return (
+            f"Cubemap(face_size={self.face_size}, num_levels={self.num_levels}, channels={self.channels}, "
+            f"dtype={self.dtype}, info={dict(self.info)})"
+        )
+
+    def replace(self, levels=None, info=None) -> "Cubemap":
+        return Cubemap(self.levels if levels is None else levels, self.info if info is None else info)
+
+    # lookup -----------------------------------------------------------------------------------
+    def sample(self, dirs, lod=0.0) -> jax.Array:
+        """Radiance in directions `dirs` (..., 3) (any length > 0), seam-aware; -> (..., C).
+
+        `lod` (scalar or (...)) selects the level: bilinear within a level, linear between the two
+        nearest levels (trilinear), clamped to [0, num_levels - 1]. Differentiable in the texel
+        values, in `dirs` (within a face) and in `lod`.
+        """
+        dirs = jnp.asarray(dirs, self.dtype)
+        return _Pyramid(self.levels).sample(dirs, lod)
+
+    def solid_angles(self, level: int = 0) -> np.ndarray:
+        """Exact texel solid angles of `level`, float64 (6, S_m, S_m)."""
+        return texel_solid_angles(self.levels[level].shape[1])
+
+    def directions(self, level: int = 0) -> np.ndarray:
+        """Unit texel-centre directions of `level`, float64 (6, S_m, S_m, 3)."""
+        return texel_directions(self.levels[level].shape[1])
+
+    # pyramids ---------------------------------------------------------------------------------
+    def with_mips(self, num_levels: int | None = None) -> "Cubemap":
+        """This map's level 0 with an area-correct pyramid (default: down to 1x1, or the last
+        even size)."""
+        S = self.face_size
+        most = _mip_count(S)
+        if num_levels is None:
+            num_levels = most
+        num_levels = _positive_int(num_levels, "num_levels")
+        if num_levels > most:
+            raise ValueError(
+                f"a {S}^2 cube supports at most {most} levels (each halves the face size); asked for {num_levels}"
+            )
+        levels = [self.levels[0]]
+        for _ in range(num_levels - 1):
+            levels.append(downsample(levels[-1]))
+        return Cubemap(levels, self.info)
+
+    def level_cube(self, level: int) -> "Cubemap":
+        """A single-level Cubemap holding `levels[level]`."""
+        return Cubemap((self.levels[level],), self.info)
+
+    def power(self) -> jax.Array:
+        """sum(L Omega) over level 0 per channel: the integral of radiance over the sphere."""
+        om = jnp.asarray(self.solid_angles(0), self.dtype)[..., None]
+        return jnp.sum(self.levels[0] * om, axis=(0, 1, 2))
+
+    # constructors -----------------------------------------------------------------------------
+    @classmethod
+    def from_function(
+        cls, fn: Callable, face_size: int, *, supersample: int = 4, dtype=jnp.float32, info: Any = ()
+    ) -> "Cubemap":
+        """Area-filtered cube map of a radiance function.
+
+        fn: (..., 3) unit directions (float64 NumPy-compatible jax array) -> (..., C) radiance.
+        Each texel is the solid-angle-weighted mean of fn over `supersample`^2 points of its
+        footprint (supersample=1: point samples at texel centres).
+        """
+        S = _positive_int(face_size, "face_size")
+        q = _positive_int(supersample, "supersample")
+        dirs, w = _subtexel_points(S, q)  # (6, S, S, q*q, 3), (S, S, q*q) (same on every face)
+        with jax.enable_x64(True):
+            vals = jnp.asarray(fn(jnp.asarray(dirs)), jnp.float64)
+            if vals.ndim == dirs.ndim - 1:
+                vals = vals[..., None]
+            if vals.shape[:-1] != dirs.shape[:-1]:
+                raise ValueError(
+                    f"fn returned shape {vals.shape} for directions of shape {dirs.shape}; "
+                    "expected (..., C) radiance for (..., 3) directions"
+                )
+            level = jnp.sum(vals * jnp.asarray(w)[None, ..., None], axis=-2)
+            level = np.asarray(level)
+        _check_finite(level, "fn")
+        return cls((jnp.asarray(level, dtype),), info)
+
+    @classmethod
+    def from_equirect(cls, img, face_size: int, *, dtype=jnp.float32, info: Any = ()) -> "Cubemap":
+        """Area-filtered cube map from an equirect panorama `img` (H, 2H, C) of linear radiance.
+
+        Filtering (so a 4k panorama into a 64^2 cube does not alias): the panorama is first halved
+        with exact-solid-angle box filtering while it still has >= 4 pixels per cube texel across,
+        then each cube texel averages q x q bilinear samples (q chosen so that samples are no
+        farther apart than a panorama pixel), weighted by their solid angles.
+        """
+        S = _positive_int(face_size, "face_size")
+        img = np.asarray(img)
+        if img.ndim == 2:
+            img = img[..., None]
+        if img.ndim != 3 or img.shape[1] != 2 * img.shape[0] or img.shape[0] < 1:
+            raise ValueError(
+                f"equirect image has shape {img.shape}; expected (H, 2H, C) lat-long panorama "
+                "(width exactly twice the height)"
+            )
+        _check_finite(img, "equirect image")
+        img = img.astype(np.float64 if np.dtype(dtype) == np.float64 else np.float32)
+        H = img.shape[0]
+        # Cube texel angular size at the face centre: 2 atan(1/S) ~ pi/(2S).
+        cube_texel = 2.0 * math.atan(1.0 / S)
+        while H % 2 == 0 and (math.pi / H) * 2 * 4 <= cube_texel:
+            img = _halve_equirect(img)
+            H = img.shape[0]
+        q = int(min(16, max(1, math.ceil(cube_texel / (math.pi / H)))))
+        pts, w = _subtexel_points(S, q)  # (6,S,S,q*q,3), (S,S,q*q)
+        faces = [
+            np.asarray(_equirect_bilinear_avg(jnp.asarray(img), jnp.asarray(pts[f], img.dtype), jnp.asarray(w, img.dtype)))
+            for f in range(6)
+        ]
+        return cls((jnp.asarray(np.stack(faces), dtype),), info)
+
+    def to_equirect(self, height: int | None = None, *, lod=0.0, supersample: int = 1) -> jax.Array:
+        """Equirect panorama (H, 2H, C) of this map (seam-aware bilinear / trilinear lookups at
+        `lod`), each pixel the mean of `supersample`^2 lookups weighted by solid angle."""
+        H = 2 * self.face_size if height is None else _positive_int(height, "height")
+        q = _positive_int(supersample, "supersample")
+        W = 2 * H
+        o = (np.arange(q) + 0.5) / q
+        u = (np.arange(W)[:, None] + o[None, :]).reshape(-1) / W
+        vd = (np.arange(H)[:, None] + o[None, :]).reshape(-1) / H
+        d = equirect_to_dir(u[None, :], 1.0 - vd[:, None], xp=np)  # (H q, W q, 3)
+        rad = self.sample(jnp.asarray(d, self.dtype), lod)
+        C = rad.shape[-1]
+        rad = rad.reshape(H, q, W, q, C)
+        wy = np.cos((0.5 - (1.0 - vd)) * np.pi).reshape(H, q)  # cos(latitude) ~ solid angle per sample
+        wy = wy / wy.sum(1, keepdims=True)
+        return jnp.einsum("hawbc,ha->hwc", rad, jnp.asarray(wy, rad.dtype)) / q
+
+
+# ------------------------------------------------------------------------------------------
+# helpers
+# ------------------------------------------------------------------------------------------
+
+
+def _positive_int(x, name: str) -> int:
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x <= 0:
+        raise ValueError(f"{name} must be a positive integer, got {x!r}")
+    return int(x)
+
+
+def _check_finite(a: np.ndarray, what: str) -> None:
+    if not is_concrete(a):
+        return
+    a = np.asarray(a)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise ValueError(f"{what} contains {int(bad.sum())} NaN/Inf values; fix or clamp the input first")
+
+
+@functools.lru_cache(maxsize=16)
+def _subtexel_points(S: int, q: int):
+    """Directions (6, S, S, q*q, 3) of a q x q grid inside every texel and their normalised
+    solid-angle weights (S, S, q*q): dOmega = ds dt / (1 + sc^2 + tc^2)^(3/2) on the face plane."""
+    o = (np.arange(q) + 0.5) / q
+    c = (np.arange(S)[:, None] + o[None, :]) / S  # (S, q)
+    t = np.broadcast_to(c[:, None, :, None], (S, S, q, q)).reshape(S, S, q * q)
+    s = np.broadcast_to(c[None, :, None, :], (S, S, q, q)).reshape(S, S, q * q)
+    dirs = np.stack([face_to_dir(np.full(s.shape, f), s, t, xp=np) for f in range(6)])
+    r2 = np.sum(dirs[0] ** 2, axis=-1)
+    w = r2**-1.5
+    w = w / w.sum(-1, keepdims=True)
+    dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
+    dirs.setflags(write=False)
+    w.setflags(write=False)
+    return dirs, w
+
+
+def _halve_equirect(img: np.ndarray) -> np.ndarray:
+    """(H, W, C) -> (H/2, W/2, C), each output pixel the exact-solid-angle mean of its 2x2 block."""
+    H, W, C = img.shape
+    om = _equirect_row_solid_angles(H, W)[:, None, None]
+    num = (img * om).reshape(H // 2, 2, W // 2, 2, C).sum((1, 3))
+    den = np.broadcast_to(om, (H, W, 1)).reshape(H // 2, 2, W // 2, 2, 1).sum((1, 3))
+    return (num / den).astype(img.dtype)
+
+
+@jax.jit
+def _equirect_bilinear_avg(img, pts, w):
+    """Mean over the last point axis of bilinear equirect lookups: pts (S, S, n, 3), w (S, S, n)."""
+    H, W, C = img.shape
+    u, v_up = dir_to_equirect(pts)
+    x = u * W - 0.5
+    y = (1.0 - v_up) * H - 0.5
+    x0 = jnp.floor(x)
+    y0 = jnp.floor(y)
+    fx = (x - x0)[..., None]
+    fy = (y - y0)[..., None]
+    x0 = x0.astype(jnp.int32)
+    y0 = y0.astype(jnp.int32)
+    xa = jnp.mod(x0, W)  # longitude wraps
+    xb = jnp.mod(x0 + 1, W)
+    ya = jnp.clip(y0, 0, H - 1)  # latitude clamps at the poles
+    yb = jnp.clip(y0 + 1, 0, H - 1)
+    top = img[ya, xa] * (1 - fx) + img[ya, xb] * fx
+    bot = img[yb, xa] * (1 - fx) + img[yb, xb] * fx
+    val = top * (1 - fy) + bot * fy
+    return jnp.sum(val * w[..., None], axis=-2)

@@ -1,0 +1,408 @@
+"""GGX-prefiltered specular environment mips (the "LD" term of the split sum).
+
+Level m of the result stores (DESIGN.md, MATH.md 3.3)
+
+    LD(R, r_m) = integral L(l) D(h) (R.l)+ dl / integral D(h) (R.l)+ dl,     n = v = R, h = (R+l)/|R+l|,
+
+at the texel centres of a (S >> m)^2 cube, with r_m given by the roughness -> mip mapping:
+"linear" (default, glTF viewer / Khronos sampler / LearnOpenGL): r_m = m/(M-1), lod = r (M-1);
+"quadratic" (Filament): lod = (M-1) r (2 - r), r_m = 1 - sqrt(1 - m/(M-1)). Level 0 (r = 0) is the
+source itself (D is a delta).
+
+Two methods:
+
+* `"fis"` (default): filtered importance sampling (Krivanek & Colbert 2008; Filament cmgen). The same
+  GGX-distributed half vectors (Hammersley, NDF sampling with v = n) serve every texel; each sample
+  reads the environment's area-correct pyramid trilinearly at
+  lod = 1/2 log2(Omega_s/Omega_p) + bias, Omega_s = 1/(N p_l), p_l = D/4, Omega_p = 4 pi/(6 S0^2), so a
+  sample averages the solid angle it stands for (bias 1 = K 4, GPU Gems 3 ch. 20). The estimate is
+  sum L(l_k) NoL_k / sum NoL_k: a constant environment comes out constant to rounding.
+* `"reference"`: float64 brute-force convolution over *every* texel of the environment's level 0
+  (the environment being the piecewise-constant texel function), with each source texel split into
+  q x q sub-texels when the lobe is narrower than 4 source texels. Memory is bounded by chunking
+  over output texels. `prefilter_reference` evaluates it at arbitrary directions, which is how the
+  error of `"fis"` is measured on large maps.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .cubemap import Cubemap, _mip_count, _positive_int, _subtexel_points, texel_directions, texel_solid_angles
+
+__all__ = [
+    "MAPPINGS",
+    "PREFILTER_METHODS",
+    "level_roughness",
+    "prefilter",
+    "prefilter_reference",
+    "roughness_to_lod",
+]
+
+MAPPINGS = ("linear", "quadratic")
+PREFILTER_METHODS = ("fis", "reference")
+
+#: Default FIS sample count per level (chosen from the error-vs-time sweep of `jaxpbr report
+#: precompute`; see README).
+DEFAULT_SAMPLES = 256
+#: Default number of brightest source texels convolved exactly instead of sampled (see `split_bright`).
+DEFAULT_EXACT_TEXELS = 256
+#: Default FIS LOD bias (+1 = Filament's K = 4).
+DEFAULT_LOD_BIAS = 1.0
+
+
+# ------------------------------------------------------------------------------------------
+# roughness <-> mip
+# ------------------------------------------------------------------------------------------
+
+
+def level_roughness(num_levels: int, mapping: str = "linear") -> np.ndarray:
+    """Perceptual roughness r_m of each level m = 0..M-1 (float64)."""
+    _check_mapping(mapping)
+    M = _positive_int(num_levels, "num_levels")
+    x = np.arange(M) / max(M - 1, 1)
+    if mapping == "linear":
+        return x
+    return 1.0 - np.sqrt(1.0 - x)
+
+
+def roughness_to_lod(r, num_levels: int, mapping: str = "linear"):
+    """Fractional mip level for perceptual roughness r (clamped to [0, 1]), for `Cubemap.sample`."""
+    _check_mapping(mapping)
+    r = jnp.clip(r, 0.0, 1.0)
+    L = num_levels - 1
+    if mapping == "linear":
+        return r * L
+    return r * (2.0 - r) * L
+
+
+def _check_mapping(mapping):
+    if mapping not in MAPPINGS:
+        raise ValueError(f"unknown roughness->mip mapping {mapping!r}; choose one of {MAPPINGS}")
+
+
+# ------------------------------------------------------------------------------------------
+# filtered importance sampling
+# ------------------------------------------------------------------------------------------
+
+
+def _hammersley(n: int) -> np.ndarray:
+    i = np.arange(n, dtype=np.uint32)
+    b = i.copy()
+    b = ((b << 16) | (b >> 16)) & 0xFFFFFFFF
+    b = ((b & 0x55555555) << 1) | ((b & 0xAAAAAAAA) >> 1)
+    b = ((b & 0x33333333) << 2) | ((b & 0xCCCCCCCC) >> 2)
+    b = ((b & 0x0F0F0F0F) << 4) | ((b & 0xF0F0F0F0) >> 4)
+    b = ((b & 0x00FF00FF) << 8) | ((b & 0xFF00FF00) >> 8)
+    return np.stack([i / n, b.astype(np.float64) * 2.0**-32], -1)
+
+
+@functools.lru_cache(maxsize=64)
+def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_bias: float):
+    """Local-frame light directions (k, 3), weights NoL (k,), source LODs (k,) for v = n = +z.
+
+    GGX NDF sampling in the sin^2 form (MATH.md 3.2, 8.3); samples with NoL <= 0 are dropped (their
+    weight is 0). float64 NumPy, computed once per (alpha, n, source).
+    """
+    xi = _hammersley(n)
+    phi = 2.0 * math.pi * xi[:, 0]
+    a2 = alpha * alpha
+    den = 1.0 + (a2 - 1.0) * xi[:, 1]
+    cos2 = (1.0 - xi[:, 1]) / den
+    sin2 = a2 * xi[:, 1] / den
+    cos_h, sin_h = np.sqrt(cos2), np.sqrt(sin2)
+    nol = 2.0 * cos2 - 1.0
+    keep = nol > 0
+    s2 = 2.0 * cos_h * sin_h
+    # Samples below the horizon keep their slot with weight 0, so every level has k = n samples
+    # and one compiled kernel serves all levels.
+    local = np.stack([s2 * np.cos(phi), s2 * np.sin(phi), nol], -1)
+    local[~keep] = (0.0, 0.0, 1.0)
+    # p_l = D/4 with D = alpha^2 / (pi d^2), d = sin^2 + cos^2 alpha^2 (cancellation-free, MATH 8.2).
+    d = sin2 + cos2 * a2
+    pdf = a2 / (math.pi * d * d) / 4.0
+    omega_s = 1.0 / (n * pdf)
+    omega_p = 4.0 * math.pi / (6.0 * src_size * src_size)
+    lod = np.clip(0.5 * np.log2(omega_s / omega_p) + lod_bias, 0.0, num_src_levels - 1)
+    return local, np.where(keep, nol, 0.0), np.where(keep, lod, 0.0)
+
+
+def _frame(R):
+    """Orthonormal (t, b) for unit R (..., 3); up switches away from R (MATH.md 8.13)."""
+    up = jnp.where(jnp.abs(R[..., 2:3]) < 0.999, jnp.array([0.0, 0.0, 1.0], R.dtype), jnp.array([1.0, 0.0, 0.0], R.dtype))
+    t = jnp.cross(up, R)
+    t = t / jnp.linalg.norm(t, axis=-1, keepdims=True)
+    b = jnp.cross(R, t)
+    return t, b
+
+
+@jax.jit
+def _pyramid_flat(levels):
+    from .cubemap import _Pyramid
+
+    return _Pyramid(levels).flat
+
+
+@functools.partial(jax.jit, static_argnames=("sizes",))
+def _fis_chunk(flat, R, local, w, lod, *, sizes):
+    """LD at unit directions R (chunk, 3) from fixed local-frame samples (k, 3), weights (k,) and
+    source LODs (k,). One executable serves every level (same chunk and k)."""
+    from .cubemap import _Pyramid
+
+    pyr = _Pyramid(None, flat=flat, sizes=list(sizes))
+    t, b = _frame(R)
+    l = t[:, None, :] * local[None, :, 0:1] + b[:, None, :] * local[None, :, 1:2] + R[:, None, :] * local[None, :, 2:3]
+    rad = pyr.sample(l, lod[None, :])  # (chunk, k, C)
+    return jnp.einsum("ckz,k->cz", rad, w) / jnp.sum(w)
+
+
+def _fis_level(flat, sizes, dirs, local, w, lod, chunk, dtype):
+    """Run `_fis_chunk` over all directions (N, 3) in fixed-size chunks (last one padded)."""
+    N = dirs.shape[0]
+    pad = (-N) % chunk
+    d = np.concatenate([dirs, np.tile(dirs[:1], (pad, 1))]) if pad else dirs
+    args = [jnp.asarray(a, dtype) for a in (local, w, lod)]
+    out = [
+        _fis_chunk(flat, jnp.asarray(d[i : i + chunk], dtype), *args, sizes=sizes) for i in range(0, len(d), chunk)
+    ]
+    return jnp.concatenate(out)[:N]
+
+
+# ------------------------------------------------------------------------------------------
+# the brightest texels, convolved exactly
+# ------------------------------------------------------------------------------------------
+
+
+def lobe_normalizer(alpha: float) -> float:
+    """W(alpha) = integral of D(h) (R.l)+ dl with n = v = R (D normalised as in MATH.md 1.1).
+
+    dl = 4 (v.h) dw_h turns it into 4 E[(NoL)+] under the sampling density D cos(theta_h); with
+    xi uniform, cos^2 = (1-xi)/(1+(a^2-1)xi) and NoL = 2cos^2 - 1 > 0 for xi < 1/(1+a^2), giving
+    W = 4 [2a^2 ln(2a^2/(1+a^2)) + 1 - a^2] / (1-a^2)^2   (a = alpha),
+    with the series 4 (1/4 + e/6 + e^2/8) in e = 1 - a^2 near a = 1 (the closed form cancels there).
+    W -> 1 at alpha = 1 and -> 4 as alpha -> 0.
+    """
+    a2 = float(alpha) ** 2
+    e = 1.0 - a2
+    if abs(e) < 1e-3:
+        return 4.0 * (0.25 + e / 6.0 + e * e / 8.0)
+    return 4.0 * (2.0 * a2 * math.log(2.0 * a2 / (1.0 + a2)) + e) / (e * e)
+
+
+def split_bright(level0: np.ndarray, max_texels: int, min_ratio: float = 4.0):
+    """Split radiance (6,S,S,C) into (residual, bright indices (k,), bright radiance (k, C)).
+
+    The brightest texels (at most `max_texels`, and only those whose luminance exceeds `min_ratio`
+    times the environment's mean radiance) are clamped to the luminance threshold tau (colour kept);
+    the excess over tau is the sparse "bright" part, convolved exactly. The residual's dynamic
+    range is then bounded by tau, which is what importance sampling handles well.
+    """
+    L = np.asarray(level0, np.float64)
+    S, C = L.shape[1], L.shape[-1]
+    lum = L @ np.array([0.2126, 0.7152, 0.0722]) if C == 3 else L.mean(-1)
+    om = texel_solid_angles(S)
+    mean = float(np.sum(lum * om) / (4.0 * math.pi))
+    flat = lum.reshape(-1)
+    if max_texels <= 0 or mean <= 0 or flat.size <= max_texels:
+        return L, np.zeros(0, np.int64), np.zeros((0, C))
+    tau = max(min_ratio * mean, float(np.partition(flat, -max_texels - 1)[-max_texels - 1]))
+    idx = np.nonzero(flat > tau)[0]
+    scale = np.ones_like(flat)
+    scale[idx] = tau / flat[idx]
+    resid = (L.reshape(-1, C) * scale[:, None]).reshape(L.shape)
+    bright = L.reshape(-1, C)[idx] - resid.reshape(-1, C)[idx]
+    return resid, idx, bright
+
+
+@jax.jit
+def _bright_chunk(R, sub, Bw, a2):
+    """sum_j B_j K(R.w_j) Omega_j for R (chunk, 3), sub-texel directions (n, 3), B Omega (n, C).
+
+    D(h) with NoH^2 = (1+c)/2, 1 - NoH^2 = (1-c)/2 = |R-w|^2/4 (no cancellation near the peak)."""
+    q = jnp.sum((R[:, None, :] - sub[None, :, :]) ** 2, -1)  # |R - w|^2 = 2(1 - c)
+    c = 1.0 - 0.5 * q
+    d = 0.25 * q + (1.0 - 0.25 * q) * a2
+    k = a2 / (math.pi * d * d) * jnp.maximum(c, 0.0)
+    return k @ Bw
+
+
+def _bright_level(dirs, idx, bright, S0, alpha, chunk, dtype):
+    """Exact (sub-texel) convolution of the sparse bright part for output directions (N, 3)."""
+    q = _reference_supersample(alpha, S0)
+    sub, w = _subtexel_points(S0, q)
+    sub = sub.reshape(-1, q * q, 3)[idx].reshape(-1, 3)
+    om = (texel_solid_angles(S0).reshape(-1)[idx][:, None] * w.reshape(-1, q * q)[idx % (S0 * S0)])  # (k, q*q)
+    Bw = (bright[:, None, :] * om[..., None]).reshape(-1, bright.shape[-1]) / lobe_normalizer(alpha)
+    N = dirs.shape[0]
+    pad = (-N) % chunk
+    d = np.concatenate([dirs, np.tile(dirs[:1], (pad, 1))]) if pad else dirs
+    sub_j, Bw_j = jnp.asarray(sub, dtype), jnp.asarray(Bw, dtype)
+    a2 = jnp.asarray(alpha * alpha, dtype)
+    out = [_bright_chunk(jnp.asarray(d[i : i + chunk], dtype), sub_j, Bw_j, a2) for i in range(0, len(d), chunk)]
+    return jnp.concatenate(out)[:N]
+
+
+# ------------------------------------------------------------------------------------------
+# float64 reference
+# ------------------------------------------------------------------------------------------
+
+
+def _reference_supersample(alpha: float, S0: int, max_q: int = 4) -> int:
+    """Sub-texels per source-texel side so that sub-texels are <= alpha/4 across (lobe half-width
+    in l is ~1.3 alpha), capped at `max_q`."""
+    if alpha <= 0:
+        return 1
+    texel = 2.0 * math.atan(1.0 / S0)
+    return int(min(max_q, max(1, math.ceil(texel / (alpha / 4.0)))))
+
+
+def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: int | None = None, chunk: int = 16):
+    """float64 LD(R, r) at unit directions `dirs` (..., 3) by brute force over every texel of
+    env level 0 -> (..., C) float64 NumPy array.
+
+    Kernel K(R.l) = D(h) (R.l)+ with h = (R + l)/|R + l|, n = v = R: with c = R.l,
+    NoH^2 = (1+c)/2 and 1 - NoH^2 = (1-c)/2, so D is proportional to 1/((1-c)/2 + (1+c)/2 alpha^2)^2
+    (constants cancel in the ratio). Each source texel is split into q x q sub-texels with their
+    exact share of its solid angle (q from `_reference_supersample` unless given). r = 0 returns the
+    bilinear lookup of the source (D is a delta).
+    """
+    r = float(roughness)
+    if not 0.0 <= r <= 1.0:
+        raise ValueError(f"roughness must be in [0, 1], got {r}")
+    dirs = np.asarray(dirs, np.float64)
+    shape = dirs.shape[:-1]
+    with jax.enable_x64(True):
+        if r == 0.0:
+            return np.asarray(Cubemap(env.levels[0].astype(jnp.float64)).sample(jnp.asarray(dirs)))
+        alpha = r * r
+        S0 = env.face_size
+        q = _reference_supersample(alpha, S0) if supersample is None else _positive_int(supersample, "supersample")
+        sub, w = _subtexel_points(S0, q)  # (6,S,S,q*q,3), (S,S,q*q)
+        om = texel_solid_angles(S0)[..., None] * w[None]  # (6,S,S,q*q)
+        L = np.asarray(env.levels[0], np.float64)  # (6,S,S,C)
+        C = L.shape[-1]
+        Lw = np.concatenate(
+            [np.broadcast_to(L[..., None, :], om.shape + (C,)) * om[..., None], om[..., None]], -1
+        ).reshape(-1, C + 1)
+        src = jnp.asarray(sub.reshape(-1, 3).T)  # (3, Ns)
+        out = _reference_sum(jnp.asarray(dirs.reshape(-1, 3)), src, jnp.asarray(Lw), alpha, chunk=_positive_int(chunk, "chunk"))
+        out = np.asarray(out)
+    return (out[:, :C] / out[:, C:]).reshape(shape + (C,))
+
+
+@functools.partial(jax.jit, static_argnames=("chunk",))
+def _reference_sum(R, src, Lw, alpha, *, chunk):
+    N = R.shape[0]
+    pad = (-N) % chunk
+    Rp = jnp.concatenate([R, jnp.tile(R[:1], (pad, 1))]).reshape(-1, chunk, 3)
+    a2 = alpha * alpha
+
+    def one(Rc):
+        c = Rc @ src  # (chunk, Ns)
+        d = 0.5 * (1.0 - c) + 0.5 * (1.0 + c) * a2
+        k = jnp.maximum(c, 0.0) / (d * d)
+        return k @ Lw
+
+    out = jax.lax.map(one, Rp)
+    return out.reshape(-1, Lw.shape[1])[:N]
+
+
+# ------------------------------------------------------------------------------------------
+# driver
+# ------------------------------------------------------------------------------------------
+
+
+def prefilter(
+    env: Cubemap,
+    size: int | None = None,
+    *,
+    num_levels: int | None = None,
+    mapping: str = "linear",
+    method: str = "fis",
+    samples=None,
+    lod_bias: float = DEFAULT_LOD_BIAS,
+    exact_texels: int = DEFAULT_EXACT_TEXELS,
+    chunk: int = 512,
+    progress=None,
+) -> Cubemap:
+    """GGX-prefiltered specular cube map with mips: level m holds LD(R, r_m) at (S >> m)^2 texels.
+
+    env: environment Cubemap; level 0 is the radiance (its pyramid is rebuilt area-correctly).
+    size: face size S of level 0 of the result (default env.face_size); env.face_size / S must be
+        a power of two (level 0 is then the env's area-correct pyramid level at that size).
+    num_levels: M (default: the full chain down to 1 x 1).
+    mapping: "linear" (r_m = m/(M-1)) or "quadratic" (Filament); recorded in the result's info.
+    method: "fis" or "reference" (see module docstring).
+    samples: FIS samples per level, an int or a sequence of M ints (level 0 ignores it).
+    progress: optional callable(done_levels, total_levels) for progress reporting.
+    """
+    if method not in PREFILTER_METHODS:
+        raise ValueError(f"unknown prefilter method {method!r}; choose one of {PREFILTER_METHODS}")
+    _check_mapping(mapping)
+    S0 = env.face_size
+    S = S0 if size is None else _positive_int(size, "size")
+    ratio = S0 // S if S <= S0 else 0
+    if ratio == 0 or S0 % S or ratio & (ratio - 1):
+        raise ValueError(
+            f"prefilter size {S} must be the environment's face size {S0} divided by a power of two "
+            f"(1, 2, 4, ...); resample the environment with Cubemap.from_equirect/from_function first"
+        )
+    most = _mip_count(S)
+    M = most if num_levels is None else _positive_int(num_levels, "num_levels")
+    if M > most:
+        raise ValueError(f"a {S}^2 prefiltered cube supports at most {most} levels; asked for {M}")
+    if samples is None:
+        samples = DEFAULT_SAMPLES
+    per_level = [samples] * M if isinstance(samples, (int, np.integer)) else list(samples)
+    if len(per_level) != M:
+        raise ValueError(f"samples has {len(per_level)} entries; expected one per level ({M})")
+    per_level = [_positive_int(n, "samples") for n in per_level]
+
+    idx = np.zeros(0, np.int64)
+    if method == "fis":
+        exact_texels = int(exact_texels)
+        if exact_texels < 0:
+            raise ValueError(f"exact_texels must be >= 0, got {exact_texels}")
+        resid, idx, bright = split_bright(np.asarray(env.levels[0]), exact_texels)
+        src = Cubemap((jnp.asarray(resid, env.dtype),)).with_mips() if len(idx) else env.level_cube(0).with_mips()
+    else:
+        src = env.level_cube(0).with_mips()
+    rough = level_roughness(M, mapping)
+    base_level = int(round(math.log2(ratio)))
+    levels = [env.level_cube(0).with_mips(base_level + 1).levels[base_level]]  # r = 0: the source
+    if method == "fis":
+        flat = _pyramid_flat(src.levels)
+        sizes = tuple(int(lv.shape[1]) for lv in src.levels)
+    for m in range(1, M):
+        Sm = max(1, S >> m)
+        dirs = texel_directions(Sm).reshape(-1, 3)
+        alpha = float(rough[m]) ** 2
+        if method == "reference":
+            ld = prefilter_reference(env, dirs, float(rough[m]))
+            lv = jnp.asarray(ld.reshape(6, Sm, Sm, -1), env.dtype)
+        else:
+            local, w, lod = _fis_samples(alpha, per_level[m], S0, src.num_levels, float(lod_bias))
+            dt = env.dtype
+            lv = _fis_level(flat, sizes, dirs, local, w, lod, _positive_int(chunk, "chunk"), dt)
+            if len(idx):
+                lv = lv + _bright_level(dirs, idx, bright, S0, alpha, 64, dt)
+            lv = lv.reshape(6, Sm, Sm, -1)
+        levels.append(lv)
+        if progress is not None:
+            progress(m, M - 1)
+    info = {
+        "quantity": "LD(R, r_m) = int L D (R.l)+ dl / int D (R.l)+ dl, n = v = R (Karis split sum)",
+        "roughness_mapping": mapping,
+        "level_roughness": ",".join(f"{x:.9g}" for x in rough),
+        "prefilter_method": method,
+    }
+    if method == "fis":
+        info["fis_samples"] = ",".join(str(n) for n in per_level)
+        info["fis_lod_bias"] = f"{float(lod_bias):g}"
+        info["exact_texels"] = str(len(idx))
+    return Cubemap(levels, info)
