@@ -81,6 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument("--numpy-repeats", type=_positive_int, default=3, help="timed NumPy runs (median)")
     bs.set_defaults(func=_cmd_bench_shade)
     b.set_defaults(func=lambda args: b.print_help() or 0)
+
+    from .cli_ibl import add_commands
+
+    add_commands(sub, _positive_int, bench_sub=bsub)
     return parser
 
 

@@ -50,6 +50,8 @@ PREFILTER_METHODS = ("fis", "reference")
 #: Default FIS sample count per level (chosen from the error-vs-time sweep of `jaxpbr report
 #: precompute`; see README).
 DEFAULT_SAMPLES = 256
+#: Most FIS samples `default_sample_counts` gives a level.
+MAX_SAMPLES = 4096
 #: Default number of brightest source texels convolved exactly instead of sampled (see `split_bright`).
 DEFAULT_EXACT_TEXELS = 256
 #: Default FIS LOD bias (+1 = Filament's K = 4).
@@ -79,6 +81,19 @@ def roughness_to_lod(r, num_levels: int, mapping: str = "linear"):
     if mapping == "linear":
         return r * L
     return r * (2.0 - r) * L
+
+
+def default_sample_counts(base: int, size: int, num_levels: int, max_samples: int = MAX_SAMPLES) -> list[int]:
+    """FIS samples per level: `base` for the large levels, and as many more on the small (rough)
+    levels as keeps the work per level at most that of a 64^2 level at `base` samples, capped at
+    `max_samples` (a rough lobe reads coarse, blurry pyramid levels, so its error falls with more
+    samples, and small levels make them cheap)."""
+    budget = base * 6 * 64 * 64
+    out = [base]
+    for m in range(1, num_levels):
+        texels = 6 * max(1, size >> m) ** 2
+        out.append(int(min(max(base, max_samples), max(base, budget // texels))))
+    return out
 
 
 def _check_mapping(mapping):
@@ -358,7 +373,10 @@ def prefilter(
         raise ValueError(f"a {S}^2 prefiltered cube supports at most {most} levels; asked for {M}")
     if samples is None:
         samples = DEFAULT_SAMPLES
-    per_level = [samples] * M if isinstance(samples, (int, np.integer)) else list(samples)
+    if isinstance(samples, (int, np.integer)) and not isinstance(samples, bool):
+        per_level = default_sample_counts(_positive_int(samples, "samples"), S, M)
+    else:
+        per_level = list(samples)
     if len(per_level) != M:
         raise ValueError(f"samples has {len(per_level)} entries; expected one per level ({M})")
     per_level = [_positive_int(n, "samples") for n in per_level]

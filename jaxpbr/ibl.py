@@ -1,0 +1,119 @@
+"""Split-sum image-based lighting: diffuse irradiance + prefiltered specular + BRDF LUT.
+
+    L_o = ao * ( c_diff * Ebar(n)  +  LD(R, r) * (F0 * A + F90 * B) ),    R = reflect(-v, n)
+
+(Karis 2013; MATH.md 4, 6). `Ebar = E/pi` comes from `jaxpbr.irradiance`, `LD` from
+`jaxpbr.prefilter` (its roughness -> mip mapping is read from the map's metadata), `(A, B)` from
+`jaxpbr.lut`. With `multiscatter=True` the Fdez-Aguera 2019 energy compensation (MATH.md 5.3, with
+the *minus* sign: k_D = c_diff (1 - FssEss - FmsEms)) is applied per lobe -- the dielectric lobe
+(F0 = 0.04, c_diff = base_color) and the metal lobe (F0 = base_color, no diffuse) -- and the two
+are mixed by metallic, so a white furnace returns exactly 1 for either (MATH.md 7.5).
+
+The `learnopengl` model reproduces the LearnOpenGL IBL chapter's ambient term for fidelity:
+F = fresnelSchlickRoughness(NoV, F0, r) used in place of F0 (`F A + B`) and kD = (1 - F)(1 - metallic)
+on the diffuse term; it expects a LUT built with `smith="schlick"`. It over-brightens grazing
+angles (MATH.md 1.4); the default `gltf` model uses the correct F0 A + B.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ._numerics import as_float, pack3, unpack3, vdot, vnormalize
+from .brdf_terms import fresnel_schlick_roughness
+from .cubemap import Cubemap
+from .material import F0_DIELECTRIC, Material
+from .prefilter import roughness_to_lod
+
+__all__ = ["IBL_MODELS", "MIN_N_DOT_V", "shade_ibl", "split_sum_weights"]
+
+IBL_MODELS = ("gltf", "learnopengl")
+
+#: NoV is clamped to at least this (Filament MIN_N_DOT_V) before the LUT lookup: back-facing or
+#: grazing shading normals (normal maps, interpolation) still get the grazing-angle response.
+MIN_N_DOT_V = 1e-4
+
+
+def split_sum_weights(f0, a, b, *, multiscatter: bool = False):
+    """Specular weight FssEss = F0 A + B and multiple-scattering term FmsEms (0 unless asked).
+
+    f0 (..., 3); a, b (...) LUT channels. Fdez-Aguera: Ess = A + B, Ems = 1 - Ess,
+    F_avg = F0 + (1 - F0)/21, FmsEms = FssEss F_avg Ems / (1 - F_avg Ems).
+    """
+    a = a[..., None]
+    b = b[..., None]
+    fss_ess = f0 * a + b
+    if not multiscatter:
+        return fss_ess, jnp.zeros_like(fss_ess)
+    ems = 1.0 - (a + b)
+    f_avg = f0 + (1.0 - f0) / 21.0
+    # 1 - F_avg Ems >= 1 - Ems = Ess > 0 for F_avg <= 1: no division by zero.
+    fms_ems = fss_ess * f_avg * ems / (1.0 - f_avg * ems)
+    return fss_ess, fms_ems
+
+
+def shade_ibl(
+    n,
+    v,
+    m: Material,
+    irr: Cubemap,
+    pre: Cubemap,
+    lut,
+    *,
+    model: str = "gltf",
+    multiscatter: bool = False,
+) -> jax.Array:
+    """Image-based lighting radiance (..., 3) by the split sum.
+
+    n: (..., 3) unit shading normal; v: (..., 3) unit direction to the viewer.
+    m: Material (leaves broadcast with n); occlusion multiplies the result; emissive is *not*
+        added (shade_direct adds it once).
+    irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.irradiance`).
+    pre: prefiltered Cubemap (`jaxpbr.prefilter`); lod = mapping(r) from its metadata.
+    lut: (n_r, n_nov, 2) split-sum LUT (`jaxpbr.brdf_lut`; smith="correlated" for gltf,
+        "schlick" for learnopengl).
+    model: "gltf" (F0 A + B) or "learnopengl" (fresnelSchlickRoughness, see module docstring).
+    multiscatter: Fdez-Aguera energy compensation (gltf model only).
+    """
+    from .lut import lut_lookup
+
+    if model not in IBL_MODELS:
+        raise ValueError(f"unknown IBL model {model!r}; choose one of {IBL_MODELS}")
+    if multiscatter and model != "gltf":
+        raise ValueError("multiscatter compensation is defined for the gltf model only (LearnOpenGL has none)")
+    n3 = vnormalize(unpack3(as_float(n)))
+    v3 = vnormalize(unpack3(as_float(v)))
+    nov_raw = vdot(n3, v3)
+    # R = 2 (n.v) n - v, the mirror direction; always unit for unit n and v.
+    R = pack3(tuple(2.0 * nov_raw * n3[i] - v3[i] for i in range(3)))
+    nov = jnp.clip(nov_raw, MIN_N_DOT_V, 1.0)
+    r = jnp.clip(m.roughness, 0.0, 1.0)
+    nov, r = jnp.broadcast_arrays(nov, r)
+
+    ab = lut_lookup(lut, nov, r)
+    a, b = ab[..., 0], ab[..., 1]
+    mapping = pre.metadata.get("roughness_mapping", "linear")
+    ld = pre.sample(R, roughness_to_lod(r, pre.num_levels, mapping))
+    ebar = irr.sample(pack3(n3))
+    base = m.base_color
+    metallic = m.metallic[..., None]
+
+    if model == "learnopengl":
+        f0 = m.f0()
+        F = fresnel_schlick_roughness(nov, f0, r)
+        kd = (1.0 - F) * (1.0 - metallic)
+        out = kd * base * ebar + ld * (F * a[..., None] + b[..., None])
+    elif not multiscatter:
+        fss_ess, _ = split_sum_weights(m.f0(), a, b)
+        out = m.diffuse_color() * ebar + ld * fss_ess
+    else:
+        # Per lobe, then mixed by metallic (the compensation is not linear in F0).
+        f0_d = jnp.full_like(base, F0_DIELECTRIC)
+        fss_d, fms_d = split_sum_weights(f0_d, a, b, multiscatter=True)
+        kd = base * (1.0 - fss_d - fms_d)
+        diel = fss_d * ld + (fms_d + kd) * ebar
+        fss_m, fms_m = split_sum_weights(base, a, b, multiscatter=True)
+        metal = fss_m * ld + fms_m * ebar
+        out = diel + (metal - diel) * metallic
+    return out * m.occlusion[..., None]

@@ -1,0 +1,113 @@
+"""Error of every precompute against its float64 reference (used by the CLI sidecars and by
+`jaxpbr report precompute`).
+
+Relative error of a texel: sum_c |x_c - ref_c| / sum_c |ref_c| (an L1 ratio over the colour channels,
+so a near-black channel does not dominate). Texel subsets are deterministic (seeded) and always
+include the texels closest to the brightest source direction, where sampling errs most.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .cubemap import Cubemap, texel_directions
+
+__all__ = ["irradiance_error", "lut_error", "prefilter_error", "texel_subset"]
+
+
+def _rel(x, ref) -> np.ndarray:
+    x = np.asarray(x, np.float64)
+    ref = np.asarray(ref, np.float64)
+    return np.abs(x - ref).sum(-1) / np.maximum(np.abs(ref).sum(-1), 1e-300)
+
+
+def _brightest_direction(env: Cubemap) -> np.ndarray:
+    L = np.asarray(env.levels[0], np.float64).mean(-1)
+    k = int(np.argmax(L))
+    return env.directions(0).reshape(-1, 3)[k]
+
+
+def texel_subset(size: int, count: int, *, toward=None, seed: int = 0) -> np.ndarray:
+    """Flat texel indices of a (6, size, size) cube: all if there are <= count, otherwise count
+    seeded random ones plus the count/8 texels nearest `toward` (if given)."""
+    n = 6 * size * size
+    if n <= count:
+        return np.arange(n)
+    rng = np.random.default_rng(seed)
+    sel = rng.choice(n, count, replace=False)
+    if toward is not None:
+        d = texel_directions(size).reshape(-1, 3)
+        near = np.argsort(-(d @ np.asarray(toward)))[: max(1, count // 8)]
+        sel = np.union1d(sel, near)
+    return np.sort(sel)
+
+
+def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, seed: int = 0) -> list[dict]:
+    """Per level m >= 1: mean and max relative error of `pre` against `prefilter_reference` at a
+    texel subset. Level 0 is the (down-sampled) source itself and has no error by construction."""
+    from .prefilter import level_roughness, prefilter_reference
+
+    mapping = pre.metadata.get("roughness_mapping", "linear")
+    rough = level_roughness(pre.num_levels, mapping)
+    sun = _brightest_direction(env)
+    rows = []
+    for m in range(1, pre.num_levels):
+        Sm = pre.levels[m].shape[1]
+        sel = texel_subset(Sm, texels_per_level, toward=sun, seed=seed + m)
+        d = texel_directions(Sm).reshape(-1, 3)[sel]
+        ref = prefilter_reference(env, d, float(rough[m]))
+        got = np.asarray(pre.levels[m], np.float64).reshape(-1, pre.channels)[sel]
+        e = _rel(got, ref)
+        rows.append(
+            dict(level=m, roughness=float(rough[m]), face_size=Sm, texels=len(sel), mean=float(e.mean()), max=float(e.max()))
+        )
+    return rows
+
+
+def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int = 0) -> dict:
+    """Mean / max relative error of an irradiance map against the full-resolution exact
+    convolution (source_size = env face size) in float64, at a texel subset."""
+    import jax
+
+    from .irradiance import irradiance_at
+
+    S = irr.face_size
+    sel = texel_subset(S, texels, toward=_brightest_direction(env), seed=seed)
+    d = texel_directions(S).reshape(-1, 3)[sel]
+    with jax.enable_x64(True):
+        env64 = Cubemap(tuple(np.asarray(lv, np.float64) for lv in env.levels[:1]))
+        ref = np.asarray(irradiance_at(env64, d, method="exact", source_size=env.face_size, chunk=16))
+    got = np.asarray(irr.levels[0], np.float64).reshape(-1, irr.channels)[sel]
+    e = _rel(got, ref)
+    return dict(texels=len(sel), mean=float(e.mean()), max=float(e.max()))
+
+
+def lut_error(lut, smith: str, *, texels: int | None = 1024, seed: int = 0) -> dict:
+    """Max / mean absolute error of a LUT (n_r, n_nov, 2) against `lut_reference` at its texel
+    centres: every texel if `texels` is None, else the four edges plus a seeded random subset."""
+    from .lut import lut_reference
+
+    lut = np.asarray(lut, np.float64)
+    nr, nn = lut.shape[:2]
+    jj, ii = np.meshgrid(np.arange(nr), np.arange(nn), indexing="ij")
+    j, i = jj.reshape(-1), ii.reshape(-1)
+    if texels is not None and nr * nn > texels:
+        edge = (j == 0) | (j == nr - 1) | (i == 0) | (i == nn - 1)
+        rng = np.random.default_rng(seed)
+        pick = np.union1d(np.nonzero(edge)[0], rng.choice(nr * nn, texels, replace=False))
+        j, i = j[pick], i[pick]
+    ref = lut_reference((i + 0.5) / nn, (j + 0.5) / nr, smith)
+    err = np.abs(lut[j, i] - ref)
+    return dict(texels=int(len(j)), max=float(err.max()), mean=float(err.mean()), all_texels=texels is None or nr * nn <= texels)
+
+
+def summarize(rows: list[dict]) -> dict:
+    """Worst mean and worst max over prefilter levels."""
+    if not rows:
+        return dict(mean=0.0, max=0.0)
+    return dict(mean=max(r["mean"] for r in rows), max=max(r["max"] for r in rows))
+
+
+def fmt_pct(x: float) -> str:
+    return f"{100.0 * x:.2f} %" if x >= 1e-4 else f"{100.0 * x:.1e} %"
+

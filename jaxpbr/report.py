@@ -1,0 +1,156 @@
+"""`jaxpbr report precompute`: error against run time for every precompute.
+
+For the BRDF LUT, each irradiance method and the prefiltered specular cube, a sweep of sample
+counts / resolutions is timed (after a warm-up call, so JIT compilation is excluded and reported
+apart) and compared with the float64 references of `jaxpbr.measure`. Environments: a procedural sky
+with a 3000-radiance sun generated in code, plus any HDR panoramas given. Output: a Markdown table
+and a PNG plot (the plot needs matplotlib: `pip install 'jaxpbr[report]'`).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["precompute_report"]
+
+
+def _timed(fn, repeats: int = 2):
+    """(result, first-call seconds, best-of-`repeats` seconds of later calls)."""
+    t0 = time.perf_counter()
+    out = fn()
+    first = time.perf_counter() - t0
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return out, first, best
+
+
+def _block(x):
+    import jax
+
+    return jax.tree_util.tree_map(lambda a: np.asarray(a), x)
+
+
+def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schlick"), log=print) -> list[dict]:
+    from .lut import compute_brdf_lut
+    from .measure import lut_error
+
+    rows = []
+    for smith in smiths:
+        for size in sizes:
+            for n in samples:
+                kw = {} if n is None else {"samples": n}
+                lut, first, best = _timed(lambda: _block(compute_brdf_lut(size, smith=smith, **kw)))
+                err = lut_error(lut, smith, texels=None)
+                rows.append(dict(what="lut", env="-", variant=f"{smith} {size}^2", param=n or "default", seconds=best, compile_s=first - best, mean=err["mean"], max=err["max"], unit="abs"))
+                log(f"  lut {smith} {size}^2 samples={n or 'default'}: max {err['max']:.2e} in {best:.2f} s")
+    return rows
+
+
+def irradiance_rows(env, env_name: str, size: int = 32, source_sizes=(16, 32, 64), log=print) -> list[dict]:
+    from .irradiance import irradiance
+    from .measure import irradiance_error
+
+    rows = []
+    configs = [("exact", s) for s in source_sizes if s <= env.face_size] + [("sh9", None)]
+    for method, src in configs:
+        irr, first, best = _timed(lambda: _block(irradiance(env, size, method=method, source_size=src)))
+        err = irradiance_error(env, irr, texels=1024)
+        rows.append(dict(what="irradiance", env=env_name, variant=method if src is None else f"exact src {src}^2", param=src or 9, seconds=best, compile_s=first - best, mean=err["mean"], max=err["max"], unit="rel"))
+        log(f"  irradiance {env_name} {rows[-1]['variant']}: mean {100 * err['mean']:.3f} % max {100 * err['max']:.3f} % in {best:.2f} s")
+    return rows
+
+
+def prefilter_rows(env, env_name: str, samples=(64, 128, 256, 512), exact_texels=(0, 256), texels_per_level=512, log=print) -> list[dict]:
+    from .measure import prefilter_error, summarize
+    from .prefilter import prefilter
+
+    rows = []
+    for et in exact_texels:
+        for n in samples:
+            pre, first, best = _timed(lambda: _block(prefilter(env, samples=n, exact_texels=et)), repeats=1)
+            w = summarize(prefilter_error(env, pre, texels_per_level=texels_per_level))
+            rows.append(dict(what="prefilter", env=env_name, variant=f"FIS{' + exact sun' if et else ''}", param=n, seconds=best, compile_s=max(0.0, first - best), mean=w["mean"], max=w["max"], unit="rel"))
+            log(f"  prefilter {env_name} {env.face_size}^2 samples={n} exact_texels={et}: mean {100 * w['mean']:.2f} % worst {100 * w['max']:.2f} % in {best:.2f} s")
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    out = [
+        "| precompute | environment | variant | samples / size | run time (s) | compile (s) | mean error | max error |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        fmt = (lambda x: f"{x:.1e}") if r["unit"] == "abs" else (lambda x: f"{100 * x:.3g} %")
+        out.append(
+            f"| {r['what']} | {r['env']} | {r['variant']} | {r['param']} | {r['seconds']:.3f} | {r['compile_s']:.2f} | {fmt(r['mean'])} | {fmt(r['max'])} |"
+        )
+    return "\n".join(out) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> bool:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return False
+    kinds = [k for k in ("lut", "irradiance", "prefilter") if any(r["what"] == k for r in rows)]
+    fig, axes = plt.subplots(1, len(kinds), figsize=(5.2 * len(kinds), 4.2), squeeze=False)
+    for ax, kind in zip(axes[0], kinds):
+        groups: dict = {}
+        for r in rows:
+            if r["what"] == kind:
+                groups.setdefault(f"{r['env']} {r['variant']}" if r["env"] != "-" else r["variant"].split()[0], []).append(r)
+        for label, rs in groups.items():
+            t = [r["seconds"] for r in rs]
+            ax.loglog(t, [r["max"] for r in rs], "o-", label=f"{label} (max)")
+            if kind != "lut":
+                ax.loglog(t, [r["mean"] for r in rs], "s--", alpha=0.6, label=f"{label} (mean)")
+        ax.set_xlabel("run time (s, after compile)")
+        ax.set_ylabel("abs error" if kind == "lut" else "relative error")
+        ax.set_title(kind)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=6)
+    fig.tight_layout()
+    from .image import _atomic_write
+
+    _atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    plt.close(fig)
+    return True
+
+
+def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size: int = 256, quick: bool = False, log=print) -> tuple[str, list[dict]]:
+    """Run the sweeps, write `<out_prefix>.md` and `<out_prefix>.png`; return (markdown, rows)."""
+    from . import envs
+    from .cli_ibl import load_environment
+    from .image import _atomic_write
+
+    environments = [("procedural sky+sun", envs.sky_with_sun_cubemap(face_size))]
+    for p in env_paths:
+        environments.append((Path(p).name, load_environment([str(p)], face_size)))
+    rows = []
+    log("BRDF LUT")
+    rows += lut_rows(sizes=(32, 64) if quick else (64, 128, 256), log=log)
+    for name, env in environments:
+        log(f"irradiance: {name}")
+        rows += irradiance_rows(env, name, source_sizes=(16, 32) if quick else (16, 32, 64), log=log)
+        log(f"prefilter: {name}")
+        rows += prefilter_rows(env, name, samples=(64, 128) if quick else (64, 128, 256, 512), texels_per_level=128 if quick else 512, log=log)
+    md = "# jaxpbr precompute error vs run time\n\n" + markdown(rows)
+    md_path = Path(f"{out_prefix}.md")
+
+    def w(tmp):
+        Path(tmp).write_text(md)
+
+    _atomic_write(md_path, w)
+    png = Path(f"{out_prefix}.png")
+    if not plot(rows, png):
+        log("matplotlib is not installed: wrote the table only (pip install 'jaxpbr[report]' for the plot)")
+    return md, rows
