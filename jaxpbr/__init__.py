@@ -1,21 +1,43 @@
 """jaxpbr: physically based shading and image-based lighting in JAX.
 
 Pure, jit-compiled, vmappable kernels (GGX / Smith / Fresnel-Schlick / Lambert / Burley, the glTF
-metallic-roughness and LearnOpenGL/UE4 models), punctual direct lighting, colour and image I/O.
+metallic-roughness and LearnOpenGL/UE4 models), punctual direct lighting, image-based lighting
+(cube maps, exact and SH9 irradiance, GGX-prefiltered mips, the converged split-sum LUT, split-sum
+shading), colour and image I/O (EXR, HDR, PNG, KTX2).
 Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` and the README.
 """
 
 from . import brdf_terms
-from . import color, image, scene
+from . import color, envs, image, ktx2, scene
 from .brdf_terms import MIN_ROUGHNESS, MODELS, brdf
 from .conventions import CONVENTIONS
+from .cubemap import Cubemap
+from .ibl import shade_ibl
+from .irradiance import irradiance, sh9_irradiance, sh9_project
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight, pack_lights, shade_direct
+from .lut import compute_brdf_lut, lut_lookup, lut_reference
 from .material import Material
+from .prefilter import prefilter, prefilter_reference, roughness_to_lod
+from .shipped_luts import brdf_lut
 
 __version__ = "0.1.0"
 
 __all__ = [
     "CONVENTIONS",
+    "Cubemap",
+    "brdf_lut",
+    "compute_brdf_lut",
+    "envs",
+    "irradiance",
+    "ktx2",
+    "lut_lookup",
+    "lut_reference",
+    "prefilter",
+    "prefilter_reference",
+    "roughness_to_lod",
+    "sh9_irradiance",
+    "sh9_project",
+    "shade_ibl",
     "DirectionalLight",
     "LightSet",
     "MIN_ROUGHNESS",

@@ -181,12 +181,7 @@ def _versions() -> dict:
 def _cube_conventions() -> dict:
     from .conventions import CONVENTIONS
 
-    return {
-        **CONVENTIONS,
-        "cube_faces": "+X,-X,+Y,-Y,+Z,-Z; OpenGL/KTX orientation (GL major-axis table)",
-        "cube_texels": "levels[m][f,i,j] at s=(j+0.5)/S_m, t=(i+0.5)/S_m (GL/KTX s,t); KTX2 rows i, columns j",
-        "equirect": "u=0.5+atan2(d.z,d.x)/(2pi), v_up=0.5+asin(d.y)/pi, row 0 = +Y",
-    }
+    return {**CONVENTIONS, "ktx2_layout": "KTX2 face f = levels[m][f]; file rows i, columns j; no flip"}
 
 
 def _write_json(path: Path, data: dict, outs: _Outputs) -> None:
@@ -317,12 +312,12 @@ def _run(fn):
 
 
 def cmd_lut(args) -> int:
-    return _run(lambda outs: _lut(args, outs))
+    return _run(lambda outs: _lut(args, outs) and 0)
 
 
 def _lut(args, outs: _Outputs, out_path: Path | None = None) -> dict:
     from . import image
-    from .lut import brdf_lut
+    from .shipped_luts import brdf_lut
     from .measure import lut_error
 
     out = outs.check(Path(out_path or args.output), (".exr",))

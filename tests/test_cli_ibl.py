@@ -1,0 +1,178 @@
+"""`jaxpbr lut | irradiance | prefilter | ibl`: happy paths (files, sidecars, KTX2 contents) and
+every bad input of the issue (one line on stderr, non-zero exit, no files left behind)."""
+
+import json
+
+import numpy as np
+import OpenEXR
+import pytest
+
+from jaxpbr import image
+from jaxpbr.cli import main
+from jaxpbr.cubemap import Cubemap, equirect_directions
+from jaxpbr.ktx2 import read_ktx2
+
+
+def _sky_equirect(H=32):
+    d = equirect_directions(H)
+    return (1.0 + 0.5 * d[..., 1:2] + 0.25 * d[..., 0:1] ** 2) * np.array([1.0, 0.9, 0.8])
+
+
+@pytest.fixture
+def pano(tmp_path):
+    p = tmp_path / "sky.exr"
+    image.write(p, _sky_equirect().astype(np.float32))
+    return p
+
+
+def _raw_exr(path, arr):
+    """Write an EXR with OpenEXR directly (image.write refuses NaN, which is the point here)."""
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(hdr, {"RGB": np.ascontiguousarray(arr, np.float32)}) as f:
+        f.write(str(path))
+
+
+def _files(d):
+    return sorted(p.name for p in d.iterdir())
+
+
+def test_irradiance_ktx2_and_sidecar(tmp_path, pano, capsys):
+    out = tmp_path / "irr.ktx2"
+    assert main(["irradiance", str(pano), "--face-size", "16", "--size", "8", "-o", str(out), "--quiet"]) == 0
+    levels, meta, info = read_ktx2(out)
+    assert info["face_count"] == 6 and len(levels) == 1 and levels[0].shape == (6, 8, 8, 4)
+    side = json.loads((tmp_path / "irr.ktx2.json").read_text())
+    assert side["kind"] == "irradiance" and "E/pi" in side["quantity"]
+    assert "cube_faces" in side["conventions"] and side["versions"]["jax"]
+    err = side["error_vs_float64_exact_full_resolution"]
+    assert err["max"] < 1e-3  # 16^2 source is the full resolution here: the same convolution
+    # A panorama of 1 + 0.5 y + 0.25 x^2 is smooth: Ebar(+Y) from the closed forms (MATH 7.4):
+    # linear part 1 + (2/3)(0.5)(n.y) = 4/3; x^2 part: E[x^2 cos]/pi over the hemisphere = 1/4 -> 1/16.
+    py = levels[0][2, 3:5, 3:5, 0]  # +Y face centre texels (n ~ +Y)
+    np.testing.assert_allclose(py, 4 / 3 + 0.25 * 0.25, rtol=0.01)
+
+
+def test_prefilter_exr_faces_and_sh9_coefficients(tmp_path, pano):
+    out = tmp_path / "pre.exr"
+    assert main(["prefilter", str(pano), "--face-size", "16", "--samples", "16", "-o", str(out), "--quiet", "--no-error"]) == 0
+    names = _files(tmp_path)
+    assert sum(n.startswith("pre_m") for n in names) == 6 * 5  # 16, 8, 4, 2, 1
+    img, meta = image.read_with_metadata(tmp_path / "pre_m0_px.exr")
+    assert img.shape == (16, 16, 3)
+    side = json.loads((tmp_path / "pre.exr.json").read_text())
+    assert side["roughness_mapping"] == "linear" and side["num_levels"] == 5
+    out2 = tmp_path / "irr.ktx2"
+    assert main(["irradiance", str(pano), "--face-size", "16", "--size", "4", "--method", "sh9", "-o", str(out2), "--quiet"]) == 0
+    coeffs = np.array(json.loads((tmp_path / "irr.ktx2.json").read_text())["sh9_radiance_coefficients"]["values"])
+    assert coeffs.shape == (9, 3)
+
+
+def test_lut_command_writes_exr_with_layout(tmp_path):
+    out = tmp_path / "lut.exr"
+    assert main(["lut", "--size", "16", "-o", str(out), "--quiet"]) == 0
+    img, meta = image.read_with_metadata(out)
+    assert img.shape == (16, 16, 3) and np.all(img[..., 2] == 0)
+    from jaxpbr.lut import lut_reference
+
+    ref = lut_reference((np.arange(16) + 0.5) / 16, 0.5 / 16)  # row 0: r = 1/32
+    np.testing.assert_allclose(img[0, :, :2], ref, atol=1e-4)
+    side = json.loads((tmp_path / "lut.exr.json").read_text())
+    assert side["error_vs_float64_reference"]["max"] < 1e-4
+
+
+def test_ibl_all_in_one_procedural(tmp_path):
+    assert main(["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "8", "--out-dir", str(tmp_path), "--quiet", "--no-error"]) == 0
+    assert {"irradiance.ktx2", "prefiltered.ktx2", "brdf_lut.exr", "ibl.json"} <= set(_files(tmp_path))
+    levels, meta, info = read_ktx2(tmp_path / "prefiltered.ktx2")
+    assert len(levels) == 5 and meta["jaxpbr:roughness_mapping"] == "linear"
+    # rgba16f: the 3000-radiance sun is representable; values finite and non-negative
+    assert all(np.isfinite(lv).all() and (lv >= 0).all() for lv in levels)
+
+
+def _bad(argv, tmp_path, capsys, match):
+    before = _files(tmp_path)
+    code = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code != 0
+    assert len(err) == 1 and err[0].startswith("jaxpbr: error:") and match in err[0], err
+    assert _files(tmp_path) == before  # nothing written, nothing half-written
+
+
+def test_missing_file(tmp_path, capsys):
+    _bad(["irradiance", str(tmp_path / "nope.hdr"), "-o", str(tmp_path / "o.ktx2")], tmp_path, capsys, "does not exist")
+
+
+def test_unreadable_file(tmp_path, capsys):
+    p = tmp_path / "garbage.exr"
+    p.write_bytes(b"not an exr at all")
+    _bad(["prefilter", str(p), "-o", str(tmp_path / "o.ktx2")], tmp_path, capsys, "cannot read")
+
+
+def test_wrong_aspect(tmp_path, capsys):
+    p = tmp_path / "wide.exr"
+    image.write(p, np.ones((10, 30, 3), np.float32))
+    _bad(["irradiance", str(p), "-o", str(tmp_path / "o.ktx2")], tmp_path, capsys, "twice as wide")
+
+
+def test_nan_pixels(tmp_path, capsys):
+    a = np.ones((8, 16, 3), np.float32)
+    a[2, 3, 1] = np.nan
+    p = tmp_path / "nan.exr"
+    _raw_exr(p, a)
+    _bad(["irradiance", str(p), "-o", str(tmp_path / "o.ktx2")], tmp_path, capsys, "NaN/Inf")
+
+
+def test_negative_pixels_rejected_unless_clamped(tmp_path, capsys):
+    a = np.ones((8, 16, 3), np.float32)
+    a[1, 1, 0] = -0.5
+    p = tmp_path / "neg.exr"
+    _raw_exr(p, a)
+    _bad(["irradiance", str(p), "-o", str(tmp_path / "o.ktx2")], tmp_path, capsys, "--clamp-negative")
+    assert main(["irradiance", str(p), "--clamp-negative", "--size", "4", "-o", str(tmp_path / "o.ktx2"), "--quiet", "--no-error"]) == 0
+    assert "clamped 1 negative" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["--size", "0"], ["--size", "-3"], ["--samples", "0"], ["--face-size", "0"]])
+def test_nonpositive_sizes_and_samples(tmp_path, capsys, argv):
+    with pytest.raises(SystemExit) as e:
+        main(["prefilter", "procedural:sky", "-o", str(tmp_path / "o.ktx2")] + argv)
+    assert e.value.code != 0
+    assert "positive integer" in capsys.readouterr().err
+    assert _files(tmp_path) == []
+
+
+def test_output_directory_missing_or_not_a_directory(tmp_path, capsys, pano):
+    _bad(["irradiance", str(pano), "-o", str(tmp_path / "no" / "o.ktx2")], tmp_path, capsys, "does not exist")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    _bad(["lut", "--size", "4", "-o", str(blocker / "lut.exr")], tmp_path, capsys, "does not exist")
+    _bad(["irradiance", str(pano), "-o", str(tmp_path / "o.png")], tmp_path, capsys, "must end in")
+
+
+def test_failure_after_first_file_removes_everything(tmp_path, capsys, monkeypatch):
+    """A failure while writing the sidecar (after the cube file exists) leaves no files."""
+    import jaxpbr.cli_ibl as ci
+
+    def boom(*a, **k):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(ci, "_write_json", boom)
+    _bad(["irradiance", "procedural:sky", "--face-size", "16", "--size", "4", "-o", str(tmp_path / "o.ktx2"), "--no-error"], tmp_path, capsys, "disk full")
+
+
+def test_six_face_input(tmp_path):
+    rng = np.random.default_rng(0)
+    faces = rng.uniform(0.5, 1.5, (6, 8, 8, 3)).astype(np.float32)
+    paths = []
+    for f in range(6):
+        p = tmp_path / f"f{f}.exr"
+        image.write(p, faces[f])
+        paths.append(str(p))
+    out = tmp_path / "irr.ktx2"
+    assert main(["irradiance", *paths, "--size", "4", "-o", str(out), "--quiet", "--ktx-format", "rgba32f"]) == 0
+    levels, _, _ = read_ktx2(out)
+    from jaxpbr.irradiance import irradiance
+
+    expect = np.asarray(irradiance(Cubemap(faces), 4).levels[0])
+    np.testing.assert_allclose(levels[0][..., :3], expect, rtol=1e-6)
+    assert main(["irradiance", *paths[:5], "-o", str(out)]) != 0
