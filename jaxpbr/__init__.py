@@ -13,11 +13,11 @@ from .brdf_terms import MIN_ROUGHNESS, MODELS, brdf
 from .conventions import CONVENTIONS
 from .cubemap import Cubemap
 from .ibl import shade_ibl
-from .irradiance import irradiance, sh9_irradiance, sh9_project
+from .diffuse import irradiance, sh9_irradiance, sh9_project
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight, pack_lights, shade_direct
 from .lut import compute_brdf_lut, lut_lookup, lut_reference
 from .material import Material
-from .prefilter import prefilter, prefilter_reference, roughness_to_lod
+from .specular import prefilter, prefilter_reference, roughness_to_lod
 from .shipped_luts import brdf_lut
 
 __version__ = "0.1.0"

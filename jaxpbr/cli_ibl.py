@@ -292,7 +292,7 @@ def add_commands(sub, positive_int, bench_sub=None) -> None:
 
 
 def _prefilter_args(p, positive_int):
-    from .prefilter import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES
+    from .specular import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES
 
     p.add_argument("--size", type=positive_int, default=None, help="face size of mip 0 (default: the environment's)")
     p.add_argument("--levels", type=positive_int, default=None, help="number of mips M (default: down to 1x1)")
@@ -357,7 +357,7 @@ def cmd_irradiance(args) -> int:
 
 
 def _irradiance(args, outs: _Outputs, env=None, out_path: Path | None = None, size=None, method=None) -> dict:
-    from .irradiance import irradiance, sh9_project
+    from .diffuse import irradiance, sh9_project
     from .measure import irradiance_error
 
     out = outs.check(Path(out_path or args.output), (".ktx2", ".exr"))
@@ -401,7 +401,7 @@ def cmd_prefilter(args) -> int:
 
 def _prefilter(args, outs: _Outputs, env=None, out_path: Path | None = None) -> dict:
     from .measure import prefilter_error, summarize
-    from .prefilter import prefilter
+    from .specular import prefilter
 
     out = outs.check(Path(out_path or args.output), (".ktx2", ".exr"))
     if args.exact_texels < 0:

@@ -229,7 +229,17 @@ def _pad_level(level: jax.Array) -> jax.Array:
     flat = level.reshape(6 * S * S, C)
     idx = jnp.asarray(_pad_index(S), dtype=jnp.int32)
     g = flat[idx]  # (6, S+2, S+2, 3, C)
-    return (g[..., 0, :] + g[..., 1, :] + g[..., 2, :]) * (1.0 / 3.0)
+    # Only the corner pads average (three distinct texels); elsewhere the three indices are equal
+    # and the texel is copied exactly ((3v)/3 is not always v in floating point).
+    corner = jnp.asarray(_corner_mask(S))[..., None]
+    return jnp.where(corner, (g[..., 0, :] + g[..., 1, :] + g[..., 2, :]) * (1.0 / 3.0), g[..., 0, :])
+
+
+@functools.lru_cache(maxsize=64)
+def _corner_mask(S: int) -> np.ndarray:
+    m = np.zeros((6, S + 2, S + 2), bool)
+    m[:, [0, 0, -1, -1], [0, -1, 0, -1]] = True
+    return m
 
 
 class _Pyramid:

@@ -2,8 +2,8 @@
 
     L_o = ao * ( c_diff * Ebar(n)  +  LD(R, r) * (F0 * A + F90 * B) ),    R = reflect(-v, n)
 
-(Karis 2013; MATH.md 4, 6). `Ebar = E/pi` comes from `jaxpbr.irradiance`, `LD` from
-`jaxpbr.prefilter` (its roughness -> mip mapping is read from the map's metadata), `(A, B)` from
+(Karis 2013; MATH.md 4, 6). `Ebar = E/pi` comes from `jaxpbr.diffuse`, `LD` from
+`jaxpbr.specular` (its roughness -> mip mapping is read from the map's metadata), `(A, B)` from
 `jaxpbr.lut`. With `multiscatter=True` the Fdez-Aguera 2019 energy compensation (MATH.md 5.3, with
 the *minus* sign: k_D = c_diff (1 - FssEss - FmsEms)) is applied per lobe -- the dielectric lobe
 (F0 = 0.04, c_diff = base_color) and the metal lobe (F0 = base_color, no diffuse) -- and the two
@@ -24,7 +24,7 @@ from ._numerics import as_float, pack3, unpack3, vdot, vnormalize
 from .brdf_terms import fresnel_schlick_roughness
 from .cubemap import Cubemap
 from .material import F0_DIELECTRIC, Material
-from .prefilter import roughness_to_lod
+from .specular import roughness_to_lod
 
 __all__ = ["IBL_MODELS", "MIN_N_DOT_V", "shade_ibl", "split_sum_weights"]
 
@@ -69,8 +69,8 @@ def shade_ibl(
     n: (..., 3) unit shading normal; v: (..., 3) unit direction to the viewer.
     m: Material (leaves broadcast with n); occlusion multiplies the result; emissive is *not*
         added (shade_direct adds it once).
-    irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.irradiance`).
-    pre: prefiltered Cubemap (`jaxpbr.prefilter`); lod = mapping(r) from its metadata.
+    irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.diffuse`).
+    pre: prefiltered Cubemap (`jaxpbr.specular`); lod = mapping(r) from its metadata.
     lut: (n_r, n_nov, 2) split-sum LUT (`jaxpbr.brdf_lut`; smith="correlated" for gltf,
         "schlick" for learnopengl).
     model: "gltf" (F0 A + B) or "learnopengl" (fresnelSchlickRoughness, see module docstring).

@@ -16,13 +16,15 @@ Layout (DESIGN.md, Conventions): shape `(n_roughness, n_nov, 2)`, element `[j, i
 `r = (j + 0.5) / n_roughness`, `NoV = (i + 0.5) / n_nov`, channels (A, B); `lut_lookup` is bilinear
 between texel centres and clamped to the edge.
 
-Why not Monte Carlo: the usual 1024-sample Hammersley estimate is off by up to ~2e-3 (MATH.md
-§7.2). `compute_brdf_lut` uses a deterministic product Gauss-Legendre rule in half-vector space
-that splits off the below-horizon region exactly and grades its nodes into the three thin layers
-of the integrand; with the default 864 nodes per texel it is within ~2e-6 of `lut_reference` at
-every texel of a 128^2 and a 256^2 table (both Smith variants). `lut_reference` is an independent
-float64 construction (other variables, other integration order, composite graded rule, textbook
-Smith Lambda) whose convergence is checked by refinement and against scipy in the tests.
+Why not Monte Carlo: the usual 1024-sample Hammersley estimate (GGX NDF sampling) is off by up
+to 1.3e-2 at the texels of a 256^2 table, mean 7.7e-4 (measured against `lut_reference`; MATH.md
+§7.2 quotes ~2e-3). `compute_brdf_lut` uses a deterministic product Gauss-Legendre rule in
+half-vector space that splits off the below-horizon region exactly and grades its nodes into the
+thin layers of the integrand; with the default 864 nodes per texel it is within 1.4e-6 of
+`lut_reference` at every texel of a 128^2 and a 256^2 table (both Smith variants).
+`lut_reference` is an independent float64 construction (other variables, other integration
+order, composite graded rule, textbook Smith Lambda) whose convergence is checked by refinement
+and against scipy in the tests.
 """
 
 from __future__ import annotations
@@ -34,7 +36,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import is_concrete
 from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated
 
 __all__ = [
@@ -50,9 +51,10 @@ SMITH_VARIANTS = ("correlated", "schlick")
 
 #: Default quadrature nodes per texel of `compute_brdf_lut`: 6 m^2 with order m = 12. Chosen from
 #: the measured error against `lut_reference` at every texel of a 256^2 table (max abs error over
-#: both channels and both Smith variants): 384 nodes (m = 8) 1.5e-4, 600 (m = 10) 1.4e-5,
-#: 864 (m = 12) 1.7e-6, 1176 (m = 14) 2.6e-7. 864 is the cheapest order with a 50x margin under
-#: the 1e-4 target; 256^2 takes ~0.4-0.8 s on 2 CPU cores.
+#: both channels, correlated / schlick): 384 nodes (m = 8) 1.3e-4 / 7.3e-5, 600 (m = 10)
+#: 1.4e-5 / 3.5e-6, 864 (m = 12) 1.4e-6 / 4.2e-7, 1176 (m = 14) 1.3e-7 / 1.4e-7 (there the float32
+#: node evaluation is the limit). 864 is the cheapest order with a 70x margin under the 1e-4
+#: target; a 256^2 table then runs in 0.3-0.8 s on one CPU core (+ ~1.4 s compilation).
 DEFAULT_SAMPLES = 6 * 12**2
 
 _PI = math.pi
@@ -109,22 +111,23 @@ def _order_from_samples(samples: int) -> int:
 # * phi near pi/2 at grazing view: t_max(p) falls from ~pi/2 to ~0 where cos p ~ mu / s_v. Each
 #   half [0, pi/2], [pi/2, pi] is mapped by p = pi/2 -+ w (e^y - 1), y uniform (Gauss-Legendre),
 #   w = 2 mu / s_v, which puts nodes densely at that scale and reduces to ~uniform when mu ~ 1.
-# * theta near 0: the GGX peak of width alpha (alpha = 1.5e-5 in the first row of a 256^2 LUT).
+# * theta near 0: the GGX peak of width alpha (alpha = 3.8e-6 in the first row of a 256^2 LUT).
 #   Piece 1, t in [0, t1], uses the NDF inverse-CDF variable: tan t = alpha tan b, s = tan(b/2),
 #   where D cos t dw_h = dxi dp / (2 pi), xi = sin^2 b = 4 s^2 / (1 + s^2)^2 (rational in s, no
 #   trig per node). It ends at tan b = 4 (t1 = atan(4 alpha)), because the map is singular at
 #   s = 1 (t = pi/2) and nodes crowd there for small alpha.
 # * the GGX tail: D ~ alpha^2 / t^4 times the weight ~ t / alpha contributes equal shares per
 #   octave of t, so piece 2, t in [t1, t2 = 0.65 t_max], is log-uniform: t = t1 e^y.
-# * the horizon: V (n.l) switches on over n.l ~ w_n: correlated V ~ n.l / (n.l + mu) when
-#   alpha >> mu and ~ n.l / (n.l + alpha) when alpha << mu; Schlick ~ n.l / (n.l + k), k = alpha/2.
+# * the horizon: V (n.l) rises from 0 over n.l ~ w_n: for correlated Smith V (n.l) is
+#   ~ n.l / (n.l + mu) when alpha >> mu and ~ n.l / (n.l + sqrt(n.l^2 + alpha^2)) when alpha << mu;
+#   for Schlick ~ n.l / (n.l + k), k = alpha/2.
 #   Piece 3, t in [t2, t_max], uses t = t_max - w (e^y - 1), w = min(mu, alpha/2) / (2R) (n.l ~ 2R
 #   (t_max - t) near the horizon).
 # Pieces 1-3 and both phi halves use the same order m: 2m x 3m = 6 m^2 nodes per texel.
 #
 # Precision: everything per (texel, phi) line is float64; the integrand at the nodes is evaluated
 # in `node_dtype` (float32 for a float32 LUT: 2.5x faster; its rounding, ~1e-7 relative per node,
-# moves the table by < 2e-6) and every sum is accumulated in float64.
+# moves the table by ~1e-6 at most, measured) and every sum is accumulated in float64.
 
 _P1_TAN_BETA = 4.0  # piece 1 ends at tan(beta) = 4: s <= tan(atan(4)/2) = 0.78, clear of s = 1
 _P1_MAX_FRAC = 0.25  # ... or at t_max / 4 when the whole visible range lies inside the peak
@@ -253,16 +256,18 @@ def compute_brdf_lut(
         (Schlick-GGX with k = alpha/2, Karis/LearnOpenGL).
       samples: integrand evaluations per texel; the deterministic Gauss-Legendre rule uses
         6 m^2 of them with m = max(1, floor(sqrt(samples / 6))). Default `DEFAULT_SAMPLES` = 864
-        (max abs error ~2e-6 at every texel of 128^2 and 256^2, both variants).
+        (max abs error 1.4e-6 at every texel of 128^2 and 256^2, both variants).
       dtype: output dtype (float32 or float64). The rule sums in float64 either way; float32
-        evaluates the integrand at the nodes in float32 (< 2e-6 effect), float64 in float64.
+        evaluates the integrand at the nodes in float32 (~1e-6 effect), float64 in float64
+        (2-2.5x slower).
 
     Returns:
       (n_roughness, n_nov, 2) array; `[j, i]` holds (A, B) at `r = (j + 0.5)/n_roughness`,
       `NoV = (i + 0.5)/n_nov`, with `int f_spec (n.l) dl = F0 A + F90 B`.
 
-    Cost ~ n_roughness * n_nov * samples evaluations, chunked over rows (bounded memory).
-    Compiles once per (size, smith, samples, dtype).
+    Cost ~ n_roughness * n_nov * samples evaluations, in chunks of whole rows of at most 4096
+    texels (bounded memory). Compiles once per (size, smith, samples, dtype) (~1.4 s); a 256^2
+    table then takes 0.3-0.8 s on one CPU core (XLA:CPU runs it single-threaded).
     """
     n_r, n_nov = _lut_shape(size)
     _check_smith(smith, "compute_brdf_lut")
@@ -274,7 +279,12 @@ def compute_brdf_lut(
     rows = max(1, min(n_r, 4096 // n_nov))
     with jax.enable_x64(True):
         out = _lut_fast(
-            n_r=n_r, n_nov=n_nov, m=_order_from_samples(samples), smith=smith, node_dtype=node_dtype, rows_per_chunk=rows
+            n_r=n_r,
+            n_nov=n_nov,
+            m=_order_from_samples(samples),
+            smith=smith,
+            node_dtype=node_dtype,
+            rows_per_chunk=rows,
         )
         return out.astype(dtype)
 
@@ -294,16 +304,19 @@ def compute_brdf_lut(
 #
 # t < t_c = pi/4 - theta_v/2: every phi is visible (phi_max = pi);
 # t_c < t < t_top = pi/4 + theta_v/2: phi_max = acos(-mu cot(2t) / s_v).
-# Panels in t: geometric towards 0 at the GGX scale (alpha 2^k), towards t_c from both sides
-# (the inner integral behaves like (t - t_c)^{3/2} there) and towards t_top; in phi: geometric
-# towards phi_max (the horizon layer). Convergence is shown by refinement (tests, report).
+# Panels in t, all geometric with ratio 4: towards 0 at the GGX scale (alpha 4^k, k >= -1), towards
+# t_c from both sides (the inner integral behaves like (t - t_c)^{3/2} there) and towards t_top;
+# in phi: towards phi_max (the horizon layer, where V (n.l) switches on). Convergence is shown by
+# refinement: the default (order 10, 7 levels) agrees with order 14 / 8 levels to ~1e-9 and with
+# a third construction (a high-order run of the fast rule's geometry) to ~1e-9.
 
 _REF_CHUNK = 64  # points per compiled call
+_REF_RATIO = 4.0  # geometric grading ratio of the reference panels
 
 
 def _graded(a, b, toward_b: bool, levels: int):
-    """Breakpoints of [a, b] halving towards one end: (..., levels) (a and b not included)."""
-    k = 2.0 ** -jnp.arange(1, levels + 1, dtype=jnp.float64)
+    """Breakpoints of [a, b] graded by 1/4 towards one end: (..., levels) (a, b not included)."""
+    k = _REF_RATIO ** -jnp.arange(1, levels + 1, dtype=jnp.float64)
     return (b - (b - a) * k) if toward_b else (a + (b - a) * k)
 
 
@@ -327,7 +340,7 @@ def _reference_chunk(mu, alpha, *, smith, order, levels, alpha_levels):
     breaks = jnp.concatenate(
         [
             jnp.stack([jnp.zeros_like(mu), t_c, t_top], axis=-1),
-            col(alpha) * 2.0 ** jnp.arange(-2, alpha_levels + 1, dtype=jnp.float64),
+            col(alpha) * _REF_RATIO ** jnp.arange(-1, alpha_levels + 1, dtype=jnp.float64),
             _graded(jnp.zeros_like(col(mu)), col(t_c), True, levels),
             _graded(col(t_c), col(t_top), False, levels),
             _graded(col(t_c), col(t_top), True, levels),
@@ -343,14 +356,13 @@ def _reference_chunk(mu, alpha, *, smith, order, levels, alpha_levels):
     # weights are 0; acos' argument is clipped against rounding.
     cos_lim = -mu2 * jnp.cos(2.0 * t) / jnp.maximum(s_v2 * jnp.sin(2.0 * t), 1e-300)
     phi_max = jnp.where(t < col(t_c), _PI, jnp.arccos(jnp.clip(cos_lim, -1.0, 1.0)))
-    pb = jnp.concatenate(
-        [jnp.zeros_like(phi_max)[..., None], _graded(jnp.zeros_like(phi_max)[..., None], phi_max[..., None], True, levels), phi_max[..., None]],
-        axis=-1,
-    )
+    zero = jnp.zeros_like(phi_max)[..., None]
+    inner_levels = max(levels - 2, 1)  # the phi layer needs less depth (4^-5 at levels 7, measured)
+    pb = jnp.concatenate([zero, _graded(zero, phi_max[..., None], True, inner_levels), phi_max[..., None]], axis=-1)
     p, wp = _panels_nodes(pb, xg, wg)  # (P, Nt, Np)
 
-    # Per outer node (theta): the trigonometry and D, materialised once (the barrier keeps XLA
-    # from recomputing them for every inner node inside the fused loop).
+    # Per outer node (theta): the trigonometry and D, materialised once (the barrier stops XLA
+    # from fusing them into, and so recomputing them in, the loop over the inner nodes).
     sin_t, cos_t = jnp.sin(t), jnp.cos(t)
     # D = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2), with the bracket written as
     # sin^2 + alpha^2 cos^2 (identical; the textbook form cancels at small alpha even in float64).
@@ -379,20 +391,22 @@ def _reference_chunk(mu, alpha, *, smith, order, levels, alpha_levels):
     return jnp.stack([jnp.sum(f * (1.0 - fc), axis=(-2, -1)), jnp.sum(f * fc, axis=(-2, -1))], axis=-1)
 
 
-def lut_reference(n_dot_v, roughness, smith: str = "correlated", *, order: int = 8, levels: int = 12) -> np.ndarray:
+def lut_reference(n_dot_v, roughness, smith: str = "correlated", *, order: int = 10, levels: int = 7) -> np.ndarray:
     """Float64 reference (A, B) at arbitrary points, shape broadcast(n_dot_v, roughness) + (2,).
 
     Args:
       n_dot_v: NoV in (0, 1] (the integrand divides by NoV; NoV -> 0 is a limit, evaluate e.g.
         1e-6). roughness: perceptual r in [0, 1]. Both broadcast.
       smith: ``"correlated"`` or ``"schlick"`` as in `compute_brdf_lut`.
-      order, levels: Gauss-Legendre points per panel and grading depth (halvings towards each
-        singular point). The defaults agree with order 12 / levels 16 to ~1e-10 (tests).
+      order, levels: Gauss-Legendre points per panel, and the number of panels graded by 1/4
+        towards each singular point of theta (levels - 2 towards the horizon in phi). The
+        defaults agree with order 14 / levels 8 to ~1e-9 (tests, slow).
 
     r = 0 returns the exact mirror values `A = 1 - (1 - NoV)^5`, `B = (1 - NoV)^5`. For r > 0
-    the integral is evaluated with the composite graded rule described above the function
-    (independent of `compute_brdf_lut`'s rule). Cost ~1e5 integrand evaluations per point
-    (a 256^2 table takes about a minute on 2 CPU cores).
+    the integral is evaluated with the composite graded rule described above this function
+    (independent of `compute_brdf_lut`'s rule), ~2.2e4 integrand evaluations per point, in
+    compiled chunks of 64 points: every texel of a 128^2 table takes ~15 s of one CPU core,
+    256^2 ~60 s.
     """
     _check_smith(smith, "lut_reference")
     mu, r = np.broadcast_arrays(np.asarray(n_dot_v, np.float64), np.asarray(roughness, np.float64))
@@ -400,8 +414,8 @@ def lut_reference(n_dot_v, roughness, smith: str = "correlated", *, order: int =
         raise ValueError("lut_reference: n_dot_v must lie in (0, 1] (NoV -> 0 is a limit; evaluate at e.g. 1e-6)")
     if not (np.all(r >= 0.0) and np.all(r <= 1.0)):
         raise ValueError("lut_reference: roughness must lie in [0, 1]")
-    order = _positive_int(order, "order", "lut_reference", "the default is 8")
-    levels = _positive_int(levels, "levels", "lut_reference", "the default is 12")
+    order = _positive_int(order, "order", "lut_reference", "the default is 10")
+    levels = _positive_int(levels, "levels", "lut_reference", "the default is 7")
     shape = mu.shape
     mu, r = mu.ravel(), r.ravel()
     alpha = r * r
@@ -409,10 +423,11 @@ def lut_reference(n_dot_v, roughness, smith: str = "correlated", *, order: int =
     out = np.stack([1.0 - one_m, one_m], axis=-1)  # exact at r = 0
     todo = np.nonzero(alpha > 0.0)[0]
     if todo.size:
-        # alpha 2^k panels up to pi/2 from the smallest alpha (rounded up to a multiple of 4 so
-        # that few distinct programs are compiled).
-        alpha_levels = int(np.ceil(np.log2(0.5 * _PI / alpha[todo].min()))) + 1
-        alpha_levels = 4 * -(-alpha_levels // 4)
+        # alpha 4^k panels up to pi/2 from the smallest alpha. At least 12 (enough for r >= 6e-4)
+        # and a multiple of 4, so that few distinct programs are compiled; a panel beyond t_top
+        # has zero width and costs ~3 % per level.
+        alpha_levels = int(np.ceil(np.log(0.5 * _PI / alpha[todo].min()) / np.log(_REF_RATIO))) + 1
+        alpha_levels = max(12, 4 * -(-alpha_levels // 4))
         with jax.enable_x64(True):
             for start in range(0, todo.size, _REF_CHUNK):
                 idx = todo[start : start + _REF_CHUNK]
@@ -420,7 +435,12 @@ def lut_reference(n_dot_v, roughness, smith: str = "correlated", *, order: int =
                 m_c = np.pad(mu[idx], (0, pad), constant_values=0.5)
                 a_c = np.pad(alpha[idx], (0, pad), constant_values=0.25)
                 res = _reference_chunk(
-                    jnp.asarray(m_c), jnp.asarray(a_c), smith=smith, order=order, levels=levels, alpha_levels=alpha_levels
+                    jnp.asarray(m_c),
+                    jnp.asarray(a_c),
+                    smith=smith,
+                    order=order,
+                    levels=levels,
+                    alpha_levels=alpha_levels,
                 )
                 out[idx] = np.asarray(res)[: idx.size]
     return out.reshape(shape + (2,))

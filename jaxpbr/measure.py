@@ -45,7 +45,7 @@ def texel_subset(size: int, count: int, *, toward=None, seed: int = 0) -> np.nda
 def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, seed: int = 0) -> list[dict]:
     """Per level m >= 1: mean and max relative error of `pre` against `prefilter_reference` at a
     texel subset. Level 0 is the (down-sampled) source itself and has no error by construction."""
-    from .prefilter import level_roughness, prefilter_reference
+    from .specular import level_roughness, prefilter_reference
 
     mapping = pre.metadata.get("roughness_mapping", "linear")
     rough = level_roughness(pre.num_levels, mapping)
@@ -69,7 +69,7 @@ def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int
     convolution (source_size = env face size) in float64, at a texel subset."""
     import jax
 
-    from .irradiance import irradiance_at
+    from .diffuse import irradiance_at
 
     S = irr.face_size
     sel = texel_subset(S, texels, toward=_brightest_direction(env), seed=seed)

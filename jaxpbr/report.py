@@ -55,7 +55,7 @@ def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schli
 
 
 def irradiance_rows(env, env_name: str, size: int = 32, source_sizes=(16, 32, 64), log=print) -> list[dict]:
-    from .irradiance import irradiance
+    from .diffuse import irradiance
     from .measure import irradiance_error
 
     rows = []
@@ -70,7 +70,7 @@ def irradiance_rows(env, env_name: str, size: int = 32, source_sizes=(16, 32, 64
 
 def prefilter_rows(env, env_name: str, samples=(64, 128, 256, 512), exact_texels=(0, 256), texels_per_level=512, log=print) -> list[dict]:
     from .measure import prefilter_error, summarize
-    from .prefilter import prefilter
+    from .specular import prefilter
 
     rows = []
     for et in exact_texels:

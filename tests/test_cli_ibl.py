@@ -171,7 +171,7 @@ def test_six_face_input(tmp_path):
     out = tmp_path / "irr.ktx2"
     assert main(["irradiance", *paths, "--size", "4", "-o", str(out), "--quiet", "--ktx-format", "rgba32f"]) == 0
     levels, _, _ = read_ktx2(out)
-    from jaxpbr.irradiance import irradiance
+    from jaxpbr.diffuse import irradiance
 
     expect = np.asarray(irradiance(Cubemap(faces), 4).levels[0])
     np.testing.assert_allclose(levels[0][..., :3], expect, rtol=1e-6)

@@ -106,24 +106,34 @@ def sh9_irradiance(coeffs, n) -> jax.Array:
 
 @functools.lru_cache(maxsize=16)
 def _texel_moments(S: int) -> np.ndarray:
-    """First moments m_i = integral over texel i of w dw, float64 (6, S, S, 3).
+    """First moments m_i = integral over texel i of w dw, float64 (6, S, S, 3), exact.
 
-    Computed once on one face in its plane coordinates (sc, tc, 1) with a 4x4 solid-angle-weighted
-    midpoint rule (smooth integrand: relative error ~ (texel/4)^2/24 < 1e-7 for S >= 16), then
-    rotated onto the six faces with the face table.
+    A texel is a spherical quadrilateral; its moment is (1/2) sum over its edges of
+    theta_e * normalize(u_e x u_e+1), with u the unit corner directions in counter-clockwise order
+    seen from outside and theta_e the edge's arc length (Arvo 1995, the "vector irradiance" of a
+    polygon). Computed on one face in its plane coordinates (sc, tc, 1), then rotated onto the six
+    faces with the face table.
     """
     from .cubemap import _FACE_TABLE
 
-    q = 4
-    o = (np.arange(q) + 0.5) / q
-    c = 2.0 * (np.arange(S)[:, None] + o[None, :]).reshape(-1) / S - 1.0  # (S q)
-    sc, tc = c[None, :], c[:, None]
-    r2 = 1.0 + sc * sc + tc * tc
-    dom = (2.0 / (S * q)) ** 2 * r2**-1.5  # solid angle of each sub-cell
-    w = dom / np.sqrt(r2)  # direction = (sc, tc, 1)/sqrt(r2)
-    local = np.stack([sc * w, tc * w, np.broadcast_to(w, w.shape)], -1)  # (Sq, Sq, 3)
-    local = local.reshape(S, q, S, q, 3).sum((1, 3))
-    return np.einsum("fab,ijb->fija", _FACE_TABLE, local)
+    e = np.linspace(-1.0, 1.0, S + 1)
+    x0, x1 = e[None, :-1], e[None, 1:]  # sc varies along j (columns)
+    y0, y1 = e[:-1, None], e[1:, None]  # tc varies along i (rows)
+
+    def unit(x, y):
+        x, y = np.broadcast_arrays(x, y)
+        v = np.stack([x, y, np.ones_like(x)], -1)
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+    corners = [unit(x0, y0), unit(x1, y0), unit(x1, y1), unit(x0, y1)]  # CCW seen from +z (outside)
+    m = np.zeros((S, S, 3))
+    for k in range(4):
+        u, v = corners[k], corners[(k + 1) % 4]
+        c = np.cross(u, v)
+        sn = np.linalg.norm(c, axis=-1, keepdims=True)
+        theta = np.arctan2(sn, np.sum(u * v, -1, keepdims=True))
+        m += 0.5 * theta * c / sn
+    return np.einsum("fab,ijb->fija", _FACE_TABLE, m)
 
 
 def _moment_pyramid(env: Cubemap, source_size: int):

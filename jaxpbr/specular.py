@@ -163,29 +163,48 @@ def _pyramid_flat(levels):
     return _Pyramid(levels).flat
 
 
+#: FIS samples are evaluated in batches of this many, so one compiled kernel serves every level
+#: whatever its sample count (compiling one kernel per distinct count cost seconds).
+FIS_BATCH = 256
+
+
 @functools.partial(jax.jit, static_argnames=("sizes",))
 def _fis_chunk(flat, R, local, w, lod, *, sizes):
-    """LD at unit directions R (chunk, 3) from fixed local-frame samples (k, 3), weights (k,) and
-    source LODs (k,). One executable serves every level (same chunk and k)."""
+    """Unnormalised sum_k w_k L(l_k) at unit directions R (chunk, 3) for one batch of fixed
+    local-frame samples (k, 3) with weights (k,) and source LODs (k,)."""
     from .cubemap import _Pyramid
 
     pyr = _Pyramid(None, flat=flat, sizes=list(sizes))
     t, b = _frame(R)
     l = t[:, None, :] * local[None, :, 0:1] + b[:, None, :] * local[None, :, 1:2] + R[:, None, :] * local[None, :, 2:3]
     rad = pyr.sample(l, lod[None, :])  # (chunk, k, C)
-    return jnp.einsum("ckz,k->cz", rad, w) / jnp.sum(w)
+    return jnp.einsum("ckz,k->cz", rad, w)
 
 
 def _fis_level(flat, sizes, dirs, local, w, lod, chunk, dtype):
-    """Run `_fis_chunk` over all directions (N, 3) in fixed-size chunks (last one padded)."""
+    """LD = sum w L / sum w over all directions (N, 3): fixed-size chunks of directions (the last
+    padded) times fixed-size batches of samples (the last padded with weight 0)."""
     N = dirs.shape[0]
     pad = (-N) % chunk
     d = np.concatenate([dirs, np.tile(dirs[:1], (pad, 1))]) if pad else dirs
-    args = [jnp.asarray(a, dtype) for a in (local, w, lod)]
-    out = [
-        _fis_chunk(flat, jnp.asarray(d[i : i + chunk], dtype), *args, sizes=sizes) for i in range(0, len(d), chunk)
+    k = len(w)
+    kpad = (-k) % FIS_BATCH
+    if kpad:
+        local = np.concatenate([local, np.tile([[0.0, 0.0, 1.0]], (kpad, 1))])
+        w = np.concatenate([w, np.zeros(kpad)])
+        lod = np.concatenate([lod, np.zeros(kpad)])
+    batches = [
+        tuple(jnp.asarray(a[i : i + FIS_BATCH], dtype) for a in (local, w, lod)) for i in range(0, len(w), FIS_BATCH)
     ]
-    return jnp.concatenate(out)[:N]
+    out = []
+    for i in range(0, len(d), chunk):
+        Rc = jnp.asarray(d[i : i + chunk], dtype)
+        acc = None
+        for bl, bw, bd in batches:
+            part = _fis_chunk(flat, Rc, bl, bw, bd, sizes=sizes)
+            acc = part if acc is None else acc + part
+        out.append(acc)
+    return jnp.concatenate(out)[:N] / jnp.asarray(np.sum(w), dtype)
 
 
 # ------------------------------------------------------------------------------------------
@@ -199,13 +218,13 @@ def lobe_normalizer(alpha: float) -> float:
     dl = 4 (v.h) dw_h turns it into 4 E[(NoL)+] under the sampling density D cos(theta_h); with
     xi uniform, cos^2 = (1-xi)/(1+(a^2-1)xi) and NoL = 2cos^2 - 1 > 0 for xi < 1/(1+a^2), giving
     W = 4 [2a^2 ln(2a^2/(1+a^2)) + 1 - a^2] / (1-a^2)^2   (a = alpha),
-    with the series 4 (1/4 + e/6 + e^2/8) in e = 1 - a^2 near a = 1 (the closed form cancels there).
+    with the series 4 (1/4 + e/6 + 11 e^2/96) in e = 1 - a^2 near a = 1 (the closed form cancels there).
     W -> 1 at alpha = 1 and -> 4 as alpha -> 0.
     """
     a2 = float(alpha) ** 2
     e = 1.0 - a2
     if abs(e) < 1e-3:
-        return 4.0 * (0.25 + e / 6.0 + e * e / 8.0)
+        return 4.0 * (0.25 + e / 6.0 + 11.0 * e * e / 96.0)
     return 4.0 * (2.0 * a2 * math.log(2.0 * a2 / (1.0 + a2)) + e) / (e * e)
 
 
@@ -353,7 +372,8 @@ def prefilter(
     num_levels: M (default: the full chain down to 1 x 1).
     mapping: "linear" (r_m = m/(M-1)) or "quadratic" (Filament); recorded in the result's info.
     method: "fis" or "reference" (see module docstring).
-    samples: FIS samples per level, an int or a sequence of M ints (level 0 ignores it).
+    samples: FIS samples: an int n gives n on the large levels and more on the small, rough ones
+        (`default_sample_counts`); a sequence of M ints sets every level (level 0 ignores it).
     progress: optional callable(done_levels, total_levels) for progress reporting.
     """
     if method not in PREFILTER_METHODS:
