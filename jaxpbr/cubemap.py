@@ -323,6 +323,16 @@ def downsample(level: jax.Array) -> jax.Array:
     return w / ow
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _mip_chain(level0, num_levels: int):
+    """Level 0 and num_levels - 1 `downsample` steps, compiled as one program (op-by-op dispatch of
+    the chain cost over a second of compilation at 256^2)."""
+    levels = [level0]
+    for _ in range(num_levels - 1):
+        levels.append(downsample(levels[-1]))
+    return tuple(levels)
+
+
 def _mip_count(size: int) -> int:
     n = 1
     while size % 2 == 0 and size > 1:
@@ -444,10 +454,7 @@ class Cubemap:
             raise ValueError(
                 f"a {S}^2 cube supports at most {most} levels (each halves the face size); asked for {num_levels}"
             )
-        levels = [self.levels[0]]
-        for _ in range(num_levels - 1):
-            levels.append(downsample(levels[-1]))
-        return Cubemap(levels, self.info)
+        return Cubemap(_mip_chain(self.levels[0], num_levels), self.info)
 
     def level_cube(self, level: int) -> "Cubemap":
         """A single-level Cubemap holding `levels[level]`."""

@@ -160,7 +160,9 @@ def irradiance_at(env: Cubemap, n, *, method: str = "exact", source_size: int | 
     s = _source_size(S, source_size)
     lm = _moment_pyramid(env, s).reshape(-1, env.channels, 3)  # (Ns, C, 3)
     flat = n.reshape(-1, 3)
-    out = _exact_conv(flat, lm, chunk=_positive_int(chunk, "chunk"))
+    # Bound the (chunk, Ns, C) intermediate to ~2^24 elements whatever the source size.
+    chunk = max(1, min(_positive_int(chunk, "chunk"), (1 << 24) // (lm.shape[0] * lm.shape[1])))
+    out = _exact_conv(flat, lm, chunk=chunk)
     return out.reshape(n.shape[:-1] + (env.channels,))
 
 

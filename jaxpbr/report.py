@@ -49,7 +49,7 @@ def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schli
                 # Every texel up to 128^2; above that the edges + 4096 random texels (the every-texel
                 # figures of the shipped 256^2 LUTs are in luts/MANIFEST.json).
                 err = lut_error(lut, smith, texels=None if size <= 128 else 4096)
-                rows.append(dict(what="lut", env="-", variant=f"{smith} {size}^2", param=n or "default", seconds=best, compile_s=first - best, mean=err["mean"], max=err["max"], unit="abs"))
+                rows.append(dict(what="lut", env="-", variant=f"{smith} {size}^2", param=n or "default", seconds=best, compile_s=max(0.0, first - best), mean=err["mean"], max=err["max"], unit="abs"))
                 log(f"  lut {smith} {size}^2 samples={n or 'default'}: max {err['max']:.2e} in {best:.2f} s")
     return rows
 
@@ -63,7 +63,7 @@ def irradiance_rows(env, env_name: str, size: int = 32, source_sizes=(16, 32, 64
     for method, src in configs:
         irr, first, best = _timed(lambda: _block(irradiance(env, size, method=method, source_size=src)))
         err = irradiance_error(env, irr, texels=1024)
-        rows.append(dict(what="irradiance", env=env_name, variant=method if src is None else f"exact src {src}^2", param=src or 9, seconds=best, compile_s=first - best, mean=err["mean"], max=err["max"], unit="rel"))
+        rows.append(dict(what="irradiance", env=env_name, variant=method if src is None else f"exact src {src}^2", param=src or 9, seconds=best, compile_s=max(0.0, first - best), mean=err["mean"], max=err["max"], unit="rel"))
         log(f"  irradiance {env_name} {rows[-1]['variant']}: mean {100 * err['mean']:.3f} % max {100 * err['max']:.3f} % in {best:.2f} s")
     return rows
 
@@ -95,6 +95,16 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(out) + "\n"
 
 
+def _family(r: dict) -> str:
+    """Curve a row belongs to: one line per environment and method family, sorted by run time."""
+    if r["what"] == "lut":
+        smith = r["variant"].split()[0]
+        return f"{smith}, sizes 64-256" if r["param"] == "default" else f"{smith} 256^2, samples"
+    if r["what"] == "irradiance":
+        return f"{r['env']}: {'exact (src 16-64)' if r['variant'].startswith('exact') else 'sh9'}"
+    return f"{r['env']}: {r['variant']}"
+
+
 def plot(rows: list[dict], path: Path) -> bool:
     try:
         import matplotlib
@@ -104,22 +114,23 @@ def plot(rows: list[dict], path: Path) -> bool:
     except ImportError:
         return False
     kinds = [k for k in ("lut", "irradiance", "prefilter") if any(r["what"] == k for r in rows)]
-    fig, axes = plt.subplots(1, len(kinds), figsize=(5.2 * len(kinds), 4.2), squeeze=False)
+    fig, axes = plt.subplots(1, len(kinds), figsize=(6.0 * len(kinds), 6.5), squeeze=False)
     for ax, kind in zip(axes[0], kinds):
         groups: dict = {}
         for r in rows:
             if r["what"] == kind:
-                groups.setdefault(f"{r['env']} {r['variant']}" if r["env"] != "-" else r["variant"].split()[0], []).append(r)
-        for label, rs in groups.items():
+                groups.setdefault(_family(r), []).append(r)
+        for i, (label, rs) in enumerate(groups.items()):
+            rs = sorted(rs, key=lambda r: r["seconds"])
             t = [r["seconds"] for r in rs]
-            ax.loglog(t, [r["max"] for r in rs], "o-", label=f"{label} (max)")
+            (line,) = ax.loglog(t, [r["max"] for r in rs], "o-", label=f"{label} (max)")
             if kind != "lut":
-                ax.loglog(t, [r["mean"] for r in rs], "s--", alpha=0.6, label=f"{label} (mean)")
+                ax.loglog(t, [r["mean"] for r in rs], "s:", color=line.get_color(), alpha=0.7, label=f"{label} (mean)")
         ax.set_xlabel("run time (s, after compile)")
-        ax.set_ylabel("abs error" if kind == "lut" else "relative error")
-        ax.set_title(kind)
+        ax.set_ylabel("max |error| at every texel" if kind == "lut" else "relative error vs float64 reference")
+        ax.set_title({"lut": "BRDF LUT", "irradiance": "irradiance 32^2", "prefilter": "prefiltered mips (worst level)"}[kind])
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=6)
+        ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, frameon=False)
     fig.tight_layout()
     from .image import _atomic_write
 
@@ -140,6 +151,8 @@ def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size
     rows = []
     log("BRDF LUT")
     rows += lut_rows(sizes=(32, 64) if quick else (64, 128, 256), log=log)
+    if not quick:
+        rows += lut_rows(sizes=(256,), samples=(216, 384, 600, 1176), log=log)
     for name, env in environments:
         log(f"irradiance: {name}")
         rows += irradiance_rows(env, name, source_sizes=(16, 32) if quick else (16, 32, 64), log=log)

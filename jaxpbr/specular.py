@@ -324,7 +324,9 @@ def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: in
             [np.broadcast_to(L[..., None, :], om.shape + (C,)) * om[..., None], om[..., None]], -1
         ).reshape(-1, C + 1)
         src = jnp.asarray(sub.reshape(-1, 3).T)  # (3, Ns)
-        out = _reference_sum(jnp.asarray(dirs.reshape(-1, 3)), src, jnp.asarray(Lw), alpha, chunk=_positive_int(chunk, "chunk"))
+        # Bound the (chunk, Ns) kernel block to ~2^24 float64 elements whatever the source size.
+        chunk = max(1, min(_positive_int(chunk, "chunk"), (1 << 24) // src.shape[1]))
+        out = _reference_sum(jnp.asarray(dirs.reshape(-1, 3)), src, jnp.asarray(Lw), alpha, chunk=chunk)
         out = np.asarray(out)
     return (out[:, :C] / out[:, C:]).reshape(shape + (C,))
 

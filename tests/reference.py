@@ -319,3 +319,18 @@ def learnopengl_pbr_fs(N, V, L, albedo, metallic, roughness, epsilon=1e-4):
     kD = 1.0 - kS
     kD = kD * (1.0 - metallic)[..., None]
     return kD * albedo / PI + specular
+
+
+# Cube faces (OpenGL major-axis table, written out by hand; shared by the cubemap/IBL tests).
+def gl_inverse(face, sc, tc):
+    """Point on the unit cube with face `face` and (sc, tc), solved by hand from GL_TABLE (|ma| = 1)."""
+    one = np.ones_like(sc)
+    cols = {
+        0: (one, -tc, -sc),
+        1: (-one, -tc, sc),
+        2: (sc, one, tc),
+        3: (sc, -one, -tc),
+        4: (sc, -tc, one),
+        5: (-sc, -tc, -one),
+    }[face]
+    return np.stack(cols, -1)

@@ -18,6 +18,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy import integrate  # noqa: E402
 
+import reference as ref  # noqa: E402
 from jaxpbr.cubemap import (  # noqa: E402
     Cubemap,
     dir_to_equirect,
@@ -68,18 +69,7 @@ def gl_select(r):
     return np.array(out_f), np.array(out_s), np.array(out_t)
 
 
-def gl_inverse(face, sc, tc):
-    """Point on the unit cube with face `face` and (sc, tc), solved by hand from GL_TABLE (|ma| = 1)."""
-    one = np.ones_like(sc)
-    cols = {
-        0: (one, -tc, -sc),
-        1: (-one, -tc, sc),
-        2: (sc, one, tc),
-        3: (sc, -one, -tc),
-        4: (sc, -tc, one),
-        5: (-sc, -tc, -one),
-    }[face]
-    return np.stack(cols, -1)
+gl_inverse = ref.gl_inverse
 
 
 def ref_geometry(S):

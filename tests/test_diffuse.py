@@ -29,6 +29,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy import integrate  # noqa: E402
 
+import reference as ref  # noqa: E402
 from jaxpbr.cubemap import Cubemap, texel_directions  # noqa: E402
 from jaxpbr.diffuse import irradiance, irradiance_at, sh9_basis, sh9_irradiance, sh9_project  # noqa: E402
 
@@ -40,17 +41,7 @@ EPS32 = np.finfo(np.float32).eps
 # ----------------------------------------------------------------------------------------------
 
 
-def gl_inverse(face, sc, tc):
-    one = np.ones_like(sc)
-    cols = {
-        0: (one, -tc, -sc),
-        1: (-one, -tc, sc),
-        2: (sc, one, tc),
-        3: (sc, -one, -tc),
-        4: (sc, -tc, one),
-        5: (-sc, -tc, -one),
-    }
-    return np.stack(cols[face], -1)
+gl_inverse = ref.gl_inverse
 
 
 FACE_NORMALS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)

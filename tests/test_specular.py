@@ -20,6 +20,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy import integrate  # noqa: E402
 
+import reference as ref  # noqa: E402
 from jaxpbr.cubemap import Cubemap, texel_directions  # noqa: E402
 from jaxpbr.specular import (  # noqa: E402
     DEFAULT_SAMPLES,
@@ -71,17 +72,7 @@ def c_alpha(alpha):
 # ----------------------------------------------------------------------------------------------
 
 
-def gl_inverse(face, sc, tc):
-    one = np.ones_like(sc)
-    cols = {
-        0: (one, -tc, -sc),
-        1: (-one, -tc, sc),
-        2: (sc, one, tc),
-        3: (sc, -one, -tc),
-        4: (sc, -tc, one),
-        5: (-sc, -tc, -one),
-    }
-    return np.stack(cols[face], -1)
+gl_inverse = ref.gl_inverse
 
 
 def texel_corners(S):
