@@ -145,11 +145,13 @@ def test_stiff_inputs_finite_values_and_gradients(luts, dtype, multiscatter):
         m = jp.Material(base_color=base, metallic=0.5, roughness=r)
         return jnp.sum(shade_ibl(n, v, m, e, e, lut, multiscatter=multiscatter))
 
+    fj = jax.jit(f)
+    gj = jax.jit(jax.grad(f, argnums=(0, 1, 2, 3)))
     for r0 in (0.0, 1e-4, 1.0):
         r = jnp.full((5,), r0, dtype)
         base = jnp.asarray([0.5, 0.5, 0.5], dtype)
-        val = f(r, base, n, env.levels[0])
-        grads = jax.grad(f, argnums=(0, 1, 2, 3))(r, base, n, env.levels[0])
+        val = fj(r, base, n, env.levels[0])
+        grads = gj(r, base, n, env.levels[0])
         assert np.isfinite(float(val))
         for g in grads:
             assert np.all(np.isfinite(np.asarray(g)))
