@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cubemap import Cubemap, _positive_int, _subtexel_points, texel_directions, texel_solid_angles
+from .cubemap import Cubemap, _positive_int, texel_directions, texel_solid_angles
 
 __all__ = [
     "IRRADIANCE_METHODS",
