@@ -72,21 +72,7 @@ def gl_select(r):
 gl_inverse = ref.gl_inverse
 
 
-def ref_geometry(S):
-    """Texel centres (6,S,S,3) unit and corners (6,S,S,4,3) on the cube; [f, i, j] <-> s=(j+.5)/S, t=(i+.5)/S."""
-    e = np.linspace(-1.0, 1.0, S + 1)
-    c = 0.5 * (e[:-1] + e[1:])
-    cen, cor = [], []
-    for f in range(6):
-        tc, sc = np.meshgrid(c, c, indexing="ij")
-        d = gl_inverse(f, sc, tc)
-        cen.append(d / np.linalg.norm(d, axis=-1, keepdims=True))
-        t0, s0 = np.meshgrid(e[:-1], e[:-1], indexing="ij")
-        t1, s1 = np.meshgrid(e[1:], e[1:], indexing="ij")
-        cor.append(
-            np.stack([gl_inverse(f, s0, t0), gl_inverse(f, s1, t0), gl_inverse(f, s1, t1), gl_inverse(f, s0, t1)], -2)
-        )
-    return np.stack(cen), np.stack(cor)
+ref_geometry = ref.cube_geometry
 
 
 def ref_solid_angles(S):

@@ -68,20 +68,8 @@ class Geo:
         if S not in cls._cache:
             g = object.__new__(cls)
             e = np.linspace(-1.0, 1.0, S + 1)
-            c = 0.5 * (e[:-1] + e[1:])
-            cen, cor = [], []
-            for f in range(6):
-                tc, sc = np.meshgrid(c, c, indexing="ij")
-                d = gl_inverse(f, sc, tc)
-                cen.append(d / np.linalg.norm(d, axis=-1, keepdims=True))
-                t0, s0 = np.meshgrid(e[:-1], e[:-1], indexing="ij")
-                t1, s1 = np.meshgrid(e[1:], e[1:], indexing="ij")
-                cor.append(
-                    np.stack(
-                        [gl_inverse(f, s0, t0), gl_inverse(f, s1, t0), gl_inverse(f, s1, t1), gl_inverse(f, s0, t1)], -2
-                    )
-                )
-            g.S, g.c, g.cor = S, np.stack(cen), np.stack(cor)
+            g.S = S
+            g.c, g.cor = ref.cube_geometry(S)
             A = lambda x, y: np.arctan2(x * y, np.sqrt(1.0 + x * x + y * y))  # noqa: E731
             x0, x1, y0, y1 = e[None, :-1], e[None, 1:], e[:-1, None], e[1:, None]
             g.om = np.broadcast_to(A(x1, y1) - A(x0, y1) - A(x1, y0) + A(x0, y0), (6, S, S)).copy()
