@@ -476,7 +476,8 @@ def cmd_report_precompute(args) -> int:
             raise InputError(f"environment file {p!r} does not exist")
     md, _ = precompute_report(args.env, out_prefix=args.out, face_size=args.face_size, quick=args.quick, log=lambda m: print(m, file=sys.stderr))
     print(md)
-    print(f"wrote {args.out}.md and {args.out}.png")
+    png = Path(f"{args.out}.png")
+    print(f"wrote {args.out}.md" + (f" and {png}" if png.exists() else " (no plot: matplotlib is not installed)"))
     return 0
 
 

@@ -105,14 +105,25 @@ def _family(r: dict) -> str:
     return f"{r['env']}: {r['variant']}"
 
 
-def plot(rows: list[dict], path: Path) -> bool:
+def have_matplotlib() -> bool:
+    """True if the real matplotlib is importable. (colour-science puts a `MagicMock` in
+    sys.modules["matplotlib"] when matplotlib is missing, so a bare import is not enough.)"""
     try:
         import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
     except ImportError:
         return False
+    return isinstance(getattr(matplotlib, "__file__", None), str)
+
+
+def plot(rows: list[dict], path: Path) -> bool:
+    """Error-vs-time plot to `path` (PNG); False (nothing written) without matplotlib."""
+    if not have_matplotlib():
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     kinds = [k for k in ("lut", "irradiance", "prefilter") if any(r["what"] == k for r in rows)]
     fig, axes = plt.subplots(1, len(kinds), figsize=(6.0 * len(kinds), 6.5), squeeze=False)
     for ax, kind in zip(axes[0], kinds):
