@@ -13,8 +13,6 @@ every texel for the LUT).
 
 from __future__ import annotations
 
-import math
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,31 +26,28 @@ __all__ = ["bench_ibl", "hammersley_lut"]
 def _hammersley_lut_kernel(mu, alpha, xi):
     """Karis 2013 `IntegrateBRDF` (height-correlated V form): (A, B) per (mu, alpha) from the
     same N Hammersley points. mu, alpha (T,); xi (N, 2)."""
-    from .brdf_terms import v_smith_correlated
+    from .brdf_terms import schlick_weight, v_smith_correlated
+    from .sampling import sample_ggx_h
 
-    a2 = (alpha * alpha)[:, None]
-    phi = 2.0 * math.pi * xi[None, :, 0]
-    den = 1.0 + (a2 - 1.0) * xi[None, :, 1]
-    cos_h = jnp.sqrt((1.0 - xi[None, :, 1]) / den)
-    sin_h = jnp.sqrt(a2 * xi[None, :, 1] / den)
-    h = jnp.stack([sin_h * jnp.cos(phi), sin_h * jnp.sin(phi), cos_h], -1)
+    h = sample_ggx_h(xi[None, :, :], alpha[:, None])  # (T, N, 3)
+    cos_h = h[..., 2]
     v = jnp.stack([jnp.sqrt(1.0 - mu * mu), jnp.zeros_like(mu), mu], -1)[:, None, :]
     voh = jnp.sum(v * h, -1)
     nol = 2.0 * voh * cos_h - mu[:, None]
     ok = nol > 0
     V = v_smith_correlated(mu[:, None], jnp.where(ok, nol, 1.0), alpha[:, None])
     w = jnp.where(ok, 4.0 * V * nol * voh / cos_h, 0.0)
-    fc = (1.0 - voh) ** 5
+    fc = schlick_weight(voh)
     return jnp.stack([jnp.mean(w * (1.0 - fc), -1), jnp.mean(w * fc, -1)], -1)
 
 
 def hammersley_lut(size: int, samples: int = 1024) -> np.ndarray:
     """The peers' LUT: `samples` Hammersley points of GGX NDF sampling per texel (correlated V)."""
-    from .specular import _hammersley
+    from .sampling import hammersley
 
     c = (np.arange(size) + 0.5) / size
     rr, mm = np.meshgrid(c, c, indexing="ij")
-    xi = jnp.asarray(_hammersley(samples), jnp.float32)
+    xi = hammersley(samples, jnp.float32)
     out = _hammersley_lut_kernel(jnp.asarray(mm.reshape(-1), jnp.float32), jnp.asarray(rr.reshape(-1) ** 2, jnp.float32), xi)
     return np.asarray(out).reshape(size, size, 2)
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 
 import jax.numpy as jnp
-import numpy as np
 
 from .cubemap import Cubemap
 
@@ -58,10 +57,3 @@ def sky_with_sun_cubemap(face_size: int = 256, *, supersample: int = 4, dtype=jn
         dtype=dtype,
         info={"environment": "procedural sky_with_sun", **{k: str(v) for k, v in kwargs.items()}},
     )
-
-
-def sun_power_fraction(env: Cubemap, threshold: float = 100.0) -> float:
-    """Fraction of the sphere's power in texels brighter than `threshold` (mean over channels)."""
-    L = np.asarray(env.levels[0], np.float64).mean(-1)
-    om = env.solid_angles(0)
-    return float(np.sum((L * om)[L > threshold]) / np.sum(L * om))

@@ -106,8 +106,3 @@ def summarize(rows: list[dict]) -> dict:
     if not rows:
         return dict(mean=0.0, max=0.0)
     return dict(mean=max(r["mean"] for r in rows), max=max(r["max"] for r in rows))
-
-
-def fmt_pct(x: float) -> str:
-    return f"{100.0 * x:.2f} %" if x >= 1e-4 else f"{100.0 * x:.1e} %"
-

@@ -106,54 +106,31 @@ def _check_mapping(mapping):
 # ------------------------------------------------------------------------------------------
 
 
-def _hammersley(n: int) -> np.ndarray:
-    i = np.arange(n, dtype=np.uint32)
-    b = i.copy()
-    b = ((b << 16) | (b >> 16)) & 0xFFFFFFFF
-    b = ((b & 0x55555555) << 1) | ((b & 0xAAAAAAAA) >> 1)
-    b = ((b & 0x33333333) << 2) | ((b & 0xCCCCCCCC) >> 2)
-    b = ((b & 0x0F0F0F0F) << 4) | ((b & 0xF0F0F0F0) >> 4)
-    b = ((b & 0x00FF00FF) << 8) | ((b & 0xFF00FF00) >> 8)
-    return np.stack([i / n, b.astype(np.float64) * 2.0**-32], -1)
-
-
 @functools.lru_cache(maxsize=64)
 def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_bias: float):
-    """Local-frame light directions (k, 3), weights NoL (k,), source LODs (k,) for v = n = +z.
+    """Local-frame light directions (n, 3), weights NoL (n,), source LODs (n,) for v = n = +z.
 
-    GGX NDF sampling in the sin^2 form (MATH.md 3.2, 8.3); samples with NoL <= 0 are dropped (their
-    weight is 0). float64 NumPy, computed once per (alpha, n, source).
+    `sampling.hammersley` points through `sampling.sample_ggx_h` (GGX NDF sampling in the sin^2
+    form, MATH.md 3.2, 8.3), l = 2 (n.h) h - n; pdf p_l = p_h / (4 v.h) = D/4 (`sampling.pdf_ggx_h`).
+    Evaluated once per (alpha, n, source) in float64.
     """
-    xi = _hammersley(n)
-    phi = 2.0 * math.pi * xi[:, 0]
-    a2 = alpha * alpha
-    den = 1.0 + (a2 - 1.0) * xi[:, 1]
-    cos2 = (1.0 - xi[:, 1]) / den
-    sin2 = a2 * xi[:, 1] / den
-    cos_h, sin_h = np.sqrt(cos2), np.sqrt(sin2)
-    nol = 2.0 * cos2 - 1.0
+    from .sampling import hammersley, pdf_ggx_h, sample_ggx_h
+
+    with jax.enable_x64(True):
+        h = np.asarray(sample_ggx_h(hammersley(n, jnp.float64), alpha))
+        cos_h = h[:, 2]
+        pdf = np.asarray(pdf_ggx_h(jnp.asarray(cos_h), alpha)) / (4.0 * cos_h)
+    local = 2.0 * cos_h[:, None] * h
+    local[:, 2] -= 1.0
+    nol = local[:, 2]
     keep = nol > 0
-    s2 = 2.0 * cos_h * sin_h
-    # Samples below the horizon keep their slot with weight 0, so every level has k = n samples
-    # and one compiled kernel serves all levels.
-    local = np.stack([s2 * np.cos(phi), s2 * np.sin(phi), nol], -1)
+    # Samples below the horizon keep their slot with weight 0, so every level has n samples and
+    # one compiled kernel serves all levels.
     local[~keep] = (0.0, 0.0, 1.0)
-    # p_l = D/4 with D = alpha^2 / (pi d^2), d = sin^2 + cos^2 alpha^2 (cancellation-free, MATH 8.2).
-    d = sin2 + cos2 * a2
-    pdf = a2 / (math.pi * d * d) / 4.0
     omega_s = 1.0 / (n * pdf)
     omega_p = 4.0 * math.pi / (6.0 * src_size * src_size)
     lod = np.clip(0.5 * np.log2(omega_s / omega_p) + lod_bias, 0.0, num_src_levels - 1)
     return local, np.where(keep, nol, 0.0), np.where(keep, lod, 0.0)
-
-
-def _frame(R):
-    """Orthonormal (t, b) for unit R (..., 3); up switches away from R (MATH.md 8.13)."""
-    up = jnp.where(jnp.abs(R[..., 2:3]) < 0.999, jnp.array([0.0, 0.0, 1.0], R.dtype), jnp.array([1.0, 0.0, 0.0], R.dtype))
-    t = jnp.cross(up, R)
-    t = t / jnp.linalg.norm(t, axis=-1, keepdims=True)
-    b = jnp.cross(R, t)
-    return t, b
 
 
 @jax.jit
@@ -174,8 +151,10 @@ def _fis_chunk(flat, R, local, w, lod, *, sizes):
     local-frame samples (k, 3) with weights (k,) and source LODs (k,)."""
     from .cubemap import _Pyramid
 
+    from .sampling import tangent_frame
+
     pyr = _Pyramid(None, flat=flat, sizes=list(sizes))
-    t, b = _frame(R)
+    t, b = tangent_frame(R)
     l = t[:, None, :] * local[None, :, 0:1] + b[:, None, :] * local[None, :, 1:2] + R[:, None, :] * local[None, :, 2:3]
     rad = pyr.sample(l, lod[None, :])  # (chunk, k, C)
     return jnp.einsum("ckz,k->cz", rad, w)
@@ -403,19 +382,16 @@ def prefilter(
         raise ValueError(f"samples has {len(per_level)} entries; expected one per level ({M})")
     per_level = [_positive_int(n, "samples") for n in per_level]
 
+    full = env.level_cube(0).with_mips()  # area-correct pyramid of the source
+    rough = level_roughness(M, mapping)
+    levels = [full.levels[int(round(math.log2(ratio)))]]  # r = 0: the source at the output size
     idx = np.zeros(0, np.int64)
     if method == "fis":
         exact_texels = int(exact_texels)
         if exact_texels < 0:
             raise ValueError(f"exact_texels must be >= 0, got {exact_texels}")
         resid, idx, bright = split_bright(np.asarray(env.levels[0]), exact_texels)
-        src = Cubemap((jnp.asarray(resid, env.dtype),)).with_mips() if len(idx) else env.level_cube(0).with_mips()
-    else:
-        src = env.level_cube(0).with_mips()
-    rough = level_roughness(M, mapping)
-    base_level = int(round(math.log2(ratio)))
-    levels = [env.level_cube(0).with_mips(base_level + 1).levels[base_level]]  # r = 0: the source
-    if method == "fis":
+        src = Cubemap((jnp.asarray(resid, env.dtype),)).with_mips() if len(idx) else full
         flat = _pyramid_flat(src.levels)
         sizes = tuple(int(lv.shape[1]) for lv in src.levels)
     for m in range(1, M):
