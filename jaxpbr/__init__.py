@@ -8,7 +8,7 @@ Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` a
 """
 
 from . import brdf_terms
-from . import color, envs, image, ktx2, scene
+from . import color, demo, envs, image, ktx2, renderer, scene
 from .brdf_terms import MIN_ROUGHNESS, MODELS, brdf
 from .conventions import CONVENTIONS
 from .cubemap import Cubemap
@@ -17,6 +17,8 @@ from .diffuse import irradiance, sh9_irradiance, sh9_project
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight, pack_lights, shade_direct
 from .lut import compute_brdf_lut, lut_lookup, lut_reference
 from .material import Material
+from .renderer import RenderOptions, render, render_batch
+from .scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
 from .specular import prefilter, prefilter_reference, roughness_to_lod
 from .shipped_luts import brdf_lut
 
@@ -24,7 +26,19 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CONVENTIONS",
+    "Camera",
     "Cubemap",
+    "Environment",
+    "GBuffer",
+    "Plane",
+    "RenderOptions",
+    "Scene",
+    "Sphere",
+    "TexturedMaterial",
+    "demo",
+    "render",
+    "render_batch",
+    "renderer",
     "brdf_lut",
     "compute_brdf_lut",
     "envs",

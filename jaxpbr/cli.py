@@ -44,15 +44,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser(
         "render",
-        help="render the demo scene (7x7 sphere grid, 4 point lights) to a PNG",
-        description="Render the LearnOpenGL-style sphere grid (metallic by row, roughness by "
-        "column, four point lights), tone-map it and write a PNG (and an EXR with --hdr).",
+        help="render the demo scene (or a scene.toml) to a PNG",
+        description="Render a scene to linear HDR, tone-map it and write a PNG (and an EXR with --hdr). "
+        "Without SCENE: the demo, a 7x7 sphere grid (metallic by row, roughness 0..1 by column) under a "
+        "procedural sky with a bright sun, plus four point lights. SCENE is a TOML scene description "
+        "(see docs/scene_format.md).",
     )
+    r.add_argument("scene", nargs="?", default=None, help="scene description (.toml); default: the demo")
     r.add_argument("-o", "--output", default="jaxpbr_demo.png", help="output PNG path (default: %(default)s)")
-    r.add_argument("--width", type=_positive_int, default=1280, help="image width in pixels (default: %(default)s)")
-    r.add_argument("--height", type=_positive_int, default=720, help="image height in pixels (default: %(default)s)")
-    r.add_argument("--model", choices=("gltf", "learnopengl"), default="gltf", help="BRDF model (default: %(default)s)")
-    r.add_argument("--exposure", type=float, default=0.0, help="exposure in EV stops (default: %(default)s)")
+    r.add_argument("--width", type=_positive_int, default=None, help="image width (default: 1280, or the scene's)")
+    r.add_argument("--height", type=_positive_int, default=None, help="image height (default: 720, or the scene's)")
+    r.add_argument("--supersample", type=_positive_int, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
+    r.add_argument("--model", choices=("gltf", "learnopengl"), default=None, help="BRDF model (default: gltf, or the scene's)")
+    r.add_argument("--exposure", type=float, default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
         choices=_TONEMAPS,
@@ -67,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth (default: %(default)s)")
     r.add_argument("--hdr", action="store_true", help="also write the linear HDR image as EXR next to the PNG")
+    r.add_argument("--no-environment", action="store_true", help="demo only: leave out the sky (no IBL)")
+    r.add_argument("--no-lights", action="store_true", help="demo only: leave out the point lights")
     r.set_defaults(func=_cmd_render)
 
     b = sub.add_parser("bench", help="benchmarks (JAX vs NumPy, side by side in one process)")
@@ -101,31 +107,71 @@ def _cmd_render(args) -> int:
 
     from . import color, image
     from .conventions import CONVENTIONS
-    from .scene import render_demo
+    from .renderer import RenderOptions, plan, render
 
     out = Path(args.output)
     _check_output_path(out)
-    tonemap = args.tonemap or ("reinhard" if args.model == "learnopengl" else "aces")
-    encoding = args.encoding or ("gamma2.2" if args.model == "learnopengl" else "srgb")
+    display_opts: dict = {}
+    if args.scene is None:
+        from .demo import demo_scene
+
+        scene = demo_scene(
+            args.width or 1280,
+            args.height or 720,
+            supersample=args.supersample or 1,
+            lights=not args.no_lights,
+            environment=not args.no_environment,
+        )
+        options: dict = {}
+        description = "demo: 7x7 sphere grid (metallic by row, roughness 0..1 by column), procedural sky + sun"
+        description += ", 4 point lights" if not args.no_lights else ""
+    else:
+        if args.no_lights or args.no_environment:
+            raise CLIError("--no-lights/--no-environment apply to the demo only; edit the scene file instead")
+        from .scene_toml import load_scene
+
+        loaded = load_scene(args.scene)
+        scene, options, display_opts = loaded.scene, dict(loaded.options), dict(loaded.output)
+        if scene.camera is not None and (args.width or args.height or args.supersample):
+            cam = scene.camera
+            scene = scene.replace(
+                camera=cam.replace(
+                    width=args.width or cam.width,
+                    height=args.height or cam.height,
+                    supersample=args.supersample or cam.supersample,
+                )
+            )
+        description = f"scene file {Path(args.scene).name}"
+    if args.model is not None:
+        options["model"] = args.model
+    model = options.get("model", "gltf")
+    tonemap = args.tonemap or display_opts.get("tonemap") or ("reinhard" if model == "learnopengl" else "aces")
+    encoding = args.encoding or display_opts.get("encoding") or ("gamma2.2" if model == "learnopengl" else "srgb")
+    ev = args.exposure if args.exposure is not None else float(display_opts.get("exposure", 0.0))
 
     t0 = time.perf_counter()
-    hdr_device = render_demo(args.width, args.height, model=args.model)
-    display = np.asarray(color.tonemap(color.exposure(hdr_device, args.exposure), tonemap))
+    the_plan = plan(scene, RenderOptions(**options))
+    hdr_device = render(scene, **options)
+    display = np.asarray(color.tonemap(color.exposure(hdr_device, ev), tonemap))
     hdr = np.asarray(hdr_device)  # one device -> host copy of each image
     t_render = time.perf_counter() - t0
     if not np.all(np.isfinite(hdr)):
         raise CLIError("the render produced non-finite values; this is a bug, please report it")
+    H, W = hdr.shape[:2]
     metadata = {
         "software": "jaxpbr",
-        "jaxpbr:scene": "demo sphere grid (7x7, metallic by row, roughness by column), 4 point lights",
-        "jaxpbr:model": args.model,
-        "jaxpbr:exposure_ev": float(args.exposure),
+        "jaxpbr:scene": description,
+        "jaxpbr:plan": the_plan.describe(),
+        "jaxpbr:model": model,
+        "jaxpbr:render_options": repr(RenderOptions(**options)),
+        "jaxpbr:exposure_ev": float(ev),
         "jaxpbr:tonemap": tonemap,
         "jaxpbr:encoding": encoding,
         "jaxpbr:conventions": CONVENTIONS,
     }
     image.write(out, display, bits=args.bits, encoding=encoding, metadata=metadata)
-    print(f"wrote {out} ({args.width}x{args.height}, model {args.model}, {tonemap} + {encoding}; render {t_render:.2f} s)")
+    print(f"wrote {out} ({W}x{H}, model {model}, {tonemap} + {encoding}; render {t_render:.2f} s incl. precompute and compile)")
+    print(f"  {the_plan.describe()}")
     if args.hdr:
         exr = out.with_suffix(".exr")
         hdr_meta = {k: v for k, v in metadata.items() if k not in ("jaxpbr:tonemap", "jaxpbr:encoding", "jaxpbr:exposure_ev")}

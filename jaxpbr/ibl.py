@@ -69,8 +69,11 @@ def shade_ibl(
     n: (..., 3) unit shading normal; v: (..., 3) unit direction to the viewer.
     m: Material (leaves broadcast with n); occlusion multiplies the result; emissive is *not*
         added (shade_direct adds it once).
-    irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.diffuse`).
-    pre: prefiltered Cubemap (`jaxpbr.specular`); lod = mapping(r) from its metadata.
+    irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.diffuse`), or None to leave the diffuse
+        term out (exact for metals, metallic = 1, without multiscatter; the scene layer does this).
+    pre: prefiltered Cubemap (`jaxpbr.specular`); lod = mapping(r) from its metadata. A map holding
+        only the first mips of an M-level chain (metadata "mapping_levels" = M) is looked up with
+        the M-level mapping, clamped to its last level.
     lut: (n_r, n_nov, 2) split-sum LUT (`jaxpbr.brdf_lut`; smith="correlated" for gltf,
         "schlick" for learnopengl).
     model: "gltf" (F0 A + B) or "learnopengl" (fresnelSchlickRoughness, see module docstring).
@@ -82,6 +85,8 @@ def shade_ibl(
         raise ValueError(f"unknown IBL model {model!r}; choose one of {IBL_MODELS}")
     if multiscatter and model != "gltf":
         raise ValueError("multiscatter compensation is defined for the gltf model only (LearnOpenGL has none)")
+    if irr is None and multiscatter:
+        raise ValueError("multiscatter compensation needs the irradiance map (irr) even for metals")
     n3 = vnormalize(unpack3(as_float(n)))
     v3 = vnormalize(unpack3(as_float(v)))
     nov_raw = vdot(n3, v3)
@@ -93,20 +98,24 @@ def shade_ibl(
 
     ab = lut_lookup(lut, nov, r)
     a, b = ab[..., 0], ab[..., 1]
-    mapping = pre.metadata.get("roughness_mapping", "linear")
-    ld = pre.sample(R, roughness_to_lod(r, pre.num_levels, mapping))
-    ebar = irr.sample(pack3(n3))
+    meta = pre.metadata
+    mapping = meta.get("roughness_mapping", "linear")
+    ld = pre.sample(R, roughness_to_lod(r, int(meta.get("mapping_levels", pre.num_levels)), mapping))
+    ebar = irr.sample(pack3(n3)) if irr is not None else None
     base = m.base_color
     metallic = m.metallic[..., None]
 
     if model == "learnopengl":
         f0 = m.f0()
         F = fresnel_schlick_roughness(nov, f0, r)
-        kd = (1.0 - F) * (1.0 - metallic)
-        out = kd * base * ebar + ld * (F * a[..., None] + b[..., None])
+        out = ld * (F * a[..., None] + b[..., None])
+        if ebar is not None:
+            out = out + (1.0 - F) * (1.0 - metallic) * base * ebar
     elif not multiscatter:
         fss_ess, _ = split_sum_weights(m.f0(), a, b)
-        out = m.diffuse_color() * ebar + ld * fss_ess
+        out = ld * fss_ess
+        if ebar is not None:
+            out = out + m.diffuse_color() * ebar
     else:
         # Per lobe, then mixed by metallic (the compensation is not linear in F0).
         f0_d = jnp.full_like(base, F0_DIELECTRIC)

@@ -1,188 +1,514 @@
-"""Scene layer (minimal for now): perspective camera, analytic spheres, a G-buffer, the demo scene.
+"""Scene description: camera, analytic spheres and planes, textured materials, environment, G-buffer.
 
-The demo is the LearnOpenGL "PBR / Lighting" chapter: a 7x7 grid of spheres (metallic by row,
-roughness by column), albedo (0.5, 0, 0), four point lights of 300 at (+-10, +-10, 10), a constant
-ambient of 0.03 * albedo * ao. The scene is ray-cast analytically in JAX and shaded with
-`shade_direct`; everything is one jitted program.
+Everything here is a JAX pytree whose array fields are leaves (so a scene can be differentiated,
+vmapped over a batch axis or passed through `jax.jit`) and whose structure -- which objects, which
+textures, image size -- is static. `jaxpbr.renderer.render` turns a `Scene` into linear HDR
+radiance; this module holds the data types and the geometry (primary rays, ray casting, surface
+attributes).
+
+Conventions (DESIGN.md): right-handed, +Y up, the camera looks from `position` to `target`; pixel
+(i, j) has row i from the top. Texture coordinates follow glTF: uv = (0, 0) is the top-left corner
+of the image (row 0), u to the right, v down; texel (i, j) sits at ((j + 0.5)/W, (i + 0.5)/H);
+lookups are bilinear with repeat wrapping. Tangent frames: T = dP/du (normalised), B = N x T, so a
+tangent-space normal map's +Y points towards decreasing v ("up" in the image), the glTF / OpenGL
+convention.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import dot, safe_normalize, safe_sqrt
-from .lights import PointLight, shade_direct
+from ._numerics import as_float, is_concrete, safe_sqrt, vcross, vdot, vnormalize
+from .cubemap import Cubemap
+from .lights import DirectionalLight, LightSet, PointLight, SpotLight
 from .material import Material
 
 __all__ = [
     "Camera",
+    "Environment",
     "GBuffer",
-    "Spheres",
-    "demo_scene",
+    "Plane",
+    "Scene",
+    "Sphere",
+    "TexturedMaterial",
     "primary_rays",
-    "raycast_spheres",
-    "render_demo",
+    "sample_texture",
 ]
 
 
-@dataclasses.dataclass(frozen=True)
-class Camera:
-    """Pinhole camera (static configuration). Right-handed, +Y up; looks from `position` at `target`.
+def _pytree(*static: str):
+    """Register a frozen dataclass as a pytree: the fields named in `static` are auxiliary data
+    (part of the traced program's structure), the others leaves. Unflatten bypasses __init__ so the
+    tracers, None and sentinels that transformations put in the tree are never validated."""
 
-    fov_y_deg: vertical field of view in degrees. Pixel (i, j) (row i from the top) looks through
-    the centre of its pixel footprint.
+    def wrap(cls):
+        names = [f.name for f in dataclasses.fields(cls)]
+        data = tuple(n for n in names if n not in static)
+
+        def flatten(obj):
+            return tuple(getattr(obj, n) for n in data), tuple(getattr(obj, n) for n in static)
+
+        def unflatten(aux, children):
+            obj = object.__new__(cls)
+            for n, c in zip(data, children):
+                object.__setattr__(obj, n, c)
+            for n, a in zip(static, aux):
+                object.__setattr__(obj, n, a)
+            return obj
+
+        jax.tree_util.register_pytree_node(cls, flatten, unflatten)
+        cls._data_fields = data
+        return cls
+
+    return wrap
+
+
+def evolve(obj, **changes):
+    """A copy of a scene dataclass with some fields replaced, *without* validation (for traced or
+    batched values inside transformations; user code should use `dataclasses.replace`)."""
+    new = object.__new__(type(obj))
+    for f in dataclasses.fields(obj):
+        object.__setattr__(new, f.name, changes.pop(f.name, getattr(obj, f.name)))
+    if changes:
+        raise TypeError(f"{type(obj).__name__} has no field(s) {sorted(changes)}")
+    return new
+
+
+def _set(obj, **values):
+    for k, v in values.items():
+        object.__setattr__(obj, k, v)
+
+
+def _vec(name: str, x, n: int = 3) -> jax.Array:
+    x = as_float(x)
+    if x.ndim == 0 or x.shape[-1] != n:
+        raise ValueError(f"{name} must have a trailing axis of {n}, got shape {x.shape}")
+    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
+        raise ValueError(f"{name} contains NaN or Inf; pass finite values")
+    return x
+
+
+def _scalar(name: str, x, *, lo=None, hi=None, open_lo=False) -> jax.Array:
+    x = as_float(x)
+    if is_concrete(x):
+        a = np.asarray(x)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} contains NaN or Inf; pass finite values")
+        if lo is not None and (np.any(a <= lo) if open_lo else np.any(a < lo)):
+            raise ValueError(f"{name} must be {'>' if open_lo else '>='} {lo}, got {a.min():g}")
+        if hi is not None and np.any(a > hi):
+            raise ValueError(f"{name} must be <= {hi}, got {a.max():g}")
+    return x
+
+
+def _static_int(name: str, x, lo: int = 1) -> int:
+    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < lo:
+        raise ValueError(f"{name} must be an integer >= {lo}, got {x!r}")
+    return int(x)
+
+
+# ------------------------------------------------------------------------------------------
+# Camera
+# ------------------------------------------------------------------------------------------
+
+
+@_pytree("width", "height", "supersample")
+@dataclasses.dataclass(frozen=True, eq=False)
+class Camera:
+    """Pinhole perspective camera.
+
+    position, target, up: (3,) world-space points / vector (leaves: may be batched or traced).
+    fov_y_deg: vertical field of view in degrees (leaf).
+    width, height: image size in pixels (static).
+    supersample: s -> s x s stratified samples per pixel, averaged in linear HDR (static).
+    jitter: (2,) sub-pixel offset in pixels added to every sample (leaf), e.g. for progressive or
+        temporal accumulation; (0, 0) samples the pixel (or sub-cell) centres.
     """
 
-    position: tuple[float, float, float] = (0.0, 0.0, 24.0)
-    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    fov_y_deg: float = 45.0
+    position: Any = (0.0, 0.0, 24.0)
+    target: Any = (0.0, 0.0, 0.0)
+    up: Any = (0.0, 1.0, 0.0)
+    fov_y_deg: Any = 45.0
     width: int = 1280
     height: int = 720
+    supersample: int = 1
+    jitter: Any = (0.0, 0.0)
 
     def __post_init__(self):
-        if not (isinstance(self.width, int) and isinstance(self.height, int)) or self.width <= 0 or self.height <= 0:
-            raise ValueError(f"image size must be positive integers, got {self.width}x{self.height}.")
-        if not 0.0 < self.fov_y_deg < 180.0:
-            raise ValueError(f"fov_y_deg must be in (0, 180), got {self.fov_y_deg}.")
-        f = np.subtract(self.target, self.position)
-        if np.linalg.norm(f) == 0 or np.linalg.norm(np.cross(f, self.up)) == 0:
-            raise ValueError("camera target must differ from position and not be parallel to up.")
+        _static_int("Camera.width", self.width)
+        _static_int("Camera.height", self.height)
+        _static_int("Camera.supersample", self.supersample)
+        pos = _vec("Camera.position", self.position)
+        tgt = _vec("Camera.target", self.target)
+        up = _vec("Camera.up", self.up)
+        fov = _scalar("Camera.fov_y_deg", self.fov_y_deg, lo=0.0, open_lo=True, hi=179.0)
+        jit = _vec("Camera.jitter", self.jitter, 2)
+        if all(is_concrete(x) for x in (pos, tgt, up)):
+            f = np.asarray(tgt, np.float64) - np.asarray(pos, np.float64)
+            if np.any(np.linalg.norm(f, axis=-1) == 0):
+                raise ValueError("Camera.target must differ from Camera.position")
+            if np.any(np.linalg.norm(np.cross(f, np.asarray(up, np.float64)), axis=-1) < 1e-12):
+                raise ValueError("Camera.up must not be parallel to the viewing direction; pick another up")
+        _set(self, position=pos, target=tgt, up=up, fov_y_deg=fov, jitter=jit)
+
+    def replace(self, **changes) -> "Camera":
+        return dataclasses.replace(self, **changes)
 
 
-def primary_rays(cam: Camera, dtype=jnp.float32) -> tuple[jax.Array, jax.Array]:
-    """Ray origins and unit directions, each (H, W, 3)."""
-    pos = jnp.asarray(cam.position, dtype)
-    fwd = safe_normalize(jnp.asarray(cam.target, dtype) - pos)
-    right = safe_normalize(jnp.cross(fwd, jnp.asarray(cam.up, dtype)))
-    up = jnp.cross(right, fwd)
-    t = math.tan(math.radians(cam.fov_y_deg) / 2)
-    aspect = cam.width / cam.height
-    x = (2.0 * (jnp.arange(cam.width, dtype=dtype) + 0.5) / cam.width - 1.0) * t * aspect
-    y = (1.0 - 2.0 * (jnp.arange(cam.height, dtype=dtype) + 0.5) / cam.height) * t
-    d = fwd + x[None, :, None] * right + y[:, None, None] * up
-    d = safe_normalize(d)
-    return jnp.broadcast_to(pos, d.shape), d
+def camera_basis(cam: Camera, dtype):
+    """(position, forward, right, up) unit Vec3s of the camera frame."""
+    pos = tuple(jnp.asarray(cam.position, dtype)[..., i] for i in range(3))
+    tgt = tuple(jnp.asarray(cam.target, dtype)[..., i] for i in range(3))
+    upv = tuple(jnp.asarray(cam.up, dtype)[..., i] for i in range(3))
+    fwd = vnormalize(tuple(t - p for t, p in zip(tgt, pos)))
+    right = vnormalize(vcross(fwd, upv))
+    up = vcross(right, fwd)
+    return pos, fwd, right, up
 
 
-@jax.tree_util.register_pytree_node_class
-@dataclasses.dataclass(frozen=True)
-class Spheres:
-    """K spheres: center (K, 3), radius (K,), material with leaves (K, ...)."""
+def primary_rays(cam: Camera, dtype=jnp.float32, offset=(0.5, 0.5)):
+    """Ray origins and unit directions of every pixel, each (H, W, 3).
 
-    center: jax.Array
-    radius: jax.Array
-    material: Material
+    offset: sample position inside the pixel in pixel units ((0.5, 0.5) = centre), to which
+    `cam.jitter` is added. Pixel (i, j) looks through x = (2 (j + ox)/W - 1) tan(fov/2) aspect,
+    y = (1 - 2 (i + oy)/H) tan(fov/2) on the image plane at distance 1.
+    """
+    pos, fwd, right, up = camera_basis(cam, dtype)
+    W, H = cam.width, cam.height
+    t = jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2)
+    jit = jnp.asarray(cam.jitter, dtype)
+    x = (2.0 * (jnp.arange(W, dtype=dtype) + offset[0] + jit[0]) / W - 1.0) * t * (W / H)
+    y = (1.0 - 2.0 * (jnp.arange(H, dtype=dtype) + offset[1] + jit[1]) / H) * t
+    x = x[None, :]
+    y = y[:, None]
+    d = vnormalize(tuple(fwd[i] + x * right[i] + y * up[i] for i in range(3)))
+    d = jnp.stack([jnp.broadcast_to(c, (H, W)) for c in d], -1)
+    o = jnp.broadcast_to(jnp.stack(pos), d.shape)
+    return o, d
 
-    def tree_flatten(self):
-        return (self.center, self.radius, self.material), None
 
-    @classmethod
-    def tree_unflatten(cls, aux, children):
-        return cls(*children)
+# ------------------------------------------------------------------------------------------
+# Materials with textures
+# ------------------------------------------------------------------------------------------
 
 
-@jax.tree_util.register_pytree_node_class
-@dataclasses.dataclass(frozen=True)
+def _texture(name: str, x, min_channels: int, *, lo=0.0, hi=1.0):
+    if x is None:
+        return None
+    x = as_float(x)
+    if x.ndim != 3 or x.shape[-1] < min_channels or x.shape[0] < 1 or x.shape[1] < 1:
+        raise ValueError(
+            f"{name} must be an (H, W, C) image with C >= {min_channels}, got shape {x.shape}"
+        )
+    if is_concrete(x):
+        a = np.asarray(x)
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} contains NaN or Inf")
+        if (lo is not None and a.min() < lo) or (hi is not None and a.max() > hi):
+            raise ValueError(
+                f"{name} must hold linear values in [{lo}, {hi}], got [{a.min():g}, {a.max():g}]; "
+                "decode 8-bit sRGB colour with jaxpbr.color and scale to [0, 1]"
+            )
+    return x
+
+
+@_pytree()
+@dataclasses.dataclass(frozen=True, eq=False)
+class TexturedMaterial:
+    """A glTF metallic-roughness material with textures; each texture multiplies its factor.
+
+    factors: `Material` holding the glTF factors (base_color, metallic, roughness, occlusion
+        strength-as-multiplier, emissive).
+    base_color_texture: (H, W, 3 or 4) *linear* RGB in [0, 1] (alpha ignored).
+    metallic_roughness_texture: (H, W, >=3) glTF packing: G = roughness, B = metallic.
+    occlusion_texture: (H, W, >=1) R = ambient occlusion (pass the same array as
+        metallic_roughness_texture for a packed ORM texture).
+    normal_texture: (H, W, 3) tangent-space normal map, stored as (n + 1)/2 in [0, 1]; X right,
+        Y up (towards decreasing v), Z out of the surface.
+    normal_scale: scales the map's X and Y (glTF normalTexture.scale).
+    emissive_texture: (H, W, 3) linear RGB >= 0, multiplied by factors.emissive.
+    """
+
+    factors: Material = dataclasses.field(default_factory=Material)
+    base_color_texture: Any = None
+    metallic_roughness_texture: Any = None
+    occlusion_texture: Any = None
+    normal_texture: Any = None
+    emissive_texture: Any = None
+    normal_scale: Any = 1.0
+
+    def __post_init__(self):
+        if not isinstance(self.factors, Material):
+            raise TypeError(f"TexturedMaterial.factors must be a Material, got {type(self.factors).__name__}")
+        _set(
+            self,
+            base_color_texture=_texture("base_color_texture", self.base_color_texture, 3),
+            metallic_roughness_texture=_texture("metallic_roughness_texture", self.metallic_roughness_texture, 3),
+            occlusion_texture=_texture("occlusion_texture", self.occlusion_texture, 1),
+            normal_texture=_texture("normal_texture", self.normal_texture, 3),
+            emissive_texture=_texture("emissive_texture", self.emissive_texture, 3, hi=None),
+            normal_scale=_scalar("normal_scale", self.normal_scale),
+        )
+
+    @property
+    def has_normal_map(self) -> bool:
+        return self.normal_texture is not None
+
+
+def sample_texture(tex: jax.Array, u, v) -> jax.Array:
+    """Bilinear lookup with repeat wrapping of an (H, W, C) texture at glTF uv (...) -> (..., C).
+
+    Texel (i, j) sits at ((j + 0.5)/W, (i + 0.5)/H); differentiable in the texels and in (u, v).
+    """
+    H, W = tex.shape[0], tex.shape[1]
+    x = u * W - 0.5
+    y = v * H - 0.5
+    x0 = jnp.floor(jax.lax.stop_gradient(x))
+    y0 = jnp.floor(jax.lax.stop_gradient(y))
+    fx = (x - x0)[..., None]
+    fy = (y - y0)[..., None]
+    j0 = jnp.mod(x0.astype(jnp.int32), W)
+    i0 = jnp.mod(y0.astype(jnp.int32), H)
+    j1 = jnp.mod(j0 + 1, W)
+    i1 = jnp.mod(i0 + 1, H)
+    t00, t01, t10, t11 = tex[i0, j0], tex[i0, j1], tex[i1, j0], tex[i1, j1]
+    top = t00 + (t01 - t00) * fx
+    bot = t10 + (t11 - t10) * fx
+    return top + (bot - top) * fy
+
+
+# ------------------------------------------------------------------------------------------
+# Geometry
+# ------------------------------------------------------------------------------------------
+
+
+def _check_material(owner: str, m):
+    if not isinstance(m, (Material, TexturedMaterial)):
+        raise TypeError(f"{owner}.material must be a Material or TexturedMaterial, got {type(m).__name__}")
+
+
+@_pytree()
+@dataclasses.dataclass(frozen=True, eq=False)
+class Sphere:
+    """Analytic sphere. uv: u = 0.5 + atan2(n.x, n.z)/(2 pi) (u = 0.5 faces +Z, growing towards +X),
+    v = 0.5 - asin(n.y)/pi (v = 0 at the north pole, +Y); T = dP/du."""
+
+    center: Any = (0.0, 0.0, 0.0)
+    radius: Any = 1.0
+    material: Any = dataclasses.field(default_factory=Material)
+
+    def __post_init__(self):
+        _check_material("Sphere", self.material)
+        _set(self, center=_vec("Sphere.center", self.center), radius=_scalar("Sphere.radius", self.radius, lo=0.0, open_lo=True))
+
+
+@_pytree()
+@dataclasses.dataclass(frozen=True, eq=False)
+class Plane:
+    """Infinite plane through `point` with normal `normal`, shaded on the side facing the camera.
+
+    tangent: direction of +u in the plane (projected onto it and normalised); default: the world
+    axis least aligned with the normal, orthogonalised. uv = (dot(p - point, T), -dot(p - point, B))
+    * uv_scale, B = N x T (so an upright image is not mirrored when seen from the normal's side).
+    """
+
+    point: Any = (0.0, 0.0, 0.0)
+    normal: Any = (0.0, 1.0, 0.0)
+    material: Any = dataclasses.field(default_factory=Material)
+    tangent: Any = None
+    uv_scale: Any = 1.0
+
+    def __post_init__(self):
+        _check_material("Plane", self.material)
+        n = _vec("Plane.normal", self.normal)
+        if is_concrete(n) and np.any(np.linalg.norm(np.asarray(n), axis=-1) == 0):
+            raise ValueError("Plane.normal must be non-zero")
+        t = self.tangent
+        if t is None:  # the world axis least aligned with n, made orthogonal to it (jnp: works traced)
+            nn = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+            axis = jnp.eye(3, dtype=nn.dtype)[jnp.argmin(jnp.abs(nn), axis=-1)]
+            t = axis - nn * jnp.sum(nn * axis, -1, keepdims=True)
+            t = t / jnp.linalg.norm(t, axis=-1, keepdims=True)
+        t = _vec("Plane.tangent", t)
+        _set(self, point=_vec("Plane.point", self.point), normal=n, tangent=t, uv_scale=_scalar("Plane.uv_scale", self.uv_scale))
+
+
+# ------------------------------------------------------------------------------------------
+# Environment, G-buffer, Scene
+# ------------------------------------------------------------------------------------------
+
+
+@_pytree("show_background")
+@dataclasses.dataclass(frozen=True, eq=False)
+class Environment:
+    """Distant lighting from a cube map, also drawn as the background.
+
+    radiance: Cubemap of linear radiance (level 0 is used; mips are rebuilt).
+    intensity: scalar multiplier (leaf).
+    rotation: rotation of the environment about +Y in radians (leaf): the radiance seen in world
+        direction d is radiance(R_y(-rotation) d). Rotations need no new precompute.
+    show_background: draw the environment where rays miss (static); else Scene.background.
+    irradiance, prefiltered: optional precomputed maps (E/pi and LD mips) to use instead of
+        computing them from `radiance` (e.g. loaded from disk, or to differentiate through them).
+    """
+
+    radiance: Any = None
+    intensity: Any = 1.0
+    rotation: Any = 0.0
+    show_background: bool = True
+    irradiance: Any = None
+    prefiltered: Any = None
+
+    def __post_init__(self):
+        if not isinstance(self.radiance, Cubemap):
+            raise TypeError(
+                "Environment.radiance must be a jaxpbr.Cubemap (e.g. Cubemap.from_equirect(img, face_size=128))"
+            )
+        for name in ("irradiance", "prefiltered"):
+            x = getattr(self, name)
+            if x is not None and not isinstance(x, Cubemap):
+                raise TypeError(f"Environment.{name} must be a Cubemap or None")
+        _set(
+            self,
+            intensity=_scalar("Environment.intensity", self.intensity, lo=0.0),
+            rotation=_scalar("Environment.rotation", self.rotation),
+        )
+
+
+@_pytree()
+@dataclasses.dataclass(frozen=True, eq=False)
 class GBuffer:
-    """Per-pixel surface data: hit (H, W) bool, position, normal, view direction (H, W, 3), material."""
+    """Per-pixel surface data from the user's own rasteriser (or the ray caster).
 
-    hit: jax.Array
-    position: jax.Array
-    normal: jax.Array
-    view: jax.Array
-    material: Material
-
-    def tree_flatten(self):
-        return (self.hit, self.position, self.normal, self.view, self.material), None
-
-    @classmethod
-    def tree_unflatten(cls, aux, children):
-        return cls(*children)
-
-
-def raycast_spheres(origins: jax.Array, dirs: jax.Array, spheres: Spheres) -> GBuffer:
-    """Nearest hit of each ray with K spheres (camera outside all spheres), memory O(pixels).
-
-    A `fori_loop` over spheres keeps the closest `t` and its index (no (pixels x K) array).
-    Ray-sphere: t = -b - sqrt(b^2 - c), b = (o - c).d, c = |o - c|^2 - R^2, |d| = 1.
+    hit: (H, W) bool, False where no surface (background); position, normal (shading normal),
+    view (unit direction to the viewer): (H, W, 3); material: `Material` with (H, W) leaves.
     """
-    dtype = dirs.dtype
-    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
 
-    def body(k, carry):
-        t_best, idx = carry
-        oc = origins - spheres.center[k]
-        b = dot(oc, dirs)
-        c = dot(oc, oc) - spheres.radius[k] ** 2
-        disc = b * b - c
-        t = -b - safe_sqrt(disc)
-        ok = (disc > 0) & (t > 0) & (t < t_best)
-        return jnp.where(ok, t, t_best), jnp.where(ok, k, idx)
+    hit: Any
+    position: Any
+    normal: Any
+    view: Any
+    material: Any
 
-    shape = dirs.shape[:-1]
-    t, idx = jax.lax.fori_loop(
-        0, spheres.radius.shape[0], body, (jnp.full(shape, big), jnp.zeros(shape, jnp.int32))
-    )
-    hit = t < big
-    t = jnp.where(hit, t, 0.0)
-    p = origins + t[..., None] * dirs
-    normal = safe_normalize(p - spheres.center[idx])
-    mat = jax.tree_util.tree_map(lambda x: x[idx], spheres.material)
-    return GBuffer(hit=hit, position=p, normal=normal, view=-dirs, material=mat)
+    def __post_init__(self):
+        if not isinstance(self.material, Material):
+            raise TypeError("GBuffer.material must be a Material with per-pixel (H, W[, 3]) leaves")
+        hit = jnp.asarray(self.hit)
+        if hit.dtype != jnp.bool_ or hit.ndim != 2:
+            raise ValueError(f"GBuffer.hit must be an (H, W) bool array, got {hit.dtype} {hit.shape}")
+        vals = {}
+        for name in ("position", "normal", "view"):
+            x = _vec(f"GBuffer.{name}", getattr(self, name))
+            if x.shape != hit.shape + (3,):
+                raise ValueError(f"GBuffer.{name} has shape {x.shape}; expected {hit.shape + (3,)}")
+            vals[name] = x
+        _set(self, hit=hit, **vals)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.hit.shape)
 
 
-def demo_scene(dtype=jnp.float32) -> tuple[Spheres, list[PointLight]]:
-    """The LearnOpenGL lighting-chapter scene: 7x7 spheres, spacing 2.5, radius 1, in the z = 0 plane.
+_LIGHT_TYPES = (PointLight, DirectionalLight, SpotLight, LightSet)
 
-    Row (y, from the bottom) sets metallic = row/7; column (x) sets roughness = clamp(col/7, 0.05, 1).
+
+@_pytree("ambient")
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """Camera + geometry (analytic `objects` or a user `gbuffer`) + lights + optional environment.
+
+    objects: sequence of Sphere / Plane; gbuffer: a GBuffer instead (then `camera` is optional).
+    lights: sequence of PointLight / DirectionalLight / SpotLight (or a LightSet).
+    environment: Environment or None (no image-based lighting).
+    background: (3,) linear radiance where nothing is hit and no environment is shown.
+    ambient: LearnOpenGL's constant `ambient * albedo * ao` term (static; 0 = off, the default).
     """
-    rows = cols = 7
-    spacing = 2.5
-    r_idx, c_idx = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
-    r_idx, c_idx = r_idx.ravel(), c_idx.ravel()
-    center = np.stack(
-        [(c_idx - cols // 2) * spacing, (r_idx - rows // 2) * spacing, np.zeros(rows * cols)], axis=-1
-    )
-    k = rows * cols
-    material = Material(
-        base_color=jnp.broadcast_to(jnp.asarray([0.5, 0.0, 0.0], dtype), (k, 3)),
-        metallic=jnp.asarray(r_idx / rows, dtype),
-        roughness=jnp.asarray(np.clip(c_idx / cols, 0.05, 1.0), dtype),
-        occlusion=jnp.ones(k, dtype),
-        emissive=jnp.zeros((k, 3), dtype),
-    )
-    spheres = Spheres(center=jnp.asarray(center, dtype), radius=jnp.ones(k, dtype), material=material)
-    lights = [
-        PointLight(position=jnp.asarray(pos, dtype), color=jnp.ones(3, dtype), intensity=jnp.asarray(300.0, dtype))
-        for pos in [(-10.0, 10.0, 10.0), (10.0, 10.0, 10.0), (-10.0, -10.0, 10.0), (10.0, -10.0, 10.0)]
-    ]
-    return spheres, lights
+
+    camera: Any = None
+    objects: Any = ()
+    lights: Any = ()
+    environment: Any = None
+    gbuffer: Any = None
+    background: Any = (0.0, 0.0, 0.0)
+    ambient: float = 0.0
+
+    def __post_init__(self):
+        objects = tuple(self.objects) if isinstance(self.objects, (list, tuple)) else (self.objects,)
+        lights = self.lights
+        if isinstance(lights, _LIGHT_TYPES):
+            lights = (lights,)
+        lights = tuple(lights)
+        for x in objects:
+            if not isinstance(x, (Sphere, Plane)):
+                raise TypeError(f"Scene.objects must hold Sphere or Plane, got {type(x).__name__}")
+        for x in lights:
+            if not isinstance(x, _LIGHT_TYPES):
+                raise TypeError(
+                    f"Scene.lights must hold PointLight, DirectionalLight or SpotLight, got {type(x).__name__}"
+                )
+        if self.gbuffer is None and not objects:
+            raise ValueError("a Scene needs objects (spheres/planes) or a gbuffer")
+        if self.gbuffer is not None and objects:
+            raise ValueError("give a Scene either objects or a gbuffer, not both")
+        if self.gbuffer is not None and not isinstance(self.gbuffer, GBuffer):
+            raise TypeError("Scene.gbuffer must be a GBuffer")
+        if objects and not isinstance(self.camera, Camera):
+            raise ValueError("a Scene with objects needs a Camera")
+        if self.environment is not None and not isinstance(self.environment, Environment):
+            raise TypeError("Scene.environment must be an Environment or None")
+        if not isinstance(self.ambient, (int, float)) or not math.isfinite(self.ambient) or self.ambient < 0:
+            raise ValueError(f"Scene.ambient must be a finite number >= 0, got {self.ambient!r}")
+        _set(self, objects=objects, lights=lights, background=_vec("Scene.background", self.background), ambient=float(self.ambient))
+
+    def replace(self, **changes) -> "Scene":
+        return dataclasses.replace(self, **changes)
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        if self.gbuffer is not None:
+            return self.gbuffer.shape
+        return (self.camera.height, self.camera.width)
 
 
-@functools.partial(jax.jit, static_argnames=("camera", "model", "ambient"))
-def _render(spheres: Spheres, lights, *, camera: Camera, model: str, ambient: float) -> jax.Array:
-    o, d = primary_rays(camera, dtype=spheres.center.dtype)
-    g = raycast_spheres(o, d, spheres)
-    lo = shade_direct(g.position, g.normal, g.view, g.material, lights, model=model, ambient=ambient)
-    return jnp.where(g.hit[..., None], lo, 0.0)
+# ------------------------------------------------------------------------------------------
+# Ray casting
+# ------------------------------------------------------------------------------------------
 
 
-def render_demo(
-    width: int = 1280,
-    height: int = 720,
-    *,
-    model: str = "gltf",
-    ambient: float = 0.03,
-    dtype=jnp.float32,
-) -> jax.Array:
-    """Render the demo scene to linear HDR radiance, (height, width, 3), black background."""
-    spheres, lights = demo_scene(dtype)
-    camera = Camera(width=width, height=height)
-    return _render(spheres, lights, camera=camera, model=model, ambient=float(ambient))
+def _safe_div(a, b, ok):
+    """a / b on lanes where ok, 0 elsewhere, with finite gradients (double where)."""
+    return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
+
+
+def intersect_sphere(o, d, center, radius):
+    """Nearest positive hit distance t (...) and a validity mask of rays o + t d (Vec3s, |d| = 1).
+
+    b = (o - c).d, c' = |o - c|^2 - R^2, disc = b^2 - c'. The far root t1 = -b + sqrt(disc) has no
+    cancellation for a sphere in front (b < 0); the near root is t0 = c'/t1 (t0 t1 = c'). Inside the
+    sphere (c' < 0) the far root is the hit.
+    """
+    oc = tuple(o[i] - center[i] for i in range(3))
+    b = vdot(oc, d)
+    c = vdot(oc, oc) - radius * radius
+    disc = b * b - c
+    t1 = -b + safe_sqrt(disc)
+    pos = t1 > 0
+    t0 = _safe_div(c, t1, pos)
+    t = jnp.where(c > 0, t0, t1)
+    ok = (disc > 0) & pos & (t > 0)
+    return t, ok
+
+
+def intersect_plane(o, d, point, normal):
+    """Hit distance of rays with the plane through `point` with normal `normal` (any length)."""
+    denom = vdot(d, normal)
+    num = vdot(tuple(point[i] - o[i] for i in range(3)), normal)
+    ok = jnp.abs(denom) > 1e-12
+    t = _safe_div(num, denom, ok)
+    return t, ok & (t > 0)

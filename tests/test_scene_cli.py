@@ -9,57 +9,31 @@ import pytest
 import jaxpbr as jp
 import reference as ref
 from jaxpbr.cli import main
-from jaxpbr.scene import Camera, demo_scene, primary_rays, render_demo
-
-W, H = 65, 37  # odd: the centre pixel's ray is exactly the camera axis
+from jaxpbr.demo import demo_scene, learnopengl_scene
 
 
-@pytest.fixture(scope="module")
-def demo():
-    return np.asarray(render_demo(W, H))
-
-
-def test_demo_render_is_finite_nonnegative_and_shows_49_spheres(demo):
-    assert demo.shape == (H, W, 3) and demo.dtype == np.float32
-    assert np.isfinite(demo).all() and (demo >= 0).all()
-    # Each sphere centre projects inside the frame and is lit (non-black) there.
-    cam = Camera(width=W, height=H)
-    spheres, _ = demo_scene()
-    t = np.tan(np.radians(cam.fov_y_deg) / 2)
-    for c in np.asarray(spheres.center):
-        z = cam.position[2] - c[2]
-        j = int((c[0] / (z * t * W / H) + 1) / 2 * W)
-        i = int((1 - c[1] / (z * t)) / 2 * H)
-        assert demo[i, j].sum() > 0
-
-
-def test_demo_centre_pixel_matches_independent_shading(demo):
-    """Centre pixel: ray -Z hits the middle sphere (row 3, col 3) at p = (0, 0, 1), n = v = +Z.
-    Shade it independently: glTF BRDF of tests/reference.py, 4 lights of 300 at (+-10, +-10, 10)
-    with 1/d^2, plus the 0.03 * albedo * ao ambient; float32 image vs float64 reference."""
-    p = np.array([0.0, 0.0, 1.0])
-    n = v = np.array([0.0, 0.0, 1.0])
-    albedo, metallic, rough = np.array([0.5, 0.0, 0.0]), 3 / 7, 3 / 7
-    expected = 0.03 * albedo
-    for x in (-10.0, 10.0):
-        for y in (-10.0, 10.0):
-            d = np.array([x, y, 10.0]) - p
-            l = d / np.linalg.norm(d)
-            expected = expected + ref.gltf_material(n, v, l, albedo, metallic, rough) * 300.0 / d.dot(d) * n.dot(l)
-    o, dirs = primary_rays(Camera(width=W, height=H), dtype=np.float64)
-    np.testing.assert_allclose(np.asarray(dirs)[H // 2, W // 2], [0, 0, -1], atol=1e-12)
-    # float32 pipeline (ray-sphere hit, normals, shading): relative error a few ulps x condition.
-    np.testing.assert_allclose(demo[H // 2, W // 2], expected, rtol=2e-5, atol=1e-7)
-
-
-def test_learnopengl_demo_differs_from_gltf_but_is_close(demo):
-    lo = np.asarray(render_demo(W, H, model="learnopengl"))
+def test_learnopengl_model_differs_from_gltf_but_is_close():
+    scene = learnopengl_scene(33, 19)
+    g = np.asarray(jp.render(scene))
+    lo = np.asarray(jp.render(scene, model="learnopengl"))
     assert np.isfinite(lo).all()
-    assert not np.allclose(lo, demo)
-    hit = demo.sum(-1) > 0
+    assert not np.allclose(lo, g)
+    hit = g.sum(-1) > 0
     # Same scene and lights, different G and diffuse/specular split: within a factor of 2 on average.
-    ratio = lo[hit].sum() / demo[hit].sum()
+    ratio = lo[hit].sum() / g[hit].sum()
     assert 0.5 < ratio < 2.0
+
+
+def test_default_demo_renders_finite_with_sky_background():
+    """The README's main job at a small size: 49 spheres (r = 0 mirror column included), the sky
+    with its 3000-radiance sun, four lights; finite, non-negative, sky where nothing is hit."""
+    scene = demo_scene(48, 27, face_size=32)
+    img = np.asarray(jp.render(scene))
+    assert img.shape == (27, 48, 3) and np.isfinite(img).all() and (img >= 0).all()
+    plan = jp.renderer.plan(scene)
+    assert plan.direct and plan.ibl and plan.ibl_diffuse and plan.prefilter_levels == plan.mapping_levels
+    # Top-left corner: sky above the horizon, bluish (zenith blue > red).
+    assert img[0, 0, 2] > img[0, 0, 0] > 0
 
 
 def test_cli_render_writes_png_and_exr_with_metadata(tmp_path, capsys):

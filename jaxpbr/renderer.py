@@ -1,0 +1,755 @@
+"""`render` and `render_batch`: compose only what a scene needs into one jitted program.
+
+`render(scene)` first reads the scene's *static structure* and concrete values into a `RenderPlan`
+(what to trace and what to precompute), then fetches the precomputed IBL assets it needs from a
+content-addressed cache, then runs one jitted program:
+
+* no lights -> no direct-lighting code is traced;
+* no environment -> no IBL lookups and no precompute at all;
+* only metals (metallic == 1 everywhere, no multiscatter) -> no irradiance map;
+* maximum roughness r_max -> the prefiltered chain is computed only up to the mip that
+  lod = r_max (M - 1) reaches (the lookup mapping still refers to the full chain of M levels);
+* no textures / normal maps / emissive -> none of their code.
+
+Values that are traced (inside `jax.grad`, `jax.vmap`) cannot be inspected; the plan then assumes
+the general case for them (e.g. a traced roughness may reach 1, so every mip is prefiltered), and
+a traced environment is precomputed inside the trace (differentiable, not cached).
+
+Shading = `shade_direct` (punctual lights, emissive) + `Environment.intensity * shade_ibl` (split
+sum), on the first surface hit; no shadows or inter-reflections. Misses show the environment at
+mip 0 (or `Scene.background`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import math
+from collections import OrderedDict
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._numerics import is_concrete, pack3, unpack3, vcross, vdot, vnormalize
+from .cubemap import Cubemap, _mip_count
+from .ibl import shade_ibl
+from .lights import LightSet, shade_direct
+from .material import Material
+from .scene import (
+    Environment,
+    GBuffer,
+    Plane,
+    Scene,
+    Sphere,
+    TexturedMaterial,
+    intersect_plane,
+    intersect_sphere,
+    evolve,
+    primary_rays,
+    sample_texture,
+)
+
+__all__ = [
+    "ASSETS",
+    "RenderOptions",
+    "RenderPlan",
+    "plan",
+    "render",
+    "render_batch",
+]
+
+#: Up to this many spheres the ray cast is unrolled (fused by XLA); beyond, a fori_loop.
+UNROLL_MAX_SPHERES = 8
+#: Default pixels per chunk of `render_batch` (images x pixels x samples), bounding memory.
+BATCH_CHUNK_PIXELS = 1 << 21
+#: Largest default prefiltered face size.
+DEFAULT_PREFILTER_SIZE = 128
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderOptions:
+    """Static render options (hashable; part of the compiled program's identity).
+
+    model: "gltf" | "learnopengl" (direct BRDF and IBL combination; learnopengl uses a Schlick LUT).
+    multiscatter: Fdez-Aguera energy compensation of the IBL term (gltf only).
+    irradiance_size / irradiance_method: `jaxpbr.irradiance` parameters (exact convolution default).
+    prefilter_size: face size of the prefiltered map (default: min(env face size, 128), a
+        power-of-two divisor of it); prefilter_samples: `jaxpbr.prefilter` samples (None = default).
+    lut_size: split-sum LUT resolution (shipped 128 / 256 load instantly).
+    mapping: roughness -> mip mapping of the prefiltered map ("linear" | "quadratic").
+    dtype: "float32" | "float64" for the shading.
+    """
+
+    model: str = "gltf"
+    multiscatter: bool = False
+    irradiance_size: int = 32
+    irradiance_method: str = "exact"
+    prefilter_size: int | None = None
+    prefilter_samples: int | None = None
+    lut_size: int = 128
+    mapping: str = "linear"
+    dtype: str = "float32"
+
+    def __post_init__(self):
+        from .brdf_terms import MODELS
+
+        if self.model not in MODELS:
+            raise ValueError(f"unknown model {self.model!r}; choose one of {MODELS}")
+        if self.multiscatter and self.model != "gltf":
+            raise ValueError("multiscatter is defined for the gltf model only")
+        if self.dtype not in ("float32", "float64"):
+            raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        for name in ("irradiance_size", "lut_size"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderPlan:
+    """What a render traces and precomputes (static; see the module docstring)."""
+
+    direct: bool
+    ibl: bool
+    ibl_diffuse: bool
+    env_background: bool
+    emissive: bool
+    textured: tuple[int, ...]
+    normal_maps: bool
+    max_roughness: float
+    prefilter_size: int
+    prefilter_levels: int  # levels computed (0 without IBL)
+    mapping_levels: int  # M of the roughness -> lod mapping
+
+    def describe(self) -> str:
+        parts = [
+            "direct lighting" if self.direct else "no direct lighting",
+            (
+                f"IBL (specular: {self.prefilter_levels}/{self.mapping_levels} mips of {self.prefilter_size}^2 for "
+                f"r <= {self.max_roughness:.3g}; diffuse: {'yes' if self.ibl_diffuse else 'no (metals only)'})"
+            )
+            if self.ibl
+            else "no IBL",
+        ]
+        if self.textured:
+            parts.append(f"{len(self.textured)} textured object(s)" + (" with normal maps" if self.normal_maps else ""))
+        return "; ".join(parts)
+
+
+# ------------------------------------------------------------------------------------------
+# Planning
+# ------------------------------------------------------------------------------------------
+
+
+def _bound(x, fn, fallback: float) -> float:
+    """fn(concrete values) or the fallback for traced values."""
+    if x is None:
+        return fallback
+    if not is_concrete(x):
+        return fallback
+    return float(fn(np.asarray(x)))
+
+
+def _material_ranges(m) -> tuple[float, float, bool]:
+    """(max roughness, min metallic, may emit) of a Material or TexturedMaterial."""
+    if isinstance(m, TexturedMaterial):
+        f = m.factors
+        r = _bound(f.roughness, np.max, 1.0)
+        met = _bound(f.metallic, np.min, 0.0)
+        mr = m.metallic_roughness_texture
+        if mr is not None:
+            r *= _bound(mr, lambda a: a[..., 1].max(), 1.0)
+            met *= _bound(mr, lambda a: a[..., 2].min(), 0.0)
+        emits = _bound(f.emissive, np.max, 1.0) > 0
+        return r, met, emits
+    return (
+        _bound(m.roughness, np.max, 1.0),
+        _bound(m.metallic, np.min, 0.0),
+        _bound(m.emissive, np.max, 1.0) > 0,
+    )
+
+
+def _prefilter_size(env: Environment, opts: RenderOptions) -> int:
+    if env.prefiltered is not None:
+        return env.prefiltered.face_size
+    S0 = env.radiance.face_size
+    if opts.prefilter_size is not None:
+        return int(opts.prefilter_size)
+    S = S0
+    while S > DEFAULT_PREFILTER_SIZE and S % 2 == 0:
+        S //= 2
+    return S
+
+
+def plan(scene: Scene, options: RenderOptions | None = None, *, extra_materials=()) -> RenderPlan:
+    """The RenderPlan of `scene` (what `render` will trace and precompute)."""
+    from .specular import roughness_to_lod
+
+    opts = options or RenderOptions()
+    if scene.gbuffer is not None:
+        mats = [scene.gbuffer.material]
+    else:
+        mats = [ob.material for ob in scene.objects]
+    mats += list(extra_materials)
+    ranges = [_material_ranges(m) for m in mats]
+    r_max = max(r for r, _, _ in ranges)
+    met_min = min(mt for _, mt, _ in ranges)
+    emissive = any(e for _, _, e in ranges)
+    textured = tuple(
+        k for k, ob in enumerate(scene.objects) if isinstance(ob.material, TexturedMaterial)
+    )
+    normal_maps = any(scene.objects[k].material.has_normal_map for k in textured)
+    env = scene.environment
+    ibl = env is not None
+    if ibl:
+        size = _prefilter_size(env, opts)
+        if env.prefiltered is not None:
+            M = int(env.prefiltered.metadata.get("mapping_levels", env.prefiltered.num_levels))
+            levels = env.prefiltered.num_levels
+        else:
+            M = _mip_count(size)
+            lod = float(roughness_to_lod(np.float64(min(max(r_max, 0.0), 1.0)), M, opts.mapping))
+            levels = min(M, int(math.ceil(lod - 1e-9)) + 1)
+        diffuse = opts.multiscatter or met_min < 1.0 or env.irradiance is not None
+    else:
+        size, M, levels, diffuse = 0, 0, 0, False
+    return RenderPlan(
+        direct=len(scene.lights) > 0,
+        ibl=ibl,
+        ibl_diffuse=bool(ibl and diffuse),
+        env_background=bool(ibl and env.show_background),
+        emissive=emissive,
+        textured=textured,
+        normal_maps=normal_maps,
+        max_roughness=r_max,
+        prefilter_size=size,
+        prefilter_levels=levels,
+        mapping_levels=M,
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Precomputed assets: a content-addressed cache
+# ------------------------------------------------------------------------------------------
+
+
+class AssetCache:
+    """LRU cache of precomputed IBL maps keyed by (environment content hash, kind, parameters).
+
+    `stats[kind]` counts hits and misses ("irradiance", "prefilter", "lut"), which is how tests
+    and users check what a render actually computed.
+    """
+
+    def __init__(self, maxsize: int = 16):
+        self.maxsize = maxsize
+        self._store: OrderedDict = OrderedDict()
+        self.stats: dict[str, dict[str, int]] = {}
+
+    def clear(self) -> None:
+        self._store.clear()
+        self.stats.clear()
+
+    def get(self, kind: str, key, compute):
+        st = self.stats.setdefault(kind, {"hits": 0, "misses": 0})
+        full = (kind, key)
+        if full in self._store:
+            st["hits"] += 1
+            self._store.move_to_end(full)
+            return self._store[full]
+        st["misses"] += 1
+        value = compute()
+        self._store[full] = value
+        while len(self._store) > self.maxsize:
+            self._store.popitem(last=False)
+        return value
+
+
+ASSETS = AssetCache()
+
+
+def content_key(cube: Cubemap) -> str:
+    """SHA-1 of a cube map's level-0 texels, shape and dtype (what its precomputes depend on)."""
+    a = np.ascontiguousarray(np.asarray(cube.levels[0]))
+    h = hashlib.sha1(a.tobytes())
+    h.update(repr((a.shape, str(a.dtype))).encode())
+    return h.hexdigest()
+
+
+def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
+    """(irradiance | None, prefiltered, lut) for the plan; cached when the environment is concrete."""
+    from .diffuse import irradiance
+    from .shipped_luts import brdf_lut
+    from .specular import prefilter
+
+    dtype = jnp.dtype(opts.dtype)
+    smith = "schlick" if opts.model == "learnopengl" else "correlated"
+    lut = ASSETS.get("lut", (opts.lut_size, smith, str(dtype)), lambda: brdf_lut(opts.lut_size, smith, dtype=dtype))
+    src = env.radiance
+    concrete = all(is_concrete(lv) for lv in src.levels)
+    key = content_key(src) if concrete else None
+
+    def cached(kind, params, compute):
+        if key is None:
+            return compute()
+        return ASSETS.get(kind, (key,) + params, compute)
+
+    irr = env.irradiance
+    if p.ibl_diffuse and irr is None:
+        params = (opts.irradiance_size, opts.irradiance_method)
+        irr = cached("irradiance", params, lambda: irradiance(src, opts.irradiance_size, method=opts.irradiance_method))
+    if not p.ibl_diffuse:
+        irr = None
+    pre = env.prefiltered
+    if pre is None:
+        params = (p.prefilter_size, p.prefilter_levels, p.mapping_levels, opts.mapping, opts.prefilter_samples)
+
+        def compute_pre():
+            kw = {} if opts.prefilter_samples is None else {"samples": opts.prefilter_samples}
+            return prefilter(
+                src,
+                p.prefilter_size,
+                num_levels=p.mapping_levels,
+                max_level=p.prefilter_levels - 1,
+                mapping=opts.mapping,
+                **kw,
+            )
+
+        pre = cached("prefilter", params, compute_pre)
+    cast = lambda c: None if c is None else Cubemap([lv.astype(dtype) for lv in c.levels], c.info)  # noqa: E731
+    return cast(irr), cast(pre), jnp.asarray(lut, dtype)
+
+
+# ------------------------------------------------------------------------------------------
+# Geometry -> G-buffer
+# ------------------------------------------------------------------------------------------
+
+
+def _stack_materials(objects, dtype):
+    """Per-object constant materials (textured objects contribute their factors), leaves (K, ...)."""
+    mats = [ob.material.factors if isinstance(ob.material, TexturedMaterial) else ob.material for ob in objects]
+    out = {}
+    for f, tail in (("base_color", (3,)), ("metallic", ()), ("roughness", ()), ("occlusion", ()), ("emissive", (3,))):
+        out[f] = jnp.stack([jnp.broadcast_to(jnp.asarray(getattr(m, f), dtype), tail) for m in mats])
+    return out
+
+
+def _gather_material(stack, idx) -> Material:
+    return Material.tree_unflatten(None, [stack[f][idx] for f in ("base_color", "metallic", "roughness", "occlusion", "emissive")])
+
+
+def _cast(objects, o, d, dtype):
+    """Nearest hit over all objects: (t, idx, hit), memory O(pixels)."""
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    shape = d[0].shape
+    t_best = jnp.full(shape, big, dtype)
+    idx = jnp.zeros(shape, jnp.int32)
+    spheres = [k for k, ob in enumerate(objects) if isinstance(ob, Sphere)]
+    planes = [k for k, ob in enumerate(objects) if isinstance(ob, Plane)]
+
+    def take(t, ok, k, t_best, idx):
+        better = ok & (t < t_best)
+        return jnp.where(better, t, t_best), jnp.where(better, k, idx)
+
+    if len(spheres) <= UNROLL_MAX_SPHERES:
+        for k in spheres:
+            c = tuple(jnp.asarray(objects[k].center, dtype)[i] for i in range(3))
+            t, ok = intersect_sphere(o, d, c, jnp.asarray(objects[k].radius, dtype))
+            t_best, idx = take(t, ok, k, t_best, idx)
+    else:
+        centers = jnp.stack([jnp.asarray(objects[k].center, dtype) for k in spheres])
+        radii = jnp.stack([jnp.asarray(objects[k].radius, dtype) for k in spheres])
+        ids = jnp.asarray(spheres, jnp.int32)
+
+        def body(i, carry):
+            c = tuple(centers[i, j] for j in range(3))
+            t, ok = intersect_sphere(o, d, c, radii[i])
+            return take(t, ok, ids[i], *carry)
+
+        t_best, idx = jax.lax.fori_loop(0, len(spheres), body, (t_best, idx))
+    for k in planes:
+        pt = tuple(jnp.asarray(objects[k].point, dtype)[i] for i in range(3))
+        nn = tuple(jnp.asarray(objects[k].normal, dtype)[i] for i in range(3))
+        t, ok = intersect_plane(o, d, pt, nn)
+        t_best, idx = take(t, ok, k, t_best, idx)
+    hit = t_best < big
+    return jnp.where(hit, t_best, 0.0), idx, hit
+
+
+def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
+    """Position, geometric normal (facing the viewer for planes), and if asked uv + tangent."""
+    K = len(objects)
+    is_plane = jnp.asarray([isinstance(ob, Plane) for ob in objects])
+    anchor = jnp.stack([jnp.asarray(ob.center if isinstance(ob, Sphere) else ob.point, dtype) for ob in objects])
+    pn = jnp.stack(
+        [jnp.asarray(ob.normal, dtype) if isinstance(ob, Plane) else jnp.zeros(3, dtype) for ob in objects]
+    )
+    p = tuple(o[i] + t * d[i] for i in range(3))
+    a = tuple(anchor[:, i][idx] if K > 1 else anchor[0, i] for i in range(3))
+    rel = tuple(p[i] - a[i] for i in range(3))
+    n_sph = vnormalize(rel)
+    plane_px = is_plane[idx] if K > 1 else is_plane[0]
+    n_pl = vnormalize(tuple((pn[:, i][idx] if K > 1 else pn[0, i]) for i in range(3)))
+    facing = jnp.where(vdot(n_pl, d) > 0, -1.0, 1.0)  # planes are two-sided
+    n_pl = tuple(c * facing for c in n_pl)
+    n = tuple(jnp.where(plane_px, n_pl[i], n_sph[i]) for i in range(3))
+    if not need_uv:
+        return p, n, None, None
+    # Sphere: u = 0.5 + atan2(x, z)/(2 pi), v = 0.5 - atan2(y, rho)/pi, T = (z, 0, -x)/rho.
+    x, y, z = n_sph
+    rho2 = x * x + z * z
+    ok = rho2 > 1e-12
+    rho = jnp.sqrt(jnp.where(ok, rho2, 1.0))
+    u_s = 0.5 + jnp.arctan2(jnp.where(ok, x, 0.0), jnp.where(ok, z, 1.0)) / (2 * math.pi)
+    v_s = 0.5 - jnp.arctan2(y, jnp.where(ok, rho, 0.0)) / math.pi
+    t_s = (jnp.where(ok, z / rho, 1.0), jnp.zeros_like(x), jnp.where(ok, -x / rho, 0.0))
+    # Plane: T = tangent, B = N x T (with the un-flipped normal), uv = (rel.T, -rel.B) * scale.
+    tan = jnp.stack(
+        [jnp.asarray(ob.tangent, dtype) if isinstance(ob, Plane) else jnp.zeros(3, dtype) for ob in objects]
+    )
+    scale = jnp.stack([jnp.asarray(ob.uv_scale if isinstance(ob, Plane) else 1.0, dtype) for ob in objects])
+    t_p = vnormalize(tuple((tan[:, i][idx] if K > 1 else tan[0, i]) for i in range(3)))
+    n_raw = tuple(c * facing for c in n_pl)
+    tn = vdot(t_p, n_raw)
+    t_p = vnormalize(tuple(t_p[i] - tn * n_raw[i] for i in range(3)))
+    b_p = vcross(n_raw, t_p)
+    sc = scale[idx] if K > 1 else scale[0]
+    u_p = vdot(rel, t_p) * sc
+    v_p = -vdot(rel, b_p) * sc
+    u = jnp.where(plane_px, u_p, u_s)
+    v = jnp.where(plane_px, v_p, v_s)
+    tangent = tuple(jnp.where(plane_px, t_p[i], t_s[i]) for i in range(3))
+    return p, n, (u, v), tangent
+
+
+def _apply_textures(objects, textured, idx, uv, tangent, n, m: Material, dtype):
+    """Override the gathered constant material (and normal) on the pixels of textured objects."""
+    u, v = uv
+    base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
+    for k in textured:
+        tm = objects[k].material
+        f = tm.factors
+        sel = idx == k
+        if tm.base_color_texture is not None:
+            tex = sample_texture(jnp.asarray(tm.base_color_texture, dtype)[..., :3], u, v)
+            base = jnp.where(sel[..., None], jnp.asarray(f.base_color, dtype) * tex, base)
+        if tm.metallic_roughness_texture is not None:
+            tex = sample_texture(jnp.asarray(tm.metallic_roughness_texture, dtype)[..., 1:3], u, v)
+            rough = jnp.where(sel, jnp.asarray(f.roughness, dtype) * tex[..., 0], rough)
+            metallic = jnp.where(sel, jnp.asarray(f.metallic, dtype) * tex[..., 1], metallic)
+        if tm.occlusion_texture is not None:
+            tex = sample_texture(jnp.asarray(tm.occlusion_texture, dtype)[..., :1], u, v)
+            occ = jnp.where(sel, jnp.asarray(f.occlusion, dtype) * tex[..., 0], occ)
+        if tm.emissive_texture is not None:
+            tex = sample_texture(jnp.asarray(tm.emissive_texture, dtype)[..., :3], u, v)
+            emis = jnp.where(sel[..., None], jnp.asarray(f.emissive, dtype) * tex, emis)
+        if tm.normal_texture is not None:
+            tex = sample_texture(jnp.asarray(tm.normal_texture, dtype)[..., :3], u, v)
+            s = jnp.asarray(tm.normal_scale, dtype)
+            tx, ty, tz = (2.0 * tex[..., 0] - 1.0) * s, (2.0 * tex[..., 1] - 1.0) * s, 2.0 * tex[..., 2] - 1.0
+            # Gram-Schmidt T against the geometric normal, B = N x T (glTF handedness +1).
+            tn = vdot(tangent, n)
+            T = vnormalize(tuple(tangent[i] - tn * n[i] for i in range(3)))
+            B = vcross(n, T)
+            pert = vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
+            n = tuple(jnp.where(sel, pert[i], n[i]) for i in range(3))
+    return Material.tree_unflatten(None, [base, metallic, rough, occ, emis]), n
+
+
+def _cast_floats(tree, dtype):
+    """Floating leaves of a pytree cast to the render dtype (user inputs may be float64 under x64)."""
+    return jax.tree_util.tree_map(
+        lambda x: jnp.asarray(x, dtype) if jnp.issubdtype(jnp.result_type(x), jnp.floating) else x, tree
+    )
+
+
+def _rotate_y(d, angle):
+    """R_y(angle) applied to Vec3 d: (c x + s z, y, -s x + c z)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return (c * d[0] + s * d[2], d[1], -s * d[0] + c * d[2])
+
+
+def _shade(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, pos, n, view, m: Material, hit, ray_dir):
+    """Radiance (H, W, 3) of a G-buffer (Vec3 inputs), composed according to the plan."""
+    dtype = jnp.dtype(opts.dtype)
+    shape = hit.shape
+    out = None
+
+    def add(a, b):
+        return b if a is None else a + b
+
+    if p_plan.direct:
+        out = add(
+            out,
+            shade_direct(pack3(pos), pack3(n), pack3(view), m, _cast_floats(list(scene.lights), dtype), model=opts.model, ambient=scene.ambient),
+        )
+    else:
+        if scene.ambient:
+            out = add(out, scene.ambient * m.base_color * m.occlusion[..., None])
+        if p_plan.emissive:
+            out = add(out, m.emissive)
+    env = scene.environment
+    if p_plan.ibl:
+        irr, pre, lut = assets
+        rot = -jnp.asarray(env.rotation, dtype)
+        n_e = pack3(_rotate_y(n, rot))
+        v_e = pack3(_rotate_y(view, rot))
+        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.multiscatter)
+        out = add(out, jnp.asarray(env.intensity, dtype) * ibl)
+    if out is None:
+        out = jnp.zeros(shape + (3,), dtype)
+    if p_plan.env_background:
+        bg_dir = pack3(_rotate_y(ray_dir, -jnp.asarray(env.rotation, dtype)))
+        bg = jnp.asarray(env.intensity, dtype) * env.radiance.sample(bg_dir.astype(env.radiance.dtype), 0.0).astype(dtype)
+    else:
+        bg = jnp.broadcast_to(jnp.asarray(scene.background, dtype), shape + (3,))
+    return jnp.where(hit[..., None], out, bg)
+
+
+def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset):
+    dtype = jnp.dtype(opts.dtype)
+    if scene.gbuffer is not None:
+        g = scene.gbuffer
+        pos = unpack3(jnp.asarray(g.position, dtype))
+        n = vnormalize(unpack3(jnp.asarray(g.normal, dtype)))
+        view = vnormalize(unpack3(jnp.asarray(g.view, dtype)))
+        m = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), g.material)
+        ray = tuple(-c for c in view)
+        return _shade(scene, assets, p_plan, opts, pos, n, view, m, g.hit, ray)
+    o, d = primary_rays(scene.camera, dtype, offset)
+    o, d = unpack3(o), unpack3(d)
+    objects = scene.objects
+    t, idx, hit = _cast(objects, o, d, dtype)
+    need_uv = bool(p_plan.textured)
+    pos, n, uv, tangent = _surface(objects, o, d, t, idx, dtype, need_uv)
+    stack = _stack_materials(objects, dtype)
+    m = _gather_material(stack, idx)
+    if need_uv:
+        m, n = _apply_textures(objects, p_plan.textured, idx, uv, tangent, n, m, dtype)
+    view = tuple(-c for c in d)
+    return _shade(scene, assets, p_plan, opts, pos, n, view, m, hit, d)
+
+
+def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
+    s = 1 if scene.gbuffer is not None else scene.camera.supersample
+    if s == 1:
+        return _render_pass(scene, assets, p_plan, opts, (0.5, 0.5))
+    dtype = jnp.dtype(opts.dtype)
+
+    def body(k, acc):
+        off = (((k % s).astype(dtype) + 0.5) / s, ((k // s).astype(dtype) + 0.5) / s)
+        return acc + _render_pass(scene, assets, p_plan, opts, off)
+
+    H, W = scene.image_shape
+    acc = jax.lax.fori_loop(0, s * s, body, jnp.zeros((H, W, 3), dtype))
+    return acc / (s * s)
+
+
+_render_jit = jax.jit(_render_traced, static_argnums=(2, 3))
+
+
+def _options(options) -> RenderOptions:
+    if "options" in options:
+        raise TypeError("pass render options as keywords, e.g. render(scene, model='gltf')")
+    return RenderOptions(**options)
+
+
+def render(scene: Scene, **options) -> jax.Array:
+    """Render `scene` to linear HDR radiance (H, W, 3) (Rec.709 primaries, scene-referred).
+
+    options: `RenderOptions` fields as keywords (model, multiscatter, irradiance_size,
+    prefilter_size, prefilter_samples, lut_size, mapping, dtype). Differentiable with respect to
+    every array in the scene (materials, textures, lights, camera, environment texels).
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"render expects a jaxpbr.Scene, got {type(scene).__name__}")
+    opts = _options(options)
+    p = plan(scene, opts)
+    assets = _env_assets(scene.environment, p, opts) if p.ibl else None
+    return _render_jit(scene, assets, p, opts)
+
+
+# ------------------------------------------------------------------------------------------
+# Batches
+# ------------------------------------------------------------------------------------------
+
+
+#: Fields whose unbatched value is a vector (trailing axis); all others are scalars.
+_VECTOR_FIELDS = {"base_color", "emissive", "position", "target", "up", "jitter", "color", "direction", "radiant"}
+
+
+def _batched(name: str, obj):
+    """(B or None, obj with every field broadcast to the leading batch axis B).
+
+    A field is batched when it has one more axis than its unbatched form (vector fields (B, n),
+    scalar fields (B,)); unbatched fields are broadcast. All batched fields must agree on B."""
+    leaves, treedef = jax.tree_util.tree_flatten(obj)
+    if hasattr(obj, "_data_fields"):
+        names = list(obj._data_fields)
+    elif hasattr(obj, "_fields"):
+        names = list(obj._fields)
+    else:  # Material
+        names = ["base_color", "metallic", "roughness", "occlusion", "emissive"]
+    if len(names) != len(leaves):
+        raise TypeError(f"{name}: unsupported batched object {type(obj).__name__}")
+    sizes = {}
+    for f, x in zip(names, leaves):
+        rank = 1 if f in _VECTOR_FIELDS else 0
+        if np.ndim(x) == rank + 1:
+            sizes[f] = int(np.shape(x)[0])
+        elif np.ndim(x) != rank:
+            raise ValueError(f"{name}.{f} has shape {np.shape(x)}; expected {'(B, n)' if rank else '(B,)'} or unbatched")
+    if not sizes:
+        raise ValueError(f"{name} has no batched field; give at least one field a leading batch axis")
+    if len(set(sizes.values())) != 1:
+        raise ValueError(f"{name}: every batched field must have the same leading batch axis, got {sizes}")
+    B = next(iter(sizes.values()))
+    out = [x if f in sizes else jnp.broadcast_to(x, (B,) + np.shape(x)) for f, x in zip(names, leaves)]
+    return B, jax.tree_util.tree_unflatten(treedef, out)
+
+
+def _substitute(scene: Scene, b: dict, objects_idx) -> Scene:
+    """The scene with the (unbatched slice of the) batched inputs `b` put in place, unvalidated."""
+    changes = {}
+    if "materials" in b:
+        mat = b["materials"]
+        if scene.gbuffer is not None:
+            changes["gbuffer"] = evolve(scene.gbuffer, material=mat)
+        else:
+            objs = list(scene.objects)
+            for k in objects_idx:
+                ob = objs[k]
+                new_m = evolve(ob.material, factors=mat) if isinstance(ob.material, TexturedMaterial) else mat
+                objs[k] = evolve(ob, material=new_m)
+            changes["objects"] = tuple(objs)
+    if "camera" in b:
+        changes["camera"] = b["camera"]
+    if "lights" in b:
+        changes["lights"] = tuple(b["lights"])
+    if "env" in b:
+        changes["environment"] = evolve(scene.environment, **b["env"])
+    return evolve(scene, **changes)
+
+
+@functools.partial(jax.jit, static_argnums=(3, 4, 5, 6, 7))
+def _batch_jit(scene, assets, b, p_plan, opts, objects_idx, chunk, mesh):
+    def run(scene, assets, b):
+        one = lambda x: _render_traced(_substitute(scene, x, objects_idx), assets, p_plan, opts)  # noqa: E731
+        return jax.lax.map(one, b, batch_size=chunk)
+
+    if mesh is None:
+        return run(scene, assets, b)
+    from jax.sharding import PartitionSpec as P
+
+    return jax.shard_map(run, mesh=mesh, in_specs=(P(), P(), P("batch")), out_specs=P("batch"), check_vma=False)(
+        scene, assets, b
+    )
+
+
+def render_batch(
+    scene: Scene,
+    *,
+    materials: Material | None = None,
+    objects=None,
+    cameras=None,
+    lights=None,
+    env_rotation=None,
+    env_intensity=None,
+    chunk: int | None = None,
+    devices=None,
+    **options,
+) -> jax.Array:
+    """Render B variants of `scene` in one jitted, vmapped call -> (B, H, W, 3).
+
+    Batched inputs (each with a leading axis B; give any combination):
+      materials: a Material whose leaves are (B, ...): replaces the material of the objects listed
+        in `objects` (default: all; for a TexturedMaterial its factors), or of a G-buffer scene.
+      cameras: a Camera whose array fields are (B, ...) (same width/height/supersample).
+      lights: a list of lights whose fields are (B, ...); replaces the scene's lights.
+      env_rotation, env_intensity: (B,) environment rotations about +Y (radians) / intensities.
+    chunk: images rendered together per step (`lax.map` batch size), bounding memory; default
+      keeps about 2M pixel samples per step.
+    devices: None (all local devices), a list of devices, or 1: the batch is sharded over them
+      with `jax.sharding` (shard_map over a 1-D mesh "batch"); each device renders its share in
+      chunks. Results are identical to the single-device path.
+    options: as for `render`. Precomputes are shared by the whole batch (rotations and
+    intensities need none).
+    """
+    from jax.sharding import Mesh
+
+    opts = _options(options)
+    b: dict[str, Any] = {}
+    sizes: list = []
+    if materials is not None:
+        if not isinstance(materials, Material):
+            raise TypeError("materials must be a Material whose leaves have a leading batch axis")
+        b["materials"] = materials
+        sizes.append(_batched("materials", materials))
+    if objects is None:
+        objects_idx = tuple(range(len(scene.objects)))
+    else:
+        objects_idx = tuple(int(k) for k in objects)
+        for k in objects_idx:
+            if not 0 <= k < len(scene.objects):
+                raise ValueError(f"objects index {k} out of range (scene has {len(scene.objects)} objects)")
+    if cameras is not None:
+        if scene.camera is None or (cameras.width, cameras.height) != (scene.camera.width, scene.camera.height):
+            raise ValueError("batched cameras must have the scene camera's width and height")
+        sizes.append(_batched("cameras", cameras))
+        b["camera"] = sizes[-1][1]
+    if lights is not None:
+        lights = [lights] if not isinstance(lights, (list, tuple)) else list(lights)
+        if not lights:
+            raise ValueError("lights is empty; leave it out to keep the scene's lights")
+        packed = [_batched(f"lights[{i}]", lt) for i, lt in enumerate(lights)]
+        sizes.extend(packed)
+        b["lights"] = tuple(x for _, x in packed)
+    env_b = {}
+    for key, val in (("rotation", env_rotation), ("intensity", env_intensity)):
+        if val is not None:
+            val = jnp.asarray(val)
+            if val.ndim != 1:
+                raise ValueError(f"env_{key} must be a 1-D array (B,), got shape {val.shape}")
+            env_b[key] = val
+            sizes.append((val.shape[0], val))
+    if env_b:
+        if scene.environment is None:
+            raise ValueError("env_rotation/env_intensity need a scene with an environment")
+        b["env"] = env_b
+    if not b:
+        raise ValueError("render_batch needs at least one batched input (materials, cameras, lights, env_rotation, env_intensity)")
+    if len({n for n, _ in sizes}) != 1:
+        raise ValueError(f"render_batch inputs must share the same leading batch axis, got sizes {sorted({n for n, _ in sizes})}")
+    B = sizes[0][0]
+    if materials is not None:
+        materials = sizes[0][1]
+        b["materials"] = materials
+    base = scene if "lights" not in b else scene.replace(lights=tuple(jax.tree_util.tree_map(lambda x: x[0], lt) for lt in b["lights"]))
+    # Plan from the scene as the batch will see it (batched materials substituted, concrete).
+    plan_scene = _substitute(base, {"materials": materials}, objects_idx) if materials is not None else base
+    p_plan = plan(plan_scene, opts)
+    assets = _env_assets(base.environment, p_plan, opts) if p_plan.ibl else None
+
+    if devices is None:
+        devices = jax.local_devices()
+    elif devices == 1:
+        devices = jax.local_devices()[:1]
+    devices = list(devices)
+    ndev = len(devices)
+    H, W = base.image_shape
+    spp = 1 if base.gbuffer is not None else base.camera.supersample**2
+    if chunk is None:
+        chunk = max(1, BATCH_CHUNK_PIXELS // (H * W * spp))
+    chunk = int(chunk)
+    if chunk <= 0:
+        raise ValueError(f"chunk must be a positive integer, got {chunk}")
+    per_dev = -(-B // ndev)
+    chunk = min(chunk, per_dev)
+    pad = per_dev * ndev - B
+    if pad:
+        b = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), b)
+    mesh = Mesh(np.asarray(devices), ("batch",)) if ndev > 1 else None
+    out = _batch_jit(base, assets, b, p_plan, opts, objects_idx, chunk, mesh)
+    return out[:B]
