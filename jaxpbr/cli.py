@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .cli_ibl import add_commands
 
     add_commands(sub, _positive_int, bench_sub=bsub)
+    from .bench_render import add_bench_render_command
+
+    add_bench_render_command(bsub)
     return parser
 
 

@@ -282,6 +282,9 @@ def add_commands(sub, positive_int, bench_sub=None) -> None:
     p.add_argument("--quick", action="store_true", help="a smaller sweep (for a first look)")
     p.set_defaults(func=cmd_report_precompute)
     rp.set_defaults(func=lambda args: rp.print_help() or 0)
+    from .report_render import add_report_render_command
+
+    add_report_render_command(rsub)
 
     if bench_sub is not None:
         p = bench_sub.add_parser("ibl", help="IBL precompute timings and errors vs a Filament-style FIS baseline, side by side")

@@ -424,11 +424,11 @@ def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
     return p, n, (u, v), tangent
 
 
-def _apply_textures(objects, textured, idx, uv, tangent, n, m: Material, dtype):
-    """Override the gathered constant material (and normal) on the pixels of textured objects."""
+def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype):
+    """Override the gathered constant material (and normal) on the pixels of textured object k."""
     u, v = uv
     base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
-    for k in textured:
+    if True:
         tm = objects[k].material
         f = tm.factors
         sel = idx == k
@@ -471,33 +471,35 @@ def _rotate_y(d, angle):
     return (c * d[0] + s * d[2], d[1], -s * d[0] + c * d[2])
 
 
-def _shade(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, pos, n, view, m: Material, hit, ray_dir):
-    """Radiance (H, W, 3) of a G-buffer (Vec3 inputs), composed according to the plan."""
+def _shade_direct(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g):
+    """Direct lighting + ambient + emissive (H, W, 3), or None when the plan has none of them."""
     dtype = jnp.dtype(opts.dtype)
-    shape = hit.shape
-    out = None
-
-    def add(a, b):
-        return b if a is None else a + b
-
+    pos, n, view, m = g["pos"], g["n"], g["view"], g["m"]
     if p_plan.direct:
-        out = add(
-            out,
-            shade_direct(pack3(pos), pack3(n), pack3(view), m, _cast_floats(list(scene.lights), dtype), model=opts.model, ambient=scene.ambient),
-        )
-    else:
-        if scene.ambient:
-            out = add(out, scene.ambient * m.base_color * m.occlusion[..., None])
-        if p_plan.emissive:
-            out = add(out, m.emissive)
+        lights = _cast_floats(list(scene.lights), dtype)
+        return shade_direct(pack3(pos), pack3(n), pack3(view), m, lights, model=opts.model, ambient=scene.ambient)
+    out = None
+    if scene.ambient:
+        out = scene.ambient * m.base_color * m.occlusion[..., None]
+    if p_plan.emissive:
+        out = m.emissive if out is None else out + m.emissive
+    return out
+
+
+def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, direct):
+    """direct + environment IBL on hits, background elsewhere -> (H, W, 3)."""
+    dtype = jnp.dtype(opts.dtype)
+    n, view, m, hit, ray_dir = g["n"], g["view"], g["m"], g["hit"], g["ray"]
+    shape = hit.shape
+    out = direct
     env = scene.environment
     if p_plan.ibl:
         irr, pre, lut = assets
         rot = -jnp.asarray(env.rotation, dtype)
         n_e = pack3(_rotate_y(n, rot))
         v_e = pack3(_rotate_y(view, rot))
-        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.multiscatter)
-        out = add(out, jnp.asarray(env.intensity, dtype) * ibl)
+        ibl = jnp.asarray(env.intensity, dtype) * shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.multiscatter)
+        out = ibl if out is None else out + ibl
     if out is None:
         out = jnp.zeros(shape + (3,), dtype)
     if p_plan.env_background:
@@ -508,28 +510,59 @@ def _shade(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, pos, n
     return jnp.where(hit[..., None], out, bg)
 
 
-def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset):
+def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
+    """G-buffer of the scene (dict of Vec3 / arrays), before textures."""
     dtype = jnp.dtype(opts.dtype)
     if scene.gbuffer is not None:
-        g = scene.gbuffer
-        pos = unpack3(jnp.asarray(g.position, dtype))
-        n = vnormalize(unpack3(jnp.asarray(g.normal, dtype)))
-        view = vnormalize(unpack3(jnp.asarray(g.view, dtype)))
-        m = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), g.material)
-        ray = tuple(-c for c in view)
-        return _shade(scene, assets, p_plan, opts, pos, n, view, m, g.hit, ray)
+        gb = scene.gbuffer
+        view = vnormalize(unpack3(jnp.asarray(gb.view, dtype)))
+        return dict(
+            pos=unpack3(jnp.asarray(gb.position, dtype)),
+            n=vnormalize(unpack3(jnp.asarray(gb.normal, dtype))),
+            view=view,
+            m=jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gb.material),
+            hit=gb.hit,
+            ray=tuple(-c for c in view),
+        )
     o, d = primary_rays(scene.camera, dtype, offset)
     o, d = unpack3(o), unpack3(d)
     objects = scene.objects
     t, idx, hit = _cast(objects, o, d, dtype)
     need_uv = bool(p_plan.textured)
     pos, n, uv, tangent = _surface(objects, o, d, t, idx, dtype, need_uv)
-    stack = _stack_materials(objects, dtype)
-    m = _gather_material(stack, idx)
+    m = _gather_material(_stack_materials(objects, dtype), idx)
+    g = dict(pos=pos, n=n, view=tuple(-c for c in d), m=m, hit=hit, ray=d)
     if need_uv:
-        m, n = _apply_textures(objects, p_plan.textured, idx, uv, tangent, n, m, dtype)
-    view = tuple(-c for c in d)
-    return _shade(scene, assets, p_plan, opts, pos, n, view, m, hit, d)
+        g.update(idx=idx, uv=uv, tangent=tangent)
+    return g
+
+
+def _texture(scene: Scene, k: int, opts: RenderOptions, g):
+    m, n = _apply_texture(scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype))
+    return {**g, "m": m, "n": n}
+
+
+def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool = False):
+    """One sample per pixel at sub-pixel `offset`.
+
+    staged=True runs the stages -- geometry, each textured object, direct lighting, IBL +
+    background -- as separate compiled programs (what `render` does outside transformations).
+    XLA:CPU otherwise fuses producers into every consumer and recomputes them there (each
+    light, lookup and colour channel): measured 2.7x slower for direct + IBL at 1080p and 1000x
+    slower with two normal-mapped objects; `lax.optimization_barrier` does not prevent it (it is
+    expanded away before fusion). Under an outer jit/vmap the stages inline into one program.
+    """
+    g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset)
+    for k in p_plan.textured:
+        g = (_texture_jit if staged else _texture)(scene, k, opts, g)
+    direct = (_shade_direct_jit if staged else _shade_direct)(scene, p_plan, opts, g)
+    return (_shade_rest_jit if staged else _shade_rest)(scene, assets, p_plan, opts, g, direct)
+
+
+_geometry_jit = jax.jit(_geometry, static_argnums=(1, 2, 3))
+_texture_jit = jax.jit(_texture, static_argnums=(1, 2))
+_shade_direct_jit = jax.jit(_shade_direct, static_argnums=(1, 2))
+_shade_rest_jit = jax.jit(_shade_rest, static_argnums=(2, 3))
 
 
 def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
@@ -568,7 +601,13 @@ def render(scene: Scene, **options) -> jax.Array:
     opts = _options(options)
     p = plan(scene, opts)
     assets = _env_assets(scene.environment, p, opts) if p.ibl else None
-    return _render_jit(scene, assets, p, opts)
+    s = 1 if scene.gbuffer is not None else scene.camera.supersample
+    if s == 1:
+        return _render_pass(scene, assets, p, opts, (0.5, 0.5), staged=True)
+    acc = 0.0
+    for k in range(s * s):
+        acc = acc + _render_pass(scene, assets, p, opts, ((k % s + 0.5) / s, (k // s + 0.5) / s), staged=True)
+    return acc / (s * s)
 
 
 # ------------------------------------------------------------------------------------------

@@ -33,7 +33,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cubemap import Cubemap, _mip_count, _positive_int, _subtexel_points, texel_directions, texel_solid_angles
+from ._numerics import is_concrete
+from .cubemap import (
+    Cubemap,
+    _mip_count,
+    _positive_int,
+    _subtexel_points,
+    face_to_dir,
+    texel_directions,
+    texel_solid_angles,
+)
 
 __all__ = [
     "MAPPINGS",
@@ -112,11 +121,12 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
 
     `sampling.hammersley` points through `sampling.sample_ggx_h` (GGX NDF sampling in the sin^2
     form, MATH.md 3.2, 8.3), l = 2 (n.h) h - n; pdf p_l = p_h / (4 v.h) = D/4 (`sampling.pdf_ggx_h`).
-    Evaluated once per (alpha, n, source) in float64.
+    Evaluated once per (alpha, n, source) in float64, eagerly even when `prefilter` is being traced
+    (jit / grad): these are constants of the computation.
     """
     from .sampling import hammersley, pdf_ggx_h, sample_ggx_h
 
-    with jax.enable_x64(True):
+    with jax.ensure_compile_time_eval(), jax.enable_x64(True):
         h = np.asarray(sample_ggx_h(hammersley(n, jnp.float64), alpha))
         cos_h = h[:, 2]
         pdf = np.asarray(pdf_ggx_h(jnp.asarray(cos_h), alpha)) / (4.0 * cos_h)
@@ -148,7 +158,15 @@ FIS_BATCH = 256
 @functools.partial(jax.jit, static_argnames=("sizes",))
 def _fis_chunk(flat, R, local, w, lod, *, sizes):
     """Unnormalised sum_k w_k L(l_k) at unit directions R (chunk, 3) for one batch of fixed
-    local-frame samples (k, 3) with weights (k,) and source LODs (k,)."""
+    local-frame samples (k, 3) with weights (k,) and source LODs (k,).
+
+    Rematerialised under differentiation (`jax.checkpoint`): the backward pass recomputes the
+    (chunk, k) lookups instead of storing them for every chunk, so differentiating a prefilter
+    wrt the environment keeps the memory of one chunk."""
+    return jax.checkpoint(functools.partial(_fis_chunk_body, sizes=sizes))(flat, R, local, w, lod)
+
+
+def _fis_chunk_body(flat, R, local, w, lod, *, sizes):
     from .cubemap import _Pyramid
 
     from .sampling import tangent_frame
@@ -214,6 +232,9 @@ def split_bright(level0: np.ndarray, max_texels: int, min_ratio: float = 4.0):
     times the environment's mean radiance) are clamped to the luminance threshold tau (colour kept);
     the excess over tau is the sparse "bright" part, convolved exactly. The residual's dynamic
     range is then bounded by tau, which is what importance sampling handles well.
+
+    NumPy (concrete values only); `prefilter` uses the traceable fixed-size `_split_bright_fixed`,
+    which selects the same texels.
     """
     L = np.asarray(level0, np.float64)
     S, C = L.shape[1], L.shape[-1]
@@ -232,7 +253,85 @@ def split_bright(level0: np.ndarray, max_texels: int, min_ratio: float = 4.0):
     return resid, idx, bright
 
 
+_LUMA = (0.2126, 0.7152, 0.0722)
+
+
+@functools.partial(jax.jit, static_argnames=("max_texels", "min_ratio"))
+def _split_bright_fixed(level0, max_texels: int, min_ratio: float = 4.0):
+    """`split_bright` with a fixed-size selection, traceable (jit, grad) in the texel values.
+
+    level0 (6, S, S, C), 0 < max_texels < 6 S^2. Returns (residual (6,S,S,C) in level0's dtype,
+    candidate flat indices (k,) int32, excess radiance (k, C), selected (k,) bool), k = max_texels:
+    `lax.top_k` of the luminance with k + 1 entries gives the (k+1)-th largest value (the threshold
+    candidate) and the k brightest texels, in decreasing luminance; the selected ones (luminance >
+    tau = max(min_ratio x mean, (k+1)-th largest), and mean > 0) are a prefix of them. Unselected
+    candidates keep scale 1 and zero excess, so the set has a fixed size with zero weights.
+
+    Computed in the widest float available (float64 when x64 is enabled, as `split_bright` does),
+    the residual cast back to level0's dtype.
+
+    Derivatives: only the selection (which texels, the top_k indices) is piecewise constant; tau
+    (through the mean and through the (k+1)-th value of top_k) and the clamp scale tau/lum carry
+    their gradients (no stop_gradient), because the computed prefilter, FIS(residual) +
+    exact(excess), depends on tau through both terms and FIS != exact: dropping those terms would
+    not be the derivative of the function computed. That function is continuous across selection
+    changes (a texel entering the set at lum = tau has zero excess), so the gradient is that of the
+    smooth piece the input lies on.
+    """
+    hp = jnp.promote_types(level0.dtype, jnp.result_type(float))
+    S, C = level0.shape[1], level0.shape[-1]
+    L = level0.astype(hp).reshape(-1, C)
+    lum = L @ jnp.asarray(_LUMA, hp) if C == 3 else L.mean(-1)
+    om = jnp.asarray(texel_solid_angles(S).reshape(-1), hp)
+    mean = jnp.sum(lum * om) / (4.0 * math.pi)
+    vals, idx = jax.lax.top_k(lum, max_texels + 1)
+    tau = jnp.maximum(min_ratio * mean, vals[max_texels])
+    vals, idx = vals[:max_texels], idx[:max_texels]
+    sel = (vals > tau) & (mean > 0)
+    # Double where: tau / lum only on the selected lanes (lum > tau >= 0 there).
+    scale = jnp.where(sel, tau / jnp.where(sel, vals, 1.0), 1.0)
+    Lc = L[idx]
+    rc = Lc * scale[:, None]
+    excess = jnp.where(sel[:, None], Lc - rc, 0.0)
+    resid = L.at[idx].set(rc)  # unselected candidates: rc = Lc * 1 exactly
+    return resid.reshape(level0.shape).astype(level0.dtype), idx, excess, sel
+
+
+def _subtexel_points_at(idx, S: int, q: int):
+    """Directions (k, q*q, 3) and solid angles (k, q*q) of the q x q sub-texels of the texels with
+    (possibly traced) flat indices idx (k,) into (6, S, S): the points and weights of
+    `cubemap._subtexel_points` (texel solid angle x normalised sub-texel weight), computed in jnp in
+    the widest float available."""
+    hp = jnp.result_type(float)
+    o = (np.arange(q) + 0.5) / q
+    o_t = jnp.asarray(np.repeat(o, q), hp)  # sub-texel a*q + b: t offset o[a], s offset o[b]
+    o_s = jnp.asarray(np.tile(o, q), hp)
+    idx = jnp.asarray(idx, jnp.int32)
+    face = idx // (S * S)
+    rem = idx % (S * S)
+    i, j = rem // S, rem % S
+    s = (j[:, None].astype(hp) + o_s[None, :]) / S
+    t = (i[:, None].astype(hp) + o_t[None, :]) / S
+    d = face_to_dir(jnp.broadcast_to(face[:, None], s.shape), s, t, xp=jnp).astype(hp)
+    r2 = jnp.sum(d * d, -1)
+    w = r2**-1.5
+    w = w / jnp.sum(w, -1, keepdims=True)
+    d = d / jnp.sqrt(r2)[..., None]
+    om = jnp.asarray(texel_solid_angles(S)[0].reshape(-1), hp)[rem]  # the six faces are identical
+    return d, om[:, None] * w
+
+
+@functools.partial(jax.jit, static_argnames=("S", "q", "dtype"))
+def _bright_sources(idx, bright, norm, *, S, q, dtype):
+    """Sub-texel directions (k q^2, 3) and weights B Omega / W(alpha) (k q^2, C) of the bright texels
+    idx (k,) with excess radiance bright (k, C), both possibly traced; norm = W(alpha)."""
+    sub, om = _subtexel_points_at(idx, S, q)  # (k, q*q, 3), (k, q*q)
+    Bw = (bright[:, None, :].astype(om.dtype) * om[..., None]).reshape(-1, bright.shape[-1]) / norm
+    return sub.reshape(-1, 3).astype(dtype), Bw.astype(dtype)
+
+
 @jax.jit
+@jax.checkpoint  # rematerialised under differentiation: memory of one chunk (see _fis_chunk)
 def _bright_chunk(R, sub, Bw, a2):
     """sum_j B_j K(R.w_j) Omega_j for R (chunk, 3), sub-texel directions (n, 3), B Omega (n, C).
 
@@ -245,16 +344,15 @@ def _bright_chunk(R, sub, Bw, a2):
 
 
 def _bright_level(dirs, idx, bright, S0, alpha, chunk, dtype):
-    """Exact (sub-texel) convolution of the sparse bright part for output directions (N, 3)."""
+    """Exact (sub-texel) convolution of the sparse bright part for output directions (N, 3).
+
+    idx (k,) flat texel indices and bright (k, C) excess radiance may be traced (zero rows are
+    unselected candidates)."""
     q = _reference_supersample(alpha, S0)
-    sub, w = _subtexel_points(S0, q)
-    sub = sub.reshape(-1, q * q, 3)[idx].reshape(-1, 3)
-    om = (texel_solid_angles(S0).reshape(-1)[idx][:, None] * w.reshape(-1, q * q)[idx % (S0 * S0)])  # (k, q*q)
-    Bw = (bright[:, None, :] * om[..., None]).reshape(-1, bright.shape[-1]) / lobe_normalizer(alpha)
+    sub_j, Bw_j = _bright_sources(idx, bright, lobe_normalizer(alpha), S=S0, q=q, dtype=np.dtype(dtype))
     N = dirs.shape[0]
     pad = (-N) % chunk
     d = np.concatenate([dirs, np.tile(dirs[:1], (pad, 1))]) if pad else dirs
-    sub_j, Bw_j = jnp.asarray(sub, dtype), jnp.asarray(Bw, dtype)
     a2 = jnp.asarray(alpha * alpha, dtype)
     out = [_bright_chunk(jnp.asarray(d[i : i + chunk], dtype), sub_j, Bw_j, a2) for i in range(0, len(d), chunk)]
     return jnp.concatenate(out)[:N]
@@ -337,6 +435,7 @@ def prefilter(
     size: int | None = None,
     *,
     num_levels: int | None = None,
+    max_level: int | None = None,
     mapping: str = "linear",
     method: str = "fis",
     samples=None,
@@ -351,11 +450,21 @@ def prefilter(
     size: face size S of level 0 of the result (default env.face_size); env.face_size / S must be
         a power of two (level 0 is then the env's area-correct pyramid level at that size).
     num_levels: M (default: the full chain down to 1 x 1).
+    max_level: compute only levels 0..max_level of the M-level chain (default M - 1: all). The
+        mapping still refers to M levels (metadata "mapping_levels"), so a scene whose roughness
+        never exceeds r needs only levels up to ceil(lod(r)); lookups clamp to the last level.
     mapping: "linear" (r_m = m/(M-1)) or "quadratic" (Filament); recorded in the result's info.
     method: "fis" or "reference" (see module docstring).
     samples: FIS samples: an int n gives n on the large levels and more on the small, rough ones
         (`default_sample_counts`); a sequence of M ints sets every level (level 0 ignores it).
+    exact_texels: at most this many brightest texels (those above max(4 x mean luminance, the
+        (k+1)-th largest)) are clamped in the sampled map and their excess convolved exactly.
     progress: optional callable(done_levels, total_levels) for progress reporting.
+
+    Method "fis" is traceable in env's texel values (jax.jit, jax.grad / jax.vjp wrt env.levels[0]):
+    the bright texels are a fixed-size top-k set with zero weights for the unselected ones (see
+    `_split_bright_fixed`); traced, the metadata "exact_texels" reads "<=k" instead of the count.
+    Options (size, num_levels, samples, ...) are static Python values.
     """
     if method not in PREFILTER_METHODS:
         raise ValueError(f"unknown prefilter method {method!r}; choose one of {PREFILTER_METHODS}")
@@ -370,6 +479,9 @@ def prefilter(
         )
     most = _mip_count(S)
     M = most if num_levels is None else _positive_int(num_levels, "num_levels")
+    last = M - 1 if max_level is None else int(max_level)
+    if not 0 <= last <= M - 1:
+        raise ValueError(f"max_level must be in [0, {M - 1}] for a {M}-level chain, got {max_level}")
     if M > most:
         raise ValueError(f"a {S}^2 prefiltered cube supports at most {most} levels; asked for {M}")
     if samples is None:
@@ -385,16 +497,29 @@ def prefilter(
     full = env.level_cube(0).with_mips()  # area-correct pyramid of the source
     rough = level_roughness(M, mapping)
     levels = [full.levels[int(round(math.log2(ratio)))]]  # r = 0: the source at the output size
-    idx = np.zeros(0, np.int64)
+    idx = None  # candidate bright texels (None: none), their excess radiance `bright`
+    n_exact = "0"
     if method == "fis":
         exact_texels = int(exact_texels)
         if exact_texels < 0:
             raise ValueError(f"exact_texels must be >= 0, got {exact_texels}")
-        resid, idx, bright = split_bright(np.asarray(env.levels[0]), exact_texels)
-        src = Cubemap((jnp.asarray(resid, env.dtype),)).with_mips() if len(idx) else full
+        src = full
+        level0 = env.levels[0]
+        if 0 < exact_texels < 6 * S0 * S0:
+            resid, idx, bright, sel = _split_bright_fixed(level0, exact_texels)
+            if is_concrete(sel):
+                # Concrete values: convolve only the selected texels (a prefix of the candidates,
+                # which come in decreasing luminance), as many as there are.
+                n = int(np.count_nonzero(np.asarray(sel)))
+                n_exact = str(n)
+                idx, bright = (idx[:n], bright[:n]) if n else (None, None)
+            else:
+                n_exact = f"<={exact_texels}"  # traced: the count is not known here
+            if idx is not None:
+                src = Cubemap((resid,)).with_mips()
         flat = _pyramid_flat(src.levels)
         sizes = tuple(int(lv.shape[1]) for lv in src.levels)
-    for m in range(1, M):
+    for m in range(1, last + 1):
         Sm = max(1, S >> m)
         dirs = texel_directions(Sm).reshape(-1, 3)
         alpha = float(rough[m]) ** 2
@@ -405,20 +530,21 @@ def prefilter(
             local, w, lod = _fis_samples(alpha, per_level[m], S0, src.num_levels, float(lod_bias))
             dt = env.dtype
             lv = _fis_level(flat, sizes, dirs, local, w, lod, _positive_int(chunk, "chunk"), dt)
-            if len(idx):
+            if idx is not None:
                 lv = lv + _bright_level(dirs, idx, bright, S0, alpha, 64, dt)
             lv = lv.reshape(6, Sm, Sm, -1)
         levels.append(lv)
         if progress is not None:
-            progress(m, M - 1)
+            progress(m, last)
     info = {
         "quantity": "LD(R, r_m) = int L D (R.l)+ dl / int D (R.l)+ dl, n = v = R (Karis split sum)",
         "roughness_mapping": mapping,
+        "mapping_levels": str(M),
         "level_roughness": ",".join(f"{x:.9g}" for x in rough),
         "prefilter_method": method,
     }
     if method == "fis":
         info["fis_samples"] = ",".join(str(n) for n in per_level)
         info["fis_lod_bias"] = f"{float(lod_bias):g}"
-        info["exact_texels"] = str(len(idx))
+        info["exact_texels"] = n_exact
     return Cubemap(levels, info)

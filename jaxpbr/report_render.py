@@ -1,0 +1,406 @@
+"""`jaxpbr report render`: the error of split-sum shading against the float64 reference render.
+
+For a grid of materials (roughness x metallic, one base colour) one sphere per material is shaded
+from an orthographic G-buffer of P x P pixels (n = (x, y, sqrt(1 - x^2 - y^2)) on the unit disc,
+v = +Z, position = n) under an environment plus a point and a directional light:
+
+* split sum: `shade_direct + shade_ibl` in float32 with the default precomputes
+  (`irradiance(env, 32)`, `prefilter(env)`, `brdf_lut(128)`), jitted, timed after a warm-up call;
+* reference: `shade_direct` in float64 + `reference_render.reference_ibl` (the full reflectance
+  integral over every environment texel, float64).
+
+Per material: mean relative error sum|diff| / sum ref over the disc (all channels), the largest
+per-pixel relative error (per pixel sum_c |diff| / sum_c ref), the same two for the IBL term alone,
+and the run times. Outputs: a Markdown table, a JSON of the numbers and a PNG of the per-pixel
+relative-error images (the PNG needs matplotlib: `pip install 'jaxpbr[report]'`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "add_report_render_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
+
+DEFAULT_ROUGHNESS = (0.05, 0.15, 0.3, 0.5, 0.75, 1.0)
+DEFAULT_METALLIC = (0.0, 1.0)
+DEFAULT_BASE_COLOR = (0.9, 0.6, 0.3)
+
+
+def sphere_gbuffer(pixels: int):
+    """Orthographic unit sphere seen from +Z: (mask (P, P) bool, n (N, 3), v (N, 3), p (N, 3)) float64,
+    N the pixels whose centre lies inside the unit disc; row 0 is the top (+Y)."""
+    c = (np.arange(pixels) + 0.5) / pixels * 2.0 - 1.0
+    x, y = np.meshgrid(c, -c)
+    mask = x * x + y * y < 1.0
+    n = np.stack([x, y, np.sqrt(np.clip(1.0 - x * x - y * y, 0.0, 1.0))], -1)[mask]
+    v = np.broadcast_to(np.array([0.0, 0.0, 1.0]), n.shape).copy()
+    return mask, n, v, n.copy()
+
+
+def default_lights():
+    """A warm point light up-right in front of the sphere and a cool directional light from the
+    upper left: (list of lights, description)."""
+    import jaxpbr as jp
+
+    lights = [
+        jp.PointLight(position=(2.0, 2.0, 3.0), color=(1.0, 0.9, 0.8), intensity=20.0),
+        jp.DirectionalLight(direction=(0.5, -0.6, -0.6), color=(0.8, 0.9, 1.0), intensity=2.0),
+    ]
+    desc = "point light at (2, 2, 3), colour (1, 0.9, 0.8), 20 cd; directional light travelling (0.5, -0.6, -0.6), colour (0.8, 0.9, 1), 2 lux"
+    return lights, desc
+
+
+def _lights_as(lights, dtype):
+    import jax
+    import jax.numpy as jnp
+
+    return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, lights)
+
+
+def _errors(test, ref):
+    """(mean relative error over all pixels and channels, largest per-pixel relative error,
+    per-pixel relative error (N,))."""
+    diff = np.abs(test - ref).sum(-1)
+    den = np.abs(ref).sum(-1)
+    per_pixel = diff / np.maximum(den, 1e-300)
+    return float(diff.sum() / max(den.sum(), 1e-300)), float(per_pixel.max(initial=0.0)), per_pixel
+
+
+def _best_time(fn, repeats: int):
+    best = float("inf")
+    out = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return out, best
+
+
+def render_report(
+    env=None,
+    *,
+    roughness=DEFAULT_ROUGHNESS,
+    metallic=DEFAULT_METALLIC,
+    base_color=DEFAULT_BASE_COLOR,
+    pixels: int = 48,
+    face_size: int = 64,
+    env_name: str | None = None,
+    lights=None,
+    irradiance_size: int = 32,
+    prefilter_size: int | None = None,
+    lut_size: int = 128,
+    repeats: int = 5,
+    log=print,
+) -> dict:
+    """Render the material grid both ways and measure the split-sum error.
+
+    env: None (the procedural sky + 3000-radiance sun of `jaxpbr.envs` at `face_size`), a
+        `Cubemap`, or a path / "procedural:sky" (read with `cli_ibl.load_environment`).
+    roughness, metallic: the grid (every roughness >= `min_reference_roughness(face size)`).
+    lights: punctual lights (default `default_lights()`).
+    Returns a dict: "config", "precompute_s", "materials" (one dict of numbers per material),
+    "images" (per-material per-pixel relative error (P, P), NaN off the disc; not JSON).
+    """
+    import jax
+    import jax.numpy as jnp
+
+    import jaxpbr as jp
+
+    from .cubemap import Cubemap
+    from .reference_render import min_reference_roughness, reference_ibl_from_terms, reference_ibl_terms
+
+    if isinstance(env, (str, Path)):
+        from .cli_ibl import load_environment
+
+        env_name = env_name or str(env)
+        env = load_environment([str(env)], face_size)
+    elif env is None:
+        env_name = env_name or "procedural sky+sun"
+        env = jp.envs.sky_with_sun_cubemap(face_size)
+    elif not isinstance(env, Cubemap):
+        raise TypeError(f"env must be None, a path or a Cubemap, got {type(env).__name__}")
+    env_name = env_name or "environment"
+    env = Cubemap((jnp.asarray(env.levels[0], jnp.float32),), env.metadata)
+    roughness = [float(r) for r in roughness]
+    metallic = [float(m) for m in metallic]
+    if not roughness or not metallic:
+        raise ValueError("roughness and metallic need at least one value each")
+    for name, vals in (("roughness", roughness), ("metallic", metallic)):
+        if any(not 0.0 <= x <= 1.0 for x in vals):
+            raise ValueError(f"{name} values must lie in [0, 1], got {vals}")
+    r_floor = min_reference_roughness(env.face_size)
+    if min(roughness) < r_floor:
+        raise ValueError(
+            f"the reference resolves roughness >= {r_floor:.3f} on a {env.face_size}^2-per-face environment; "
+            f"got {min(roughness)} (use a larger --face-size or a larger roughness)"
+        )
+    if int(pixels) < 1:
+        raise ValueError(f"pixels must be a positive integer, got {pixels}")
+    if lights is None:
+        lights, lights_desc = default_lights()
+    else:
+        lights_desc = f"{len(lights) if isinstance(lights, (list, tuple)) else 1} user light(s)"
+
+    mask, n, v, p = sphere_gbuffer(int(pixels))
+    log(f"render report: {len(roughness)} x {len(metallic)} materials, {pixels}^2 px ({len(n)} on the sphere), {env_name} at {env.face_size}^2")
+
+    # ---- precompute (once), float32 as users run it
+    t0 = time.perf_counter()
+    lut = jp.brdf_lut(lut_size)
+    irr = jp.irradiance(env, irradiance_size)
+    pre = jp.prefilter(env, prefilter_size)
+    jax.block_until_ready((lut, irr.levels, pre.levels))
+    precompute_s = time.perf_counter() - t0
+    log(f"  precompute (LUT {lut_size}^2, irradiance {irradiance_size}^2, prefilter {pre.face_size}^2 x {pre.num_levels} mips): {precompute_s:.2f} s")
+
+    f32 = jnp.float32
+    n32, v32, p32 = (jnp.asarray(a, f32) for a in (n, v, p))
+    lights32 = _lights_as(lights, f32)
+
+    @jax.jit
+    def split_sum(p_, n_, v_, m_, irr_, pre_, lut_, lights_):
+        ibl = jp.shade_ibl(n_, v_, m_, irr_, pre_, lut_)
+        return jp.shade_direct(p_, n_, v_, m_, lights_) + ibl, ibl
+
+    def material(r, m, dtype):
+        return jp.Material(base_color=jnp.asarray(base_color, dtype), metallic=jnp.asarray(m, dtype), roughness=jnp.asarray(r, dtype))
+
+    with jax.enable_x64(True):
+        lights64 = _lights_as(lights, jnp.float64)
+        n64, v64, p64 = (jnp.asarray(a, jnp.float64) for a in (n, v, p))
+        direct64 = jax.jit(lambda m_: jp.shade_direct(p64, n64, v64, m_, lights64))
+
+    rows, images = [], {}
+    for r in roughness:
+        t0 = time.perf_counter()
+        terms = reference_ibl_terms(n, v, r, env)
+        terms_s = time.perf_counter() - t0
+        for m in metallic:
+            m32 = material(r, m, f32)
+            jax.block_until_ready(split_sum(p32, n32, v32, m32, irr, pre, lut, lights32))  # warm-up (compile)
+            (tot, ibl), ss_s = _best_time(lambda: jax.block_until_ready(split_sum(p32, n32, v32, m32, irr, pre, lut, lights32)), repeats)
+            tot, ibl = np.asarray(tot, np.float64), np.asarray(ibl, np.float64)
+            t0 = time.perf_counter()
+            with jax.enable_x64(True):
+                m64 = material(r, m, jnp.float64)
+                ref_direct = np.asarray(direct64(m64))
+            ref_ibl = reference_ibl_from_terms(terms, m64)
+            ref = ref_direct + ref_ibl
+            ref_s = terms_s + time.perf_counter() - t0
+            mean, mx, per_pixel = _errors(tot, ref)
+            ibl_mean, ibl_max, _ = _errors(ibl, ref_ibl)
+            img = np.full(mask.shape, np.nan)
+            img[mask] = per_pixel
+            images[(r, m)] = img
+            worst = int(np.argmax(per_pixel))
+            rows.append(
+                dict(
+                    roughness=r,
+                    metallic=m,
+                    mean_rel_error=mean,
+                    max_pixel_rel_error=mx,
+                    worst_pixel_n_dot_v=float(n[worst, 2]),
+                    ibl_mean_rel_error=ibl_mean,
+                    ibl_max_pixel_rel_error=ibl_max,
+                    ibl_share_of_radiance=float(np.abs(ref_ibl).sum() / np.abs(ref).sum()),
+                    split_sum_s=ss_s,
+                    reference_s=ref_s,
+                    reference_ibl_shared_s=terms_s,
+                )
+            )
+            log(
+                f"  r={r:g} metallic={m:g}: mean {100 * mean:.2f} %, max pixel {100 * mx:.1f} %, IBL mean {100 * ibl_mean:.2f} %; "
+                f"split sum {1e3 * ss_s:.2f} ms, reference {ref_s:.1f} s"
+            )
+    config = dict(
+        environment=env_name,
+        environment_face_size=env.face_size,
+        pixels=int(pixels),
+        pixels_on_sphere=int(len(n)),
+        base_color=[float(c) for c in base_color],
+        roughness=roughness,
+        metallic=metallic,
+        lights=lights_desc,
+        split_sum=f"float32 shade_direct + shade_ibl (gltf), irradiance {irradiance_size}^2 exact, prefilter {pre.face_size}^2 x {pre.num_levels} mips (FIS defaults), BRDF LUT {lut_size}^2",
+        reference="float64 shade_direct + reference_ibl (every texel of level 0, tiered sub-texel supersampling)",
+        geometry="orthographic unit sphere, v = +Z, n = (x, y, sqrt(1 - x^2 - y^2)), position = n",
+        timing=f"split sum: best of {repeats} jitted calls after a warm-up; reference: one call incl. compilation (its three environment sums are shared by the metallic values of one roughness)",
+        device=str(jax.devices()[0].platform),
+    )
+    return dict(config=config, precompute_s=precompute_s, materials=rows, images=images, mask=mask)
+
+
+# ------------------------------------------------------------------------------------------
+# outputs
+# ------------------------------------------------------------------------------------------
+
+
+def markdown(result: dict) -> str:
+    """The result as a Markdown section (config line + table)."""
+    c = result["config"]
+    out = [
+        "# jaxpbr split-sum error vs float64 reference render",
+        "",
+        f"Environment: {c['environment']} ({c['environment_face_size']}^2 per face); sphere {c['pixels']}^2 px "
+        f"({c['pixels_on_sphere']} on the disc); base colour {tuple(c['base_color'])}; lights: {c['lights']}.",
+        f"Split sum: {c['split_sum']}. Reference: {c['reference']}.",
+        f"Precompute (once): {result['precompute_s']:.2f} s. Timing: {c['timing']}; device {c['device']}.",
+        "",
+        "| roughness | metallic | mean rel. error | max pixel rel. error | IBL mean rel. error | IBL max pixel | IBL share | split sum (ms) | reference (s) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in result["materials"]:
+        out.append(
+            f"| {r['roughness']:g} | {r['metallic']:g} | {100 * r['mean_rel_error']:.2f} % | {100 * r['max_pixel_rel_error']:.1f} % | "
+            f"{100 * r['ibl_mean_rel_error']:.2f} % | {100 * r['ibl_max_pixel_rel_error']:.1f} % | {100 * r['ibl_share_of_radiance']:.0f} % | "
+            f"{1e3 * r['split_sum_s']:.2f} | {r['reference_s']:.2f} |"
+        )
+    return "\n".join(out) + "\n"
+
+
+def to_json(result: dict) -> str:
+    """The numbers of the result (no images) as JSON text."""
+    data = {k: v for k, v in result.items() if k not in ("images", "mask")}
+    return json.dumps(data, indent=2) + "\n"
+
+
+def plot(result: dict, path) -> bool:
+    """Per-pixel relative-error images, one per material (rows: metallic, columns: roughness), on
+    one logarithmic colour scale with a colour bar -> PNG at `path`. False (nothing written)
+    without matplotlib."""
+    from .report import have_matplotlib
+
+    if not have_matplotlib():
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import LogNorm
+
+    rough = result["config"]["roughness"]
+    metal = result["config"]["metallic"]
+    imgs = result["images"]
+    vals = np.concatenate([im[np.isfinite(im)] for im in imgs.values()])
+    hi = max(float(np.max(vals, initial=1e-3)), 1e-3)
+    norm = LogNorm(vmin=max(hi * 1e-4, 1e-5), vmax=hi)
+    fig, axes = plt.subplots(len(metal), len(rough), figsize=(2.0 * len(rough) + 1.2, 2.1 * len(metal) + 0.6), squeeze=False)
+    rows = {(r["roughness"], r["metallic"]): r for r in result["materials"]}
+    im = None
+    for a, m in enumerate(metal):
+        for b, r in enumerate(rough):
+            ax = axes[a][b]
+            img = np.clip(imgs[(r, m)], norm.vmin, None)
+            im = ax.imshow(img, norm=norm, cmap="magma", interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            row = rows[(r, m)]
+            ax.set_title(f"r={r:g} m={m:g}\nmean {100 * row['mean_rel_error']:.2f} %", fontsize=8)
+    fig.colorbar(im, ax=axes, shrink=0.8, label="per-pixel relative error |split sum - reference| / reference")
+    fig.suptitle(f"split-sum error, {result['config']['environment']}", fontsize=10)
+    from .image import _atomic_write
+
+    _atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    plt.close(fig)
+    return True
+
+
+def write_report(result: dict, output_dir, *, prefix: str = "render_report", log=print) -> list[Path]:
+    """Write <prefix>.md, <prefix>.json and (with matplotlib) <prefix>.png into output_dir."""
+    from .image import _atomic_write
+
+    d = Path(output_dir)
+    if not d.is_dir():
+        raise FileNotFoundError(f"output directory {str(d)!r} does not exist; create it first")
+    written = []
+    for suffix, text in ((".md", markdown(result)), (".json", to_json(result))):
+        path = d / f"{prefix}{suffix}"
+        _atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
+        written.append(path)
+    png = d / f"{prefix}.png"
+    if plot(result, png):
+        written.append(png)
+    else:
+        log("matplotlib is not installed: wrote the table and JSON only, no figure (pip install 'jaxpbr[report]')")
+    return written
+
+
+# ------------------------------------------------------------------------------------------
+# command line
+# ------------------------------------------------------------------------------------------
+
+
+def _float_list(text: str) -> list[float]:
+    import argparse
+
+    try:
+        vals = [float(x) for x in text.replace(",", " ").split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not vals or any(not (math.isfinite(x) and 0.0 <= x <= 1.0) for x in vals):
+        raise argparse.ArgumentTypeError(f"expected numbers in [0, 1], got {text!r}")
+    return vals
+
+
+def add_report_render_command(report_subparsers, positive_int=None):
+    """Register `render` under the `jaxpbr report` sub-command group (the `add_subparsers()`
+    object of `report`). Returns the new sub-parser."""
+    if positive_int is None:
+        from .cli import _positive_int as positive_int
+    from .cli_ibl import ENV_HELP
+
+    p = report_subparsers.add_parser(
+        "render",
+        help="split-sum shading error vs the float64 reference render (Markdown table + JSON + PNG)",
+        description="Shade one sphere per material (roughness x metallic) with the split sum and with the float64 "
+        "reference (full reflectance integral over every environment texel), under an environment and two punctual "
+        "lights; write render_report.md, render_report.json and render_report.png into --output-dir.",
+    )
+    p.add_argument("--env", default="procedural:sky", help=f"{ENV_HELP} (default: %(default)s)")
+    p.add_argument("--output-dir", default=".", help="directory for render_report.md/.json/.png (default: current)")
+    p.add_argument("--face-size", type=positive_int, default=64, help="environment face size (default: %(default)s; the reference's roughness floor halves in alpha per doubling, its cost grows 4x)")
+    p.add_argument("--pixels", type=positive_int, default=48, help="sphere image size P x P (default: %(default)s)")
+    p.add_argument("--roughness", type=_float_list, default=list(DEFAULT_ROUGHNESS), help="comma-separated roughness values (default: %(default)s)")
+    p.add_argument("--metallic", type=_float_list, default=list(DEFAULT_METALLIC), help="comma-separated metallic values (default: %(default)s)")
+    p.add_argument("--base-color", type=float, nargs=3, default=list(DEFAULT_BASE_COLOR), metavar=("R", "G", "B"), help="linear base colour (default: %(default)s)")
+    p.add_argument("--irradiance-size", type=positive_int, default=32)
+    p.add_argument("--lut-size", type=positive_int, default=128)
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=cmd_report_render)
+    return p
+
+
+def cmd_report_render(args) -> int:
+    import sys
+
+    from .cli_ibl import load_environment
+    from .errors import InputError
+
+    out_dir = Path(args.output_dir)
+    if not out_dir.is_dir():
+        raise InputError(f"--output-dir {str(out_dir)!r} does not exist; create it first")
+    if any(not 0.0 <= c <= 1.0 for c in args.base_color):
+        raise InputError(f"--base-color must lie in [0, 1], got {args.base_color}")
+    env = load_environment([args.env], args.face_size)
+    name = "procedural sky+sun" if args.env.startswith("procedural:") else Path(args.env).name
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr))
+    result = render_report(
+        env,
+        env_name=name,
+        roughness=args.roughness,
+        metallic=args.metallic,
+        base_color=tuple(args.base_color),
+        pixels=args.pixels,
+        irradiance_size=args.irradiance_size,
+        lut_size=args.lut_size,
+        log=log,
+    )
+    written = write_report(result, out_dir, log=log)
+    print(markdown(result))
+    print("wrote " + ", ".join(str(p) for p in written) + ("" if any(p.suffix == ".png" for p in written) else " (no figure: matplotlib is not installed)"))
+    return 0

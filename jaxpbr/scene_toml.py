@@ -1,0 +1,626 @@
+"""Scene files: a small, explicit TOML format -> `Scene` + render options + display settings.
+
+    sf = load_scene("examples/scenes/spheres.toml")
+    hdr = jaxpbr.render(sf.scene, **sf.options)              # linear HDR (H, W, 3)
+    sf.output  # {"exposure": 0.0, "tonemap": "aces", "encoding": "srgb"}
+
+The format is documented in docs/scene_format.md. Tables: [render] (RenderOptions keywords),
+[output] (exposure / tone map / encoding), [camera], [scene] (background, ambient), [environment],
+[[lights]], [materials.NAME], [[objects]]. Paths are relative to the TOML file's folder. Colours are
+linear [r, g, b] lists or sRGB hex strings "#rrggbb" (decoded to linear with the IEC 61966-2-1
+EOTF). Angles are in degrees and named `*_deg`. 8-bit/16-bit PNG base-colour and emissive textures
+are sRGB-decoded to linear; metallic-roughness, occlusion and normal textures are linear data.
+
+Every problem raises `jaxpbr.errors.InputError` (a ValueError) with one line:
+"<file>: <key path>: <problem>; <fix>", e.g. "scene.toml: objects[2].radius: expected a number, got
+a string ('1')". Key paths index arrays of tables from 0 (objects[0] is the first [[objects]]).
+Loading reads every file it needs and builds every object before returning, so nothing is
+rendered or written when it fails.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import os
+import re
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["SceneFile", "hex_to_linear", "load_scene", "loads_scene"]
+
+# Keys of each table (the documented format; docs/scene_format.md).
+_TOP = ("render", "output", "camera", "scene", "environment", "lights", "materials", "objects")
+_RENDER = (
+    "model",
+    "multiscatter",
+    "irradiance_size",
+    "irradiance_method",
+    "prefilter_size",
+    "prefilter_samples",
+    "lut_size",
+    "mapping",
+    "dtype",
+)
+_OUTPUT = ("exposure", "tonemap", "encoding")
+_CAMERA = ("position", "target", "up", "fov_y_deg", "width", "height", "supersample")
+_SCENE = ("background", "ambient")
+_ENVIRONMENT = ("file", "files", "face_size", "intensity", "rotation_deg", "show_background", "clamp_negative")
+_LIGHTS = {
+    "point": ("type", "position", "color", "intensity", "range"),
+    "directional": ("type", "direction", "color", "intensity"),
+    "spot": ("type", "position", "direction", "color", "intensity", "inner_cone_deg", "outer_cone_deg", "range"),
+}
+_MATERIAL = (
+    "base_color",
+    "metallic",
+    "roughness",
+    "occlusion",
+    "emissive",
+    "emissive_strength",
+    "base_color_texture",
+    "metallic_roughness_texture",
+    "occlusion_texture",
+    "normal_texture",
+    "normal_scale",
+    "emissive_texture",
+)
+_TEXTURES = {
+    # key: (decode sRGB for PNG, minimum channels, what it holds)
+    "base_color_texture": (True, 3, "RGB base colour"),
+    "metallic_roughness_texture": (False, 3, "glTF packing G = roughness, B = metallic"),
+    "occlusion_texture": (False, 1, "R = ambient occlusion"),
+    "normal_texture": (False, 3, "a tangent-space normal map (n + 1)/2"),
+    "emissive_texture": (True, 3, "RGB emission"),
+}
+_OBJECTS = {
+    "sphere": ("type", "center", "radius", "material"),
+    "plane": ("type", "point", "normal", "tangent", "uv_scale", "material"),
+}
+# Keys that live in another table: a targeted hint beats a spelling suggestion.
+_MOVED = {
+    ("render", "exposure"): "[output]",
+    ("render", "tonemap"): "[output]",
+    ("render", "encoding"): "[output]",
+    ("output", "model"): "[render]",
+    ("camera", "background"): "[scene]",
+    ("render", "background"): "[scene]",
+    ("render", "ambient"): "[scene]",
+}
+_RENAMED = {
+    ("environment", "background"): "show_background",
+    ("environment", "rotation"): "rotation_deg",
+    ("camera", "fov"): "fov_y_deg",
+    ("camera", "fov_y"): "fov_y_deg",
+    ("lights", "inner_cone_angle"): "inner_cone_deg",
+    ("lights", "outer_cone_angle"): "outer_cone_deg",
+}
+
+_TOML_TYPES = {
+    bool: "a boolean",
+    int: "an integer",
+    float: "a float",
+    str: "a string",
+    list: "an array",
+    dict: "a table",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneFile:
+    """A loaded scene file.
+
+    scene: the `jaxpbr.Scene`.
+    options: `RenderOptions` keywords given in [render] (only those given; pass as
+        `render(scene, **options)`).
+    output: display settings, resolved with their defaults: {"exposure": EV stops (float),
+        "tonemap": a `jaxpbr.color.TONEMAP_OPERATORS` name, "encoding": a `jaxpbr.color.TRANSFERS`
+        name}. Defaults: exposure 0, and aces + srgb (gltf) or reinhard + gamma2.2 (learnopengl).
+    materials: the named materials of [materials.*] (Material or TexturedMaterial), by name.
+    path: the TOML file (None for `loads_scene`).
+    """
+
+    scene: Any
+    options: dict
+    output: dict
+    materials: dict = dataclasses.field(default_factory=dict)
+    path: Path | None = None
+
+
+def load_scene(path) -> SceneFile:
+    """Read a scene TOML file (see docs/scene_format.md); paths inside it are relative to its folder.
+
+    Raises `InputError` with a one-line message naming the file, the key path and the fix.
+    """
+    p = Path(os.fspath(path))
+    if not p.exists():
+        raise InputError(f"scene file {str(p)!r} does not exist; check the path")
+    if not p.is_file():
+        raise InputError(f"scene file {str(p)!r} is not a file; pass a .toml scene file")
+    try:
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start}); save the file as UTF-8") from e
+    except OSError as e:
+        raise InputError(f"cannot read scene file {str(p)!r}: {e.strerror or e}; check its permissions") from e
+    sf = loads_scene(text, p.parent, name=str(p))
+    return dataclasses.replace(sf, path=p)
+
+
+def loads_scene(text: str, base_dir=".", *, name: str = "<string>") -> SceneFile:
+    """Parse scene TOML `text`; relative paths resolve against `base_dir`; `name` prefixes errors."""
+    return _Loader(name, Path(os.fspath(base_dir))).load(text)
+
+
+def hex_to_linear(s: str) -> tuple[float, float, float]:
+    """sRGB hex colour "#rrggbb" -> linear RGB floats by the IEC 61966-2-1 EOTF:
+    c = v/12.92 for v <= 0.04045, else ((v + 0.055)/1.055)^2.4, with v = code/255."""
+    if not isinstance(s, str) or not re.fullmatch(r"#[0-9a-fA-F]{6}", s):
+        raise ValueError(f'expected an sRGB hex colour "#rrggbb", got {s!r}')
+    out = []
+    for i in (1, 3, 5):
+        v = int(s[i : i + 2], 16) / 255.0
+        out.append(v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4)
+    return tuple(out)
+
+
+# ------------------------------------------------------------------------------------------
+# The loader
+# ------------------------------------------------------------------------------------------
+
+
+def _type_name(x) -> str:
+    for t, n in _TOML_TYPES.items():
+        if type(x) is t:
+            return n
+    return f"a {type(x).__name__}"
+
+
+def _shown(x) -> str:
+    r = repr(x)
+    return r if len(r) <= 40 else r[:37] + "..."
+
+
+def _one_line(e: BaseException) -> str:
+    s = str(e).strip() or type(e).__name__
+    return " ".join(s.split())
+
+
+def _join(path: str, key) -> str:
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else str(key)
+
+
+class _Loader:
+    def __init__(self, name: str, base_dir: Path):
+        self.name = name
+        self.base_dir = base_dir
+        self._images: dict = {}
+
+    # -- errors ---------------------------------------------------------------------------
+
+    def fail(self, path: str, msg: str):
+        raise InputError(f"{self.name}: {path}: {msg}" if path else f"{self.name}: {msg}")
+
+    def build(self, path: str, fn, *args, **kwargs):
+        """Call a constructor; its ValueError/TypeError comes back prefixed with the key path of
+        the field it names (e.g. "Sphere.radius ..." -> "objects[0].radius: Sphere.radius ...")."""
+        try:
+            return fn(*args, **kwargs)
+        except (ValueError, TypeError) as e:
+            msg = _one_line(e)
+            m = re.match(r"(?:\w+\.)?(\w+)\b", msg)
+            key = m.group(1) if m else None
+            if key and key in kwargs:
+                self.fail(_join(path, key), msg)
+            self.fail(path, msg)
+
+    def check_keys(self, table: dict, allowed, path: str, kind: str | None = None):
+        section = re.sub(r"\[\d+\]$", "", path).split(".")[0]
+        for key in table:
+            if key in allowed:
+                continue
+            where = f"a key of {kind}" if kind else f"a key of [{path}]" if path else "a top-level table"
+            hint = ""
+            if (section, key) in _MOVED:
+                hint = f"; {key!r} belongs in {_MOVED[(section, key)]}"
+            elif (section, key) in _RENAMED and _RENAMED[(section, key)] in allowed:
+                hint = f"; did you mean {_RENAMED[(section, key)]!r}?"
+            else:
+                close = difflib.get_close_matches(key, allowed, n=1, cutoff=0.6)
+                if not close:
+                    close = [a for a in allowed if a.startswith(key) or key.startswith(a)][:1]
+                if close:
+                    hint = f"; did you mean {close[0]!r}?"
+                else:
+                    hint = f"; valid keys: {', '.join(allowed)}"
+            if not path:
+                self.fail(key, f"unknown table{hint.replace('valid keys', 'valid tables')}")
+            self.fail(_join(path, key), f"unknown key (not {where}){hint}")
+
+    # -- typed values ---------------------------------------------------------------------
+
+    def table(self, x, path: str, what: str = "a table") -> dict:
+        if not isinstance(x, dict):
+            self.fail(path, f"expected {what}, got {_type_name(x)}")
+        return x
+
+    def number(self, x, path: str, *, lo=None, hi=None, open_lo=False, allow_inf=False) -> float:
+        if isinstance(x, bool) or not isinstance(x, (int, float)):
+            self.fail(path, f"expected a number, got {_type_name(x)} ({_shown(x)})")
+        x = float(x)
+        if math.isnan(x) or (math.isinf(x) and not allow_inf):
+            self.fail(path, f"expected a finite number, got {x}")
+        if lo is not None and (x <= lo if open_lo else x < lo):
+            self.fail(path, f"must be {'>' if open_lo else '>='} {lo:g}, got {x:g}")
+        if hi is not None and x > hi:
+            self.fail(path, f"must be <= {hi:g}, got {x:g}")
+        return x
+
+    def integer(self, x, path: str, lo: int = 1) -> int:
+        if isinstance(x, bool) or not isinstance(x, int):
+            if isinstance(x, float) and x.is_integer():
+                self.fail(path, f"expected an integer, got a float ({x!r}); write {int(x)}")
+            self.fail(path, f"expected an integer, got {_type_name(x)} ({_shown(x)})")
+        if x < lo:
+            self.fail(path, f"must be an integer >= {lo}, got {x}")
+        return x
+
+    def boolean(self, x, path: str) -> bool:
+        if not isinstance(x, bool):
+            self.fail(path, f"expected true or false, got {_type_name(x)} ({_shown(x)})")
+        return x
+
+    def choice(self, x, path: str, choices) -> str:
+        if not isinstance(x, str):
+            self.fail(path, f"expected a string, one of {', '.join(map(repr, choices))}; got {_type_name(x)}")
+        if x not in choices:
+            close = difflib.get_close_matches(x, choices, n=1, cutoff=0.6)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            self.fail(path, f"unknown value {x!r}; choose one of {', '.join(map(repr, choices))}{hint}")
+        return x
+
+    def vector(self, x, path: str, n: int = 3) -> tuple[float, ...]:
+        if not isinstance(x, list):
+            self.fail(path, f"expected an array of {n} numbers, got {_type_name(x)} ({_shown(x)})")
+        if len(x) != n:
+            self.fail(path, f"expected an array of {n} numbers, got {len(x)} ({_shown(x)})")
+        return tuple(self.number(v, _join(path, i)) for i, v in enumerate(x))
+
+    def direction(self, x, path: str) -> tuple[float, ...]:
+        v = self.vector(x, path)
+        if not any(v):
+            self.fail(path, "must be a non-zero vector")
+        return v
+
+    def colour(self, x, path: str, *, hi=None) -> tuple[float, ...]:
+        if isinstance(x, str):
+            try:
+                return hex_to_linear(x)
+            except ValueError:
+                self.fail(path, f'expected [r, g, b] (linear) or an sRGB hex string "#rrggbb", got {x!r}')
+        if not isinstance(x, list) or len(x) != 3:
+            got = f"{len(x)} numbers" if isinstance(x, list) else f"{_type_name(x)} ({_shown(x)})"
+            self.fail(path, f'expected [r, g, b] (linear) or an sRGB hex string "#rrggbb", got {got}')
+        return tuple(self.number(v, _join(path, i), lo=0.0, hi=hi) for i, v in enumerate(x))
+
+    def string(self, x, path: str) -> str:
+        if not isinstance(x, str):
+            self.fail(path, f"expected a string, got {_type_name(x)} ({_shown(x)})")
+        return x
+
+    def file(self, x, path: str) -> Path:
+        s = self.string(x, path)
+        p = Path(os.path.expanduser(s))
+        if not p.is_absolute():
+            p = self.base_dir / p
+        p = p.resolve()
+        if not p.is_file():
+            what = "is not a file" if p.exists() else "does not exist"
+            self.fail(path, f"file {str(p)!r} {what} (paths are relative to the scene file's folder); fix the path")
+        return p
+
+    # -- tables ---------------------------------------------------------------------------
+
+    def load(self, text: str) -> SceneFile:
+        if not isinstance(text, str):
+            raise TypeError(f"loads_scene expects TOML text (str), got {type(text).__name__}")
+        try:
+            doc = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as e:
+            self.fail("", f"invalid TOML: {_one_line(e)}; fix the syntax (format: docs/scene_format.md)")
+        self.check_keys(doc, _TOP, "")
+        options = self.render_options(self.table(doc.get("render", {}), "render"))
+        output = self.output(self.table(doc.get("output", {}), "output"), options.get("model", "gltf"))
+        camera = self.camera(self.table(doc.get("camera", {}), "camera"))
+        world = self.table(doc.get("scene", {}), "scene")
+        self.check_keys(world, _SCENE, "scene")
+        background = self.colour(world.get("background", [0.0, 0.0, 0.0]), "scene.background")
+        ambient = self.number(world.get("ambient", 0.0), "scene.ambient", lo=0.0)
+        lights = self.lights(doc.get("lights", []))
+        materials = self.materials(self.table(doc.get("materials", {}), "materials"))
+        objects = self.objects(doc.get("objects", []), materials)
+        env = None
+        if "environment" in doc:
+            env = self.environment(self.table(doc["environment"], "environment"), options)
+        from .scene import Scene
+
+        scene = self.build(
+            "", Scene, camera=camera, objects=objects, lights=lights, environment=env,
+            background=background, ambient=ambient,
+        )
+        return SceneFile(scene=scene, options=options, output=output, materials=materials)
+
+    def render_options(self, t: dict) -> dict:
+        from .brdf_terms import MODELS
+        from .diffuse import IRRADIANCE_METHODS
+        from .renderer import RenderOptions
+        from .specular import MAPPINGS
+
+        self.check_keys(t, _RENDER, "render")
+        out: dict = {}
+        for key, x in t.items():
+            p = _join("render", key)
+            if key == "model":
+                out[key] = self.choice(x, p, MODELS)
+            elif key == "multiscatter":
+                out[key] = self.boolean(x, p)
+            elif key == "irradiance_method":
+                out[key] = self.choice(x, p, IRRADIANCE_METHODS)
+            elif key == "mapping":
+                out[key] = self.choice(x, p, MAPPINGS)
+            elif key == "dtype":
+                out[key] = self.choice(x, p, ("float32", "float64"))
+            else:  # sizes and sample counts
+                out[key] = self.integer(x, p)
+        self.build("render", RenderOptions, **out)
+        return out
+
+    def output(self, t: dict, model: str) -> dict:
+        from .color import TONEMAP_OPERATORS, TRANSFERS
+
+        self.check_keys(t, _OUTPUT, "output")
+        lo = model == "learnopengl"
+        out = {
+            "exposure": 0.0,
+            "tonemap": "reinhard" if lo else "aces",
+            "encoding": "gamma2.2" if lo else "srgb",
+        }
+        if "exposure" in t:
+            out["exposure"] = self.number(t["exposure"], "output.exposure")
+        if "tonemap" in t:
+            out["tonemap"] = self.choice(t["tonemap"], "output.tonemap", TONEMAP_OPERATORS)
+        if "encoding" in t:
+            out["encoding"] = self.choice(t["encoding"], "output.encoding", TRANSFERS)
+        return out
+
+    def camera(self, t: dict):
+        from .scene import Camera
+
+        self.check_keys(t, _CAMERA, "camera")
+        kw: dict = {}
+        for key in ("position", "target", "up"):
+            if key in t:
+                kw[key] = self.vector(t[key], f"camera.{key}")
+        if "fov_y_deg" in t:
+            kw["fov_y_deg"] = self.number(t["fov_y_deg"], "camera.fov_y_deg", lo=0.0, open_lo=True, hi=179.0)
+        for key in ("width", "height", "supersample"):
+            if key in t:
+                kw[key] = self.integer(t[key], f"camera.{key}")
+        return self.build("camera", Camera, **kw)
+
+    def environment(self, t: dict, options: dict):
+        from .cli_ibl import load_environment
+        from .scene import Environment
+
+        self.check_keys(t, _ENVIRONMENT, "environment")
+        if ("file" in t) == ("files" in t):
+            self.fail(
+                "environment",
+                'give exactly one of file = "panorama.hdr" (or "procedural:sky") and files = [6 face images]'
+                + ("" if "file" not in t else ", not both"),
+            )
+        face_size = None
+        if "face_size" in t:
+            face_size = self.integer(t["face_size"], "environment.face_size")
+        clamp = self.boolean(t.get("clamp_negative", False), "environment.clamp_negative")
+        if "file" in t:
+            src = self.string(t["file"], "environment.file")
+            key = "environment.file"
+            if src.startswith("procedural:"):
+                paths = [src]
+                if src != "procedural:sky":
+                    self.fail(key, f"unknown procedural environment {src!r}; the one available is 'procedural:sky'")
+            else:
+                paths = [str(self.file(src, key))]
+        else:
+            key = "environment.files"
+            files = t["files"]
+            if not isinstance(files, list) or len(files) != 6:
+                got = f"{len(files)} paths" if isinstance(files, list) else _type_name(files)
+                self.fail(key, f"expected an array of 6 face images (+X, -X, +Y, -Y, +Z, -Z), got {got}")
+            paths = [str(self.file(f, _join(key, i))) for i, f in enumerate(files)]
+        intensity = self.number(t.get("intensity", 1.0), "environment.intensity", lo=0.0)
+        rotation = self.number(t.get("rotation_deg", 0.0), "environment.rotation_deg")
+        show = self.boolean(t.get("show_background", True), "environment.show_background")
+        try:
+            cube = load_environment(paths, face_size, clamp_negative=clamp)
+        except InputError as e:
+            msg = _one_line(e).replace("--clamp-negative", "clamp_negative = true").replace("--face-size", "face_size")
+            self.fail(key, msg)
+        except (ValueError, OSError) as e:
+            self.fail(key, f"cannot load the environment: {_one_line(e)}")
+        ps = options.get("prefilter_size")
+        S = cube.face_size
+        if ps is not None and (ps > S or S % ps or (S // ps) & (S // ps - 1)):
+            self.fail(
+                "render.prefilter_size",
+                f"{ps} must be the environment's face size {S} divided by a power of two (e.g. {max(S // 2, 1)})",
+            )
+        return self.build(
+            "environment", Environment, radiance=cube, intensity=intensity,
+            rotation=math.radians(rotation), show_background=show,
+        )
+
+    def lights(self, arr) -> tuple:
+        from .lights import DirectionalLight, PointLight, SpotLight
+
+        if isinstance(arr, dict):
+            self.fail("lights", "expected an array of tables: write each light as [[lights]], not [lights]")
+        if not isinstance(arr, list):
+            self.fail("lights", f"expected an array of tables ([[lights]]), got {_type_name(arr)}")
+        out = []
+        for i, t in enumerate(arr):
+            path = f"lights[{i}]"
+            t = self.table(t, path, "a table ([[lights]])")
+            if "type" not in t:
+                self.fail(path, 'missing key "type"; add type = "point", "directional" or "spot"')
+            kind = self.choice(t["type"], f"{path}.type", tuple(_LIGHTS))
+            self.check_keys(t, _LIGHTS[kind], path, f"a {kind} light")
+            kw: dict = {}
+            if "color" in t:
+                kw["color"] = self.colour(t["color"], f"{path}.color")
+            if "intensity" in t:
+                kw["intensity"] = self.number(t["intensity"], f"{path}.intensity", lo=0.0)
+            if "range" in t:
+                kw["range"] = self.number(t["range"], f"{path}.range", lo=0.0, open_lo=True, allow_inf=True)
+            for key in ("position", "direction"):
+                if key in _LIGHTS[kind]:
+                    if key not in t:
+                        self.fail(path, f"a {kind} light needs {key} = [x, y, z]")
+                    kw[key] = (self.direction if key == "direction" else self.vector)(t[key], f"{path}.{key}")
+            if kind == "point":
+                out.append(self.build(path, PointLight, **kw))
+            elif kind == "directional":
+                out.append(self.build(path, DirectionalLight, **kw))
+            else:
+                inner = self.number(t.get("inner_cone_deg", 0.0), f"{path}.inner_cone_deg", lo=0.0)
+                outer = self.number(t.get("outer_cone_deg", 45.0), f"{path}.outer_cone_deg", lo=0.0, open_lo=True, hi=90.0)
+                if inner >= outer:
+                    self.fail(
+                        f"{path}.inner_cone_deg",
+                        f"must be smaller than outer_cone_deg ({outer:g}), got {inner:g}; both are in degrees",
+                    )
+                kw.update(inner_cone_angle=math.radians(inner), outer_cone_angle=math.radians(outer))
+                out.append(self.build(path, SpotLight, **kw))
+        return tuple(out)
+
+    def materials(self, t: dict) -> dict:
+        what = "a table: define each material as [materials.NAME] with its keys inside"
+        return {name: self.material(self.table(m, f"materials.{name}", what), f"materials.{name}") for name, m in t.items()}
+
+    def material(self, t: dict, path: str):
+        from .material import Material
+        from .scene import TexturedMaterial
+
+        self.check_keys(t, _MATERIAL, path, "a material")
+        kw: dict = {}
+        if "base_color" in t:
+            kw["base_color"] = self.colour(t["base_color"], f"{path}.base_color", hi=1.0)
+        for key in ("metallic", "roughness", "occlusion"):
+            if key in t:
+                kw[key] = self.number(t[key], f"{path}.{key}", lo=0.0, hi=1.0)
+        strength = self.number(t.get("emissive_strength", 1.0), f"{path}.emissive_strength", lo=0.0)
+        if "emissive" in t:
+            e = self.colour(t["emissive"], f"{path}.emissive")
+            kw["emissive"] = tuple(c * strength for c in e)
+        elif "emissive_texture" in t:
+            kw["emissive"] = (strength,) * 3  # a texture alone emits its own colour (factor 1)
+        factors = self.build(path, Material, **kw)
+        tex = {key: self.texture(t[key], f"{path}.{key}", key) for key in _TEXTURES if key in t}
+        if "normal_scale" in t:
+            if "normal_texture" not in t:
+                self.fail(f"{path}.normal_scale", "has no effect without normal_texture; add one or remove it")
+            tex["normal_scale"] = self.number(t["normal_scale"], f"{path}.normal_scale")
+        if not tex:
+            return factors
+        return self.build(path, TexturedMaterial, factors=factors, **tex)
+
+    def texture(self, x, path: str, key: str):
+        from . import image
+        from .color import srgb_decode
+
+        srgb, min_c, holds = _TEXTURES[key]
+        p = self.file(x, path)
+        ext = p.suffix.lower()
+        if ext not in image.SUPPORTED_EXTENSIONS:
+            self.fail(path, f"{str(p)!r} has an unsupported extension; use one of {', '.join(image.SUPPORTED_EXTENSIONS)}")
+        decode = srgb and ext == ".png"
+        cache_key = (p, decode, key == "base_color_texture" or key == "emissive_texture")
+        if cache_key in self._images:
+            return self._images[cache_key]
+        try:
+            img = np.asarray(image.read(p), np.float32)
+        except Exception as e:  # noqa: BLE001 -- corrupt / unreadable: any reader error becomes one line
+            self.fail(path, f"cannot read {str(p)!r}: {_one_line(e)}")
+        if img.ndim == 2:
+            img = img[..., None]
+        C = img.shape[-1]
+        if min_c == 3 and srgb:
+            img = img[..., :3] if C >= 3 else np.repeat(img[..., :1], 3, axis=-1)  # drop alpha / grey -> RGB
+        elif C < min_c:
+            self.fail(path, f"{str(p)!r} has {C} channel(s); it must hold {holds} in an RGB image")
+        if not np.all(np.isfinite(img)):
+            self.fail(path, f"{str(p)!r} contains NaN or Inf; fix the image")
+        if decode:
+            img = np.asarray(srgb_decode(img), np.float32)
+        self._images[cache_key] = img
+        return img
+
+    def objects(self, arr, materials: dict) -> tuple:
+        from .scene import Plane, Sphere
+
+        if isinstance(arr, dict):
+            self.fail("objects", "expected an array of tables: write each object as [[objects]], not [objects]")
+        if not isinstance(arr, list):
+            self.fail("objects", f"expected an array of tables ([[objects]]), got {_type_name(arr)}")
+        if not arr:
+            self.fail("objects", 'the scene has no objects; add at least one [[objects]] with type = "sphere" or "plane"')
+        out = []
+        for i, t in enumerate(arr):
+            path = f"objects[{i}]"
+            t = self.table(t, path, "a table ([[objects]])")
+            if "type" not in t:
+                self.fail(path, 'missing key "type"; add type = "sphere" or "plane"')
+            kind = self.choice(t["type"], f"{path}.type", tuple(_OBJECTS))
+            self.check_keys(t, _OBJECTS[kind], path, f"a {kind}")
+            kw: dict = {}
+            if "material" in t:
+                kw["material"] = self.object_material(t["material"], f"{path}.material", materials)
+            if kind == "sphere":
+                if "center" in t:
+                    kw["center"] = self.vector(t["center"], f"{path}.center")
+                if "radius" in t:
+                    kw["radius"] = self.number(t["radius"], f"{path}.radius", lo=0.0, open_lo=True)
+                out.append(self.build(path, Sphere, **kw))
+            else:
+                if "point" in t:
+                    kw["point"] = self.vector(t["point"], f"{path}.point")
+                if "normal" in t:
+                    kw["normal"] = self.direction(t["normal"], f"{path}.normal")
+                if "tangent" in t:
+                    kw["tangent"] = self.direction(t["tangent"], f"{path}.tangent")
+                if "uv_scale" in t:
+                    kw["uv_scale"] = self.number(t["uv_scale"], f"{path}.uv_scale", lo=0.0, open_lo=True)
+                out.append(self.build(path, Plane, **kw))
+        return tuple(out)
+
+    def object_material(self, x, path: str, materials: dict):
+        if isinstance(x, dict):
+            return self.material(x, path)
+        if not isinstance(x, str):
+            self.fail(path, f"expected a material name (string) or an inline table, got {_type_name(x)}")
+        if x not in materials:
+            if not materials:
+                self.fail(path, f"unknown material {x!r}: no [materials.*] are defined; add [materials.{x}]")
+            close = difflib.get_close_matches(x, list(materials), n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            self.fail(path, f"unknown material {x!r}; {hint}defined: {', '.join(map(repr, materials))}")
+        return materials[x]
