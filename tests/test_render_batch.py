@@ -20,7 +20,9 @@ ENV = None
 def env():
     global ENV
     if ENV is None:
-        ENV = jp.envs.sky_with_sun_cubemap(16)
+        # No sun: next to its edge neighbouring texels differ 1000x, which turns a 1-ulp difference
+        # of a lookup direction (rotation computed batched vs single) into a 3e-4 pixel difference.
+        ENV = jp.envs.sky_with_sun_cubemap(16, sun_radiance=0.0)
     return ENV
 
 
@@ -43,11 +45,15 @@ def batched_materials(B=5):
         base_color=rng.uniform(size=(B, 3)).astype(np.float32),
         metallic=rng.uniform(size=B).astype(np.float32),
         roughness=rng.uniform(size=B).astype(np.float32),
+        occlusion=np.ones(B, np.float32),
+        emissive=np.zeros((B, 3), np.float32),
     )
 
 
 def take(tree, i):
-    return jax.tree_util.tree_map(lambda x: x[i], tree)
+    from jaxpbr.renderer import _batched
+
+    return jax.tree_util.tree_map(lambda x: x[i], _batched("batch", tree)[1])
 
 
 # Same program per image, vmapped or not: XLA may fuse/vectorise the batched and single programs
@@ -83,14 +89,17 @@ def test_cameras_lights_and_env_rotations_batch_equals_loop():
     )
     lights = [jp.PointLight(position=np.array([[2.0, 3.0, 4.0], [-2.0, 3.0, 4.0], [0.0, 5.0, 1.0]], np.float32), intensity=np.array([40.0, 20.0, 60.0], np.float32))]
     rot = np.array([0.0, 1.0, 2.5], np.float32)
-    out = np.asarray(jp.render_batch(scene, cameras=cams, lights=lights, env_rotation=rot))
+    # float64: these inputs move ray directions, so a 1-ulp difference between the batched and the
+    # single program is amplified by sharp edges (sphere-plane contact, horizon step of the sky);
+    # in float64 that stays far below the tolerance (float32 showed 1e-4 at one such pixel).
+    out = np.asarray(jp.render_batch(scene, cameras=cams, lights=lights, env_rotation=rot, dtype="float64"))
     for i in range(B):
         s = scene.replace(
             camera=take(cams, i),
             lights=[take(lights[0], i)],
             environment=jp.Environment(radiance=env(), rotation=rot[i]),
         )
-        np.testing.assert_allclose(out[i], np.asarray(jp.render(s)), rtol=RTOL, atol=ATOL)
+        np.testing.assert_allclose(out[i], np.asarray(jp.render(s, dtype="float64")), rtol=1e-9, atol=1e-12)
 
 
 def test_chunk_size_does_not_change_the_result_and_bad_inputs_fail():
@@ -101,6 +110,9 @@ def test_chunk_size_does_not_change_the_result_and_bad_inputs_fail():
     np.testing.assert_allclose(a, b, rtol=RTOL, atol=ATOL)
     with pytest.raises(ValueError, match="at least one batched input"):
         jp.render_batch(scene)
+    # Unbatched fields broadcast over the batch (occlusion, emissive left scalar / (3,)):
+    partial = jp.Material(base_color=np.asarray(mats.base_color), metallic=np.asarray(mats.metallic), roughness=np.asarray(mats.roughness))
+    np.testing.assert_allclose(np.asarray(jp.render_batch(scene, materials=partial, chunk=3)), b, rtol=0, atol=0)
     with pytest.raises(ValueError, match="same leading batch axis"):
         jp.render_batch(scene, materials=jp.Material(base_color=np.ones((3, 3)), metallic=np.ones(2), roughness=np.ones(3)))
     with pytest.raises(ValueError, match="need a scene with an environment"):
@@ -122,7 +134,8 @@ SHARD_SCRIPT = textwrap.dedent(
     assert len(sharded.sharding.device_set) == 4 or sharded.shape[0] == 7
     single = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
     a, b = np.asarray(sharded), np.asarray(single)
-    print(json.dumps(dict(shape=a.shape, max_abs=float(np.abs(a - b).max()), equal=bool((a == b).all()))))
+    rel = float((np.abs(a - b) / np.maximum(np.abs(b), 1e-6)).max())
+    print(json.dumps(dict(shape=a.shape, max_abs=float(np.abs(a - b).max()), max_rel=rel, equal=bool((a == b).all()))))
     """
 )
 
@@ -142,5 +155,6 @@ def test_sharded_over_four_cpu_devices_equals_single_device():
 
     res = json.loads(r.stdout.strip().splitlines()[-1])
     assert res["shape"] == [7, 10, 12, 3]
-    # Each device runs the same per-chunk program on its share: identical images.
-    assert res["equal"], res
+    # Each device runs the same per-image math on its share, compiled as a separate program: XLA
+    # may fuse it differently (measured: 1 ulp at a few pixels, not bitwise). Bound: 4 float32 ulps.
+    assert res["max_rel"] <= 4 * 2.0**-23, res
