@@ -36,11 +36,10 @@ import numpy as np
 from ._numerics import is_concrete, pack3, unpack3, vcross, vdot, vnormalize
 from .cubemap import Cubemap, _mip_count
 from .ibl import shade_ibl
-from .lights import LightSet, shade_direct
+from .lights import shade_direct
 from .material import Material
 from .scene import (
     Environment,
-    GBuffer,
     Plane,
     Scene,
     Sphere,

@@ -271,7 +271,7 @@ def test_bench_render_gbuffer_tiny(tiny_ibl):
 def test_bench_batch_tiny(tiny_ibl):
     r = br.bench_batch(5, 16, 2, repeats=1, ibl=tiny_ibl)
     text = r.report()
-    assert "5 materials x 16x16" in text and "images/s" in text and "batch_size=2" in text
+    assert "5 materials x 16x16" in text and "images/s" in text and "chunk=2" in text
     assert r.batch_s > 0 and r.loop_s > 0 and r.max_rel_diff < 1e-4
 
 
@@ -291,6 +291,7 @@ def _parser():
     return p
 
 
+@pytest.mark.slow
 def test_cli_bench_render_tiny(capsys):
     args = _parser().parse_args(
         ["bench", "render", "--width", "32", "--height", "18", "--repeats", "1", "--numpy-repeats", "1",

@@ -1,6 +1,5 @@
 """render_batch: batch == loop of single renders, chunking, sharding over 4 CPU devices."""
 
-import math
 import os
 import subprocess
 import sys
@@ -8,7 +7,6 @@ import textwrap
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 

@@ -93,6 +93,7 @@ def test_grad_wrt_texture_texels():
     assert (g != 0).sum() > 10  # many texels are seen
 
 
+@pytest.mark.slow  # ~20 s (traced prefilter + its gradient); tests/test_precompute_grad.py checks the precomputes fast
 def test_grad_wrt_environment_texels(env_level):
     """Through the irradiance and prefilter precomputes and the background lookup."""
     w = weights()
@@ -111,8 +112,11 @@ def test_grad_wrt_environment_texels(env_level):
 
 @pytest.mark.parametrize(
     "dtype,roughness",
-    [("float32", 0.0), ("float64", 1e-4)]
-    + [pytest.param(d, r, marks=pytest.mark.slow) for d, r in (("float32", 1e-4), ("float32", 0.045), ("float64", 0.0), ("float64", 0.045))],
+    [("float32", 0.0)]
+    + [
+        pytest.param(d, r, marks=pytest.mark.slow)
+        for d, r in (("float32", 1e-4), ("float32", 0.045), ("float64", 0.0), ("float64", 1e-4), ("float64", 0.045))
+    ],
 )
 def test_gradients_finite_at_roughness_floor_and_silhouettes(env_level, roughness, dtype):
     """r -> 0 (mirror IBL lookup, delta-like direct lobe) and grazing silhouette pixels: the image

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-import reference as ref
 from jaxpbr.cli import main
 from jaxpbr.demo import demo_scene, learnopengl_scene
 
