@@ -268,6 +268,7 @@ def test_bench_render_gbuffer_tiny(tiny_ibl):
     assert r.max_rel_diff < 1e-3 and r.p999_rel_diff < 1e-4
 
 
+@pytest.mark.slow  # benchmark machinery; render_batch correctness is in test_render_batch.py
 def test_bench_batch_tiny(tiny_ibl):
     r = br.bench_batch(5, 16, 2, repeats=1, ibl=tiny_ibl)
     text = r.report()
