@@ -656,14 +656,7 @@ def bench_batch(
 # ------------------------------------------------------------------------------------------
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+from .cli import _positive_int  # noqa: E402  (the CLI's own argument type)
 
 
 def _non_negative_int(text: str) -> int:
