@@ -118,7 +118,9 @@ class RenderPlan:
     emissive: bool
     textured: tuple[int, ...]
     normal_maps: bool
-    max_roughness: float
+    # Reporting only: left out of equality/hash so that materials differing only in roughness
+    # reuse the compiled program (a continuous value in the static key recompiled per material).
+    max_roughness: float = dataclasses.field(compare=False)
     prefilter_size: int
     prefilter_levels: int  # levels computed (0 without IBL)
     mapping_levels: int  # M of the roughness -> lod mapping
@@ -316,7 +318,15 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
                 **kw,
             )
 
-        pre = cached("prefilter", params, compute_pre)
+        if key is not None:
+            # A longer chain of the same map already cached: its first levels are this one.
+            for (kind, k2), val in ASSETS._store.items():
+                if kind == "prefilter" and k2[0] == key and k2[1] == params[0] and k2[3:] == params[2:] and k2[2] > params[1]:
+                    ASSETS.stats.setdefault("prefilter", {"hits": 0, "misses": 0})["hits"] += 1
+                    pre = Cubemap(val.levels[: p.prefilter_levels], val.info)
+                    break
+        if pre is None:
+            pre = cached("prefilter", params, compute_pre)
     cast = lambda c: None if c is None else Cubemap([lv.astype(dtype) for lv in c.levels], c.info)  # noqa: E731
     return cast(irr), cast(pre), jnp.asarray(lut, dtype)
 
