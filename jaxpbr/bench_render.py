@@ -472,7 +472,6 @@ def bench_render_gbuffer(
     device = jax.devices()[0]
     gd = {k: jax.device_put(x, device) for k, x in gs.items()}
     jl = jax_point_lights(lights)
-    args = (gd, jl, ibl.irr, ibl.pre, ibl.lut)
 
     # The library's own path: jp.render of a G-buffer scene (staged programs: direct lighting,
     # then IBL; see renderer._render_pass). The LUT is the shipped one render loads.
@@ -494,7 +493,6 @@ def bench_render_gbuffer(
     out = render(scene).block_until_ready()
     compile_s = time.perf_counter() - t0
     jax_s = _median_time(lambda: render(scene).block_until_ready(), repeats)
-    del args
 
     t0 = time.perf_counter()
     nibl = NumpyIBL.from_tables(ibl.irr, ibl.pre, ibl.lut)

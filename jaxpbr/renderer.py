@@ -26,6 +26,7 @@ import dataclasses
 import functools
 import hashlib
 import math
+import weakref
 from collections import OrderedDict
 from typing import Any
 
@@ -185,14 +186,13 @@ def _prefilter_size(env: Environment, opts: RenderOptions) -> int:
     return S
 
 
-def plan(scene: Scene, options: RenderOptions | None = None, *, extra_materials=()) -> RenderPlan:
+def plan(scene: Scene, options: RenderOptions | None = None) -> RenderPlan:
     """The RenderPlan of `scene` (what `render` will trace and precompute)."""
     opts = options or RenderOptions()
     if scene.gbuffer is not None:
         mats = [scene.gbuffer.material]
     else:
         mats = [ob.material for ob in scene.objects]
-    mats += list(extra_materials)
     ranges = [_material_ranges(m) for m in mats]
     r_max = max(r for r, _, _ in ranges)
     met_min = min(mt for _, mt, _ in ranges)
@@ -253,6 +253,14 @@ class AssetCache:
         self._store.clear()
         self.stats.clear()
 
+    def find(self, kind: str, match):
+        """A cached value of `kind` whose key satisfies match(key), counted as a hit; else None."""
+        for (k, key), value in self._store.items():
+            if k == kind and match(key):
+                self.stats.setdefault(kind, {"hits": 0, "misses": 0})["hits"] += 1
+                return value
+        return None
+
     def get(self, kind: str, key, compute):
         st = self.stats.setdefault(kind, {"hits": 0, "misses": 0})
         full = (kind, key)
@@ -271,12 +279,27 @@ class AssetCache:
 ASSETS = AssetCache()
 
 
+_KEYS: dict = {}  # id(level-0 array) -> (weakref to it, content key)
+
+
 def content_key(cube: Cubemap) -> str:
-    """SHA-1 of a cube map's level-0 texels, shape and dtype (what its precomputes depend on)."""
-    a = np.ascontiguousarray(np.asarray(cube.levels[0]))
+    """SHA-1 of a cube map's level-0 texels, shape and dtype (what its precomputes depend on).
+
+    Remembered per array object (arrays are immutable), so rendering the same environment again
+    neither copies it to the host nor hashes it again."""
+    lv = cube.levels[0]
+    hit = _KEYS.get(id(lv))
+    if hit is not None and hit[0]() is lv:
+        return hit[1]
+    a = np.ascontiguousarray(np.asarray(lv))
     h = hashlib.sha1(a.tobytes())
     h.update(repr((a.shape, str(a.dtype))).encode())
-    return h.hexdigest()
+    key = h.hexdigest()
+    try:
+        _KEYS[id(lv)] = (weakref.ref(lv, lambda _, i=id(lv): _KEYS.pop(i, None)), key)
+    except TypeError:  # not weak-referenceable: just do not remember
+        pass
+    return key
 
 
 def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
@@ -320,11 +343,11 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
 
         if key is not None:
             # A longer chain of the same map already cached: its first levels are this one.
-            for (kind, k2), val in ASSETS._store.items():
-                if kind == "prefilter" and k2[0] == key and k2[1] == params[0] and k2[3:] == params[2:] and k2[2] > params[1]:
-                    ASSETS.stats.setdefault("prefilter", {"hits": 0, "misses": 0})["hits"] += 1
-                    pre = Cubemap(val.levels[: p.prefilter_levels], val.info)
-                    break
+            longer = ASSETS.find(
+                "prefilter", lambda k: k[0] == key and k[1] == params[0] and k[3:] == params[2:] and k[2] > params[1]
+            )
+            if longer is not None:
+                pre = Cubemap(longer.levels[: p.prefilter_levels], longer.info)
         if pre is None:
             pre = cached("prefilter", params, compute_pre)
     cast = lambda c: None if c is None else Cubemap([lv.astype(dtype) for lv in c.levels], c.info)  # noqa: E731

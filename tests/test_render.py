@@ -122,7 +122,6 @@ def test_learnopengl_scene_centre_pixel_matches_independent_shading(lo_scene_img
 
 def test_learnopengl_scene_every_sphere_visible_and_background_black(lo_scene_img):
     img = lo_scene_img
-    cam = jp.Camera(width=W, height=H)
     t = math.tan(math.radians(45.0) / 2)
     for sph in learnopengl_scene(W, H).objects:
         c = np.asarray(sph.center)
@@ -131,7 +130,6 @@ def test_learnopengl_scene_every_sphere_visible_and_background_black(lo_scene_im
         i = int((1 - c[1] / (z * t)) / 2 * H)
         assert img[i, j].sum() > 0
     assert (img[0, 0] == 0).all() and (img[-1, -1] == 0).all()
-    del cam
 
 
 def test_off_centre_pixel_matches_float64_reference_raycast():
@@ -283,15 +281,6 @@ def test_supersampling_is_the_mean_of_jittered_renders():
 # ------------------------------------------------------------------------------------------
 # Compose only what is needed
 # ------------------------------------------------------------------------------------------
-
-
-def _count_eqns(jaxpr) -> int:
-    n = 0
-    for e in jaxpr.eqns:
-        n += 1
-        for sub in jax.core.jaxprs_in_params(e.params) if hasattr(jax.core, "jaxprs_in_params") else []:
-            n += _count_eqns(sub)
-    return n
 
 
 def _primitives(scene, **options):

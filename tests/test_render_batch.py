@@ -129,7 +129,6 @@ SHARD_SCRIPT = textwrap.dedent(
     scene = base_scene()
     mats = batched_materials(7)  # not a multiple of 4: padding path
     sharded = jp.render_batch(scene, materials=mats, chunk=2)
-    assert len(sharded.sharding.device_set) == 4 or sharded.shape[0] == 7
     single = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
     a, b = np.asarray(sharded), np.asarray(single)
     rel = float((np.abs(a - b) / np.maximum(np.abs(b), 1e-6)).max())
