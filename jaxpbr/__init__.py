@@ -7,24 +7,31 @@ shading), colour and image I/O (EXR, HDR, PNG, KTX2).
 Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` and the README.
 """
 
-from . import brdf_terms
-from . import color, demo, envs, image, ktx2, renderer, scene
+from . import atomic, brdf_terms, color, demo, envs, image, ktx2, renderer, scene
+from ._version import __version__
 from .brdf_terms import MIN_ROUGHNESS, MODELS, brdf
 from .conventions import CONVENTIONS
 from .cubemap import Cubemap
-from .ibl import shade_ibl
 from .diffuse import irradiance, sh9_irradiance, sh9_project
-from .lights import DirectionalLight, LightSet, PointLight, SpotLight, pack_lights, shade_direct
+from .ibl import shade_ibl
+from .lights import (
+    DirectionalLight,
+    LightSet,
+    PointLight,
+    SpotLight,
+    pack_lights,
+    shade_direct,
+)
 from .lut import compute_brdf_lut, lut_lookup, lut_reference
 from .material import Material
 from .renderer import RenderOptions, render, render_batch
 from .scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
-from .specular import prefilter, prefilter_reference, roughness_to_lod
 from .shipped_luts import brdf_lut
-
-__version__ = "0.1.0"
+from .specular import prefilter, prefilter_reference, roughness_to_lod
 
 __all__ = [
+    "__version__",
+    "atomic",
     "CONVENTIONS",
     "Camera",
     "Cubemap",

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.metadata
+import platform
+
 CONVENTIONS: dict[str, str] = {
     "axes": "right-handed, +Y up, camera looks down -Z (glTF/OpenGL)",
     "directions": "n, v, l unit vectors pointing away from the surface; h = normalize(v + l)",
@@ -20,3 +23,19 @@ CONVENTIONS: dict[str, str] = {
     "brdf_lut": "(n_r, n_nov, 2) = (A, B), [j, i] at r = (j+0.5)/n_r, NoV = (i+0.5)/n_nov; "
     "int f_spec (n.l) dl = F0 A + F90 B; bilinear, clamp to edge",
 }
+
+
+def cube_conventions() -> dict[str, str]:
+    """`CONVENTIONS` plus the KTX2 layout, for the metadata of cube-map files."""
+    return {**CONVENTIONS, "ktx2_layout": "KTX2 face f = levels[m][f]; file rows i, columns j; no flip"}
+
+
+def library_versions() -> dict[str, str]:
+    """Python and library versions, for output provenance (JSON sidecars, reports)."""
+    out = {"python": platform.python_version()}
+    for pkg in ("jaxpbr", "jax", "jaxlib", "numpy", "OpenEXR", "colour-science", "OpenImageIO"):
+        try:
+            out[pkg] = importlib.metadata.version(pkg)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    return out

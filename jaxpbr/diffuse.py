@@ -25,7 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cubemap import Cubemap, _positive_int, texel_directions, texel_solid_angles
+from .cubemap import (
+    _FACE_TABLE,
+    Cubemap,
+    _positive_int,
+    texel_directions,
+    texel_solid_angles,
+)
 
 __all__ = [
     "IRRADIANCE_METHODS",
@@ -114,8 +120,6 @@ def _texel_moments(S: int) -> np.ndarray:
     polygon). Computed on one face in its plane coordinates (sc, tc, 1), then rotated onto the six
     faces with the face table.
     """
-    from .cubemap import _FACE_TABLE
-
     e = np.linspace(-1.0, 1.0, S + 1)
     x0, x1 = e[None, :-1], e[None, 1:]  # sc varies along j (columns)
     y0, y1 = e[:-1, None], e[1:, None]  # tc varies along i (rows)

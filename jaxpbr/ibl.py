@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from ._numerics import as_float, pack3, unpack3, vdot, vnormalize
 from .brdf_terms import fresnel_schlick_roughness
 from .cubemap import Cubemap
+from .lut import lut_lookup
 from .material import F0_DIELECTRIC, Material
 from .specular import roughness_to_lod
 
@@ -79,8 +80,6 @@ def shade_ibl(
     model: "gltf" (F0 A + B) or "learnopengl" (fresnelSchlickRoughness, see module docstring).
     multiscatter: Fdez-Aguera energy compensation (gltf model only).
     """
-    from .lut import lut_lookup
-
     if model not in IBL_MODELS:
         raise ValueError(f"unknown IBL model {model!r}; choose one of {IBL_MODELS}")
     if multiscatter and model != "gltf":

@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import json
 import os
-import secrets
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from . import color
+from .atomic import atomic_write
 
 __all__ = ["SUPPORTED_EXTENSIONS", "read", "read_with_metadata", "write"]
 
@@ -332,7 +332,7 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb") -> N
         if encoding in _PNG_COLORSPACE:
             attrs["oiio:ColorSpace"] = _PNG_COLORSPACE[encoding]
         writer = lambda tmp: _write_oiio(tmp, "png", payload, attrs)  # noqa: E731
-    _atomic_write(path, writer)
+    atomic_write(path, writer)
 
 
 def _validated_image(img) -> np.ndarray:
@@ -511,45 +511,3 @@ def _write_oiio(tmp: str, fmt: str, pixels: np.ndarray, attrs: dict) -> None:
     closed = out.close()
     if not ok or not closed:
         raise OSError(f"OpenImageIO failed to write the {fmt} image: {error or out.geterror()}")
-
-
-def _atomic_write(path: Path, writer) -> None:
-    """Write through ``writer(tmp_path)`` to a temp file next to ``path``, then rename it over ``path``."""
-    parent = path.parent
-    if not parent.exists():
-        raise FileNotFoundError(
-            f"cannot write {str(path)!r}: directory {str(parent)!r} does not exist (create it first)"
-        )
-    if not parent.is_dir():
-        raise NotADirectoryError(f"cannot write {str(path)!r}: {str(parent)!r} is not a directory")
-    if path.is_dir():
-        raise IsADirectoryError(f"cannot write {str(path)!r}: it is an existing directory")
-
-    # Hidden name in the same directory (so os.replace is an atomic rename on one file system), keeping the
-    # extension last. Created with O_EXCL and mode 0o666 so the umask applies as for any new file.
-    for _ in range(100):
-        tmp = parent / f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}"
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-            break
-        except FileExistsError:
-            continue
-        except OSError as e:
-            raise type(e)(
-                e.errno, f"cannot write {str(path)!r}: directory {str(parent)!r} is not writable ({e.strerror})"
-            ) from e
-    else:  # pragma: no cover - 100 random collisions
-        raise OSError(f"cannot create a temporary file in {str(parent)!r}")
-    os.close(fd)
-
-    try:
-        writer(str(tmp))
-        os.replace(tmp, path)
-    except BaseException as e:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, PermissionError)):
-            raise OSError(f"failed to write {str(path)!r}: {e}") from e
-        raise

@@ -50,7 +50,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .image import _atomic_write
+from ._version import __version__
+from .atomic import atomic_write
 
 __all__ = ["FORMATS", "read_ktx2", "write_ktx2"]
 
@@ -160,7 +161,7 @@ def write_ktx2(path, levels: Sequence, *, fmt: str = "rgba16f", metadata: Mappin
         with open(tmp, "wb") as fh:
             fh.write(payload)
 
-    _atomic_write(path, writer)
+    atomic_write(path, writer)
 
 
 def _validated_levels(levels, form: _Format) -> tuple[list[np.ndarray], bool]:
@@ -268,8 +269,6 @@ def _validated_levels(levels, form: _Format) -> tuple[list[np.ndarray], bool]:
 
 def _metadata_pairs(metadata) -> list[tuple[bytes, bytes]]:
     """The key/value pairs to write, as (key, value) UTF-8 bytes without terminators, sorted by key."""
-    from . import __version__  # lazy: jaxpbr/__init__ may import this module one day
-
     pairs = {"KTXwriter": f"jaxpbr {__version__}", "KTXorientation": "rd"}
     for key, value in (metadata or {}).items():
         if not isinstance(key, str) or not key:

@@ -21,7 +21,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import Vec3, as_float, is_concrete, pack3, saturate, unpack3, vdot, vnormalize
+from ._numerics import (
+    Vec3,
+    as_float,
+    is_concrete,
+    pack3,
+    saturate,
+    unpack3,
+    vdot,
+    vnormalize,
+)
 from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, geometry_soa
 from .material import Material
 

@@ -8,9 +8,13 @@ include the texels closest to the brightest source direction, where sampling err
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 
 from .cubemap import Cubemap, texel_directions
+from .diffuse import irradiance_at
+from .lut import lut_reference
+from .specular import level_roughness, prefilter_reference
 
 __all__ = ["irradiance_error", "lut_error", "prefilter_error", "texel_subset"]
 
@@ -45,8 +49,6 @@ def texel_subset(size: int, count: int, *, toward=None, seed: int = 0) -> np.nda
 def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, seed: int = 0) -> list[dict]:
     """Per level m >= 1: mean and max relative error of `pre` against `prefilter_reference` at a
     texel subset. Level 0 is the (down-sampled) source itself and has no error by construction."""
-    from .specular import level_roughness, prefilter_reference
-
     mapping = pre.metadata.get("roughness_mapping", "linear")
     rough = level_roughness(pre.num_levels, mapping)
     sun = _brightest_direction(env)
@@ -67,10 +69,6 @@ def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, 
 def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int = 0) -> dict:
     """Mean / max relative error of an irradiance map against the full-resolution exact
     convolution (source_size = env face size) in float64, at a texel subset."""
-    import jax
-
-    from .diffuse import irradiance_at
-
     S = irr.face_size
     sel = texel_subset(S, texels, toward=_brightest_direction(env), seed=seed)
     d = texel_directions(S).reshape(-1, 3)[sel]
@@ -85,8 +83,6 @@ def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int
 def lut_error(lut, smith: str, *, texels: int | None = 1024, seed: int = 0) -> dict:
     """Max / mean absolute error of a LUT (n_r, n_nov, 2) against `lut_reference` at its texel
     centres: every texel if `texels` is None, else the four edges plus a seeded random subset."""
-    from .lut import lut_reference
-
     lut = np.asarray(lut, np.float64)
     nr, nn = lut.shape[:2]
     jj, ii = np.meshgrid(np.arange(nr), np.arange(nn), indexing="ij")

@@ -58,7 +58,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cubemap import Cubemap, _FACE_TABLE, _subtexel_points, texel_solid_angles
+from .cubemap import (
+    _FACE_TABLE,
+    Cubemap,
+    _subtexel_points,
+    dir_to_face,
+    face_to_dir,
+    texel_solid_angles,
+)
 from .material import F0_DIELECTRIC, Material
 
 __all__ = [
@@ -176,8 +183,6 @@ def _window_texels(R, S: int, half: int):
     contains the direction R (P, 3), inner 3 x 3 first, then the rest; cells past a face edge
     continue on the neighbouring face (extended face plane, re-projected). A texel that appears
     twice (at edges and corners) gets weight 0 after its first occurrence: -> (idx, first)."""
-    from .cubemap import dir_to_face, face_to_dir
-
     f, s, t = dir_to_face(R)
     j = jnp.clip(jnp.floor(s * S), 0, S - 1)
     i = jnp.clip(jnp.floor(t * S), 0, S - 1)

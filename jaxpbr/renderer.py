@@ -35,7 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._numerics import is_concrete, pack3, unpack3, vcross, vdot, vnormalize
+from .brdf_terms import MODELS
 from .cubemap import Cubemap, _mip_count
+from .diffuse import irradiance
 from .ibl import shade_ibl
 from .lights import shade_direct
 from .material import Material
@@ -45,12 +47,14 @@ from .scene import (
     Scene,
     Sphere,
     TexturedMaterial,
+    evolve,
     intersect_plane,
     intersect_sphere,
-    evolve,
     primary_rays,
     sample_texture,
 )
+from .shipped_luts import brdf_lut
+from .specular import prefilter
 
 __all__ = [
     "ASSETS",
@@ -94,8 +98,6 @@ class RenderOptions:
     dtype: str = "float32"
 
     def __post_init__(self):
-        from .brdf_terms import MODELS
-
         if self.model not in MODELS:
             raise ValueError(f"unknown model {self.model!r}; choose one of {MODELS}")
         if self.multiscatter and self.model != "gltf":
@@ -304,10 +306,6 @@ def content_key(cube: Cubemap) -> str:
 
 def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
     """(irradiance | None, prefiltered, lut) for the plan; cached when the environment is concrete."""
-    from .diffuse import irradiance
-    from .shipped_luts import brdf_lut
-    from .specular import prefilter
-
     dtype = jnp.dtype(opts.dtype)
     smith = "schlick" if opts.model == "learnopengl" else "correlated"
     lut = ASSETS.get("lut", (opts.lut_size, smith, str(dtype)), lambda: brdf_lut(opts.lut_size, smith, dtype=dtype))

@@ -21,7 +21,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import Vec3, as_float, eps, pack3, safe_sqrt, unpack3, vcross, vdot, vnormalize
+from ._numerics import (
+    Vec3,
+    as_float,
+    eps,
+    pack3,
+    safe_sqrt,
+    unpack3,
+    vcross,
+    vdot,
+    vnormalize,
+)
 from .brdf_terms import d_ggx, smith_g1
 
 __all__ = [

@@ -16,7 +16,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from .lut import DEFAULT_SAMPLES, compute_brdf_lut
+from . import image
+from .lut import DEFAULT_SAMPLES, _lut_shape, compute_brdf_lut
 
 __all__ = ["brdf_lut", "shipped_manifest"]
 
@@ -49,8 +50,6 @@ def _shipped_entry(n_r: int, n_nov: int, smith: str, samples: int):
 
 @functools.lru_cache(maxsize=8)
 def _load(filename: str) -> np.ndarray:
-    from . import image
-
     with resources.as_file(_data_dir().joinpath(filename)) as path:
         img = image.read(path)
     arr = np.ascontiguousarray(img[..., :2], np.float32)
@@ -65,8 +64,6 @@ def brdf_lut(size=128, smith: str = "correlated", *, samples: int | None = None,
     samples) match a manifest entry (128^2 and 256^2, both Smith variants, default samples);
     computed otherwise. `samples=None` means the default quadrature.
     """
-    from .lut import _lut_shape
-
     n_r, n_nov = _lut_shape(size)
     n = DEFAULT_SAMPLES if samples is None else samples
     if use_shipped and jnp.dtype(dtype) == jnp.dtype(jnp.float32):

@@ -38,11 +38,13 @@ from .cubemap import (
     Cubemap,
     _mip_count,
     _positive_int,
+    _Pyramid,
     _subtexel_points,
     face_to_dir,
     texel_directions,
     texel_solid_angles,
 )
+from .sampling import hammersley, pdf_ggx_h, sample_ggx_h, tangent_frame
 
 __all__ = [
     "MAPPINGS",
@@ -124,8 +126,6 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
     Evaluated once per (alpha, n, source) in float64, eagerly even when `prefilter` is being traced
     (jit / grad): these are constants of the computation.
     """
-    from .sampling import hammersley, pdf_ggx_h, sample_ggx_h
-
     with jax.ensure_compile_time_eval(), jax.enable_x64(True):
         h = np.asarray(sample_ggx_h(hammersley(n, jnp.float64), alpha))
         cos_h = h[:, 2]
@@ -145,8 +145,6 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
 
 @jax.jit
 def _pyramid_flat(levels):
-    from .cubemap import _Pyramid
-
     return _Pyramid(levels).flat
 
 
@@ -167,10 +165,6 @@ def _fis_chunk(flat, R, local, w, lod, *, sizes):
 
 
 def _fis_chunk_body(flat, R, local, w, lod, *, sizes):
-    from .cubemap import _Pyramid
-
-    from .sampling import tangent_frame
-
     pyr = _Pyramid(None, flat=flat, sizes=list(sizes))
     t, b = tangent_frame(R)
     l = t[:, None, :] * local[None, :, 0:1] + b[:, None, :] * local[None, :, 1:2] + R[:, None, :] * local[None, :, 2:3]

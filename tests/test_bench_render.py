@@ -1,4 +1,4 @@
-"""`jaxpbr.bench_render`: the NumPy shading equals JAX `shade_direct + shade_ibl` to float32 rounding,
+"""`jaxpbr.cli.bench_render`: the NumPy shading equals JAX `shade_direct + shade_ibl` to float32 rounding,
 and the benchmark / CLI machinery runs on a tiny configuration.
 
 Tolerance (used by every equivalence test below). Both sides evaluate the same formulas in float32
@@ -36,8 +36,9 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import bench_render as br
-from jaxpbr.bench import bench_lights
+from jaxpbr.cli import bench_render as br
+from jaxpbr.cli import numpy_baselines as nb
+from jaxpbr.cli.numpy_baselines import bench_lights
 from jaxpbr.cubemap import Cubemap, _Pyramid
 from jaxpbr.ibl import shade_ibl
 
@@ -46,9 +47,9 @@ K_ARITH = 32
 PERTURB = 4 * U
 
 
-def _f64_tables(ibl: br.NumpyIBL) -> br.NumpyIBL:
-    cube = lambda c: br.NumpyCube(c.flat.astype(np.float64), c.offsets, c.sizes)
-    return br.NumpyIBL(cube(ibl.irr), cube(ibl.pre), ibl.lut.astype(np.float64), ibl.mapping)
+def _f64_tables(ibl: nb.NumpyIBL) -> nb.NumpyIBL:
+    cube = lambda c: nb.NumpyCube(c.flat.astype(np.float64), c.offsets, c.sizes)
+    return nb.NumpyIBL(cube(ibl.irr), cube(ibl.pre), ibl.lut.astype(np.float64), ibl.mapping)
 
 
 def _bound(f, inputs: dict):
@@ -153,7 +154,7 @@ def _random_gbuffer(P=4096, seed=1):
 
 def test_padded_pyramid_is_the_jax_one(tables):
     _, pre, _ = tables
-    nc = br.NumpyCube.from_cubemap(pre)
+    nc = nb.NumpyCube.from_cubemap(pre)
     p = _Pyramid(pre.levels)
     assert nc.flat.dtype == np.float32
     np.testing.assert_array_equal(nc.flat, np.asarray(p.flat))
@@ -172,10 +173,10 @@ def test_cube_sample_matches_cubemap_sample(tables):
     lod = rng.uniform(-0.5, pre.num_levels - 0.5, len(d)).astype(np.float32)
     lod[-16:] = np.arange(16) % (pre.num_levels + 1)
     out = np.asarray(pre.sample(jnp.asarray(d), jnp.asarray(lod)))
-    nc = br.NumpyCube.from_cubemap(pre)
+    nc = nb.NumpyCube.from_cubemap(pre)
     ref = nc.sample(d[:, 0].copy(), d[:, 1].copy(), d[:, 2].copy(), lod)
     assert out.dtype == ref.dtype == np.float32
-    nc64 = br.NumpyCube(nc.flat.astype(np.float64), nc.offsets, nc.sizes)
+    nc64 = nb.NumpyCube(nc.flat.astype(np.float64), nc.offsets, nc.sizes)
     y, bound = _bound(lambda x: nc64.sample(x["d"][:, 0], x["d"][:, 1], x["d"][:, 2], x["lod"]), {"d": d, "lod": lod})
     _assert_within(out, ref, bound, "cube sample")
     _assert_within(out, y, bound / 2, "cube sample (jax vs float64)")
@@ -187,10 +188,10 @@ def test_lut_lookup_matches(tables):
     mu = np.concatenate([rng.uniform(-0.1, 1.1, 2000), [0.0, 1e-4, 1.0, 0.5 / 128, 1 - 0.5 / 128]]).astype(np.float32)
     r = np.concatenate([rng.uniform(-0.1, 1.1, 2000), [0.0, 1.0, 1.0, 0.0, 0.5]]).astype(np.float32)
     out = np.asarray(jp.lut_lookup(lut, jnp.asarray(mu), jnp.asarray(r)))
-    ref = br.lut_lookup_numpy(np.asarray(lut), mu, r)
+    ref = nb.lut_lookup_numpy(np.asarray(lut), mu, r)
     assert out.dtype == ref.dtype == np.float32
     lut64 = np.asarray(lut, np.float64)
-    y, bound = _bound(lambda x: br.lut_lookup_numpy(lut64, x["mu"], x["r"]), {"mu": mu, "r": r})
+    y, bound = _bound(lambda x: nb.lut_lookup_numpy(lut64, x["mu"], x["r"]), {"mu": mu, "r": r})
     _assert_within(out, ref, bound, "LUT lookup")
     _assert_within(out, y, bound / 2, "LUT lookup (jax vs float64)")
 
@@ -206,10 +207,10 @@ def test_numpy_shading_equals_jax_direct_plus_ibl(tables, mapping):
     pre = pre.replace(info={"roughness_mapping": mapping})
     g = _random_gbuffer()
     lights = bench_lights()
-    nibl = br.NumpyIBL.from_tables(irr, pre, lut)
+    nibl = nb.NumpyIBL.from_tables(irr, pre, lut)
     assert nibl.mapping == mapping
 
-    ref = br.shade_render_numpy(g, lights, nibl)
+    ref = nb.shade_render_numpy(g, lights, nibl)
     out = np.asarray(jax.jit(br.shade_render_jax)(g, br.jax_point_lights(lights), irr, pre, lut))
     assert out.dtype == ref.dtype == np.float32 and out.shape == ref.shape == (4096, 3)
 
@@ -223,7 +224,7 @@ def test_numpy_shading_equals_jax_direct_plus_ibl(tables, mapping):
 
     l64 = [{k: np.asarray(x, np.float64) for k, x in light.items()} for light in lights]
     t64 = _f64_tables(nibl)
-    y, bound = _bound(lambda x: br.shade_render_numpy(x, l64, t64), g)
+    y, bound = _bound(lambda x: nb.shade_render_numpy(x, l64, t64), g)
     _assert_within(out, ref, bound, "jit(shade_direct + shade_ibl) vs NumPy")
     _assert_within(np.asarray(spelled), ref, bound, "shade_direct + shade_ibl (op by op) vs NumPy")
     # Each float32 side alone is within its one-sided bound of the float64 evaluation.
@@ -239,16 +240,16 @@ def test_numpy_shading_equals_jax_direct_plus_ibl(tables, mapping):
 def test_numpy_shading_on_the_sphere_gbuffer(tables):
     """The benchmark's own G-buffer (sphere grid + wall), small."""
     irr, pre, lut = tables
-    g = br.make_sphere_gbuffer(96, 54)
-    assert all(g[k].dtype == np.float32 for k in br.GBUFFER_KEYS) and g["sphere"].any() and not g["sphere"].all()
+    g = nb.make_sphere_gbuffer(96, 54)
+    assert all(g[k].dtype == np.float32 for k in nb.GBUFFER_KEYS) and g["sphere"].any() and not g["sphere"].all()
     np.testing.assert_allclose(np.linalg.norm(g["normal"], axis=-1), 1.0, atol=4 * U)
-    gs = {k: g[k].reshape((96 * 54,) + g[k].shape[2:]) for k in br.GBUFFER_KEYS}  # (P, ...) for _bound
+    gs = {k: g[k].reshape((96 * 54,) + g[k].shape[2:]) for k in nb.GBUFFER_KEYS}  # (P, ...) for _bound
     lights = bench_lights()
-    nibl = br.NumpyIBL.from_tables(irr, pre, lut)
-    ref = br.shade_render_numpy(gs, lights, nibl)
+    nibl = nb.NumpyIBL.from_tables(irr, pre, lut)
+    ref = nb.shade_render_numpy(gs, lights, nibl)
     out = np.asarray(jax.jit(br.shade_render_jax)(gs, br.jax_point_lights(lights), irr, pre, lut))
     l64 = [{k: np.asarray(x, np.float64) for k, x in light.items()} for light in lights]
-    y, bound = _bound(lambda x: br.shade_render_numpy(x, l64, _f64_tables(nibl)), gs)
+    y, bound = _bound(lambda x: nb.shade_render_numpy(x, l64, _f64_tables(nibl)), gs)
     _assert_within(out, ref, bound, "sphere G-buffer")
     _assert_within(ref, y, bound / 2, "sphere G-buffer (numpy vs float64)")
 
@@ -288,7 +289,7 @@ def _parser():
     sub = p.add_subparsers(dest="command")
     b = sub.add_parser("bench")
     bsub = b.add_subparsers(dest="bench")
-    assert br.add_bench_render_command(bsub) is not None
+    assert br.add_command(bsub) is not None
     return p
 
 

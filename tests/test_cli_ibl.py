@@ -151,12 +151,12 @@ def test_output_directory_missing_or_not_a_directory(tmp_path, capsys, pano):
 
 def test_failure_after_first_file_removes_everything(tmp_path, capsys, monkeypatch):
     """A failure while writing the sidecar (after the cube file exists) leaves no files."""
-    import jaxpbr.cli_ibl as ci
+    import jaxpbr.cli.ibl as ci
 
     def boom(*a, **k):
         raise OSError("disk full")
 
-    monkeypatch.setattr(ci, "_write_json", boom)
+    monkeypatch.setattr(ci, "write_json", boom)
     _bad(["irradiance", "procedural:sky", "--face-size", "16", "--size", "4", "-o", str(tmp_path / "o.ktx2"), "--no-error"], tmp_path, capsys, "disk full")
 
 

@@ -4,7 +4,9 @@ end to end (slow)."""
 import numpy as np
 import pytest
 
-from jaxpbr import envs, report
+from jaxpbr import envs
+from jaxpbr.cli import report_precompute as report
+from jaxpbr.cli._common import have_matplotlib
 from jaxpbr.cli import main
 
 
@@ -21,7 +23,7 @@ def test_report_rows_table_and_plot(tmp_path):
     assert rows[4]["max"] < rows[3]["max"]
     md = report.markdown(rows)
     assert md.count("\n") == len(rows) + 2 and "| prefilter | sky | FIS + exact sun | 16 |" in md
-    if not report.have_matplotlib():  # optional [report] extra: the table is written, the plot is not
+    if not have_matplotlib():  # optional [report] extra: the table is written, the plot is not
         assert report.plot(rows, tmp_path / "p.png") is False and not (tmp_path / "p.png").exists()
         return
     assert report.plot(rows, tmp_path / "p.png")

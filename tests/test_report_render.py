@@ -1,4 +1,4 @@
-"""`jaxpbr report render` (jaxpbr.report_render): the split-sum error report against the reference."""
+"""`jaxpbr report render` (jaxpbr.cli.report_render): the split-sum error report against the reference."""
 
 import argparse
 import json
@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 
-from jaxpbr.report import have_matplotlib
-from jaxpbr.report_render import add_report_render_command, markdown, render_report, sphere_gbuffer
+from jaxpbr.cli._common import have_matplotlib
+from jaxpbr.cli.report_render import add_command, markdown, render_report, sphere_gbuffer
 
 
 def _parser():
@@ -15,7 +15,7 @@ def _parser():
     sub = parser.add_subparsers(dest="command")
     rp = sub.add_parser("report")
     rsub = rp.add_subparsers(dest="report")
-    add_report_render_command(rsub)
+    add_command(rsub)
     return parser
 
 

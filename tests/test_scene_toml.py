@@ -1,4 +1,4 @@
-"""Scene TOML files (jaxpbr.scene_toml): the examples load and render, values round-trip into the
+"""Scene TOML files (jaxpbr.cli.scene_file): the examples load and render, values round-trip into the
 Scene, every class of bad input gives a one-line message naming file, key path and fix."""
 
 import math
@@ -12,7 +12,7 @@ from jaxpbr import image
 from jaxpbr.errors import InputError
 from jaxpbr.material import Material
 from jaxpbr.scene import TexturedMaterial
-from jaxpbr.scene_toml import SceneFile, hex_to_linear, load_scene, loads_scene
+from jaxpbr.cli.scene_file import SceneFile, hex_to_linear, load_scene, loads_scene
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "scenes"
 

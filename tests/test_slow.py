@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.bench import bench_lights, make_gbuffer, shade_numpy
+from jaxpbr.cli.numpy_baselines import bench_lights, make_gbuffer, shade_numpy
 
 pytestmark = pytest.mark.slow
 

@@ -9,43 +9,31 @@ and a PNG plot (the plot needs matplotlib: `pip install 'jaxpbr[report]'`).
 
 from __future__ import annotations
 
-import time
+import sys
 from pathlib import Path
 
-import numpy as np
+from .. import envs
+from ..atomic import atomic_write
+from ..cubeio import load_environment
+from ..diffuse import irradiance
+from ..errors import InputError
+from ..lut import compute_brdf_lut
+from ..measure import irradiance_error, lut_error, prefilter_error, summarize
+from ..specular import prefilter
+from ._common import have_matplotlib, positive_int
+from .timing import time_calls, to_host
 
-__all__ = ["precompute_report"]
-
-
-def _timed(fn, repeats: int = 2):
-    """(result, first-call seconds, best-of-`repeats` seconds of later calls)."""
-    t0 = time.perf_counter()
-    out = fn()
-    first = time.perf_counter() - t0
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, first, best
-
-
-def _block(x):
-    import jax
-
-    return jax.tree_util.tree_map(lambda a: np.asarray(a), x)
+__all__ = ["add_command", "cmd_report_precompute", "precompute_report"]
 
 
 def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schlick"), log=print) -> list[dict]:
-    from .lut import compute_brdf_lut
-    from .measure import lut_error
-
     rows = []
     for smith in smiths:
         for size in sizes:
             for n in samples:
                 kw = {} if n is None else {"samples": n}
-                lut, first, best = _timed(lambda: _block(compute_brdf_lut(size, smith=smith, **kw)))
+                lut, _t = time_calls(lambda: to_host(compute_brdf_lut(size, smith=smith, **kw)), rounds=2)
+                first, best = _t.first, _t.best
                 # Every texel up to 128^2; above that the edges + 4096 random texels (the every-texel
                 # figures of the shipped 256^2 LUTs are in luts/MANIFEST.json).
                 err = lut_error(lut, smith, texels=None if size <= 128 else 4096)
@@ -55,13 +43,11 @@ def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schli
 
 
 def irradiance_rows(env, env_name: str, size: int = 32, source_sizes=(16, 32, 64), log=print) -> list[dict]:
-    from .diffuse import irradiance
-    from .measure import irradiance_error
-
     rows = []
     configs = [("exact", s) for s in source_sizes if s <= env.face_size] + [("sh9", None)]
     for method, src in configs:
-        irr, first, best = _timed(lambda: _block(irradiance(env, size, method=method, source_size=src)))
+        irr, _t = time_calls(lambda: to_host(irradiance(env, size, method=method, source_size=src)), rounds=2)
+        first, best = _t.first, _t.best
         err = irradiance_error(env, irr, texels=1024)
         rows.append(dict(what="irradiance", env=env_name, variant=method if src is None else f"exact src {src}^2", param=src or 9, seconds=best, compile_s=max(0.0, first - best), mean=err["mean"], max=err["max"], unit="rel"))
         log(f"  irradiance {env_name} {rows[-1]['variant']}: mean {100 * err['mean']:.3f} % max {100 * err['max']:.3f} % in {best:.2f} s")
@@ -69,13 +55,11 @@ def irradiance_rows(env, env_name: str, size: int = 32, source_sizes=(16, 32, 64
 
 
 def prefilter_rows(env, env_name: str, samples=(64, 128, 256, 512), exact_texels=(0, 256), texels_per_level=512, log=print) -> list[dict]:
-    from .measure import prefilter_error, summarize
-    from .specular import prefilter
-
     rows = []
     for et in exact_texels:
         for n in samples:
-            pre, first, best = _timed(lambda: _block(prefilter(env, samples=n, exact_texels=et)), repeats=1)
+            pre, _t = time_calls(lambda: to_host(prefilter(env, samples=n, exact_texels=et)), rounds=1)
+            first, best = _t.first, _t.best
             w = summarize(prefilter_error(env, pre, texels_per_level=texels_per_level))
             rows.append(dict(what="prefilter", env=env_name, variant=f"FIS{' + exact sun' if et else ''}", param=n, seconds=best, compile_s=max(0.0, first - best), mean=w["mean"], max=w["max"], unit="rel"))
             log(f"  prefilter {env_name} {env.face_size}^2 samples={n} exact_texels={et}: mean {100 * w['mean']:.2f} % worst {100 * w['max']:.2f} % in {best:.2f} s")
@@ -103,16 +87,6 @@ def _family(r: dict) -> str:
     if r["what"] == "irradiance":
         return f"{r['env']}: {'exact (src 16-64)' if r['variant'].startswith('exact') else 'sh9'}"
     return f"{r['env']}: {r['variant']}"
-
-
-def have_matplotlib() -> bool:
-    """True if the real matplotlib is importable. (colour-science puts a `MagicMock` in
-    sys.modules["matplotlib"] when matplotlib is missing, so a bare import is not enough.)"""
-    try:
-        import matplotlib
-    except ImportError:
-        return False
-    return isinstance(getattr(matplotlib, "__file__", None), str)
 
 
 def plot(rows: list[dict], path: Path) -> bool:
@@ -143,19 +117,13 @@ def plot(rows: list[dict], path: Path) -> bool:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, frameon=False)
     fig.tight_layout()
-    from .image import _atomic_write
-
-    _atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
     plt.close(fig)
     return True
 
 
 def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size: int = 256, quick: bool = False, log=print) -> tuple[str, list[dict]]:
     """Run the sweeps, write `<out_prefix>.md` and `<out_prefix>.png`; return (markdown, rows)."""
-    from . import envs
-    from .cli_ibl import load_environment
-    from .image import _atomic_write
-
     environments = [("procedural sky+sun", envs.sky_with_sun_cubemap(face_size))]
     for p in env_paths:
         environments.append((Path(p).name, load_environment([str(p)], face_size)))
@@ -175,8 +143,29 @@ def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size
     def w(tmp):
         Path(tmp).write_text(md)
 
-    _atomic_write(md_path, w)
+    atomic_write(md_path, w)
     png = Path(f"{out_prefix}.png")
     if not plot(rows, png):
         log("matplotlib is not installed: wrote the table only (pip install 'jaxpbr[report]' for the plot)")
     return md, rows
+
+
+def add_command(rsub) -> None:
+    """Register `jaxpbr report precompute`."""
+    p = rsub.add_parser("precompute", help="LUT / irradiance / prefilter error vs run time (Markdown table + PNG plot)")
+    p.add_argument("env", nargs="*", metavar="HDR", help="extra equirect panoramas to measure on (the procedural sky+sun is always included)")
+    p.add_argument("--out", default="precompute_report", help="output prefix: <out>.md and <out>.png (default: %(default)s)")
+    p.add_argument("--face-size", type=positive_int, default=256, help="environment face size (default: %(default)s)")
+    p.add_argument("--quick", action="store_true", help="a smaller sweep (for a first look)")
+    p.set_defaults(func=cmd_report_precompute)
+
+
+def cmd_report_precompute(args) -> int:
+    for p in args.env:
+        if not Path(p).exists():
+            raise InputError(f"environment file {p!r} does not exist")
+    md, _ = precompute_report(args.env, out_prefix=args.out, face_size=args.face_size, quick=args.quick, log=lambda m: print(m, file=sys.stderr))
+    print(md)
+    png = Path(f"{args.out}.png")
+    print(f"wrote {args.out}.md" + (f" and {png}" if png.exists() else " (no plot: matplotlib is not installed)"))
+    return 0

@@ -31,7 +31,17 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from .. import image
+from ..brdf_terms import MODELS
+from ..color import TONEMAP_OPERATORS, TRANSFERS, srgb_decode
+from ..cubeio import load_environment
+from ..diffuse import IRRADIANCE_METHODS
+from ..errors import InputError
+from ..lights import DirectionalLight, PointLight, SpotLight
+from ..material import Material
+from ..renderer import RenderOptions
+from ..scene import Camera, Environment, Plane, Scene, Sphere, TexturedMaterial
+from ..specular import MAPPINGS
 
 __all__ = ["SceneFile", "hex_to_linear", "load_scene", "loads_scene"]
 
@@ -350,8 +360,6 @@ class _Loader:
         env = None
         if "environment" in doc:
             env = self.environment(self.table(doc["environment"], "environment"), options)
-        from .scene import Scene
-
         scene = self.build(
             "", Scene, camera=camera, objects=objects, lights=lights, environment=env,
             background=background, ambient=ambient,
@@ -359,11 +367,6 @@ class _Loader:
         return SceneFile(scene=scene, options=options, output=output, materials=materials)
 
     def render_options(self, t: dict) -> dict:
-        from .brdf_terms import MODELS
-        from .diffuse import IRRADIANCE_METHODS
-        from .renderer import RenderOptions
-        from .specular import MAPPINGS
-
         self.check_keys(t, _RENDER, "render")
         out: dict = {}
         for key, x in t.items():
@@ -384,8 +387,6 @@ class _Loader:
         return out
 
     def output(self, t: dict, model: str) -> dict:
-        from .color import TONEMAP_OPERATORS, TRANSFERS
-
         self.check_keys(t, _OUTPUT, "output")
         lo = model == "learnopengl"
         out = {
@@ -402,8 +403,6 @@ class _Loader:
         return out
 
     def camera(self, t: dict):
-        from .scene import Camera
-
         self.check_keys(t, _CAMERA, "camera")
         kw: dict = {}
         for key in ("position", "target", "up"):
@@ -417,9 +416,6 @@ class _Loader:
         return self.build("camera", Camera, **kw)
 
     def environment(self, t: dict, options: dict):
-        from .cli_ibl import load_environment
-        from .scene import Environment
-
         self.check_keys(t, _ENVIRONMENT, "environment")
         if ("file" in t) == ("files" in t):
             self.fail(
@@ -470,8 +466,6 @@ class _Loader:
         )
 
     def lights(self, arr) -> tuple:
-        from .lights import DirectionalLight, PointLight, SpotLight
-
         if isinstance(arr, dict):
             self.fail("lights", "expected an array of tables: write each light as [[lights]], not [lights]")
         if not isinstance(arr, list):
@@ -517,9 +511,6 @@ class _Loader:
         return {name: self.material(self.table(m, f"materials.{name}", what), f"materials.{name}") for name, m in t.items()}
 
     def material(self, t: dict, path: str):
-        from .material import Material
-        from .scene import TexturedMaterial
-
         self.check_keys(t, _MATERIAL, path, "a material")
         kw: dict = {}
         if "base_color" in t:
@@ -544,9 +535,6 @@ class _Loader:
         return self.build(path, TexturedMaterial, factors=factors, **tex)
 
     def texture(self, x, path: str, key: str):
-        from . import image
-        from .color import srgb_decode
-
         srgb, min_c, holds = _TEXTURES[key]
         p = self.file(x, path)
         ext = p.suffix.lower()
@@ -575,8 +563,6 @@ class _Loader:
         return img
 
     def objects(self, arr, materials: dict) -> tuple:
-        from .scene import Plane, Sphere
-
         if isinstance(arr, dict):
             self.fail("objects", "expected an array of tables: write each object as [[objects]], not [objects]")
         if not isinstance(arr, list):

@@ -17,14 +17,37 @@ relative-error images (the PNG needs matplotlib: `pip install 'jaxpbr[report]'`)
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "add_report_render_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
+from .. import envs
+from .. import lights as _lights
+from ..atomic import atomic_write
+from ..cubeio import ENVIRONMENT_HELP, load_environment
+from ..cubemap import Cubemap
+from ..diffuse import irradiance
+from ..errors import InputError
+from ..ibl import shade_ibl
+from ..material import Material
+from ..reference_render import (
+    min_reference_roughness,
+    reference_ibl_from_terms,
+    reference_ibl_terms,
+)
+from ..shipped_luts import brdf_lut
+from ..specular import prefilter
+from ._common import have_matplotlib, positive_int
+from .timing import time_calls
+
+__all__ = ["DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "add_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
 
 DEFAULT_ROUGHNESS = (0.05, 0.15, 0.3, 0.5, 0.75, 1.0)
 DEFAULT_METALLIC = (0.0, 1.0)
@@ -45,20 +68,15 @@ def sphere_gbuffer(pixels: int):
 def default_lights():
     """A warm point light up-right in front of the sphere and a cool directional light from the
     upper left: (list of lights, description)."""
-    import jaxpbr as jp
-
     lights = [
-        jp.PointLight(position=(2.0, 2.0, 3.0), color=(1.0, 0.9, 0.8), intensity=20.0),
-        jp.DirectionalLight(direction=(0.5, -0.6, -0.6), color=(0.8, 0.9, 1.0), intensity=2.0),
+        _lights.PointLight(position=(2.0, 2.0, 3.0), color=(1.0, 0.9, 0.8), intensity=20.0),
+        _lights.DirectionalLight(direction=(0.5, -0.6, -0.6), color=(0.8, 0.9, 1.0), intensity=2.0),
     ]
     desc = "point light at (2, 2, 3), colour (1, 0.9, 0.8), 20 cd; directional light travelling (0.5, -0.6, -0.6), colour (0.8, 0.9, 1), 2 lux"
     return lights, desc
 
 
 def _lights_as(lights, dtype):
-    import jax
-    import jax.numpy as jnp
-
     return jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype) if jnp.issubdtype(jnp.asarray(a).dtype, jnp.floating) else a, lights)
 
 
@@ -69,16 +87,6 @@ def _errors(test, ref):
     den = np.abs(ref).sum(-1)
     per_pixel = diff / np.maximum(den, 1e-300)
     return float(diff.sum() / max(den.sum(), 1e-300)), float(per_pixel.max(initial=0.0)), per_pixel
-
-
-def _best_time(fn, repeats: int):
-    best = float("inf")
-    out = None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, best
 
 
 def render_report(
@@ -100,28 +108,18 @@ def render_report(
     """Render the material grid both ways and measure the split-sum error.
 
     env: None (the procedural sky + 3000-radiance sun of `jaxpbr.envs` at `face_size`), a
-        `Cubemap`, or a path / "procedural:sky" (read with `cli_ibl.load_environment`).
+        `Cubemap`, or a path / "procedural:sky" (read with `jaxpbr.cubeio.load_environment`).
     roughness, metallic: the grid (every roughness >= `min_reference_roughness(face size)`).
     lights: punctual lights (default `default_lights()`).
     Returns a dict: "config", "precompute_s", "materials" (one dict of numbers per material),
     "images" (per-material per-pixel relative error (P, P), NaN off the disc; not JSON).
     """
-    import jax
-    import jax.numpy as jnp
-
-    import jaxpbr as jp
-
-    from .cubemap import Cubemap
-    from .reference_render import min_reference_roughness, reference_ibl_from_terms, reference_ibl_terms
-
     if isinstance(env, (str, Path)):
-        from .cli_ibl import load_environment
-
         env_name = env_name or str(env)
         env = load_environment([str(env)], face_size)
     elif env is None:
         env_name = env_name or "procedural sky+sun"
-        env = jp.envs.sky_with_sun_cubemap(face_size)
+        env = envs.sky_with_sun_cubemap(face_size)
     elif not isinstance(env, Cubemap):
         raise TypeError(f"env must be None, a path or a Cubemap, got {type(env).__name__}")
     env_name = env_name or "environment"
@@ -151,9 +149,9 @@ def render_report(
 
     # ---- precompute (once), float32 as users run it
     t0 = time.perf_counter()
-    lut = jp.brdf_lut(lut_size)
-    irr = jp.irradiance(env, irradiance_size)
-    pre = jp.prefilter(env, prefilter_size)
+    lut = brdf_lut(lut_size)
+    irr = irradiance(env, irradiance_size)
+    pre = prefilter(env, prefilter_size)
     jax.block_until_ready((lut, irr.levels, pre.levels))
     precompute_s = time.perf_counter() - t0
     log(f"  precompute (LUT {lut_size}^2, irradiance {irradiance_size}^2, prefilter {pre.face_size}^2 x {pre.num_levels} mips): {precompute_s:.2f} s")
@@ -164,16 +162,16 @@ def render_report(
 
     @jax.jit
     def split_sum(p_, n_, v_, m_, irr_, pre_, lut_, lights_):
-        ibl = jp.shade_ibl(n_, v_, m_, irr_, pre_, lut_)
-        return jp.shade_direct(p_, n_, v_, m_, lights_) + ibl, ibl
+        ibl = shade_ibl(n_, v_, m_, irr_, pre_, lut_)
+        return _lights.shade_direct(p_, n_, v_, m_, lights_) + ibl, ibl
 
     def material(r, m, dtype):
-        return jp.Material(base_color=jnp.asarray(base_color, dtype), metallic=jnp.asarray(m, dtype), roughness=jnp.asarray(r, dtype))
+        return Material(base_color=jnp.asarray(base_color, dtype), metallic=jnp.asarray(m, dtype), roughness=jnp.asarray(r, dtype))
 
     with jax.enable_x64(True):
         lights64 = _lights_as(lights, jnp.float64)
         n64, v64, p64 = (jnp.asarray(a, jnp.float64) for a in (n, v, p))
-        direct64 = jax.jit(lambda m_: jp.shade_direct(p64, n64, v64, m_, lights64))
+        direct64 = jax.jit(lambda m_: _lights.shade_direct(p64, n64, v64, m_, lights64))
 
     rows, images = [], {}
     for r in roughness:
@@ -182,8 +180,8 @@ def render_report(
         terms_s = time.perf_counter() - t0
         for m in metallic:
             m32 = material(r, m, f32)
-            jax.block_until_ready(split_sum(p32, n32, v32, m32, irr, pre, lut, lights32))  # warm-up (compile)
-            (tot, ibl), ss_s = _best_time(lambda: jax.block_until_ready(split_sum(p32, n32, v32, m32, irr, pre, lut, lights32)), repeats)
+            (tot, ibl), timing = time_calls(lambda: split_sum(p32, n32, v32, m32, irr, pre, lut, lights32), rounds=repeats)
+            ss_s = timing.best
             tot, ibl = np.asarray(tot, np.float64), np.asarray(ibl, np.float64)
             t0 = time.perf_counter()
             with jax.enable_x64(True):
@@ -273,8 +271,6 @@ def plot(result: dict, path) -> bool:
     """Per-pixel relative-error images, one per material (rows: metallic, columns: roughness), on
     one logarithmic colour scale with a colour bar -> PNG at `path`. False (nothing written)
     without matplotlib."""
-    from .report import have_matplotlib
-
     if not have_matplotlib():
         return False
     import matplotlib
@@ -303,24 +299,20 @@ def plot(result: dict, path) -> bool:
             ax.set_title(f"r={r:g} m={m:g}\nmean {100 * row['mean_rel_error']:.2f} %", fontsize=8)
     fig.colorbar(im, ax=axes, shrink=0.8, label="per-pixel relative error |split sum - reference| / reference")
     fig.suptitle(f"split-sum error, {result['config']['environment']}", fontsize=10)
-    from .image import _atomic_write
-
-    _atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
     plt.close(fig)
     return True
 
 
 def write_report(result: dict, output_dir, *, prefix: str = "render_report", log=print) -> list[Path]:
     """Write <prefix>.md, <prefix>.json and (with matplotlib) <prefix>.png into output_dir."""
-    from .image import _atomic_write
-
     d = Path(output_dir)
     if not d.is_dir():
         raise FileNotFoundError(f"output directory {str(d)!r} does not exist; create it first")
     written = []
     for suffix, text in ((".md", markdown(result)), (".json", to_json(result))):
         path = d / f"{prefix}{suffix}"
-        _atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
+        atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
         written.append(path)
     png = d / f"{prefix}.png"
     if plot(result, png):
@@ -336,8 +328,6 @@ def write_report(result: dict, output_dir, *, prefix: str = "render_report", log
 
 
 def _float_list(text: str) -> list[float]:
-    import argparse
-
     try:
         vals = [float(x) for x in text.replace(",", " ").split()]
     except ValueError:
@@ -347,13 +337,9 @@ def _float_list(text: str) -> list[float]:
     return vals
 
 
-def add_report_render_command(report_subparsers, positive_int=None):
+def add_command(report_subparsers):
     """Register `render` under the `jaxpbr report` sub-command group (the `add_subparsers()`
     object of `report`). Returns the new sub-parser."""
-    if positive_int is None:
-        from .cli import _positive_int as positive_int
-    from .cli_ibl import ENV_HELP
-
     p = report_subparsers.add_parser(
         "render",
         help="split-sum shading error vs the float64 reference render (Markdown table + JSON + PNG)",
@@ -361,7 +347,7 @@ def add_report_render_command(report_subparsers, positive_int=None):
         "reference (full reflectance integral over every environment texel), under an environment and two punctual "
         "lights; write render_report.md, render_report.json and render_report.png into --output-dir.",
     )
-    p.add_argument("--env", default="procedural:sky", help=f"{ENV_HELP} (default: %(default)s)")
+    p.add_argument("--env", default="procedural:sky", help=f"{ENVIRONMENT_HELP} (default: %(default)s)")
     p.add_argument("--output-dir", default=".", help="directory for render_report.md/.json/.png (default: current)")
     p.add_argument("--face-size", type=positive_int, default=64, help="environment face size (default: %(default)s; the reference's roughness floor halves in alpha per doubling, its cost grows 4x)")
     p.add_argument("--pixels", type=positive_int, default=48, help="sphere image size P x P (default: %(default)s)")
@@ -376,11 +362,6 @@ def add_report_render_command(report_subparsers, positive_int=None):
 
 
 def cmd_report_render(args) -> int:
-    import sys
-
-    from .cli_ibl import load_environment
-    from .errors import InputError
-
     out_dir = Path(args.output_dir)
     if not out_dir.is_dir():
         raise InputError(f"--output-dir {str(out_dir)!r} does not exist; create it first")

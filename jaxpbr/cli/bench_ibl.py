@@ -17,18 +17,23 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .report import _block, _timed
+from ..brdf_terms import schlick_weight, v_smith_correlated
+from ..cubeio import load_environment
+from ..diffuse import irradiance
+from ..lut import compute_brdf_lut
+from ..measure import irradiance_error, lut_error, prefilter_error, summarize
+from ..sampling import hammersley, sample_ggx_h
+from ..specular import prefilter
+from ._common import positive_int
+from .timing import time_calls, to_host
 
-__all__ = ["bench_ibl", "hammersley_lut"]
+__all__ = ["add_command", "bench_ibl", "cmd_bench_ibl", "hammersley_lut"]
 
 
 @jax.jit
 def _hammersley_lut_kernel(mu, alpha, xi):
     """Karis 2013 `IntegrateBRDF` (height-correlated V form): (A, B) per (mu, alpha) from the
     same N Hammersley points. mu, alpha (T,); xi (N, 2)."""
-    from .brdf_terms import schlick_weight, v_smith_correlated
-    from .sampling import sample_ggx_h
-
     h = sample_ggx_h(xi[None, :, :], alpha[:, None])  # (T, N, 3)
     cos_h = h[..., 2]
     v = jnp.stack([jnp.sqrt(1.0 - mu * mu), jnp.zeros_like(mu), mu], -1)[:, None, :]
@@ -43,8 +48,6 @@ def _hammersley_lut_kernel(mu, alpha, xi):
 
 def hammersley_lut(size: int, samples: int = 1024) -> np.ndarray:
     """The peers' LUT: `samples` Hammersley points of GGX NDF sampling per texel (correlated V)."""
-    from .sampling import hammersley
-
     c = (np.arange(size) + 0.5) / size
     rr, mm = np.meshgrid(c, c, indexing="ij")
     xi = hammersley(samples, jnp.float32)
@@ -53,15 +56,11 @@ def hammersley_lut(size: int, samples: int = 1024) -> np.ndarray:
 
 
 def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_level: int = 512) -> str:
-    from .diffuse import irradiance
-    from .lut import compute_brdf_lut
-    from .measure import irradiance_error, lut_error, prefilter_error, summarize
-    from .specular import prefilter
-
     lines = [f"jaxpbr bench ibl: {env_name}, {env.face_size}^2 faces, device {jax.devices()[0].device_kind}"]
 
     # prefilter --------------------------------------------------------------------------------
-    pre, first, t_ours = _timed(lambda: _block(prefilter(env)), repeats=2)
+    pre, _t = time_calls(lambda: to_host(prefilter(env)), rounds=2)
+    first, t_ours = _t.first, _t.best
     e_ours = summarize(prefilter_error(env, pre, texels_per_level=texels_per_level))
     M = pre.num_levels
     lines += [
@@ -70,7 +69,8 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
         f"{t_ours:.2f} s (compile {max(0.0, first - t_ours):.2f} s), mean {100 * e_ours['mean']:.2f} %, worst texel {100 * e_ours['max']:.2f} %",
     ]
     for n in sorted({256, baseline_samples}):
-        base, _, t_base = _timed(lambda: _block(prefilter(env, samples=[n] * M, exact_texels=0)), repeats=1)
+        base, _t = time_calls(lambda: to_host(prefilter(env, samples=[n] * M, exact_texels=0)), rounds=1)
+        _, t_base = _t.first, _t.best
         e_base = summarize(prefilter_error(env, base, texels_per_level=texels_per_level))
         lines += [
             f"  baseline plain FIS (Filament recipe: NDF sampling, K=4), {n} samples every level: {t_base:.2f} s, "
@@ -80,9 +80,11 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
         ]
 
     # LUT --------------------------------------------------------------------------------------
-    lut, lfirst, t_lut = _timed(lambda: np.asarray(compute_brdf_lut(256)), repeats=2)
+    lut, _t = time_calls(lambda: np.asarray(compute_brdf_lut(256)), rounds=2)
+    lfirst, t_lut = _t.first, _t.best
     e_lut = lut_error(lut, "correlated", texels=None)
-    hl, hfirst, t_h = _timed(lambda: hammersley_lut(256, 1024), repeats=2)
+    hl, _t = time_calls(lambda: hammersley_lut(256, 1024), rounds=2)
+    _, t_h = _t.first, _t.best
     e_h = lut_error(hl, "correlated", texels=None)
     lines += [
         "BRDF LUT 256^2, height-correlated (max |error| at every texel vs float64 quadrature):",
@@ -92,10 +94,13 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
     ]
 
     # irradiance -------------------------------------------------------------------------------
-    irr, ifirst, t_irr = _timed(lambda: _block(irradiance(env, 32)), repeats=2)
+    irr, _t = time_calls(lambda: to_host(irradiance(env, 32)), rounds=2)
+    ifirst, t_irr = _t.first, _t.best
     e_irr = irradiance_error(env, irr, texels=1024)
-    full, ffirst, t_full = _timed(lambda: _block(irradiance(env, 32, source_size=env.face_size)), repeats=1)
-    sh, sfirst, t_sh = _timed(lambda: _block(irradiance(env, 32, method="sh9")), repeats=2)
+    full, _t = time_calls(lambda: to_host(irradiance(env, 32, source_size=env.face_size)), rounds=1)
+    _, t_full = _t.first, _t.best
+    sh, _t = time_calls(lambda: to_host(irradiance(env, 32, method="sh9")), rounds=2)
+    _, t_sh = _t.first, _t.best
     e_sh = irradiance_error(env, sh, texels=1024)
     lines += [
         "irradiance 32^2 (relative error vs full-resolution exact convolution in float64):",
@@ -104,3 +109,18 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
         f"  SH9: {t_sh:.3f} s, mean {100 * e_sh['mean']:.2f} %, max {100 * e_sh['max']:.2f} %",
     ]
     return "\n".join(lines)
+
+
+def add_command(bsub) -> None:
+    """Register `jaxpbr bench ibl`."""
+    p = bsub.add_parser("ibl", help="IBL precompute timings and errors vs a Filament-style FIS baseline, side by side")
+    p.add_argument("--env", default=None, help="equirect panorama (default: the procedural sky+sun)")
+    p.add_argument("--face-size", type=positive_int, default=256)
+    p.add_argument("--baseline-samples", type=positive_int, default=4096, help="samples of the plain-FIS baseline (default: %(default)s)")
+    p.set_defaults(func=cmd_bench_ibl)
+
+
+def cmd_bench_ibl(args) -> int:
+    env = load_environment([args.env] if args.env else ["procedural:sky"], args.face_size)
+    print(bench_ibl(env, args.env or "procedural sky+sun", baseline_samples=args.baseline_samples))
+    return 0

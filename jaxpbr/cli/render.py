@@ -1,47 +1,27 @@
-"""The `jaxpbr` command line (also `python -m jaxpbr`).
-
-Errors are reported as one line on stderr with a non-zero exit status; `--debug` shows the
-traceback instead.
-"""
+"""`jaxpbr render`: render the demo or a TOML scene file to PNG (and EXR)."""
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
 from pathlib import Path
 
-__all__ = ["main", "build_parser"]
+import numpy as np
+
+from .. import color, image
+from ..conventions import CONVENTIONS
+from ..demo import demo_scene
+from ..renderer import RenderOptions, plan, render
+from ._common import CLIError, positive_int
+from .scene_file import load_scene
+
+__all__ = ["add_command", "cmd_render"]
 
 _TONEMAPS = ("reinhard", "aces", "aces_narkowicz", "clamp")
 _ENCODINGS = ("srgb", "gamma2.2", "linear")
 
 
-class CLIError(Exception):
-    """An expected, user-facing error: printed as one line, exit status 2."""
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
-def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-
-    parser = argparse.ArgumentParser(
-        prog="jaxpbr",
-        description="Physically based shading and image-based lighting in JAX.",
-    )
-    parser.add_argument("--version", action="version", version=f"jaxpbr {__version__}")
-    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-
+def add_command(sub) -> None:
+    """Register `jaxpbr render` on the top-level sub-parsers."""
     r = sub.add_parser(
         "render",
         help="render the demo scene (or a scene.toml) to a PNG",
@@ -52,9 +32,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("scene", nargs="?", default=None, help="scene description (.toml); default: the demo")
     r.add_argument("-o", "--output", default="jaxpbr_demo.png", help="output PNG path (default: %(default)s)")
-    r.add_argument("--width", type=_positive_int, default=None, help="image width (default: 1280, or the scene's)")
-    r.add_argument("--height", type=_positive_int, default=None, help="image height (default: 720, or the scene's)")
-    r.add_argument("--supersample", type=_positive_int, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
+    r.add_argument("--width", type=positive_int, default=None, help="image width (default: 1280, or the scene's)")
+    r.add_argument("--height", type=positive_int, default=None, help="image height (default: 720, or the scene's)")
+    r.add_argument("--supersample", type=positive_int, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
     r.add_argument("--model", choices=("gltf", "learnopengl"), default=None, help="BRDF model (default: gltf, or the scene's)")
     r.add_argument("--exposure", type=float, default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
@@ -73,28 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--hdr", action="store_true", help="also write the linear HDR image as EXR next to the PNG")
     r.add_argument("--no-environment", action="store_true", help="demo only: leave out the sky (no IBL)")
     r.add_argument("--no-lights", action="store_true", help="demo only: leave out the point lights")
-    r.set_defaults(func=_cmd_render)
-
-    b = sub.add_parser("bench", help="benchmarks (JAX vs NumPy, side by side in one process)")
-    bsub = b.add_subparsers(dest="bench", metavar="BENCH")
-    bs = bsub.add_parser(
-        "shade",
-        help="shade a 1920x1080 G-buffer with 4 point lights: jitted JAX vs vectorised NumPy",
-    )
-    bs.add_argument("--width", type=_positive_int, default=1920)
-    bs.add_argument("--height", type=_positive_int, default=1080)
-    bs.add_argument("--repeats", type=_positive_int, default=10, help="timed JAX runs (median)")
-    bs.add_argument("--numpy-repeats", type=_positive_int, default=3, help="timed NumPy runs (median)")
-    bs.set_defaults(func=_cmd_bench_shade)
-    b.set_defaults(func=lambda args: b.print_help() or 0)
-
-    from .cli_ibl import add_commands
-
-    add_commands(sub, _positive_int, bench_sub=bsub)
-    from .bench_render import add_bench_render_command
-
-    add_bench_render_command(bsub)
-    return parser
+    r.set_defaults(func=cmd_render)
 
 
 def _check_output_path(path: Path) -> None:
@@ -105,19 +64,11 @@ def _check_output_path(path: Path) -> None:
         raise CLIError(f"--output must end in .png, got {path.name!r}")
 
 
-def _cmd_render(args) -> int:
-    import numpy as np
-
-    from . import color, image
-    from .conventions import CONVENTIONS
-    from .renderer import RenderOptions, plan, render
-
+def cmd_render(args) -> int:
     out = Path(args.output)
     _check_output_path(out)
     display_opts: dict = {}
     if args.scene is None:
-        from .demo import demo_scene
-
         scene = demo_scene(
             args.width or 1280,
             args.height or 720,
@@ -131,8 +82,6 @@ def _cmd_render(args) -> int:
     else:
         if args.no_lights or args.no_environment:
             raise CLIError("--no-lights/--no-environment apply to the demo only; edit the scene file instead")
-        from .scene_toml import load_scene
-
         loaded = load_scene(args.scene)
         scene, options, display_opts = loaded.scene, dict(loaded.options), dict(loaded.output)
         if scene.camera is not None and (args.width or args.height or args.supersample):
@@ -182,34 +131,3 @@ def _cmd_render(args) -> int:
         image.write(exr, hdr, metadata=hdr_meta)
         print(f"wrote {exr} (linear HDR, float32)")
     return 0
-
-
-def _cmd_bench_shade(args) -> int:
-    from .bench import bench_shade
-
-    result = bench_shade(args.width, args.height, repeats=args.repeats, numpy_repeats=args.numpy_repeats)
-    print(result.report())
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if getattr(args, "func", None) is None:
-        parser.print_help()
-        return 0
-    try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("jaxpbr: interrupted", file=sys.stderr)
-        return 130
-    except Exception as exc:  # one line on stderr unless --debug
-        if args.debug:
-            raise
-        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"jaxpbr: error: {msg}", file=sys.stderr)
-        return 2 if isinstance(exc, (CLIError, ValueError, FileNotFoundError)) else 1
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

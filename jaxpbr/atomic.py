@@ -1,0 +1,119 @@
+"""Files written whole or not at all.
+
+`atomic_write` writes through a temporary file in the target's directory and renames it over the
+target, so a crash, a signal or a full disk never leaves a half-written file under the final name.
+`OutputSet` groups the files one command writes: if the command fails, every file it already
+wrote is removed again (no partial results). `write_json` is the atomic JSON sidecar writer.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+from pathlib import Path
+
+from .errors import InputError
+
+__all__ = ["OutputSet", "atomic_write", "write_json"]
+
+
+def atomic_write(path, writer) -> None:
+    """Write through ``writer(tmp_path)`` to a temp file next to ``path``, then rename it over ``path``."""
+    path = Path(path)
+    parent = path.parent
+    if not parent.exists():
+        raise FileNotFoundError(
+            f"cannot write {str(path)!r}: directory {str(parent)!r} does not exist (create it first)"
+        )
+    if not parent.is_dir():
+        raise NotADirectoryError(f"cannot write {str(path)!r}: {str(parent)!r} is not a directory")
+    if path.is_dir():
+        raise IsADirectoryError(f"cannot write {str(path)!r}: it is an existing directory")
+
+    # Hidden name in the same directory (so os.replace is an atomic rename on one file system), keeping the
+    # extension last. Created with O_EXCL and mode 0o666 so the umask applies as for any new file.
+    for _ in range(100):
+        tmp = parent / f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            break
+        except FileExistsError:
+            continue
+        except OSError as e:
+            raise type(e)(
+                e.errno, f"cannot write {str(path)!r}: directory {str(parent)!r} is not writable ({e.strerror})"
+            ) from e
+    else:  # pragma: no cover - 100 random collisions
+        raise OSError(f"cannot create a temporary file in {str(parent)!r}")
+    os.close(fd)
+
+    try:
+        writer(str(tmp))
+        os.replace(tmp, path)
+    except BaseException as e:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, PermissionError)):
+            raise OSError(f"failed to write {str(path)!r}: {e}") from e
+        raise
+
+
+def write_json(path, data, outputs: "OutputSet | None" = None) -> Path:
+    """Write `data` as indented JSON atomically; register the file with `outputs` if given."""
+    path = Path(path)
+    text = json.dumps(data, indent=2, sort_keys=False) + "\n"
+
+    def writer(tmp):
+        with open(tmp, "w") as f:
+            f.write(text)
+
+    atomic_write(path, writer)
+    if outputs is not None:
+        outputs.add(path)
+    return path
+
+
+class OutputSet:
+    """The files one command writes: validate targets before any work, remove them all on failure.
+
+    Use as a context manager (`with OutputSet() as outs: ...`): if the block raises, every file
+    registered with `add` is deleted again and the exception propagates.
+    """
+
+    def __init__(self):
+        self.written: list[Path] = []
+
+    def check(self, path, suffixes: tuple[str, ...]) -> Path:
+        """Validate an output path before any work: suffix, existing writable directory, not a directory."""
+        path = Path(path)
+        if path.suffix.lower() not in suffixes:
+            raise InputError(f"output {str(path)!r} must end in one of {', '.join(suffixes)}")
+        parent = path.resolve().parent
+        if not parent.is_dir():
+            raise InputError(f"output directory {str(parent)!r} does not exist; create it first")
+        if path.is_dir():
+            raise InputError(f"output {str(path)!r} is a directory")
+        if not os.access(parent, os.W_OK):
+            raise InputError(f"output directory {str(parent)!r} is not writable")
+        return path
+
+    def add(self, path) -> None:
+        self.written.append(Path(path))
+
+    def rollback(self) -> None:
+        for p in self.written:
+            try:
+                p.unlink()
+            except FileNotFoundError:
+                pass
+
+    def __enter__(self) -> "OutputSet":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        if exc_type is not None:
+            self.rollback()
+        return False

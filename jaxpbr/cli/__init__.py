@@ -1,0 +1,81 @@
+"""The `jaxpbr` command line (also `python -m jaxpbr`): commands, benchmarks, reports, scene files.
+
+This subpackage sits on top of the library and the library never imports it. Each command lives
+in its own module and registers itself with `add_command`; errors are reported as one line on
+stderr with a non-zero exit status (`--debug` shows the traceback instead).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+
+from .._version import __version__
+from . import (
+    bench_ibl,
+    bench_render,
+    bench_shade,
+    ibl,
+    render,
+    report_precompute,
+    report_render,
+)
+from ._common import CLIError
+
+__all__ = ["CLIError", "build_parser", "main"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxpbr",
+        description="Physically based shading and image-based lighting in JAX.",
+    )
+    parser.add_argument("--version", action="version", version=f"jaxpbr {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    render.add_command(sub)
+    ibl.add_commands(sub)
+
+    b = sub.add_parser("bench", help="benchmarks (JAX vs NumPy or the peers' recipes, side by side in one process)")
+    bsub = b.add_subparsers(dest="bench", metavar="BENCH")
+    b.set_defaults(func=lambda args: b.print_help() or 0)
+    bench_shade.add_command(bsub)
+    bench_ibl.add_command(bsub)
+    bench_render.add_command(bsub)
+
+    rp = sub.add_parser("report", help="error-vs-run-time reports")
+    rsub = rp.add_subparsers(dest="report", metavar="REPORT")
+    rp.set_defaults(func=lambda args: rp.print_help() or 0)
+    report_precompute.add_command(rsub)
+    report_render.add_command(rsub)
+    return parser
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"jaxpbr: warning: {message}", file=sys.stderr)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help()
+        return 0
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning  # the library's warnings as one line, like errors
+            return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("jaxpbr: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:  # one line on stderr unless --debug
+        if args.debug:
+            raise
+        msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"jaxpbr: error: {msg}", file=sys.stderr)
+        return 2 if isinstance(exc, (CLIError, ValueError, FileNotFoundError)) else 1
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

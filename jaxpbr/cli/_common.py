@@ -1,0 +1,65 @@
+"""What every command shares: the user-facing error type, argument types, progress output."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from .._validate import positive_int as _positive_int_value
+
+__all__ = ["CLIError", "Progress", "have_matplotlib", "nonnegative_int", "positive_int"]
+
+
+class CLIError(Exception):
+    """An expected, user-facing error: printed as one line, exit status 2."""
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer > 0 (the library's validator, as an argparse error)."""
+    try:
+        return _positive_int_value("value", int(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
+
+
+class Progress:
+    """A one-line progress indicator on stderr (silent when `quiet`); the library's precomputes take
+    it as their `progress(done, total)` callback and know nothing of the terminal."""
+
+    def __init__(self, label: str, quiet: bool = False):
+        self.label, self.quiet, self.t0 = label, quiet, time.perf_counter()
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.quiet:
+            return
+        width = 24
+        fill = int(width * done / max(total, 1))
+        end = "\n" if done >= total else ""
+        print(
+            f"\r{self.label}: [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {time.perf_counter() - self.t0:.1f} s",
+            end=end,
+            file=sys.stderr,
+            flush=True,
+        )
+
+
+def have_matplotlib() -> bool:
+    """True if the real matplotlib is importable. (colour-science puts a `MagicMock` in
+    sys.modules["matplotlib"] when matplotlib is missing, so a bare import is not enough.)"""
+    try:
+        import matplotlib
+    except ImportError:
+        return False
+    return isinstance(getattr(matplotlib, "__file__", None), str)

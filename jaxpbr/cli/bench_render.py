@@ -1,0 +1,410 @@
+"""`jaxpbr bench render`: full shading (4 point lights + split-sum IBL), jitted JAX vs NumPy.
+
+`bench_render_gbuffer` shades a G-buffer of a sphere grid in front of a backdrop wall (every pixel
+a surface) with `shade_direct(..., model="gltf") + shade_ibl(..., model="gltf")` twice, in one
+process: `jp.render` of the G-buffer scene (the library's staged jitted programs) and
+`shade_render_numpy`, a vectorised float32 NumPy implementation
+of the same math (`jaxpbr.cli.numpy_baselines`: direct lights `shade_numpy`; IBL: a NumPy port of the seam-padded
+cube pyramid lookup of `Cubemap.sample`, the LUT lookup of `lut_lookup` and the split sum of
+`shade_ibl`). The IBL precompute (environment, irradiance, prefiltered mips, BRDF LUT) is timed
+separately; JIT compile time is reported apart from the median run time.
+
+`bench_batch` measures material-batch throughput: N materials on one ray-cast sphere under IBL +
+lights as one `jp.render_batch` call (a jitted `vmap` over materials, chunked by
+`jax.lax.map(..., batch_size=)` to bound memory), against a Python loop of `jp.render` calls.
+
+NumPy conventions: the G-buffer is a dict of float32 (H, W, ...) arrays (keys as
+`jaxpbr.cli.numpy_baselines.make_gbuffer`); normals and view vectors must be unit length (JAX renormalises them,
+a difference of an ulp); no emissive, occlusion 1 unless the dict has an `occlusion` plane.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import envs
+from ..cubemap import Cubemap
+from ..diffuse import irradiance
+from ..ibl import shade_ibl
+from ..lights import PointLight, shade_direct
+from ..material import Material
+from ..renderer import render, render_batch
+from ..scene import Camera, Environment, GBuffer, Scene, Sphere
+from ..shipped_luts import brdf_lut
+from ..specular import prefilter
+from ._common import nonnegative_int, positive_int
+from .bench_shade import _PEAK_BANDWIDTH
+from .numpy_baselines import (
+    GBUFFER_KEYS,
+    NumpyIBL,
+    bench_lights,
+    make_sphere_gbuffer,
+    shade_render_numpy,
+)
+from .timing import time_calls
+
+__all__ = [
+    "BatchBenchResult",
+    "RenderBenchResult",
+    "add_command",
+    "bench_batch",
+    "bench_render_gbuffer",
+    "jax_point_lights",
+    "make_ibl",
+    "shade_render_jax",
+]
+
+
+
+# ------------------------------------------------------------------------------------------
+# JAX side
+# ------------------------------------------------------------------------------------------
+
+
+def _material(base, metallic, roughness, dtype=jnp.float32) -> Material:
+    return Material(
+        base_color=base,
+        metallic=metallic,
+        roughness=roughness,
+        occlusion=jnp.ones((), dtype),
+        emissive=jnp.zeros(3, dtype),
+    )
+
+
+def shade_render_jax(g, lights, irr: Cubemap, pre: Cubemap, lut) -> jax.Array:
+    """`shade_direct(model="gltf") + shade_ibl(model="gltf")` on a G-buffer dict (jit it)."""
+    m = _material(g["base_color"], g["metallic"], g["roughness"])
+    direct = shade_direct(g["position"], g["normal"], g["view"], m, lights, model="gltf")
+    return direct + shade_ibl(g["normal"], g["view"], m, irr, pre, lut, model="gltf")
+
+
+def jax_point_lights(lights: list[dict]) -> list[PointLight]:
+    """`bench_lights()`-style dicts -> PointLights (float32; radiant = color * intensity)."""
+    return [
+        PointLight(position=jnp.asarray(x["position"], jnp.float32), color=jnp.ones(3, jnp.float32),
+                   intensity=jnp.asarray(np.max(x["radiant"]), jnp.float32))
+        for x in lights
+    ]
+
+
+@dataclass
+class IBLTables:
+    """The IBL environment and its precomputed tables, with the time each step took (seconds,
+    first call: JIT compilation included)."""
+
+    env: Cubemap
+    irr: Cubemap
+    pre: Cubemap
+    lut: jax.Array
+    times: dict
+
+
+def make_ibl(face_size: int = 128, *, irradiance_size: int = 32, lut_size: int = 128) -> IBLTables:
+    """`sky_with_sun_cubemap(face_size)` + `irradiance` + `prefilter` + `brdf_lut`, each timed."""
+    def timed(fn):  # one call each: the first call is the cost a user pays (compile included)
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn())
+        return out, time.perf_counter() - t0
+
+    times = {}
+    env, times["environment"] = timed(lambda: envs.sky_with_sun_cubemap(face_size))
+    irr, times["irradiance"] = timed(lambda: irradiance(env, min(irradiance_size, face_size)))
+    pre, times["prefilter"] = timed(lambda: prefilter(env))
+    lut, times["brdf_lut"] = timed(lambda: brdf_lut(lut_size))
+    return IBLTables(env, irr, pre, jnp.asarray(lut, jnp.float32), times)
+
+
+# ------------------------------------------------------------------------------------------
+# Benchmarks
+# ------------------------------------------------------------------------------------------
+
+
+def _device_kind() -> str:
+    d = jax.devices()[0]
+    return getattr(d, "device_kind", str(d))
+
+
+def _max_rel(a: np.ndarray, ref: np.ndarray, floor: float = 1e-3) -> float:
+    return float(np.max(np.abs(np.asarray(a) - ref) / np.maximum(np.abs(ref), floor)))
+
+
+@dataclass
+class RenderBenchResult:
+    width: int
+    height: int
+    num_lights: int
+    face_size: int
+    prefilter_levels: int
+    device: str
+    precompute_s: dict
+    compile_s: float
+    jax_s: float
+    numpy_s: float
+    numpy_ibl_setup_s: float
+    max_rel_diff: float
+    p999_rel_diff: float
+    bytes_per_pixel: int
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    @property
+    def ratio(self) -> float:
+        return self.numpy_s / self.jax_s
+
+    def report(self) -> str:
+        pre = ", ".join(f"{k} {v:.2f} s" for k, v in self.precompute_s.items())
+        gbs = self.pixels * self.bytes_per_pixel / self.jax_s / 1e9
+        lines = [
+            (
+                f"jaxpbr bench render: {self.width}x{self.height} sphere-grid G-buffer, {self.num_lights} point lights "
+                f"+ split-sum IBL (sky with sun {self.face_size}^2, {self.prefilter_levels} prefiltered mips), "
+                f"model gltf, float32, JAX device {self.device}"
+            ),
+            f"  IBL precompute (first calls, JIT included): {pre}; NumPy table setup {self.numpy_ibl_setup_s * 1e3:.1f} ms",
+            f"  {'implementation':<16}{'ms/frame':>12}{'frames/s':>12}{'Mpixels/s':>12}",
+            f"  {'numpy':<16}{self.numpy_s * 1e3:>12.1f}{1.0 / self.numpy_s:>12.2f}{self.pixels / self.numpy_s / 1e6:>12.1f}",
+            f"  {'jax.jit':<16}{self.jax_s * 1e3:>12.1f}{1.0 / self.jax_s:>12.2f}{self.pixels / self.jax_s / 1e6:>12.1f}",
+            f"  speed-up jax/numpy: {self.ratio:.1f}x   (JIT compile, once: {self.compile_s:.2f} s)",
+            f"  relative difference jax vs numpy: max {self.max_rel_diff:.2e}, 99.9th percentile {self.p999_rel_diff:.2e}",
+        ]
+        peak = next((bw for k, bw in _PEAK_BANDWIDTH.items() if k in self.device), None)
+        if peak is not None:
+            lines.append(
+                f"  G-buffer traffic {gbs:.1f} GB/s ({self.bytes_per_pixel} B/pixel, texture gathers not counted): "
+                f"{gbs * 1e9 / peak:.1%} of {self.device} peak"
+            )
+        return "\n".join(lines)
+
+
+def bench_render_gbuffer(
+    width: int = 1920,
+    height: int = 1080,
+    *,
+    repeats: int = 5,
+    numpy_repeats: int = 3,
+    face_size: int = 128,
+    ibl: IBLTables | None = None,
+) -> RenderBenchResult:
+    """Time jitted `shade_direct + shade_ibl` against `shade_render_numpy` on the same sphere-grid
+    G-buffer, in this process (see the module docstring)."""
+    for name, x in (("width", width), ("height", height), ("repeats", repeats), ("numpy_repeats", numpy_repeats), ("face_size", face_size)):
+        if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {x!r}.")
+    if ibl is None:
+        ibl = make_ibl(face_size)
+    g = make_sphere_gbuffer(width, height)
+    gs = {k: g[k] for k in GBUFFER_KEYS}
+    lights = bench_lights()
+    device = jax.devices()[0]
+    gd = {k: jax.device_put(x, device) for k, x in gs.items()}
+    jl = jax_point_lights(lights)
+
+    # The library's own path: jp.render of a G-buffer scene (staged programs: direct lighting,
+    # then IBL; see renderer._render_pass). The LUT is the shipped one render loads.
+    scene = Scene(
+        gbuffer=GBuffer(
+            hit=jnp.ones(gd["position"].shape[:2], bool),
+            position=gd["position"],
+            normal=gd["normal"],
+            view=gd["view"],
+            material=_material(gd["base_color"], gd["metallic"], gd["roughness"]),
+        ),
+        lights=jl,
+        environment=Environment(radiance=ibl.env, irradiance=ibl.irr, prefiltered=ibl.pre),
+    )
+    out, jt = time_calls(lambda: render(scene), rounds=min(3, repeats), number=max(1, repeats // 3))
+    compile_s, jax_s = jt.first, jt.median
+
+    t0 = time.perf_counter()
+    nibl = NumpyIBL.from_tables(ibl.irr, ibl.pre, ibl.lut)
+    setup_s = time.perf_counter() - t0
+    ref, nt = time_calls(lambda: shade_render_numpy(gs, lights, nibl), rounds=numpy_repeats)
+    numpy_s = nt.median
+
+    out = np.asarray(out)
+    rel = np.abs(out - ref) / np.maximum(np.abs(ref), 1e-3)
+    return RenderBenchResult(
+        width=width,
+        height=height,
+        num_lights=len(lights),
+        face_size=face_size,
+        prefilter_levels=ibl.pre.num_levels,
+        device=_device_kind(),
+        precompute_s=dict(ibl.times),
+        compile_s=compile_s,
+        jax_s=jax_s,
+        numpy_s=numpy_s,
+        numpy_ibl_setup_s=setup_s,
+        max_rel_diff=float(rel.max()),
+        p999_rel_diff=float(np.quantile(rel, 0.999)),
+        # float32 in: position, normal, view, base colour (3 each), metallic, roughness; out: RGB.
+        bytes_per_pixel=4 * (3 + 3 + 3 + 3 + 1 + 1) + 4 * 3,
+    )
+
+
+@dataclass
+class BatchBenchResult:
+    num_materials: int
+    size: int
+    chunk: int
+    num_lights: int
+    device: str
+    compile_s: float
+    loop_compile_s: float
+    batch_s: float
+    loop_s: float
+    max_rel_diff: float
+
+    @property
+    def ratio(self) -> float:
+        return self.loop_s / self.batch_s
+
+    def report(self) -> str:
+        n = self.num_materials
+        return "\n".join(
+            [
+                (
+                    f"jaxpbr bench render --batch: {n} materials x {self.size}x{self.size} ray-cast sphere scene, "
+                    f"{self.num_lights} point lights + IBL, float32, JAX device {self.device}"
+                ),
+                f"  {'implementation':<36}{'s/batch':>10}{'images/s':>12}{'Mpixels/s':>12}",
+                (
+                    f"  {'python loop of jp.render':<36}{self.loop_s:>10.3f}{n / self.loop_s:>12.1f}"
+                    f"{n * self.size**2 / self.loop_s / 1e6:>12.1f}"
+                ),
+                (
+                    f"  {f'jp.render_batch(chunk={self.chunk})':<36}{self.batch_s:>10.3f}"
+                    f"{n / self.batch_s:>12.1f}{n * self.size**2 / self.batch_s / 1e6:>12.1f}"
+                ),
+                (
+                    f"  speed-up batched/loop: {self.ratio:.2f}x   (JIT compile, once: batched {self.compile_s:.2f} s, "
+                    f"single {self.loop_compile_s:.2f} s)"
+                ),
+                f"  max relative difference batched vs loop: {self.max_rel_diff:.2e}",
+            ]
+        )
+
+
+def _batch_materials(num: int, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "base_color": rng.uniform(0.05, 0.95, (num, 3)).astype(np.float32),
+        "metallic": rng.uniform(0.0, 1.0, num).astype(np.float32),
+        "roughness": rng.uniform(0.0, 1.0, num).astype(np.float32),
+    }
+
+
+def bench_batch(
+    num_materials: int = 256,
+    size: int = 256,
+    chunk: int = 16,
+    *,
+    repeats: int = 3,
+    face_size: int = 128,
+    ibl: IBLTables | None = None,
+) -> BatchBenchResult:
+    """Material-batch throughput: `num_materials` materials on one ray-cast `size`^2 sphere scene,
+    4 point lights + IBL. Batched: `jp.render_batch(scene, materials=..., chunk=chunk)` (one jitted
+    `lax.map` with a vmap inside each chunk). Baseline: a Python loop of `jp.render` with one
+    material each (all dispatched, then waited for). Median of `repeats` timed runs each; the first
+    calls (compile) are reported apart."""
+    for name, x in (("num_materials", num_materials), ("size", size), ("chunk", chunk), ("repeats", repeats)):
+        if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {x!r}.")
+    if ibl is None:
+        ibl = make_ibl(face_size)
+    # The library's path: one Scene (a sphere ray-cast at size^2, 4 point lights, the IBL maps
+    # passed in), `render_batch` over a Material with a leading batch axis vs a Python loop of
+    # `render` calls with one material each.
+    jl = jax_point_lights(bench_lights())
+    mats = _batch_materials(num_materials)
+    batch_mat = Material(
+        base_color=jnp.asarray(mats["base_color"], jnp.float32),
+        metallic=jnp.asarray(mats["metallic"], jnp.float32),
+        roughness=jnp.asarray(mats["roughness"], jnp.float32),
+        occlusion=jnp.ones(num_materials, jnp.float32),
+        emissive=jnp.zeros((num_materials, 3), jnp.float32),
+    )
+    scene = Scene(
+        camera=Camera(position=(0.0, 0.0, 3.0), width=size, height=size, fov_y_deg=45.0),
+        objects=[Sphere()],
+        lights=jl,
+        environment=Environment(radiance=ibl.env, irradiance=ibl.irr, prefiltered=ibl.pre),
+    )
+    c = min(chunk, num_materials)
+
+    out_b, bt = time_calls(lambda: render_batch(scene, materials=batch_mat, chunk=c), rounds=repeats)
+    compile_s, batch_s = bt.first, bt.median
+
+    singles = [
+        scene.replace(objects=[Sphere(material=jax.tree_util.tree_map(lambda x: x[i], batch_mat))])
+        for i in range(num_materials)
+    ]
+    t0 = time.perf_counter()
+    render(singles[0]).block_until_ready()
+    loop_compile_s = time.perf_counter() - t0
+    out_l, lt = time_calls(lambda: [render(sc) for sc in singles], rounds=repeats)
+    loop_s = lt.median
+    ref = np.stack([np.asarray(x) for x in out_l])
+    return BatchBenchResult(
+        num_materials=num_materials,
+        size=size,
+        chunk=min(chunk, num_materials),
+        num_lights=len(jl),
+        device=_device_kind(),
+        compile_s=compile_s,
+        loop_compile_s=loop_compile_s,
+        batch_s=batch_s,
+        loop_s=loop_s,
+        max_rel_diff=_max_rel(out_b, ref),
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# CLI
+# ------------------------------------------------------------------------------------------
+
+
+
+
+def _cmd_bench_render(args) -> int:
+    ibl = make_ibl(args.face_size)
+    result = bench_render_gbuffer(
+        args.width, args.height, repeats=args.repeats, numpy_repeats=args.numpy_repeats, face_size=args.face_size, ibl=ibl
+    )
+    print(result.report(), flush=True)
+    if args.batch:
+        res = bench_batch(args.batch, args.batch_size, args.chunk, repeats=args.repeats, face_size=args.face_size, ibl=ibl)
+        print(res.report(), flush=True)
+    return 0
+
+
+def add_command(bench_subparsers) -> argparse.ArgumentParser:
+    """Register `jaxpbr bench render` on the `bench` sub-parsers; returns the new parser."""
+    p = bench_subparsers.add_parser(
+        "render",
+        help="shade a 1920x1080 sphere-grid G-buffer with 4 point lights + split-sum IBL: jitted JAX vs "
+        "vectorised NumPy; and a material-batch throughput run",
+        description="Direct (4 point lights) + split-sum IBL shading of a sphere-grid G-buffer, jitted "
+        "JAX vs vectorised NumPy in one process (IBL precompute and JIT compile timed apart); then N "
+        "materials on a sphere as one jitted vmap (chunked by lax.map) vs a Python loop of jitted calls.",
+    )
+    p.add_argument("--width", type=positive_int, default=1920)
+    p.add_argument("--height", type=positive_int, default=1080)
+    p.add_argument("--repeats", type=positive_int, default=10, help="timed JAX runs (median)")
+    p.add_argument("--numpy-repeats", type=positive_int, default=3, help="timed NumPy runs (median)")
+    p.add_argument("--face-size", type=positive_int, default=128, help="environment cube face size")
+    p.add_argument("--batch", type=nonnegative_int, default=256, metavar="N",
+                   help="materials in the batch-throughput run (0: skip it)")
+    p.add_argument("--batch-size", type=positive_int, default=256, metavar="S", help="batch image size S x S")
+    p.add_argument("--chunk", type=positive_int, default=16, help="materials per vmapped chunk (lax.map batch_size)")
+    p.set_defaults(func=_cmd_bench_render)
+    return p

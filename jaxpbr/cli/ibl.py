@@ -1,0 +1,240 @@
+"""`jaxpbr lut | irradiance | prefilter | ibl`: the IBL asset generator commands.
+
+Every output gets a JSON sidecar (`<output>.json`) with the conventions, parameters, library
+versions, run time and the measured error against the float64 reference. Inputs are validated
+before any work starts; outputs are written atomically, and a command that fails removes the
+files it already wrote, so there are never partial results.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import image
+from ..atomic import OutputSet, write_json
+from ..conventions import cube_conventions, library_versions
+from ..cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
+from ..diffuse import irradiance, sh9_project
+from ..errors import InputError
+from ..measure import irradiance_error, lut_error, prefilter_error, summarize
+from ..shipped_luts import brdf_lut
+from ..specular import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES, prefilter
+from ._common import Progress, positive_int
+
+__all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
+
+
+# ------------------------------------------------------------------------------------------
+# commands
+# ------------------------------------------------------------------------------------------
+
+
+def add_commands(sub) -> None:
+    """Register `lut`, `irradiance`, `prefilter` and `ibl` on the top-level sub-parsers."""
+
+    def common_env(p):
+        p.add_argument("env", nargs="+", metavar="ENV", help=ENVIRONMENT_HELP)
+        p.add_argument("--face-size", type=positive_int, default=None, help="face size of the environment cube (default: from the panorama, 256 for procedural)")
+        p.add_argument("--clamp-negative", action="store_true", help="set negative input pixels to 0 (with a warning) instead of failing")
+
+    def common_out(p, default, suffixes):
+        p.add_argument("-o", "--output", default=default, help=f"output file ({' or '.join(suffixes)}; default: %(default)s); a JSON sidecar is written next to it")
+        p.add_argument("--ktx-format", choices=("rgba16f", "rgba32f"), default="rgba16f", help="KTX2 texel format (default: %(default)s)")
+        p.add_argument("--no-error", action="store_true", help="skip measuring the error against the float64 reference")
+        p.add_argument("--quiet", action="store_true", help="no progress output")
+
+    p = sub.add_parser("lut", help="generate the split-sum BRDF LUT (EXR)", description="Converged split-sum LUT (A, B) with (n_r, n_nov) texels; the EXR's R = A, G = B, B = 0; row j at r = (j+0.5)/n_r (row 0 at the top), column i at NoV = (i+0.5)/n_nov.")
+    p.add_argument("--size", type=positive_int, default=128, help="texels per side (default: %(default)s)")
+    p.add_argument("--smith", choices=("correlated", "schlick"), default="correlated", help="Smith term: height-correlated (glTF/Filament) or Schlick-GGX k=alpha/2 (Karis/LearnOpenGL)")
+    p.add_argument("--samples", type=positive_int, default=None, help="quadrature samples per texel (default: the library default)")
+    p.add_argument("-o", "--output", default="brdf_lut.exr", help="output .exr (default: %(default)s)")
+    p.add_argument("--full-check", action="store_true", help="measure the error at every texel (slower) instead of the edges + 1024 random texels")
+    p.add_argument("--no-error", action="store_true", help="skip measuring the error")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_lut)
+
+    p = sub.add_parser("irradiance", help="diffuse irradiance cube (E/pi) from an environment")
+    common_env(p)
+    p.add_argument("--size", type=positive_int, default=32, help="output face size (default: %(default)s)")
+    p.add_argument("--method", choices=("exact", "sh9"), default="exact", help="exact cosine convolution or SH9 (default: %(default)s)")
+    common_out(p, "irradiance.ktx2", (".ktx2", ".exr"))
+    p.set_defaults(func=cmd_irradiance)
+
+    p = sub.add_parser("prefilter", help="GGX-prefiltered specular cube with all mips")
+    common_env(p)
+    _prefilter_args(p)
+    common_out(p, "prefiltered.ktx2", (".ktx2", ".exr"))
+    p.set_defaults(func=cmd_prefilter)
+
+    p = sub.add_parser("ibl", help="irradiance + prefiltered cube + BRDF LUT in one go")
+    common_env(p)
+    _prefilter_args(p)
+    p.add_argument("--irradiance-size", type=positive_int, default=32)
+    p.add_argument("--irradiance-method", choices=("exact", "sh9"), default="exact")
+    p.add_argument("--lut-size", type=positive_int, default=128)
+    p.add_argument("--smith", choices=("correlated", "schlick"), default="correlated")
+    p.add_argument("--out-dir", default=".", help="directory for irradiance.ktx2, prefiltered.ktx2, brdf_lut.exr and ibl.json (default: current)")
+    p.add_argument("--ktx-format", choices=("rgba16f", "rgba32f"), default="rgba16f")
+    p.add_argument("--no-error", action="store_true")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_ibl)
+
+
+def _prefilter_args(p):
+
+    p.add_argument("--size", type=positive_int, default=None, help="face size of mip 0 (default: the environment's)")
+    p.add_argument("--levels", type=positive_int, default=None, help="number of mips M (default: down to 1x1)")
+    p.add_argument("--mapping", choices=("linear", "quadratic"), default="linear", help="roughness->mip: r_m = m/(M-1) or Filament's (default: %(default)s)")
+    p.add_argument("--method", choices=("fis", "reference"), default="fis", help="filtered importance sampling or the float64 brute-force reference (slow)")
+    p.add_argument("--samples", type=positive_int, default=DEFAULT_SAMPLES, help="FIS samples on the large levels (default: %(default)s; small levels get more)")
+    p.add_argument("--exact-texels", type=int, default=DEFAULT_EXACT_TEXELS, help="brightest texels convolved exactly (default: %(default)s; 0 = off)")
+
+
+def _run(fn):
+    with OutputSet() as outs:
+        return fn(outs)
+
+
+def cmd_lut(args) -> int:
+    return _run(lambda outs: _lut(args, outs) and 0)
+
+
+def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
+    out = outs.check(Path(out_path or args.output), (".exr",))
+    t0 = time.perf_counter()
+    lut = np.asarray(brdf_lut(args.size, smith=args.smith, samples=args.samples, use_shipped=False))
+    seconds = time.perf_counter() - t0
+    err = None if args.no_error else lut_error(lut, args.smith, texels=None if getattr(args, "full_check", False) else 1024)
+    meta = {
+        "quantity": "split-sum BRDF LUT: int f_spec (n.l) dl = F0*A + F90*B; R = A, G = B, B = 0",
+        "layout": f"row j: r = (j+0.5)/{lut.shape[0]} (row 0 at the top), column i: NoV = (i+0.5)/{lut.shape[1]}; bilinear, clamp to edge",
+        "smith": args.smith,
+        "alpha": "alpha = r^2 (r perceptual roughness)",
+    }
+    rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), lut.dtype)], -1)
+    image.write(out, rgb, metadata={f"jaxpbr:{k}": v for k, v in meta.items()} | {"jaxpbr:max_abs_error": err["max"] if err else -1.0})
+    outs.add(out)
+    side = {
+        "kind": "brdf_lut",
+        "file": out.name,
+        **meta,
+        "size": list(lut.shape[:2]),
+        "samples": args.samples,
+        "seconds": seconds,
+        "error_vs_float64_reference": err,
+        "conventions": cube_conventions(),
+        "versions": library_versions(),
+    }
+    write_json(out.with_name(out.name + ".json"), side, outs)
+    if not args.quiet:
+        e = f"; max |error| {err['max']:.2e} over {err['texels']} texels" if err else ""
+        print(f"wrote {out} ({lut.shape[0]}x{lut.shape[1]}, smith {args.smith}, {seconds:.2f} s{e})")
+    return side
+
+
+def cmd_irradiance(args) -> int:
+    return _run(lambda outs: _irradiance(args, outs) and 0)
+
+
+def _irradiance(args, outs: OutputSet, env=None, out_path: Path | None = None, size=None, method=None) -> dict:
+
+    out = outs.check(Path(out_path or args.output), (".ktx2", ".exr"))
+    env = env if env is not None else load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
+    size = size or args.size
+    method = method or args.method
+    t0 = time.perf_counter()
+    irr = irradiance(env, size, method=method)
+    np.asarray(irr.levels[0])
+    seconds = time.perf_counter() - t0
+    err = None if args.no_error else irradiance_error(env, irr)
+    meta = {"quantity": "Ebar = E/pi (cosine-weighted mean radiance) at texel centres", "method": method, **irr.metadata}
+    files = write_cubemap(out, irr, fmt=args.ktx_format, metadata=meta, outputs=outs)
+    side = {
+        "kind": "irradiance",
+        "files": files,
+        **meta,
+        "face_size": size,
+        "environment_face_size": env.face_size,
+        "seconds": seconds,
+        "error_vs_float64_exact_full_resolution": err,
+        "conventions": cube_conventions(),
+        "versions": library_versions(),
+    }
+    if method == "sh9":
+        side["sh9_radiance_coefficients"] = {
+            "convention": "R&H 2001 real SH, no Condon-Shortley sign; L_lm = sum L Y_lm Omega (radiance); "
+            "E/pi = max(0, sum A_l L_lm Y_lm(n))/pi with A = (pi, 2pi/3, pi/4); order (0,0),(1,-1),(1,0),(1,1),(2,-2),(2,-1),(2,0),(2,1),(2,2)",
+            "values": np.asarray(sh9_project(env)).tolist(),
+        }
+    write_json(out.with_name(out.name + ".json"), side, outs)
+    if not args.quiet:
+        e = f"; error vs exact: mean {100 * err['mean']:.3f} %, max {100 * err['max']:.3f} %" if err else ""
+        print(f"wrote {out} ({size}^2 irradiance, {method}, {seconds:.2f} s{e})")
+    return side
+
+
+def cmd_prefilter(args) -> int:
+    return _run(lambda outs: _prefilter(args, outs) and 0)
+
+
+def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) -> dict:
+    out = outs.check(Path(out_path or args.output), (".ktx2", ".exr"))
+    if args.exact_texels < 0:
+        raise InputError(f"--exact-texels must be >= 0, got {args.exact_texels}")
+    env = env if env is not None else load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
+    t0 = time.perf_counter()
+    pre = prefilter(
+        env,
+        args.size,
+        num_levels=args.levels,
+        mapping=args.mapping,
+        method=args.method,
+        samples=args.samples,
+        exact_texels=args.exact_texels,
+        progress=Progress("prefilter", args.quiet),
+    )
+    [np.asarray(lv) for lv in pre.levels]
+    seconds = time.perf_counter() - t0
+    rows = None if args.no_error or args.method == "reference" else prefilter_error(env, pre)
+    meta = dict(pre.metadata)
+    files = write_cubemap(out, pre, fmt=args.ktx_format, metadata=meta, outputs=outs)
+    side = {
+        "kind": "prefiltered_specular",
+        "files": files,
+        **meta,
+        "lookup": "lod = r*(M-1) (linear) or (M-1)*r*(2-r) (quadratic); trilinear",
+        "face_size": pre.face_size,
+        "num_levels": pre.num_levels,
+        "seconds": seconds,
+        "error_vs_float64_reference": {"per_level": rows, "worst": summarize(rows)} if rows else None,
+        "conventions": cube_conventions(),
+        "versions": library_versions(),
+    }
+    write_json(out.with_name(out.name + ".json"), side, outs)
+    if not args.quiet:
+        e = ""
+        if rows:
+            w = summarize(rows)
+            e = f"; error vs reference (sampled texels): worst level mean {100 * w['mean']:.2f} %, worst texel {100 * w['max']:.2f} %"
+        print(f"wrote {out} ({pre.face_size}^2, {pre.num_levels} mips, {args.method}, {seconds:.2f} s{e})")
+    return side
+
+
+def cmd_ibl(args) -> int:
+    def go(outs):
+        d = Path(args.out_dir)
+        if not d.is_dir():
+            raise InputError(f"--out-dir {str(d)!r} does not exist; create it first")
+        env = load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
+        args.output = None
+        irr = _irradiance(args, outs, env=env, out_path=d / "irradiance.ktx2", size=args.irradiance_size, method=args.irradiance_method)
+        pre = _prefilter(args, outs, env=env, out_path=d / "prefiltered.ktx2")
+        args.size, args.samples = args.lut_size, None
+        lut = _lut(args, outs, out_path=d / "brdf_lut.exr")
+        write_json(d / "ibl.json", {"irradiance": irr, "prefiltered": pre, "brdf_lut": lut}, outs)
+        return 0
+
+    return _run(go)

@@ -1,0 +1,67 @@
+"""The one timer of the benchmarks and reports.
+
+JAX dispatches asynchronously: timing one call and synchronising it measures dispatch + launch +
+sync, which dominates small GPU kernels. `time_calls` instead runs `number` calls back to back
+and synchronises once at the end of each round (`jax.block_until_ready` on every output), so the
+per-call time is the steady-state throughput a loop of such calls gets. The first call (which
+includes tracing and compilation) is timed and reported apart. NumPy functions are timed the same
+way (synchronising them is a no-op).
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass
+
+import jax
+
+__all__ = ["Timing", "time_calls"]
+
+
+@dataclass(frozen=True)
+class Timing:
+    """Seconds per call: `first` (the first call, with compilation), then one figure per round
+    (`per_call`), summarised as `best` and `median`."""
+
+    first: float
+    per_call: tuple[float, ...]
+
+    @property
+    def best(self) -> float:
+        return min(self.per_call)
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.per_call)
+
+    @property
+    def compile(self) -> float:
+        """First call minus the steady state: tracing + compilation (+ one-time transfers)."""
+        return max(0.0, self.first - self.best)
+
+
+def time_calls(fn, *, rounds: int = 3, number: int = 1):
+    """Call `fn()` once (timed as `first`), then `rounds` rounds of `number` back-to-back calls.
+
+    Returns `(last result, Timing)`; every result is synchronised with `jax.block_until_ready`.
+    """
+    if rounds < 1 or number < 1:
+        raise ValueError(f"rounds and number must be >= 1, got {rounds} and {number}")
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    per_call = []
+    for _ in range(rounds):
+        t0 = time.perf_counter()
+        outs = [fn() for _ in range(number)]
+        jax.block_until_ready(outs)
+        per_call.append((time.perf_counter() - t0) / number)
+        out = outs[-1]
+    return out, Timing(first, tuple(per_call))
+
+
+def to_host(tree):
+    """Copy every array of a pytree to the host (NumPy): precompute timings include the copy a
+    caller makes to write the result to a file."""
+    return jax.tree_util.tree_map(lambda a: jax.device_get(a), tree)
