@@ -21,8 +21,10 @@ __all__ = [
     "eps",
     "is_concrete",
     "pack3",
+    "safe_div",
     "safe_normalize",
     "safe_sqrt",
+    "small_sq",
     "saturate",
     "unpack3",
     "vcross",
@@ -69,6 +71,28 @@ def _python_numbers(x) -> list | None:
 def eps(dtype) -> float:
     """Machine epsilon of a float dtype (1.19e-7 for float32, 2.2e-16 for float64)."""
     return float(jnp.finfo(dtype).eps)
+
+
+def small_sq(dtype) -> float:
+    """eps(dtype)^2: the floor below which a *squared* length of an O(1) vector is rounding noise
+    (1.4e-14 for float32, 4.9e-32 for float64).
+
+    Why one named floor: a literal such as 1e-12 is below float32 resolution for O(1) values and
+    far above float64's, so it means different things in the two precisions; `vnormalize`, the
+    ray-plane test and the sphere's pole test all use this one.
+    """
+    return eps(dtype) ** 2
+
+
+def safe_div(a, b, ok=None, *, fill=0.0):
+    """a / b on the lanes where `ok` (default: b != 0), `fill` elsewhere, finite in value and gradient.
+
+    Why: `jnp.where(ok, a / b, fill)` still differentiates a / b on the masked lanes, and the
+    infinite derivative times the zero mask is NaN. Double where: the division sees a benign 1 there.
+    """
+    if ok is None:
+        ok = b != 0
+    return jnp.where(ok, a / jnp.where(ok, b, 1.0), fill)
 
 
 # ------------------------------------------------------------------------------------------

@@ -5,6 +5,20 @@ from __future__ import annotations
 import importlib.metadata
 import platform
 
+import numpy as np
+
+#: Rec.709 / sRGB luminance weights of linear RGB (ITU-R BT.709, Y = 0.2126 R + 0.7152 G + 0.0722 B).
+REC709_LUMA = (0.2126, 0.7152, 0.0722)
+
+
+def luminance(rgb):
+    """Luminance (...) of linear Rec.709 RGB (..., 3) (NumPy or JAX); the channel mean for other
+    channel counts (a grey or non-RGB map has no primaries to weight)."""
+    if rgb.shape[-1] == 3:
+        return rgb @ np.asarray(REC709_LUMA, dtype=rgb.dtype)
+    return rgb.mean(-1)
+
+
 CONVENTIONS: dict[str, str] = {
     "axes": "right-handed, +Y up, camera looks down -Z (glTF/OpenGL)",
     "directions": "n, v, l unit vectors pointing away from the surface; h = normalize(v + l)",

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._interp import bilinear, lerp2
 from ._numerics import is_concrete
 
 __all__ = [
@@ -272,21 +273,11 @@ class _Pyramid:
         y = t * S + 0.5
         x0f = jnp.clip(jnp.floor(x), 0, S)
         y0f = jnp.clip(jnp.floor(y), 0, S)
-        fx = x - x0f
-        fy = y - y0f
         x0 = x0f.astype(jnp.int32)
         y0 = y0f.astype(jnp.int32)
         base = off + (face * W + y0) * W + x0
         f = self.flat
-        v00 = f[base]
-        v01 = f[base + 1]
-        v10 = f[base + W]
-        v11 = f[base + W + 1]
-        fx = fx[..., None]
-        fy = fy[..., None]
-        top = v00 + (v01 - v00) * fx
-        bot = v10 + (v11 - v10) * fx
-        return top + (bot - top) * fy
+        return lerp2(f[base], f[base + 1], f[base + W], f[base + W + 1], x - x0f, y - y0f)
 
     def sample(self, dirs, lod):
         face, s, t = dir_to_face(dirs)
@@ -599,17 +590,5 @@ def _equirect_bilinear_avg(img, pts, w):
     u, v_up = dir_to_equirect(pts)
     x = u * W - 0.5
     y = (1.0 - v_up) * H - 0.5
-    x0 = jnp.floor(x)
-    y0 = jnp.floor(y)
-    fx = (x - x0)[..., None]
-    fy = (y - y0)[..., None]
-    x0 = x0.astype(jnp.int32)
-    y0 = y0.astype(jnp.int32)
-    xa = jnp.mod(x0, W)  # longitude wraps
-    xb = jnp.mod(x0 + 1, W)
-    ya = jnp.clip(y0, 0, H - 1)  # latitude clamps at the poles
-    yb = jnp.clip(y0 + 1, 0, H - 1)
-    top = img[ya, xa] * (1 - fx) + img[ya, xb] * fx
-    bot = img[yb, xa] * (1 - fx) + img[yb, xb] * fx
-    val = top * (1 - fy) + bot * fy
+    val = bilinear(img, x, y, wrap_x=True)  # longitude wraps, latitude clamps at the poles
     return jnp.sum(val * w[..., None], axis=-2)

@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._interp import bilinear
 from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated
 
 __all__ = [
@@ -474,20 +475,6 @@ def lut_lookup(lut: jax.Array, n_dot_v: jax.Array, roughness: jax.Array) -> jax.
     dtype = jnp.result_type(lut.dtype, jnp.asarray(n_dot_v).dtype, jnp.asarray(roughness).dtype, float)
     mu, r = jnp.broadcast_arrays(jnp.asarray(n_dot_v, dtype), jnp.asarray(roughness, dtype))
 
-    def axis(u, n):
-        # Continuous texel index; clamping it to [0, n-1] is clamp-to-edge (the gradient is 0
-        # in the margins, not NaN). i0 is capped at n - 2 so i0 + 1 stays inside; at the last
-        # centre this gives frac = 1, the same value.
-        x = jnp.clip(u * n - 0.5, 0.0, n - 1.0)
-        i0 = jnp.clip(jnp.floor(x), 0, max(n - 2, 0)).astype(jnp.int32)
-        frac = x - i0.astype(dtype)
-        i1 = jnp.minimum(i0 + 1, n - 1)
-        return i0, i1, frac
-
-    j0, j1, fr = axis(r, n_r)
-    i0, i1, fm = axis(mu, n_nov)
-    lut = lut.astype(dtype)
-    fm_, fr_ = fm[..., None], fr[..., None]
-    top = lut[j0, i0] * (1.0 - fm_) + lut[j0, i1] * fm_
-    bot = lut[j1, i0] * (1.0 - fm_) + lut[j1, i1] * fm_
-    return top * (1.0 - fr_) + bot * fr_
+    # Clamp-to-edge on both axes (GL_CLAMP_TO_EDGE with linear filtering): outside the centre
+    # range the edge texels are used and the coordinate gradient is 0.
+    return bilinear(lut.astype(dtype), mu * n_nov - 0.5, r * n_r - 0.5)

@@ -58,6 +58,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .conventions import luminance
 from .cubemap import (
     _FACE_TABLE,
     Cubemap,
@@ -129,8 +130,8 @@ def bright_texels(level0, max_texels: int = BRIGHT_TEXELS, ratio: float = BRIGHT
     """Flat indices of the (at most `max_texels`) brightest texels whose luminance exceeds `ratio`
     times the environment's mean radiance (e.g. the sun), brightest first."""
     L = np.asarray(level0, np.float64)
-    S, C = L.shape[1], L.shape[-1]
-    lum = (L @ np.array([0.2126, 0.7152, 0.0722]) if C == 3 else L.mean(-1)).reshape(-1)
+    S = L.shape[1]
+    lum = luminance(L).reshape(-1)
     mean = float(np.sum(lum * texel_solid_angles(S).reshape(-1)) / (4.0 * math.pi))
     if max_texels <= 0 or mean <= 0:
         return np.zeros(0, np.int32)

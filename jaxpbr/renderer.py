@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import is_concrete, pack3, unpack3, vcross, vdot, vnormalize
+from ._numerics import is_concrete, pack3, small_sq, unpack3, vcross, vdot, vnormalize
 from .brdf_terms import MODELS
 from .cubemap import Cubemap, _mip_count
 from .diffuse import irradiance
@@ -430,7 +430,7 @@ def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
     # Sphere: u = 0.5 + atan2(x, z)/(2 pi), v = 0.5 - atan2(y, rho)/pi, T = (z, 0, -x)/rho.
     x, y, z = n_sph
     rho2 = x * x + z * z
-    ok = rho2 > 1e-12
+    ok = rho2 > small_sq(rho2.dtype)  # off the poles, where atan2 and T are defined
     rho = jnp.sqrt(jnp.where(ok, rho2, 1.0))
     u_s = 0.5 + jnp.arctan2(jnp.where(ok, x, 0.0), jnp.where(ok, z, 1.0)) / (2 * math.pi)
     v_s = 0.5 - jnp.arctan2(y, jnp.where(ok, rho, 0.0)) / math.pi

@@ -26,6 +26,7 @@ from ._numerics import (
     as_float,
     eps,
     pack3,
+    safe_div,
     safe_sqrt,
     unpack3,
     vcross,
@@ -191,7 +192,7 @@ def sample_ggx_h(xi: jax.Array, alpha: jax.Array) -> jax.Array:
     # d = 0 only at alpha = 0 and xi1 = 1 (0/0): the lobe is a delta there, so h = n. Double
     # where: the division sees a benign 1, so its gradient is finite on that lane too.
     ok = d > 0
-    inv = jnp.where(ok, 1.0 / jnp.where(ok, d, 1.0), 0.0)
+    inv = safe_div(1.0, d, ok)
     cos_t = jnp.where(ok, safe_sqrt((1.0 - x1) * inv), 1.0)
     sin_t = safe_sqrt(a2 * x1 * inv)
     phi = _TWO_PI * x0
@@ -222,7 +223,7 @@ def pdf_reflect(pdf_h: jax.Array, v_dot_h: jax.Array) -> jax.Array:
     """
     vh = as_float(v_dot_h)
     ok = vh > 0
-    return jnp.where(ok, pdf_h / (4.0 * jnp.where(ok, vh, 1.0)), 0.0)
+    return safe_div(pdf_h, 4.0 * vh, ok)
 
 
 # --------------------------------------------------------------------------------------------

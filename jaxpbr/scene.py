@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import as_float, is_concrete, safe_sqrt, vcross, vdot, vnormalize
+from ._interp import bilinear
+from ._numerics import as_float, is_concrete, safe_div, safe_sqrt, small_sq, vcross, vdot, vnormalize
 from .cubemap import Cubemap
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight
 from .material import Material
@@ -267,20 +268,7 @@ def sample_texture(tex: jax.Array, u, v) -> jax.Array:
     Texel (i, j) sits at ((j + 0.5)/W, (i + 0.5)/H); differentiable in the texels and in (u, v).
     """
     H, W = tex.shape[0], tex.shape[1]
-    x = u * W - 0.5
-    y = v * H - 0.5
-    x0 = jnp.floor(jax.lax.stop_gradient(x))
-    y0 = jnp.floor(jax.lax.stop_gradient(y))
-    fx = (x - x0)[..., None]
-    fy = (y - y0)[..., None]
-    j0 = jnp.mod(x0.astype(jnp.int32), W)
-    i0 = jnp.mod(y0.astype(jnp.int32), H)
-    j1 = jnp.mod(j0 + 1, W)
-    i1 = jnp.mod(i0 + 1, H)
-    t00, t01, t10, t11 = tex[i0, j0], tex[i0, j1], tex[i1, j0], tex[i1, j1]
-    top = t00 + (t01 - t00) * fx
-    bot = t10 + (t11 - t10) * fx
-    return top + (bot - top) * fy
+    return bilinear(tex, u * W - 0.5, v * H - 0.5, wrap_x=True, wrap_y=True)
 
 
 # ------------------------------------------------------------------------------------------
@@ -481,11 +469,6 @@ class Scene:
 # ------------------------------------------------------------------------------------------
 
 
-def _safe_div(a, b, ok):
-    """a / b on lanes where ok, 0 elsewhere, with finite gradients (double where)."""
-    return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
-
-
 def intersect_sphere(o, d, center, radius):
     """Nearest positive hit distance t (...) and a validity mask of rays o + t d (Vec3s, |d| = 1).
 
@@ -499,7 +482,7 @@ def intersect_sphere(o, d, center, radius):
     disc = b * b - c
     t1 = -b + safe_sqrt(disc)
     pos = t1 > 0
-    t0 = _safe_div(c, t1, pos)
+    t0 = safe_div(c, t1, pos)
     t = jnp.where(c > 0, t0, t1)
     ok = (disc > 0) & pos & (t > 0)
     return t, ok
@@ -509,6 +492,6 @@ def intersect_plane(o, d, point, normal):
     """Hit distance of rays with the plane through `point` with normal `normal` (any length)."""
     denom = vdot(d, normal)
     num = vdot(tuple(point[i] - o[i] for i in range(3)), normal)
-    ok = jnp.abs(denom) > 1e-12
-    t = _safe_div(num, denom, ok)
+    ok = denom * denom > small_sq(denom.dtype)  # a ray (almost) parallel to the plane misses it
+    t = safe_div(num, denom, ok)
     return t, ok & (t > 0)

@@ -33,7 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import is_concrete
+from ._numerics import is_concrete, safe_div
+from .conventions import luminance
 from .cubemap import (
     Cubemap,
     _mip_count,
@@ -232,7 +233,7 @@ def split_bright(level0: np.ndarray, max_texels: int, min_ratio: float = 4.0):
     """
     L = np.asarray(level0, np.float64)
     S, C = L.shape[1], L.shape[-1]
-    lum = L @ np.array([0.2126, 0.7152, 0.0722]) if C == 3 else L.mean(-1)
+    lum = luminance(L)
     om = texel_solid_angles(S)
     mean = float(np.sum(lum * om) / (4.0 * math.pi))
     flat = lum.reshape(-1)
@@ -246,8 +247,6 @@ def split_bright(level0: np.ndarray, max_texels: int, min_ratio: float = 4.0):
     bright = L.reshape(-1, C)[idx] - resid.reshape(-1, C)[idx]
     return resid, idx, bright
 
-
-_LUMA = (0.2126, 0.7152, 0.0722)
 
 
 @functools.partial(jax.jit, static_argnames=("max_texels", "min_ratio"))
@@ -275,7 +274,7 @@ def _split_bright_fixed(level0, max_texels: int, min_ratio: float = 4.0):
     hp = jnp.promote_types(level0.dtype, jnp.result_type(float))
     S, C = level0.shape[1], level0.shape[-1]
     L = level0.astype(hp).reshape(-1, C)
-    lum = L @ jnp.asarray(_LUMA, hp) if C == 3 else L.mean(-1)
+    lum = luminance(L)
     om = jnp.asarray(texel_solid_angles(S).reshape(-1), hp)
     mean = jnp.sum(lum * om) / (4.0 * math.pi)
     vals, idx = jax.lax.top_k(lum, max_texels + 1)
@@ -283,7 +282,7 @@ def _split_bright_fixed(level0, max_texels: int, min_ratio: float = 4.0):
     vals, idx = vals[:max_texels], idx[:max_texels]
     sel = (vals > tau) & (mean > 0)
     # Double where: tau / lum only on the selected lanes (lum > tau >= 0 there).
-    scale = jnp.where(sel, tau / jnp.where(sel, vals, 1.0), 1.0)
+    scale = safe_div(tau, vals, sel, fill=1.0)
     Lc = L[idx]
     rc = Lc * scale[:, None]
     excess = jnp.where(sel[:, None], Lc - rc, 0.0)

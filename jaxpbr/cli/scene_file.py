@@ -33,7 +33,7 @@ import numpy as np
 
 from .. import image
 from ..brdf_terms import MODELS
-from ..color import TONEMAP_OPERATORS, TRANSFERS, srgb_decode
+from ..color import TONEMAP_OPERATORS, TRANSFERS, srgb_decode, srgb_decode_np
 from ..cubeio import load_environment
 from ..diffuse import IRRADIANCE_METHODS
 from ..errors import InputError
@@ -169,15 +169,12 @@ def loads_scene(text: str, base_dir=".", *, name: str = "<string>") -> SceneFile
 
 
 def hex_to_linear(s: str) -> tuple[float, float, float]:
-    """sRGB hex colour "#rrggbb" -> linear RGB floats by the IEC 61966-2-1 EOTF:
-    c = v/12.92 for v <= 0.04045, else ((v + 0.055)/1.055)^2.4, with v = code/255."""
+    """sRGB hex colour "#rrggbb" -> linear RGB floats by the IEC 61966-2-1 EOTF of
+    `jaxpbr.color.srgb_decode_np` (colour-science), with v = code/255."""
     if not isinstance(s, str) or not re.fullmatch(r"#[0-9a-fA-F]{6}", s):
         raise ValueError(f'expected an sRGB hex colour "#rrggbb", got {s!r}')
-    out = []
-    for i in (1, 3, 5):
-        v = int(s[i : i + 2], 16) / 255.0
-        out.append(v / 12.92 if v <= 0.04045 else ((v + 0.055) / 1.055) ** 2.4)
-    return tuple(out)
+    codes = np.array([int(s[i : i + 2], 16) for i in (1, 3, 5)], np.float64) / 255.0
+    return tuple(float(c) for c in srgb_decode_np(codes))
 
 
 # ------------------------------------------------------------------------------------------
