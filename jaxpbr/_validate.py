@@ -11,10 +11,17 @@ import numbers
 __all__ = ["choice", "positive_int"]
 
 
-def positive_int(name: str, value, *, minimum: int = 1) -> int:
-    """`value` as an int >= `minimum` (default 1); bools and non-integers are refused."""
+def positive_int(name: str, value, *, minimum: int = 1, where: str | None = None, fix: str | None = None) -> int:
+    """`value` as an int >= `minimum` (default 1); bools, floats and strings are refused.
+
+    The message names the argument (prefixed by `where`, e.g. the function, if given), the value
+    and, if given, the fix.
+    """
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+        what = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+        prefix = f"{where}: " if where else ""
+        suffix = f"; {fix}" if fix else ""
+        raise ValueError(f"{prefix}{name} must be {what}, got {value!r}{suffix}")
     return int(value)
 
 

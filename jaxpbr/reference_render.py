@@ -58,6 +58,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._validate import positive_int
 from .conventions import luminance
 from .cubemap import (
     _FACE_TABLE,
@@ -303,9 +304,7 @@ def reference_ibl_terms(n, v, roughness, env: Cubemap, *, smith: str = "correlat
     [..., 2] specular (times 1). n, v (..., 3) unit vectors; roughness (...) perceptual r."""
     if smith not in ("correlated", "separable"):
         raise ValueError(f"unknown smith {smith!r}; choose 'correlated' (glTF) or 'separable'")
-    refine = int(refine)
-    if refine < 1:
-        raise ValueError(f"refine must be a positive integer, got {refine}")
+    refine = positive_int("refine", refine)
     n = np.asarray(n, np.float64)
     v = np.asarray(v, np.float64)
     r = np.asarray(roughness, np.float64)
@@ -321,8 +320,8 @@ def reference_ibl_terms(n, v, roughness, env: Cubemap, *, smith: str = "correlat
     C = env.channels
     if r.size == 0:
         return np.zeros(shape + (3, C))
-    if chunk is not None and int(chunk) < 1:
-        raise ValueError(f"chunk must be a positive integer, got {chunk}")
+    if chunk is not None:
+        positive_int("chunk", chunk)
     if np.any(r > 1.0) or not np.all(np.isfinite(r)):
         raise ValueError("roughness must lie in [0, 1]")
     r_min = min_reference_roughness(S)

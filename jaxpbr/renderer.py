@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._numerics import is_concrete, pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from ._validate import positive_int
 from .brdf_terms import MODELS
 from .cubemap import Cubemap, _mip_count
 from .diffuse import irradiance
@@ -105,9 +106,7 @@ class RenderOptions:
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         for name in ("irradiance_size", "lut_size"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+            positive_int(name, getattr(self, name))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -812,9 +811,7 @@ def render_batch(
     spp = 1 if base.gbuffer is not None else base.camera.supersample**2
     if chunk is None:
         chunk = max(1, BATCH_CHUNK_PIXELS // (H * W * spp))
-    chunk = int(chunk)
-    if chunk <= 0:
-        raise ValueError(f"chunk must be a positive integer, got {chunk}")
+    chunk = positive_int("chunk", chunk)
     per_dev = -(-B // ndev)
     chunk = min(chunk, per_dev)
     # Every step renders exactly `chunk` images (the batch is padded with copies of its last

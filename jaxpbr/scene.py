@@ -25,7 +25,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._interp import bilinear
-from ._numerics import as_float, is_concrete, safe_div, safe_sqrt, small_sq, vcross, vdot, vnormalize
+from ._numerics import (
+    as_float,
+    is_concrete,
+    safe_div,
+    safe_sqrt,
+    small_sq,
+    vcross,
+    vdot,
+    vnormalize,
+)
+from ._validate import positive_int
 from .cubemap import Cubemap
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight
 from .material import Material
@@ -109,9 +119,7 @@ def _scalar(name: str, x, *, lo=None, hi=None, open_lo=False) -> jax.Array:
 
 
 def _static_int(name: str, x, lo: int = 1) -> int:
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < lo:
-        raise ValueError(f"{name} must be an integer >= {lo}, got {x!r}")
-    return int(x)
+    return positive_int(name, x, minimum=lo)
 
 
 # ------------------------------------------------------------------------------------------

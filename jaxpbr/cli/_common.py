@@ -8,14 +8,14 @@ import time
 
 from .._validate import positive_int as _positive_int_value
 
-__all__ = ["CLIError", "Progress", "have_matplotlib", "nonnegative_int", "positive_int"]
+__all__ = ["CLIError", "Progress", "have_matplotlib", "nonnegative_int_arg", "positive_int_arg"]
 
 
 class CLIError(Exception):
     """An expected, user-facing error: printed as one line, exit status 2."""
 
 
-def positive_int(text: str) -> int:
+def positive_int_arg(text: str) -> int:
     """argparse type: an integer > 0 (the library's validator, as an argparse error)."""
     try:
         return _positive_int_value("value", int(text))
@@ -23,7 +23,7 @@ def positive_int(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
 
 
-def nonnegative_int(text: str) -> int:
+def nonnegative_int_arg(text: str) -> int:
     """argparse type: an integer >= 0."""
     try:
         value = int(text)

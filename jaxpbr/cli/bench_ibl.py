@@ -24,7 +24,7 @@ from ..lut import compute_brdf_lut
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..sampling import hammersley, sample_ggx_h
 from ..specular import prefilter
-from ._common import positive_int
+from ._common import positive_int_arg
 from .timing import time_calls, to_host
 
 __all__ = ["add_command", "bench_ibl", "cmd_bench_ibl", "hammersley_lut"]
@@ -115,8 +115,8 @@ def add_command(bsub) -> None:
     """Register `jaxpbr bench ibl`."""
     p = bsub.add_parser("ibl", help="IBL precompute timings and errors vs a Filament-style FIS baseline, side by side")
     p.add_argument("--env", default=None, help="equirect panorama (default: the procedural sky+sun)")
-    p.add_argument("--face-size", type=positive_int, default=256)
-    p.add_argument("--baseline-samples", type=positive_int, default=4096, help="samples of the plain-FIS baseline (default: %(default)s)")
+    p.add_argument("--face-size", type=positive_int_arg, default=256)
+    p.add_argument("--baseline-samples", type=positive_int_arg, default=4096, help="samples of the plain-FIS baseline (default: %(default)s)")
     p.set_defaults(func=cmd_bench_ibl)
 
 

@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import envs
+from .._validate import positive_int
 from ..cubemap import Cubemap
 from ..diffuse import irradiance
 from ..ibl import shade_ibl
@@ -38,7 +39,7 @@ from ..renderer import render, render_batch
 from ..scene import Camera, Environment, GBuffer, Scene, Sphere
 from ..shipped_luts import brdf_lut
 from ..specular import prefilter
-from ._common import nonnegative_int, positive_int
+from ._common import nonnegative_int_arg, positive_int_arg
 from .bench_shade import _PEAK_BANDWIDTH
 from .numpy_baselines import (
     GBUFFER_KEYS,
@@ -196,8 +197,7 @@ def bench_render_gbuffer(
     """Time jitted `shade_direct + shade_ibl` against `shade_render_numpy` on the same sphere-grid
     G-buffer, in this process (see the module docstring)."""
     for name, x in (("width", width), ("height", height), ("repeats", repeats), ("numpy_repeats", numpy_repeats), ("face_size", face_size)):
-        if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x <= 0:
-            raise ValueError(f"{name} must be a positive integer, got {x!r}.")
+        positive_int(name, x)
     if ibl is None:
         ibl = make_ibl(face_size)
     g = make_sphere_gbuffer(width, height)
@@ -317,8 +317,7 @@ def bench_batch(
     material each (all dispatched, then waited for). Median of `repeats` timed runs each; the first
     calls (compile) are reported apart."""
     for name, x in (("num_materials", num_materials), ("size", size), ("chunk", chunk), ("repeats", repeats)):
-        if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x <= 0:
-            raise ValueError(f"{name} must be a positive integer, got {x!r}.")
+        positive_int(name, x)
     if ibl is None:
         ibl = make_ibl(face_size)
     # The library's path: one Scene (a sphere ray-cast at size^2, 4 point lights, the IBL maps
@@ -397,14 +396,14 @@ def add_command(bench_subparsers) -> argparse.ArgumentParser:
         "JAX vs vectorised NumPy in one process (IBL precompute and JIT compile timed apart); then N "
         "materials on a sphere as one jitted vmap (chunked by lax.map) vs a Python loop of jitted calls.",
     )
-    p.add_argument("--width", type=positive_int, default=1920)
-    p.add_argument("--height", type=positive_int, default=1080)
-    p.add_argument("--repeats", type=positive_int, default=10, help="timed JAX runs (median)")
-    p.add_argument("--numpy-repeats", type=positive_int, default=3, help="timed NumPy runs (median)")
-    p.add_argument("--face-size", type=positive_int, default=128, help="environment cube face size")
-    p.add_argument("--batch", type=nonnegative_int, default=256, metavar="N",
+    p.add_argument("--width", type=positive_int_arg, default=1920)
+    p.add_argument("--height", type=positive_int_arg, default=1080)
+    p.add_argument("--repeats", type=positive_int_arg, default=10, help="timed JAX runs (median)")
+    p.add_argument("--numpy-repeats", type=positive_int_arg, default=3, help="timed NumPy runs (median)")
+    p.add_argument("--face-size", type=positive_int_arg, default=128, help="environment cube face size")
+    p.add_argument("--batch", type=nonnegative_int_arg, default=256, metavar="N",
                    help="materials in the batch-throughput run (0: skip it)")
-    p.add_argument("--batch-size", type=positive_int, default=256, metavar="S", help="batch image size S x S")
-    p.add_argument("--chunk", type=positive_int, default=16, help="materials per vmapped chunk (lax.map batch_size)")
+    p.add_argument("--batch-size", type=positive_int_arg, default=256, metavar="S", help="batch image size S x S")
+    p.add_argument("--chunk", type=positive_int_arg, default=16, help="materials per vmapped chunk (lax.map batch_size)")
     p.set_defaults(func=_cmd_bench_render)
     return p

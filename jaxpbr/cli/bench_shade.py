@@ -17,7 +17,7 @@ import numpy as np
 
 from ..lights import PointLight, shade_direct
 from ..material import Material
-from ._common import positive_int
+from ._common import positive_int_arg
 from .numpy_baselines import bench_lights, make_gbuffer, shade_numpy
 from .timing import time_calls
 
@@ -111,10 +111,10 @@ def add_command(bsub) -> None:
         "shade",
         help="shade a 1920x1080 G-buffer with 4 point lights: jitted JAX vs vectorised NumPy",
     )
-    bs.add_argument("--width", type=positive_int, default=1920)
-    bs.add_argument("--height", type=positive_int, default=1080)
-    bs.add_argument("--repeats", type=positive_int, default=10, help="timed JAX calls (back to back, median per call)")
-    bs.add_argument("--numpy-repeats", type=positive_int, default=3, help="timed NumPy runs (median)")
+    bs.add_argument("--width", type=positive_int_arg, default=1920)
+    bs.add_argument("--height", type=positive_int_arg, default=1080)
+    bs.add_argument("--repeats", type=positive_int_arg, default=10, help="timed JAX calls (back to back, median per call)")
+    bs.add_argument("--numpy-repeats", type=positive_int_arg, default=3, help="timed NumPy runs (median)")
     bs.set_defaults(func=cmd_bench_shade)
 
 

@@ -22,7 +22,7 @@ from ..errors import InputError
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..shipped_luts import brdf_lut
 from ..specular import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES, prefilter
-from ._common import Progress, positive_int
+from ._common import Progress, positive_int_arg
 
 __all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
 
@@ -37,7 +37,7 @@ def add_commands(sub) -> None:
 
     def common_env(p):
         p.add_argument("env", nargs="+", metavar="ENV", help=ENVIRONMENT_HELP)
-        p.add_argument("--face-size", type=positive_int, default=None, help="face size of the environment cube (default: from the panorama, 256 for procedural)")
+        p.add_argument("--face-size", type=positive_int_arg, default=None, help="face size of the environment cube (default: from the panorama, 256 for procedural)")
         p.add_argument("--clamp-negative", action="store_true", help="set negative input pixels to 0 (with a warning) instead of failing")
 
     def common_out(p, default, suffixes):
@@ -47,9 +47,9 @@ def add_commands(sub) -> None:
         p.add_argument("--quiet", action="store_true", help="no progress output")
 
     p = sub.add_parser("lut", help="generate the split-sum BRDF LUT (EXR)", description="Converged split-sum LUT (A, B) with (n_r, n_nov) texels; the EXR's R = A, G = B, B = 0; row j at r = (j+0.5)/n_r (row 0 at the top), column i at NoV = (i+0.5)/n_nov.")
-    p.add_argument("--size", type=positive_int, default=128, help="texels per side (default: %(default)s)")
+    p.add_argument("--size", type=positive_int_arg, default=128, help="texels per side (default: %(default)s)")
     p.add_argument("--smith", choices=("correlated", "schlick"), default="correlated", help="Smith term: height-correlated (glTF/Filament) or Schlick-GGX k=alpha/2 (Karis/LearnOpenGL)")
-    p.add_argument("--samples", type=positive_int, default=None, help="quadrature samples per texel (default: the library default)")
+    p.add_argument("--samples", type=positive_int_arg, default=None, help="quadrature samples per texel (default: the library default)")
     p.add_argument("-o", "--output", default="brdf_lut.exr", help="output .exr (default: %(default)s)")
     p.add_argument("--full-check", action="store_true", help="measure the error at every texel (slower) instead of the edges + 1024 random texels")
     p.add_argument("--no-error", action="store_true", help="skip measuring the error")
@@ -58,7 +58,7 @@ def add_commands(sub) -> None:
 
     p = sub.add_parser("irradiance", help="diffuse irradiance cube (E/pi) from an environment")
     common_env(p)
-    p.add_argument("--size", type=positive_int, default=32, help="output face size (default: %(default)s)")
+    p.add_argument("--size", type=positive_int_arg, default=32, help="output face size (default: %(default)s)")
     p.add_argument("--method", choices=("exact", "sh9"), default="exact", help="exact cosine convolution or SH9 (default: %(default)s)")
     common_out(p, "irradiance.ktx2", (".ktx2", ".exr"))
     p.set_defaults(func=cmd_irradiance)
@@ -72,9 +72,9 @@ def add_commands(sub) -> None:
     p = sub.add_parser("ibl", help="irradiance + prefiltered cube + BRDF LUT in one go")
     common_env(p)
     _prefilter_args(p)
-    p.add_argument("--irradiance-size", type=positive_int, default=32)
+    p.add_argument("--irradiance-size", type=positive_int_arg, default=32)
     p.add_argument("--irradiance-method", choices=("exact", "sh9"), default="exact")
-    p.add_argument("--lut-size", type=positive_int, default=128)
+    p.add_argument("--lut-size", type=positive_int_arg, default=128)
     p.add_argument("--smith", choices=("correlated", "schlick"), default="correlated")
     p.add_argument("--out-dir", default=".", help="directory for irradiance.ktx2, prefiltered.ktx2, brdf_lut.exr and ibl.json (default: current)")
     p.add_argument("--ktx-format", choices=("rgba16f", "rgba32f"), default="rgba16f")
@@ -85,11 +85,11 @@ def add_commands(sub) -> None:
 
 def _prefilter_args(p):
 
-    p.add_argument("--size", type=positive_int, default=None, help="face size of mip 0 (default: the environment's)")
-    p.add_argument("--levels", type=positive_int, default=None, help="number of mips M (default: down to 1x1)")
+    p.add_argument("--size", type=positive_int_arg, default=None, help="face size of mip 0 (default: the environment's)")
+    p.add_argument("--levels", type=positive_int_arg, default=None, help="number of mips M (default: down to 1x1)")
     p.add_argument("--mapping", choices=("linear", "quadratic"), default="linear", help="roughness->mip: r_m = m/(M-1) or Filament's (default: %(default)s)")
     p.add_argument("--method", choices=("fis", "reference"), default="fis", help="filtered importance sampling or the float64 brute-force reference (slow)")
-    p.add_argument("--samples", type=positive_int, default=DEFAULT_SAMPLES, help="FIS samples on the large levels (default: %(default)s; small levels get more)")
+    p.add_argument("--samples", type=positive_int_arg, default=DEFAULT_SAMPLES, help="FIS samples on the large levels (default: %(default)s; small levels get more)")
     p.add_argument("--exact-texels", type=int, default=DEFAULT_EXACT_TEXELS, help="brightest texels convolved exactly (default: %(default)s; 0 = off)")
 
 

@@ -11,7 +11,7 @@ from .. import color, image
 from ..conventions import CONVENTIONS
 from ..demo import demo_scene
 from ..renderer import RenderOptions, plan, render
-from ._common import CLIError, positive_int
+from ._common import CLIError, positive_int_arg
 from .scene_file import load_scene
 
 __all__ = ["add_command", "cmd_render"]
@@ -32,9 +32,9 @@ def add_command(sub) -> None:
     )
     r.add_argument("scene", nargs="?", default=None, help="scene description (.toml); default: the demo")
     r.add_argument("-o", "--output", default="jaxpbr_demo.png", help="output PNG path (default: %(default)s)")
-    r.add_argument("--width", type=positive_int, default=None, help="image width (default: 1280, or the scene's)")
-    r.add_argument("--height", type=positive_int, default=None, help="image height (default: 720, or the scene's)")
-    r.add_argument("--supersample", type=positive_int, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
+    r.add_argument("--width", type=positive_int_arg, default=None, help="image width (default: 1280, or the scene's)")
+    r.add_argument("--height", type=positive_int_arg, default=None, help="image height (default: 720, or the scene's)")
+    r.add_argument("--supersample", type=positive_int_arg, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
     r.add_argument("--model", choices=("gltf", "learnopengl"), default=None, help="BRDF model (default: gltf, or the scene's)")
     r.add_argument("--exposure", type=float, default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(

@@ -20,7 +20,7 @@ from ..errors import InputError
 from ..lut import compute_brdf_lut
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..specular import prefilter
-from ._common import have_matplotlib, positive_int
+from ._common import have_matplotlib, positive_int_arg
 from .timing import time_calls, to_host
 
 __all__ = ["add_command", "cmd_report_precompute", "precompute_report"]
@@ -155,7 +155,7 @@ def add_command(rsub) -> None:
     p = rsub.add_parser("precompute", help="LUT / irradiance / prefilter error vs run time (Markdown table + PNG plot)")
     p.add_argument("env", nargs="*", metavar="HDR", help="extra equirect panoramas to measure on (the procedural sky+sun is always included)")
     p.add_argument("--out", default="precompute_report", help="output prefix: <out>.md and <out>.png (default: %(default)s)")
-    p.add_argument("--face-size", type=positive_int, default=256, help="environment face size (default: %(default)s)")
+    p.add_argument("--face-size", type=positive_int_arg, default=256, help="environment face size (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="a smaller sweep (for a first look)")
     p.set_defaults(func=cmd_report_precompute)
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from .. import envs
 from .. import lights as _lights
+from .._validate import positive_int
 from ..atomic import atomic_write
 from ..cubeio import ENVIRONMENT_HELP, load_environment
 from ..cubemap import Cubemap
@@ -44,7 +45,7 @@ from ..reference_render import (
 )
 from ..shipped_luts import brdf_lut
 from ..specular import prefilter
-from ._common import have_matplotlib, positive_int
+from ._common import have_matplotlib, positive_int_arg
 from .timing import time_calls
 
 __all__ = ["DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "add_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
@@ -137,8 +138,7 @@ def render_report(
             f"the reference resolves roughness >= {r_floor:.3f} on a {env.face_size}^2-per-face environment; "
             f"got {min(roughness)} (use a larger --face-size or a larger roughness)"
         )
-    if int(pixels) < 1:
-        raise ValueError(f"pixels must be a positive integer, got {pixels}")
+    pixels = positive_int("pixels", pixels)
     if lights is None:
         lights, lights_desc = default_lights()
     else:
@@ -349,13 +349,13 @@ def add_command(report_subparsers):
     )
     p.add_argument("--env", default="procedural:sky", help=f"{ENVIRONMENT_HELP} (default: %(default)s)")
     p.add_argument("--output-dir", default=".", help="directory for render_report.md/.json/.png (default: current)")
-    p.add_argument("--face-size", type=positive_int, default=64, help="environment face size (default: %(default)s; the reference's roughness floor halves in alpha per doubling, its cost grows 4x)")
-    p.add_argument("--pixels", type=positive_int, default=48, help="sphere image size P x P (default: %(default)s)")
+    p.add_argument("--face-size", type=positive_int_arg, default=64, help="environment face size (default: %(default)s; the reference's roughness floor halves in alpha per doubling, its cost grows 4x)")
+    p.add_argument("--pixels", type=positive_int_arg, default=48, help="sphere image size P x P (default: %(default)s)")
     p.add_argument("--roughness", type=_float_list, default=list(DEFAULT_ROUGHNESS), help="comma-separated roughness values (default: %(default)s)")
     p.add_argument("--metallic", type=_float_list, default=list(DEFAULT_METALLIC), help="comma-separated metallic values (default: %(default)s)")
     p.add_argument("--base-color", type=float, nargs=3, default=list(DEFAULT_BASE_COLOR), metavar=("R", "G", "B"), help="linear base colour (default: %(default)s)")
-    p.add_argument("--irradiance-size", type=positive_int, default=32)
-    p.add_argument("--lut-size", type=positive_int, default=128)
+    p.add_argument("--irradiance-size", type=positive_int_arg, default=32)
+    p.add_argument("--lut-size", type=positive_int_arg, default=128)
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_report_render)
     return p
