@@ -40,7 +40,7 @@ from ..scene import Camera, Environment, GBuffer, Scene, Sphere
 from ..shipped_luts import brdf_lut
 from ..specular import prefilter
 from ._common import nonnegative_int_arg, positive_int_arg
-from .bench_shade import _PEAK_BANDWIDTH
+from .bench_shade import _PEAK_BANDWIDTH, VersusNumpy
 from .numpy_baselines import (
     GBUFFER_KEYS,
     NumpyIBL,
@@ -136,7 +136,7 @@ def _max_rel(a: np.ndarray, ref: np.ndarray, floor: float = 1e-3) -> float:
 
 
 @dataclass
-class RenderBenchResult:
+class RenderBenchResult(VersusNumpy):
     width: int
     height: int
     num_lights: int
@@ -151,14 +151,6 @@ class RenderBenchResult:
     max_rel_diff: float
     p999_rel_diff: float
     bytes_per_pixel: int
-
-    @property
-    def pixels(self) -> int:
-        return self.width * self.height
-
-    @property
-    def ratio(self) -> float:
-        return self.numpy_s / self.jax_s
 
     def report(self) -> str:
         pre = ", ".join(f"{k} {v:.2f} s" for k, v in self.precompute_s.items())

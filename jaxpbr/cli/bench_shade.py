@@ -27,8 +27,20 @@ __all__ = ["make_gbuffer", "shade_numpy", "bench_shade", "ShadeBenchResult"]
 _PEAK_BANDWIDTH = {"H100": 3.35e12, "H200": 4.8e12, "A100": 2.0e12}
 
 
+class VersusNumpy:
+    """Shared by the JAX-vs-NumPy results: `width`, `height`, `jax_s`, `numpy_s` fields."""
+
+    @property
+    def pixels(self) -> int:
+        return self.width * self.height
+
+    @property
+    def ratio(self) -> float:
+        return self.numpy_s / self.jax_s
+
+
 @dataclass
-class ShadeBenchResult:
+class ShadeBenchResult(VersusNumpy):
     width: int
     height: int
     num_lights: int
@@ -38,14 +50,6 @@ class ShadeBenchResult:
     numpy_s: float
     max_rel_diff: float
     bytes_per_pixel: int
-
-    @property
-    def pixels(self) -> int:
-        return self.width * self.height
-
-    @property
-    def ratio(self) -> float:
-        return self.numpy_s / self.jax_s
 
     def report(self) -> str:
         samples = self.pixels * self.num_lights
