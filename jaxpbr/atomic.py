@@ -13,6 +13,7 @@ import os
 import secrets
 from pathlib import Path
 
+from ._api import keyword_only
 from .errors import InputError
 
 __all__ = ["OutputSet", "atomic_write", "write_json"]
@@ -61,7 +62,8 @@ def atomic_write(path, writer) -> None:
         raise
 
 
-def write_json(path, data, outputs: "OutputSet | None" = None) -> Path:
+@keyword_only("outputs")
+def write_json(path, data, *, outputs: "OutputSet | None" = None) -> Path:
     """Write `data` as indented JSON atomically; register the file with `outputs` if given."""
     path = Path(path)
     text = json.dumps(data, indent=2, sort_keys=False) + "\n"

@@ -12,6 +12,9 @@ Models (`brdf(..., model=...)`):
   it: Schlick-GGX with `k = (r+1)^2/8`, `F0 = mix(0.04, albedo, metallic)`,
   `kD = (1 - F)(1 - metallic)`, `f = kD*albedo/pi + D*G*F / (4*NoV*NoL + shader_epsilon)`.
 
+`MODEL_REGISTRY` is the one list of models and of the options each uses; an option given a
+non-default value with a model that does not use it is an error (`check_options`).
+
 Stiff inputs (MATH.md §8) are handled once, in `geometry_soa`: directions are normalised safely, the
 half vector of v = -l is the zero vector, and lanes where the surface does not see both the viewer
 and the light (NoV <= 0 or NoL <= 0) get benign stand-in values before anything divides, then a
@@ -22,8 +25,11 @@ Below the floor the value is that of r = min_roughness and d f/d r = 0.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import NamedTuple
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +40,9 @@ from .material import F0_DIELECTRIC, Material
 __all__ = [
     "MIN_ROUGHNESS",
     "MODELS",
+    "MODEL_REGISTRY",
+    "OPTION_CHOICES",
+    "OPTION_DEFAULTS",
     "alpha_from_roughness",
     "blinn_phong",
     "brdf",
@@ -62,7 +71,61 @@ __all__ = [
 #: gradient lose all precision.
 MIN_ROUGHNESS = 0.045
 
-MODELS = ("gltf", "learnopengl")
+#: Defaults of every option a model may use: the `brdf` / `shade_direct` options, then the
+#: `shade_ibl` / `RenderOptions` one. Which model uses which is `MODEL_REGISTRY`.
+OPTION_DEFAULTS: Mapping[str, Any] = MappingProxyType(
+    {
+        "min_roughness": MIN_ROUGHNESS,
+        "smith": "correlated",
+        "diffuse": "lambert",
+        "shader_epsilon": 1e-4,
+        "multiscatter": False,
+    }
+)
+
+#: The valid values of the options that are names.
+OPTION_CHOICES: Mapping[str, tuple[str, ...]] = MappingProxyType(
+    {"smith": ("correlated", "separable"), "diffuse": ("lambert", "burley")}
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelSpec:
+    """One BRDF model: the options it uses and the split-sum LUT its IBL term expects.
+
+    options: the `brdf` / `shade_direct` options the model reads (defaults in `OPTION_DEFAULTS`).
+    ibl_options: the `shade_ibl` / `RenderOptions` options it reads.
+    lut_smith: the Smith term (`jaxpbr.lut` vocabulary) of the LUT that `shade_ibl` expects with it.
+    """
+
+    options: frozenset[str]
+    ibl_options: frozenset[str]
+    lut_smith: str
+
+
+#: The one registry of BRDF models: name -> ModelSpec. `brdf`, `shade_direct`, `shade_ibl`,
+#: `RenderOptions`, the CLI's --model and scene files' [render] model all read it.
+#:   gltf: GGX + Smith V (smith "correlated" | "separable") + diffuse ("lambert" | "burley"),
+#:     roughness floor; Fdez-Aguera multiscatter in IBL; LUT with height-correlated Smith.
+#:   learnopengl: GGX + Schlick-GGX k=(r+1)^2/8 (no smith/diffuse choice), the shader's epsilon,
+#:     roughness floor; no multiscatter; LUT with Schlick-GGX k = alpha/2 ("schlick_ggx").
+MODEL_REGISTRY: Mapping[str, ModelSpec] = MappingProxyType(
+    {
+        "gltf": ModelSpec(
+            options=frozenset({"min_roughness", "smith", "diffuse"}),
+            ibl_options=frozenset({"multiscatter"}),
+            lut_smith="correlated",
+        ),
+        "learnopengl": ModelSpec(
+            options=frozenset({"min_roughness", "shader_epsilon"}),
+            ibl_options=frozenset(),
+            lut_smith="schlick_ggx",
+        ),
+    }
+)
+
+#: The model names, from `MODEL_REGISTRY` (default first).
+MODELS = tuple(MODEL_REGISTRY)
 
 _INV_PI = 1.0 / math.pi
 
@@ -286,19 +349,49 @@ def floored_roughness(r: jax.Array, min_roughness: float) -> jax.Array:
 # --------------------------------------------------------------------------------------------
 
 
-def check_options(model: str, min_roughness: float, smith: str = "correlated", diffuse: str = "lambert") -> None:
-    """Validate the static options of `brdf` (raises ValueError naming the valid choices)."""
-    if model not in MODELS:
-        raise ValueError(f"unknown model {model!r}; choose one of {MODELS}.")
-    if not (isinstance(min_roughness, (int, float)) and 0.0 < min_roughness <= 1.0):
-        raise ValueError(
-            f"min_roughness must be a Python float in (0, 1], got {min_roughness!r}; "
-            f"the default {MIN_ROUGHNESS} is Filament's desktop floor."
-        )
-    if smith not in ("correlated", "separable"):
-        raise ValueError(f"unknown smith {smith!r}; choose 'correlated' (glTF) or 'separable'.")
-    if diffuse not in ("lambert", "burley"):
-        raise ValueError(f"unknown diffuse {diffuse!r}; choose 'lambert' (glTF) or 'burley'.")
+def _is_default(name: str, value) -> bool:
+    try:
+        return bool(value == OPTION_DEFAULTS[name])
+    except Exception:  # e.g. an array: not the (scalar) default
+        return False
+
+
+def check_options(model: str, *, what: str = "model", **options) -> ModelSpec:
+    """Validate `model` and the static options passed with it against `MODEL_REGISTRY`; return
+    the model's `ModelSpec`.
+
+    Raises ValueError for an unknown model or choice, and for an option the model does not use
+    given a value other than its default (naming the option, the model and the fix): such an
+    option used to be ignored silently. Passing an unused option *with its default value* is
+    allowed, so code that spells out every option, or loops over models with the same keywords,
+    keeps working. An option name no model has raises TypeError. `what` names the model argument
+    in the unknown-model message (e.g. "IBL model").
+    """
+    spec = MODEL_REGISTRY.get(model) if isinstance(model, str) else None
+    if spec is None:
+        raise ValueError(f"unknown {what} {model!r}; choose one of {MODELS}.")
+    unknown = sorted(set(options) - set(OPTION_DEFAULTS))
+    if unknown:
+        raise TypeError(f"unknown option(s) {unknown}; the model options are {sorted(OPTION_DEFAULTS)}.")
+    for name, value in options.items():
+        choices = OPTION_CHOICES.get(name)
+        if choices is not None and value not in choices:
+            raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(map(repr, choices))}.")
+        if name not in spec.options | spec.ibl_options and not _is_default(name, value):
+            users = [m for m, s in MODEL_REGISTRY.items() if name in s.options | s.ibl_options]
+            raise ValueError(
+                f"{name} is defined for the {' and '.join(users)} model only, not model={model!r} "
+                f"(got {name}={value!r}, which that model would ignore); leave {name} out "
+                f"(or pass its default {OPTION_DEFAULTS[name]!r}), or use model={users[0]!r}."
+            )
+    if "min_roughness" in options:
+        mr = options["min_roughness"]
+        if isinstance(mr, bool) or not (isinstance(mr, (int, float)) and 0.0 < mr <= 1.0):
+            raise ValueError(
+                f"min_roughness must be a Python float in (0, 1], got {mr!r}; "
+                f"the default {MIN_ROUGHNESS} is Filament's desktop floor."
+            )
+    return spec
 
 
 def _gltf(g: Geometry, base: Vec3, metallic, r, *, smith: str, diffuse: str) -> Vec3:
@@ -389,17 +482,22 @@ def brdf(
       n, v, l: (..., 3) normal, direction to the viewer, direction to the light (normalised here;
         zero vectors give 0). All point away from the surface.
       m: `Material`, leaves broadcasting with the directions' batch axes.
-      model: "gltf" (glTF 2.0 App. B) or "learnopengl" (LearnOpenGL `pbr.fs`).
+      model: "gltf" (glTF 2.0 App. B) or "learnopengl" (LearnOpenGL `pbr.fs`); `MODEL_REGISTRY`
+        lists the options each one uses.
       min_roughness: perceptual-roughness floor (static). See module docstring.
-      smith: gltf only — "correlated" (glTF spec, default) or "separable" visibility.
+      smith: gltf only — "correlated" (glTF spec, default) or "separable" visibility (both the
+        Smith-GGX G2; not the LUT's "schlick_ggx").
       diffuse: gltf only — "lambert" (glTF spec, default) or "burley".
       shader_epsilon: learnopengl only — the shader's `+ 0.0001` in `4 NoV NoL + 0.0001`, kept so the
         model reproduces the tutorial's images; 0.0 gives the un-fudged UE4 model. Either way the
         value is computed division-free and stays finite at NoV, NoL -> 0.
 
+    An option the chosen model does not use (e.g. `smith="separable"` with `model="learnopengl"`)
+    raises ValueError; passing it with its default value is allowed (see `check_options`).
+
     Returns 0 where NoV <= 0 or NoL <= 0 (the light or the viewer is below the surface).
     """
-    check_options(model, min_roughness, smith, diffuse)
+    check_options(model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon)
     g = geometry(n, v, l)
     f = brdf_soa(
         g,

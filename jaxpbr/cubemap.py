@@ -32,8 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._api import keyword_only
 from ._interp import bilinear, lerp2
 from ._numerics import is_concrete
+from ._pytree import Pytree, leaf, static
+from ._validate import positive_int
 
 __all__ = [
     "FACE_NAMES",
@@ -55,7 +58,8 @@ FACE_NAMES = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 # ------------------------------------------------------------------------------------------
 
 
-def face_to_dir(face, s, t, xp=jnp):
+@keyword_only("xp")
+def face_to_dir(face, s, t, *, xp=jnp):
     """(face, s, t) -> un-normalised direction on the unit cube, (..., 3).
 
     `face` int array (0..5), `s, t` in [0, 1] (values outside extend the face's plane, which the
@@ -82,7 +86,8 @@ _FACE_TABLE = np.array(
 )
 
 
-def dir_to_face(d, xp=jnp):
+@keyword_only("xp")
+def dir_to_face(d, *, xp=jnp):
     """Direction (..., 3) (any length > 0) -> (face int32 (...), s (...), t (...)), s, t in [0, 1].
 
     Ties between axes (exact diagonals) go to x before y before z. A zero vector maps to the centre
@@ -118,7 +123,7 @@ def _texel_directions_np(size: int) -> np.ndarray:
 
 def texel_directions(size: int) -> np.ndarray:
     """Unit directions of every texel centre of a `size`^2 cube face set, float64 (6, S, S, 3)."""
-    return _texel_directions_np(_positive_int(size, "size"))
+    return _texel_directions_np(positive_int("size", size))
 
 
 @functools.lru_cache(maxsize=32)
@@ -138,7 +143,7 @@ def _solid_angles_np(size: int) -> np.ndarray:
 
 def texel_solid_angles(size: int) -> np.ndarray:
     """Exact solid angle (sr) of every texel, float64 (6, S, S); they sum to 4 pi."""
-    return _solid_angles_np(_positive_int(size, "size"))
+    return _solid_angles_np(positive_int("size", size))
 
 
 # ------------------------------------------------------------------------------------------
@@ -146,7 +151,8 @@ def texel_solid_angles(size: int) -> np.ndarray:
 # ------------------------------------------------------------------------------------------
 
 
-def equirect_to_dir(u, v_up, xp=jnp):
+@keyword_only("xp")
+def equirect_to_dir(u, v_up, *, xp=jnp):
     """(u, v_up) in [0, 1] -> unit direction (..., 3), the inverse of `dir_to_equirect`."""
     phi = (u - 0.5) * (2.0 * math.pi)
     lat = (v_up - 0.5) * math.pi
@@ -162,10 +168,11 @@ def dir_to_equirect(d):
     return u, v_up
 
 
-def equirect_directions(height: int, width: int | None = None) -> np.ndarray:
+@keyword_only("width")
+def equirect_directions(height: int, *, width: int | None = None) -> np.ndarray:
     """Unit directions of the pixel centres of an equirect image, float64 (H, W, 3)."""
-    height = _positive_int(height, "height")
-    width = 2 * height if width is None else _positive_int(width, "width")
+    height = positive_int("height", height)
+    width = 2 * height if width is None else positive_int("width", width)
     u = (np.arange(width) + 0.5) / width
     v_up = 1.0 - (np.arange(height) + 0.5) / height
     return equirect_to_dir(u[None, :], v_up[:, None], xp=np)
@@ -337,17 +344,20 @@ def _mip_count(size: int) -> int:
 # ------------------------------------------------------------------------------------------
 
 
-@jax.tree_util.register_pytree_node_class
-class Cubemap:
+class Cubemap(Pytree):
     """Six square faces with an optional mip chain: `levels[m]` is (6, S >> m, S >> m, C).
 
-    `info` is static metadata (a tuple of (key, value) string pairs), e.g. what a prefiltered map's
-    levels mean; it travels with the pytree as auxiliary data.
+    `levels` accepts one (6, S, S, C) array or a sequence of them; it is stored as a tuple (its
+    length, the number of levels, is part of the tree structure). `info` is static metadata (a
+    tuple of (key, value) string pairs, or a dict), e.g. what a prefiltered map's levels mean; it
+    travels with the pytree as auxiliary data.
     """
 
-    __slots__ = ("levels", "info")
+    levels: Any = leaf(rank=4)
+    info: Any = static(())
 
-    def __init__(self, levels: Sequence[Any], info: Any = ()):
+    def _validate(self) -> None:
+        levels = self.levels
         if isinstance(levels, (jax.Array, np.ndarray)):
             levels = (levels,)
         levels = tuple(jnp.asarray(lv) for lv in levels)
@@ -369,19 +379,8 @@ class Cubemap:
                     f"cube level {m} has shape {lv.shape}; level m must be (6, S>>m, S>>m, C) with "
                     f"S = {S}, C = {levels[0].shape[3]}"
                 )
-        self.levels = levels
-        self.info = tuple(info.items()) if isinstance(info, dict) else tuple(info)
-
-    # pytree ---------------------------------------------------------------------------------
-    def tree_flatten(self):
-        return self.levels, self.info
-
-    @classmethod
-    def tree_unflatten(cls, info, levels):
-        obj = object.__new__(cls)
-        obj.levels = tuple(levels)
-        obj.info = info
-        return obj
+        info = self.info
+        self._set(levels=levels, info=tuple(info.items()) if isinstance(info, dict) else tuple(info))
 
     # properties -----------------------------------------------------------------------------
     @property
@@ -440,7 +439,7 @@ class Cubemap:
         most = _mip_count(S)
         if num_levels is None:
             num_levels = most
-        num_levels = _positive_int(num_levels, "num_levels")
+        num_levels = positive_int("num_levels", num_levels)
         if num_levels > most:
             raise ValueError(
                 f"a {S}^2 cube supports at most {most} levels (each halves the face size); asked for {num_levels}"
@@ -467,8 +466,8 @@ class Cubemap:
         Each texel is the solid-angle-weighted mean of fn over `supersample`^2 points of its
         footprint (supersample=1: point samples at texel centres).
         """
-        S = _positive_int(face_size, "face_size")
-        q = _positive_int(supersample, "supersample")
+        S = positive_int("face_size", face_size)
+        q = positive_int("supersample", supersample)
         dirs, w = _subtexel_points(S, q)  # (6, S, S, q*q, 3), (S, S, q*q) (same on every face)
         with jax.enable_x64(True):
             vals = jnp.asarray(fn(jnp.asarray(dirs)), jnp.float64)
@@ -493,7 +492,7 @@ class Cubemap:
         then each cube texel averages q x q bilinear samples (q chosen so that samples are no
         farther apart than a panorama pixel), weighted by their solid angles.
         """
-        S = _positive_int(face_size, "face_size")
+        S = positive_int("face_size", face_size)
         img = np.asarray(img)
         if img.ndim == 2:
             img = img[..., None]
@@ -521,8 +520,8 @@ class Cubemap:
     def to_equirect(self, height: int | None = None, *, lod=0.0, supersample: int = 1) -> jax.Array:
         """Equirect panorama (H, 2H, C) of this map (seam-aware bilinear / trilinear lookups at
         `lod`), each pixel the mean of `supersample`^2 lookups weighted by solid angle."""
-        H = 2 * self.face_size if height is None else _positive_int(height, "height")
-        q = _positive_int(supersample, "supersample")
+        H = 2 * self.face_size if height is None else positive_int("height", height)
+        q = positive_int("supersample", supersample)
         W = 2 * H
         o = (np.arange(q) + 0.5) / q
         u = (np.arange(W)[:, None] + o[None, :]).reshape(-1) / W
@@ -539,12 +538,6 @@ class Cubemap:
 # ------------------------------------------------------------------------------------------
 # helpers
 # ------------------------------------------------------------------------------------------
-
-
-def _positive_int(x, name: str) -> int:
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x <= 0:
-        raise ValueError(f"{name} must be a positive integer, got {x!r}")
-    return int(x)
 
 
 def _check_finite(a: np.ndarray, what: str) -> None:

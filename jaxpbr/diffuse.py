@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._validate import positive_int
 from .cubemap import (
     _FACE_TABLE,
     Cubemap,
-    _positive_int,
     texel_directions,
     texel_solid_angles,
 )
@@ -165,7 +165,7 @@ def irradiance_at(env: Cubemap, n, *, method: str = "exact", source_size: int | 
     lm = _moment_pyramid(env, s).reshape(-1, env.channels, 3)  # (Ns, C, 3)
     flat = n.reshape(-1, 3)
     # Bound the (chunk, Ns, C) intermediate to ~2^24 elements whatever the source size.
-    chunk = max(1, min(_positive_int(chunk, "chunk"), (1 << 24) // (lm.shape[0] * lm.shape[1])))
+    chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // (lm.shape[0] * lm.shape[1])))
     out = _exact_conv(flat, lm, chunk=chunk)
     return out.reshape(n.shape[:-1] + (env.channels,))
 
@@ -190,7 +190,7 @@ def _exact_conv(n, lm, *, chunk):
 def _source_size(S: int, source_size: int | None) -> int:
     if source_size is None:
         source_size = min(S, EXACT_SOURCE_SIZE)
-    source_size = _positive_int(source_size, "source_size")
+    source_size = positive_int("source_size", source_size)
     if source_size > S or S % source_size or (S // source_size) & (S // source_size - 1):
         raise ValueError(
             f"source_size {source_size} must divide the environment face size {S} by a power of two"
@@ -215,7 +215,7 @@ def irradiance(
         `source_size = env.face_size` is the full-resolution convolution.
     Returns a one-level Cubemap (6, size, size, C) with `info` recording quantity and method.
     """
-    size = _positive_int(size, "size")
+    size = positive_int("size", size)
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
     dirs = jnp.asarray(texel_directions(size), env.dtype)

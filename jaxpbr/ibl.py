@@ -11,7 +11,7 @@ are mixed by metallic, so a white furnace returns exactly 1 for either (MATH.md 
 
 The `learnopengl` model reproduces the LearnOpenGL IBL chapter's ambient term for fidelity:
 F = fresnelSchlickRoughness(NoV, F0, r) used in place of F0 (`F A + B`) and kD = (1 - F)(1 - metallic)
-on the diffuse term; it expects a LUT built with `smith="schlick"`. It over-brightens grazing
+on the diffuse term; it expects a LUT built with `smith="schlick_ggx"`. It over-brightens grazing
 angles (MATH.md 1.4); the default `gltf` model uses the correct F0 A + B.
 """
 
@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from ._numerics import as_float, pack3, unpack3, vdot, vnormalize
-from .brdf_terms import fresnel_schlick_roughness
+from .brdf_terms import MODELS, check_options, fresnel_schlick_roughness
 from .cubemap import Cubemap
 from .lut import lut_lookup
 from .material import F0_DIELECTRIC, Material
@@ -29,7 +29,8 @@ from .specular import roughness_to_lod
 
 __all__ = ["IBL_MODELS", "MIN_N_DOT_V", "shade_ibl", "split_sum_weights"]
 
-IBL_MODELS = ("gltf", "learnopengl")
+#: The models `shade_ibl` accepts: `brdf_terms.MODELS` (kept under this name for users).
+IBL_MODELS = MODELS
 
 #: NoV is clamped to at least this (Filament MIN_N_DOT_V) before the LUT lookup: back-facing or
 #: grazing shading normals (normal maps, interpolation) still get the grazing-angle response.
@@ -76,14 +77,12 @@ def shade_ibl(
         only the first mips of an M-level chain (metadata "mapping_levels" = M) is looked up with
         the M-level mapping, clamped to its last level.
     lut: (n_r, n_nov, 2) split-sum LUT (`jaxpbr.brdf_lut`; smith="correlated" for gltf,
-        "schlick" for learnopengl).
+        "schlick_ggx" for learnopengl: `brdf_terms.MODEL_REGISTRY[model].lut_smith`).
     model: "gltf" (F0 A + B) or "learnopengl" (fresnelSchlickRoughness, see module docstring).
-    multiscatter: Fdez-Aguera energy compensation (gltf model only).
+    multiscatter: Fdez-Aguera energy compensation (gltf model only: True with learnopengl raises
+        ValueError, False is allowed).
     """
-    if model not in IBL_MODELS:
-        raise ValueError(f"unknown IBL model {model!r}; choose one of {IBL_MODELS}")
-    if multiscatter and model != "gltf":
-        raise ValueError("multiscatter compensation is defined for the gltf model only (LearnOpenGL has none)")
+    check_options(model, what="IBL model", multiscatter=multiscatter)
     if irr is None and multiscatter:
         raise ValueError("multiscatter compensation needs the irradiance map (irr) even for metals")
     n3 = vnormalize(unpack3(as_float(n)))
@@ -99,7 +98,7 @@ def shade_ibl(
     a, b = ab[..., 0], ab[..., 1]
     meta = pre.metadata
     mapping = meta.get("roughness_mapping", "linear")
-    ld = pre.sample(R, roughness_to_lod(r, int(meta.get("mapping_levels", pre.num_levels)), mapping))
+    ld = pre.sample(R, roughness_to_lod(r, int(meta.get("mapping_levels", pre.num_levels)), mapping=mapping))
     ebar = irr.sample(pack3(n3)) if irr is not None else None
     base = m.base_color
     metallic = m.metallic[..., None]

@@ -31,6 +31,7 @@ from ._numerics import (
     vdot,
     vnormalize,
 )
+from ._pytree import Pytree, fields_of, leaf
 from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, geometry_soa
 from .material import Material
 
@@ -55,34 +56,6 @@ MIN_LIGHT_DISTANCE = 1e-4
 
 # KHR_lights_punctual: lightAngleScale = 1 / max(0.001, cos(inner) - cos(outer)).
 _MIN_CONE_COS_DELTA = 1e-3
-
-
-class _Pytree:
-    """Small immutable pytree base: fields are leaves; unflatten bypasses __init__ (see Material)."""
-
-    _fields: tuple[str, ...] = ()
-    __slots__ = ()
-
-    def tree_flatten(self):
-        return tuple(getattr(self, f) for f in self._fields), None
-
-    @classmethod
-    def tree_unflatten(cls, aux, children):
-        obj = object.__new__(cls)
-        for f, c in zip(cls._fields, children):
-            object.__setattr__(obj, f, c)
-        return obj
-
-    def __setattr__(self, name, value):
-        raise AttributeError(f"{type(self).__name__} is immutable.")
-
-    def _set(self, **values):
-        for name, value in values.items():
-            object.__setattr__(self, name, value)
-
-    def __repr__(self) -> str:
-        shapes = ", ".join(f"{f}={list(getattr(getattr(self, f), 'shape', ()))}" for f in self._fields)
-        return f"{type(self).__name__}({shapes})"
 
 
 def _vec3(name: str, x) -> jax.Array:
@@ -119,40 +92,47 @@ def _range_arg(range_) -> jax.Array:
     return 1.0 / rng  # 1/inf = 0: unlimited
 
 
-@jax.tree_util.register_pytree_node_class
-class PointLight(_Pytree):
+class PointLight(Pytree):
     """Point light. position (..., 3) [scene units]; color (..., 3) linear RGB; intensity (...) [cd];
-    range (...) or None: KHR smooth window `clamp(1 - (d/range)^4, 0, 1)^2` (None = unlimited)."""
+    range (...) or None: KHR smooth window `clamp(1 - (d/range)^4, 0, 1)^2` (None = unlimited),
+    stored as `inv_range` = 1/range (0 = unlimited)."""
 
-    _fields = ("position", "color", "intensity", "inv_range")
-    __slots__ = _fields
+    position: Any = leaf(rank=1)
+    color: Any = leaf((1.0, 1.0, 1.0), rank=1)
+    intensity: Any = leaf(1.0)
+    inv_range: Any = leaf(0.0)
 
     def __init__(self, position, color=(1.0, 1.0, 1.0), intensity=1.0, range=None):
+        self._set(position=position, color=color, intensity=intensity, inv_range=_range_arg(range))
+        self._validate()
+
+    def _validate(self) -> None:
         self._set(
-            position=_vec3("PointLight.position", position),
-            color=_vec3("PointLight.color", color),
-            intensity=as_float(intensity),
-            inv_range=_range_arg(range),
+            position=_vec3("PointLight.position", self.position),
+            color=_vec3("PointLight.color", self.color),
+            intensity=as_float(self.intensity),
+            inv_range=as_float(self.inv_range),
         )
         _check("PointLight.position", self.position)
         _check("PointLight.color", self.color, lo=0.0)
         _check("PointLight.intensity", self.intensity, lo=0.0)
+        _check("PointLight.inv_range", self.inv_range, lo=0.0, finite=False)
 
 
-@jax.tree_util.register_pytree_node_class
-class DirectionalLight(_Pytree):
+class DirectionalLight(Pytree):
     """Directional light (sun). direction (..., 3): the direction the light *travels* (KHR: the
     node's -Z), so the unit vector towards the light is `-direction`; color (..., 3);
     intensity (...) [lux]."""
 
-    _fields = ("direction", "color", "intensity")
-    __slots__ = _fields
+    direction: Any = leaf(rank=1)
+    color: Any = leaf((1.0, 1.0, 1.0), rank=1)
+    intensity: Any = leaf(1.0)
 
-    def __init__(self, direction, color=(1.0, 1.0, 1.0), intensity=1.0):
+    def _validate(self) -> None:
         self._set(
-            direction=_vec3("DirectionalLight.direction", direction),
-            color=_vec3("DirectionalLight.color", color),
-            intensity=as_float(intensity),
+            direction=_vec3("DirectionalLight.direction", self.direction),
+            color=_vec3("DirectionalLight.color", self.color),
+            intensity=as_float(self.intensity),
         )
         _check("DirectionalLight.direction", self.direction)
         if is_concrete(self.direction) and np.any(np.linalg.norm(np.asarray(self.direction), axis=-1) == 0):
@@ -161,18 +141,23 @@ class DirectionalLight(_Pytree):
         _check("DirectionalLight.intensity", self.intensity, lo=0.0)
 
 
-@jax.tree_util.register_pytree_node_class
-class SpotLight(_Pytree):
+class SpotLight(Pytree):
     """Spot light (KHR_lights_punctual). position, direction (the cone axis, pointing away from the
     light), color (..., 3); intensity (...) [cd]; inner/outer cone angles in radians with
-    0 <= inner < outer <= pi/2 (KHR defaults 0 and pi/4); optional range as for `PointLight`.
+    0 <= inner < outer <= pi/2 (KHR defaults 0 and pi/4); optional range as for `PointLight`
+    (stored as `inv_range`).
 
     Angular falloff (KHR): `t = saturate(cos(angle) * s + o)`, `s = 1/max(1e-3, cos(inner) -
     cos(outer))`, `o = -cos(outer) * s`, attenuation `t^2`.
     """
 
-    _fields = ("position", "direction", "color", "intensity", "inner_cone_angle", "outer_cone_angle", "inv_range")
-    __slots__ = _fields
+    position: Any = leaf(rank=1)
+    direction: Any = leaf(rank=1)
+    color: Any = leaf((1.0, 1.0, 1.0), rank=1)
+    intensity: Any = leaf(1.0)
+    inner_cone_angle: Any = leaf(0.0)
+    outer_cone_angle: Any = leaf(math.pi / 4)
+    inv_range: Any = leaf(0.0)
 
     def __init__(
         self,
@@ -185,19 +170,32 @@ class SpotLight(_Pytree):
         range=None,
     ):
         self._set(
-            position=_vec3("SpotLight.position", position),
-            direction=_vec3("SpotLight.direction", direction),
-            color=_vec3("SpotLight.color", color),
-            intensity=as_float(intensity),
-            inner_cone_angle=as_float(inner_cone_angle),
-            outer_cone_angle=as_float(outer_cone_angle),
+            position=position,
+            direction=direction,
+            color=color,
+            intensity=intensity,
+            inner_cone_angle=inner_cone_angle,
+            outer_cone_angle=outer_cone_angle,
             inv_range=_range_arg(range),
+        )
+        self._validate()
+
+    def _validate(self) -> None:
+        self._set(
+            position=_vec3("SpotLight.position", self.position),
+            direction=_vec3("SpotLight.direction", self.direction),
+            color=_vec3("SpotLight.color", self.color),
+            intensity=as_float(self.intensity),
+            inner_cone_angle=as_float(self.inner_cone_angle),
+            outer_cone_angle=as_float(self.outer_cone_angle),
+            inv_range=as_float(self.inv_range),
         )
         _check("SpotLight.position", self.position)
         _check("SpotLight.color", self.color, lo=0.0)
         _check("SpotLight.intensity", self.intensity, lo=0.0)
         _check("SpotLight.inner_cone_angle", self.inner_cone_angle, lo=0.0)
         _check("SpotLight.outer_cone_angle", self.outer_cone_angle, lo=0.0, hi=math.pi / 2 + 1e-12)
+        _check("SpotLight.inv_range", self.inv_range, lo=0.0, finite=False)
         if is_concrete(self.inner_cone_angle) and is_concrete(self.outer_cone_angle):
             if np.any(np.asarray(self.inner_cone_angle) >= np.asarray(self.outer_cone_angle)):
                 raise ValueError(
@@ -206,28 +204,22 @@ class SpotLight(_Pytree):
                 )
 
 
-@jax.tree_util.register_pytree_node_class
-class LightSet(_Pytree):
+class LightSet(Pytree):
     """Any mix of punctual lights as a struct of arrays with one leading light axis (N, ...).
 
     position (N, 3); direction (N, 3) (travel direction; used by directional and spot lights);
     radiant (N, 3) = color * intensity; inv_range (N,); cone_scale, cone_offset (N,) (a point
-    light has scale 0, offset 1); directional (N,) bool.
+    light has scale 0, offset 1); directional (N,) bool. Built by `pack_lights`, taken as given
+    (no validation). The light axis N is a batch axis: the declared ranks count the core axes.
     """
 
-    _fields = ("position", "direction", "radiant", "inv_range", "cone_scale", "cone_offset", "directional")
-    __slots__ = _fields
-
-    def __init__(self, position, direction, radiant, inv_range, cone_scale, cone_offset, directional):
-        self._set(
-            position=position,
-            direction=direction,
-            radiant=radiant,
-            inv_range=inv_range,
-            cone_scale=cone_scale,
-            cone_offset=cone_offset,
-            directional=directional,
-        )
+    position: Any = leaf(rank=1)
+    direction: Any = leaf(rank=1)
+    radiant: Any = leaf(rank=1)
+    inv_range: Any = leaf()
+    cone_scale: Any = leaf()
+    cone_offset: Any = leaf()
+    directional: Any = leaf()
 
     @property
     def num_lights(self) -> int:
@@ -256,10 +248,10 @@ def _pack_one(light) -> LightSet:
         scale = 1.0 / jnp.maximum(_MIN_CONE_COS_DELTA, jnp.cos(light.inner_cone_angle) - cos_outer)
         fields.update(cone_scale=scale, cone_offset=-cos_outer * scale)
     out = {}
-    for name in LightSet._fields:
-        x = jnp.asarray(fields[name])
-        tail = (3,) if name in ("position", "direction", "radiant") else ()
-        out[name] = jnp.broadcast_to(x, batch + tail).reshape((-1,) + tail)
+    for f in fields_of(LightSet):
+        x = jnp.asarray(fields[f.name])
+        tail = (3,) * f.rank  # xyz / RGB
+        out[f.name] = jnp.broadcast_to(x, batch + tail).reshape((-1,) + tail)
     return LightSet(**out)
 
 
@@ -277,12 +269,12 @@ def pack_lights(lights: Any) -> LightSet:
     sets = [_pack_one(x) for x in lights]
     dtype = jnp.result_type(*[s.radiant for s in sets])
     return LightSet(
-        *[
-            jnp.concatenate(
-                [getattr(s, f).astype(bool if f == "directional" else dtype) for s in sets], axis=0
+        **{
+            f.name: jnp.concatenate(
+                [getattr(s, f.name).astype(bool if f.name == "directional" else dtype) for s in sets], axis=0
             )
-            for f in LightSet._fields
-        ]
+            for f in fields_of(LightSet)
+        }
     )
 
 
@@ -335,12 +327,14 @@ def shade_direct(
       model: "gltf" | "learnopengl" (see `brdf`).
       ambient: constant ambient radiance (scalar or (3,)), applied as LearnOpenGL's
         `ambient * albedo * ao` (not physically based; use IBL for that). Default 0.
-      min_roughness, **brdf_options: passed to `brdf` (smith, diffuse, shader_epsilon).
+      min_roughness, **brdf_options: passed to `brdf` (smith, diffuse, shader_epsilon). An option
+        the model does not use (`brdf_terms.MODEL_REGISTRY`) raises ValueError unless it has its
+        default value.
     """
-    check_options(model, min_roughness, brdf_options.get("smith", "correlated"), brdf_options.get("diffuse", "lambert"))
     unknown = set(brdf_options) - {"smith", "diffuse", "shader_epsilon"}
     if unknown:
         raise TypeError(f"shade_direct got unknown option(s) {sorted(unknown)}.")
+    check_options(model, min_roughness=min_roughness, **brdf_options)
     ls = pack_lights(lights)
     num = ls.num_lights
     p3 = unpack3(p)

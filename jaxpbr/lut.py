@@ -7,10 +7,11 @@ specular lobe `f_spec = D(h) V(v, l) F(v.h)` with Schlick's `F = F0 + (F90 - F0)
     A = int (1 - Fc) D V (n.l) dl,   B = int Fc D V (n.l) dl,   Fc = (1 - v.h)^5,
 
 with `alpha = r^2` (r perceptual roughness). `smith` picks V: ``"correlated"`` — height-correlated
-Smith (Heitz 2014; glTF 2.0 App. B, Filament; the default) — or ``"schlick"`` — separable
+Smith (Heitz 2014; glTF 2.0 App. B, Filament; the default) — or ``"schlick_ggx"`` — separable
 Schlick-GGX with `k = alpha / 2` (Karis 2013 for IBL; LearnOpenGL `brdf.fs`), *not* the
-`(r + 1)^2 / 8` of analytic lights (MATH.md §1.3). At r = 0 the lobe is a mirror and
-`A = 1 - (1 - mu)^5`, `B = (1 - mu)^5` exactly.
+`(r + 1)^2 / 8` of analytic lights (MATH.md §1.3), and not the `brdf(smith="separable")` of the
+BRDF (that is the separable Smith-GGX G2); ``"schlick"`` is a deprecated alias of ``"schlick_ggx"``.
+At r = 0 the lobe is a mirror and `A = 1 - (1 - mu)^5`, `B = (1 - mu)^5` exactly.
 
 Layout (DESIGN.md, Conventions): shape `(n_roughness, n_nov, 2)`, element `[j, i]` at
 `r = (j + 0.5) / n_roughness`, `NoV = (i + 0.5) / n_nov`, channels (A, B); `lut_lookup` is bilinear
@@ -30,17 +31,21 @@ and against scipy in the tests.
 from __future__ import annotations
 
 import math
+import warnings
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._api import keyword_only
 from ._interp import bilinear
+from ._validate import positive_int
 from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated
 
 __all__ = [
     "DEFAULT_SAMPLES",
+    "SMITH_ALIASES",
     "SMITH_VARIANTS",
     "compute_brdf_lut",
     "lut_lookup",
@@ -48,11 +53,14 @@ __all__ = [
 ]
 
 #: The two Smith terms a LUT can be built with (see the module docstring).
-SMITH_VARIANTS = ("correlated", "schlick")
+SMITH_VARIANTS = ("correlated", "schlick_ggx")
+
+#: Deprecated LUT Smith names -> current ones (accepted with a DeprecationWarning).
+SMITH_ALIASES = {"schlick": "schlick_ggx"}
 
 #: Default quadrature nodes per texel of `compute_brdf_lut`: 6 m^2 with order m = 12. Chosen from
 #: the measured error against `lut_reference` at every texel of a 256^2 table (max abs error over
-#: both channels, correlated / schlick): 384 nodes (m = 8) 1.3e-4 / 7.3e-5, 600 (m = 10)
+#: both channels, correlated / schlick_ggx): 384 nodes (m = 8) 1.3e-4 / 7.3e-5, 600 (m = 10)
 #: 1.4e-5 / 3.5e-6, 864 (m = 12) 1.4e-6 / 4.2e-7, 1176 (m = 14) 1.3e-7 / 1.4e-7 (there the float32
 #: node evaluation is the limit). 864 is the cheapest order with a 70x margin under the 1e-4
 #: target; a 256^2 table then runs in 0.3-0.8 s on one CPU core (+ ~1.4 s compilation).
@@ -66,15 +74,21 @@ _PI = math.pi
 # ============================================================================================
 
 
-def _check_smith(smith, fn):
+def resolve_smith(smith, fn: str = "compute_brdf_lut") -> str:
+    """The current name of a LUT Smith term: a `SMITH_VARIANTS` name as is, a deprecated alias
+    ("schlick") mapped with a DeprecationWarning; anything else raises ValueError."""
+    if isinstance(smith, str) and smith in SMITH_ALIASES:
+        new = SMITH_ALIASES[smith]
+        warnings.warn(
+            f"{fn}: smith={smith!r} is deprecated; use smith={new!r} (Schlick-GGX with k = alpha/2, "
+            "a different G from brdf's smith='separable')",
+            DeprecationWarning,
+            stacklevel=4,  # the caller of the public (keyword_only-wrapped) function
+        )
+        return new
     if smith not in SMITH_VARIANTS:
         raise ValueError(f"{fn}: smith must be one of {SMITH_VARIANTS}, got {smith!r}")
-
-
-def _positive_int(x, name, fn, fix):
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x <= 0:
-        raise ValueError(f"{fn}: {name} must be a positive int, got {x!r}; {fix}")
-    return int(x)
+    return smith
 
 
 def _lut_shape(size) -> tuple[int, int]:
@@ -82,8 +96,8 @@ def _lut_shape(size) -> tuple[int, int]:
     if isinstance(size, (tuple, list)):
         if len(size) != 2:
             raise ValueError(f"compute_brdf_lut: size must be an int or a pair, got {size!r}; {fix}")
-        return tuple(_positive_int(s, "size", "compute_brdf_lut", fix) for s in size)
-    n = _positive_int(size, "size", "compute_brdf_lut", fix)
+        return tuple(positive_int("size", s, where="compute_brdf_lut", fix=fix) for s in size)
+    n = positive_int("size", size, where="compute_brdf_lut", fix=fix)
     return n, n
 
 
@@ -242,10 +256,11 @@ def _lut_fast(*, n_r, n_nov, m, smith, node_dtype, rows_per_chunk):
     return jax.lax.map(row, r, batch_size=rows_per_chunk)
 
 
+@keyword_only("smith")
 def compute_brdf_lut(
     size=128,
-    smith: str = "correlated",
     *,
+    smith: str = "correlated",
     samples: int = DEFAULT_SAMPLES,
     dtype=jnp.float32,
 ) -> jax.Array:
@@ -253,8 +268,9 @@ def compute_brdf_lut(
 
     Args:
       size: int n for an n x n table, or a pair `(n_roughness, n_nov)`.
-      smith: ``"correlated"`` (height-correlated Smith, glTF/Filament; default) or ``"schlick"``
-        (Schlick-GGX with k = alpha/2, Karis/LearnOpenGL).
+      smith: ``"correlated"`` (height-correlated Smith, glTF/Filament; default) or
+        ``"schlick_ggx"`` (Schlick-GGX with k = alpha/2, Karis/LearnOpenGL; ``"schlick"`` is its
+        deprecated alias).
       samples: integrand evaluations per texel; the deterministic Gauss-Legendre rule uses
         6 m^2 of them with m = max(1, floor(sqrt(samples / 6))). Default `DEFAULT_SAMPLES` = 864
         (max abs error 1.4e-6 at every texel of 128^2 and 256^2, both variants).
@@ -271,8 +287,8 @@ def compute_brdf_lut(
     table then takes 0.3-0.8 s on one CPU core (XLA:CPU runs it single-threaded).
     """
     n_r, n_nov = _lut_shape(size)
-    _check_smith(smith, "compute_brdf_lut")
-    samples = _positive_int(samples, "samples", "compute_brdf_lut", f"the default is {DEFAULT_SAMPLES}")
+    smith = resolve_smith(smith, "compute_brdf_lut")
+    samples = positive_int("samples", samples, where="compute_brdf_lut", fix=f"the default is {DEFAULT_SAMPLES}")
     dtype = jnp.dtype(dtype)
     if dtype not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64)):
         raise ValueError(f"compute_brdf_lut: dtype must be float32 or float64, got {dtype}")
@@ -392,13 +408,14 @@ def _reference_chunk(mu, alpha, *, smith, order, levels, alpha_levels):
     return jnp.stack([jnp.sum(f * (1.0 - fc), axis=(-2, -1)), jnp.sum(f * fc, axis=(-2, -1))], axis=-1)
 
 
-def lut_reference(n_dot_v, roughness, smith: str = "correlated", *, order: int = 10, levels: int = 7) -> np.ndarray:
+@keyword_only("smith")
+def lut_reference(n_dot_v, roughness, *, smith: str = "correlated", order: int = 10, levels: int = 7) -> np.ndarray:
     """Float64 reference (A, B) at arbitrary points, shape broadcast(n_dot_v, roughness) + (2,).
 
     Args:
       n_dot_v: NoV in (0, 1] (the integrand divides by NoV; NoV -> 0 is a limit, evaluate e.g.
         1e-6). roughness: perceptual r in [0, 1]. Both broadcast.
-      smith: ``"correlated"`` or ``"schlick"`` as in `compute_brdf_lut`.
+      smith: ``"correlated"`` or ``"schlick_ggx"`` as in `compute_brdf_lut`.
       order, levels: Gauss-Legendre points per panel, and the number of panels graded by 1/4
         towards each singular point of theta (levels - 2 towards the horizon in phi). The
         defaults agree with order 14 / levels 8 to ~1e-9 (tests, slow).
@@ -409,14 +426,14 @@ def lut_reference(n_dot_v, roughness, smith: str = "correlated", *, order: int =
     compiled chunks of 64 points: every texel of a 128^2 table takes ~15 s of one CPU core,
     256^2 ~60 s.
     """
-    _check_smith(smith, "lut_reference")
+    smith = resolve_smith(smith, "lut_reference")
     mu, r = np.broadcast_arrays(np.asarray(n_dot_v, np.float64), np.asarray(roughness, np.float64))
     if not (np.all(mu > 0.0) and np.all(mu <= 1.0)):
         raise ValueError("lut_reference: n_dot_v must lie in (0, 1] (NoV -> 0 is a limit; evaluate at e.g. 1e-6)")
     if not (np.all(r >= 0.0) and np.all(r <= 1.0)):
         raise ValueError("lut_reference: roughness must lie in [0, 1]")
-    order = _positive_int(order, "order", "lut_reference", "the default is 10")
-    levels = _positive_int(levels, "levels", "lut_reference", "the default is 7")
+    order = positive_int("order", order, where="lut_reference", fix="the default is 10")
+    levels = positive_int("levels", levels, where="lut_reference", fix="the default is 7")
     shape = mu.shape
     mu, r = mu.ravel(), r.ravel()
     alpha = r * r

@@ -8,6 +8,7 @@ import jax
 import numpy as np
 
 from ._numerics import as_float, is_concrete
+from ._pytree import Pytree, fields_of, leaf
 
 __all__ = ["Material", "F0_DIELECTRIC"]
 
@@ -15,13 +16,10 @@ __all__ = ["Material", "F0_DIELECTRIC"]
 #: (glTF 2.0 Appendix B, LearnOpenGL `vec3(0.04)`).
 F0_DIELECTRIC = 0.04
 
-_FIELDS = ("base_color", "metallic", "roughness", "occlusion", "emissive")
-_VECTOR_FIELDS = ("base_color", "emissive")
 _UNIT_FIELDS = ("metallic", "roughness", "occlusion")
 
 
-@jax.tree_util.register_pytree_node_class
-class Material:
+class Material(Pytree):
     """Metallic-roughness material; every leaf may carry batch axes that broadcast with the geometry.
 
     Fields (defaults are glTF's):
@@ -33,71 +31,29 @@ class Material:
                              Default 1.
         emissive:   (..., 3) emitted linear radiance, >= 0. Default (0, 0, 0).
 
-    Concrete values are validated (range, shape, finiteness) when the Material is built; traced
-    values (inside jit/vmap/grad) cannot be checked and are taken as given.
+    Concrete values are validated (range, shape, finiteness) when the Material is built or
+    `replace`d (`_validate`); traced values (inside jit/vmap/grad) cannot be checked and are taken
+    as given (the trailing RGB axis, a shape, is checked even then).
     """
 
-    __slots__ = _FIELDS
+    base_color: Any = leaf((1.0, 1.0, 1.0), rank=1)
+    metallic: Any = leaf(1.0)
+    roughness: Any = leaf(1.0)
+    occlusion: Any = leaf(1.0)
+    emissive: Any = leaf((0.0, 0.0, 0.0), rank=1)
 
-    def __init__(
-        self,
-        base_color: Any = (1.0, 1.0, 1.0),
-        metallic: Any = 1.0,
-        roughness: Any = 1.0,
-        occlusion: Any = 1.0,
-        emissive: Any = (0.0, 0.0, 0.0),
-    ):
-        values = dict(
-            base_color=base_color,
-            metallic=metallic,
-            roughness=roughness,
-            occlusion=occlusion,
-            emissive=emissive,
-        )
-        for name, value in values.items():
-            value = as_float(value)
-            if name in _VECTOR_FIELDS and (value.ndim == 0 or value.shape[-1] != 3):
+    def _validate(self) -> None:
+        for field in fields_of(self):
+            name = field.name
+            value = as_float(getattr(self, name))
+            if field.rank == 1 and (value.ndim == 0 or value.shape[-1] != 3):
                 raise ValueError(
                     f"Material.{name} must have a trailing axis of 3 (linear RGB), got shape "
                     f"{value.shape}; pass e.g. {name}=(r, g, b)."
                 )
             if is_concrete(value):
-                _validate(name, value)
-            object.__setattr__(self, name, value)
-
-    # Pytree protocol: unflatten bypasses __init__ so that tracers, None or sentinel leaves that
-    # JAX transformations put in the tree are never converted or validated.
-    def tree_flatten(self):
-        return tuple(getattr(self, f) for f in _FIELDS), None
-
-    @classmethod
-    def tree_unflatten(cls, aux, children):
-        obj = object.__new__(cls)
-        for f, c in zip(_FIELDS, children):
-            object.__setattr__(obj, f, c)
-        return obj
-
-    def __setattr__(self, name, value):
-        raise AttributeError("Material is immutable; use material.replace(field=value).")
-
-    def replace(self, **changes) -> "Material":
-        """A copy with some fields replaced (validated like the constructor)."""
-        unknown = set(changes) - set(_FIELDS)
-        if unknown:
-            raise TypeError(f"Material has no field(s) {sorted(unknown)}; fields are {list(_FIELDS)}.")
-        values = {f: getattr(self, f) for f in _FIELDS}
-        values.update(changes)
-        return Material(**values)
-
-    def __repr__(self) -> str:
-        parts = []
-        for f in _FIELDS:
-            x = getattr(self, f)
-            if is_concrete(x) and getattr(x, "size", 2) <= 3:
-                parts.append(f"{f}={np.asarray(x).tolist()}")
-            else:
-                parts.append(f"{f}={getattr(x, 'dtype', '?')}{list(getattr(x, 'shape', ()))}")
-        return "Material(" + ", ".join(parts) + ")"
+                _check_values(name, value)
+            self._set(**{name: value})
 
     # Derived quantities (glTF Appendix B).
     def f0(self, f0_dielectric: float = F0_DIELECTRIC) -> jax.Array:
@@ -110,7 +66,7 @@ class Material:
         return self.base_color * (1.0 - self.metallic[..., None])
 
 
-def _validate(name: str, value: jax.Array) -> None:
+def _check_values(name: str, value: jax.Array) -> None:
     a = np.asarray(value)
     if not np.all(np.isfinite(a)):
         raise ValueError(f"Material.{name} contains NaN or Inf; pass finite values.")
@@ -119,7 +75,7 @@ def _validate(name: str, value: jax.Array) -> None:
             f"Material.{name} must lie in [0, 1], got values in [{a.min():g}, {a.max():g}]; "
             f"clip it (roughness is perceptual r, not alpha = r^2)."
         )
-    if name in _VECTOR_FIELDS and a.min(initial=0.0) < 0.0:
+    if name in ("base_color", "emissive") and a.min(initial=0.0) < 0.0:
         raise ValueError(f"Material.{name} must be >= 0 (linear RGB), got minimum {a.min():g}.")
     if name == "base_color" and a.max(initial=0.0) > 1.0:
         raise ValueError(

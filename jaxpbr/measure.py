@@ -11,9 +11,10 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from ._api import keyword_only
 from .cubemap import Cubemap, texel_directions
 from .diffuse import irradiance_at
-from .lut import lut_reference
+from .lut import lut_reference, resolve_smith
 from .specular import level_roughness, prefilter_reference
 
 __all__ = ["irradiance_error", "lut_error", "prefilter_error", "texel_subset"]
@@ -31,7 +32,8 @@ def _brightest_direction(env: Cubemap) -> np.ndarray:
     return env.directions(0).reshape(-1, 3)[k]
 
 
-def texel_subset(size: int, count: int, *, toward=None, seed: int = 0) -> np.ndarray:
+@keyword_only("count")
+def texel_subset(size: int, *, count: int, toward=None, seed: int = 0) -> np.ndarray:
     """Flat texel indices of a (6, size, size) cube: all if there are <= count, otherwise count
     seeded random ones plus the count/8 texels nearest `toward` (if given)."""
     n = 6 * size * size
@@ -50,12 +52,12 @@ def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, 
     """Per level m >= 1: mean and max relative error of `pre` against `prefilter_reference` at a
     texel subset. Level 0 is the (down-sampled) source itself and has no error by construction."""
     mapping = pre.metadata.get("roughness_mapping", "linear")
-    rough = level_roughness(pre.num_levels, mapping)
+    rough = level_roughness(pre.num_levels, mapping=mapping)
     sun = _brightest_direction(env)
     rows = []
     for m in range(1, pre.num_levels):
         Sm = pre.levels[m].shape[1]
-        sel = texel_subset(Sm, texels_per_level, toward=sun, seed=seed + m)
+        sel = texel_subset(Sm, count=texels_per_level, toward=sun, seed=seed + m)
         d = texel_directions(Sm).reshape(-1, 3)[sel]
         ref = prefilter_reference(env, d, float(rough[m]))
         got = np.asarray(pre.levels[m], np.float64).reshape(-1, pre.channels)[sel]
@@ -70,7 +72,7 @@ def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int
     """Mean / max relative error of an irradiance map against the full-resolution exact
     convolution (source_size = env face size) in float64, at a texel subset."""
     S = irr.face_size
-    sel = texel_subset(S, texels, toward=_brightest_direction(env), seed=seed)
+    sel = texel_subset(S, count=texels, toward=_brightest_direction(env), seed=seed)
     d = texel_directions(S).reshape(-1, 3)[sel]
     with jax.enable_x64(True):
         env64 = Cubemap(tuple(np.asarray(lv, np.float64) for lv in env.levels[:1]))
@@ -80,9 +82,12 @@ def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int
     return dict(texels=len(sel), mean=float(e.mean()), max=float(e.max()))
 
 
-def lut_error(lut, smith: str, *, texels: int | None = 1024, seed: int = 0) -> dict:
+@keyword_only("smith")
+def lut_error(lut, *, smith: str, texels: int | None = 1024, seed: int = 0) -> dict:
     """Max / mean absolute error of a LUT (n_r, n_nov, 2) against `lut_reference` at its texel
-    centres: every texel if `texels` is None, else the four edges plus a seeded random subset."""
+    centres: every texel if `texels` is None, else the four edges plus a seeded random subset.
+    `smith`: the LUT's Smith term, "correlated" | "schlick_ggx" (as in `compute_brdf_lut`)."""
+    smith = resolve_smith(smith, "lut_error")
     lut = np.asarray(lut, np.float64)
     nr, nn = lut.shape[:2]
     jj, ii = np.meshgrid(np.arange(nr), np.arange(nn), indexing="ij")
@@ -92,7 +97,7 @@ def lut_error(lut, smith: str, *, texels: int | None = 1024, seed: int = 0) -> d
         rng = np.random.default_rng(seed)
         pick = np.union1d(np.nonzero(edge)[0], rng.choice(nr * nn, texels, replace=False))
         j, i = j[pick], i[pick]
-    ref = lut_reference((i + 0.5) / nn, (j + 0.5) / nr, smith)
+    ref = lut_reference((i + 0.5) / nn, (j + 0.5) / nr, smith=smith)
     err = np.abs(lut[j, i] - ref)
     return dict(texels=int(len(j)), max=float(err.max()), mean=float(err.mean()), all_texels=texels is None or nr * nn <= texels)
 

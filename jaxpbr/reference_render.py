@@ -58,6 +58,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._api import keyword_only
 from ._validate import positive_int
 from .conventions import luminance
 from .cubemap import (
@@ -127,7 +128,8 @@ def _supersampling(alpha_min: float, face_size: int, refine: int, grazing: float
     return q_far * refine, min(q_near, 4) * refine, q_near * refine, BRIGHT_Q * refine
 
 
-def bright_texels(level0, max_texels: int = BRIGHT_TEXELS, ratio: float = BRIGHT_RATIO) -> np.ndarray:
+@keyword_only("max_texels", "ratio")
+def bright_texels(level0, *, max_texels: int = BRIGHT_TEXELS, ratio: float = BRIGHT_RATIO) -> np.ndarray:
     """Flat indices of the (at most `max_texels`) brightest texels whose luminance exceeds `ratio`
     times the environment's mean radiance (e.g. the sun), brightest first."""
     L = np.asarray(level0, np.float64)

@@ -34,11 +34,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import (  # called through the module: tests count precompute calls
+    diffuse,
+    shipped_luts,
+    specular,
+)
+from ._api import keyword_only
 from ._numerics import is_concrete, pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from ._pytree import Pytree, evolve, fields_of, unchecked
 from ._validate import positive_int
-from .brdf_terms import MODELS
+from .brdf_terms import MODEL_REGISTRY, check_options
 from .cubemap import Cubemap, _mip_count
-from .diffuse import irradiance
 from .ibl import shade_ibl
 from .lights import shade_direct
 from .material import Material
@@ -48,14 +54,11 @@ from .scene import (
     Scene,
     Sphere,
     TexturedMaterial,
-    evolve,
     intersect_plane,
     intersect_sphere,
     primary_rays,
     sample_texture,
 )
-from .shipped_luts import brdf_lut
-from .specular import prefilter
 
 __all__ = [
     "ASSETS",
@@ -78,8 +81,10 @@ DEFAULT_PREFILTER_SIZE = 128
 class RenderOptions:
     """Static render options (hashable; part of the compiled program's identity).
 
-    model: "gltf" | "learnopengl" (direct BRDF and IBL combination; learnopengl uses a Schlick LUT).
-    multiscatter: Fdez-Aguera energy compensation of the IBL term (gltf only).
+    model: a `brdf_terms.MODEL_REGISTRY` name, "gltf" | "learnopengl" (direct BRDF and IBL
+        combination; each model's IBL reads the LUT of its `lut_smith`, "schlick_ggx" for learnopengl).
+    multiscatter: Fdez-Aguera energy compensation of the IBL term (gltf only: True with another
+        model raises ValueError).
     irradiance_size / irradiance_method: `jaxpbr.irradiance` parameters (exact convolution default).
     prefilter_size: face size of the prefiltered map (default: min(env face size, 128), a
         power-of-two divisor of it); prefilter_samples: `jaxpbr.prefilter` samples (None = default).
@@ -99,10 +104,7 @@ class RenderOptions:
     dtype: str = "float32"
 
     def __post_init__(self):
-        if self.model not in MODELS:
-            raise ValueError(f"unknown model {self.model!r}; choose one of {MODELS}")
-        if self.multiscatter and self.model != "gltf":
-            raise ValueError("multiscatter is defined for the gltf model only")
+        check_options(self.model, multiscatter=self.multiscatter)
         if self.dtype not in ("float32", "float64"):
             raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
         for name in ("irradiance_size", "lut_size"):
@@ -187,9 +189,10 @@ def _prefilter_size(env: Environment, opts: RenderOptions) -> int:
     return S
 
 
-def plan(scene: Scene, options: RenderOptions | None = None) -> RenderPlan:
-    """The RenderPlan of `scene` (what `render` will trace and precompute)."""
-    opts = options or RenderOptions()
+@keyword_only("options")
+def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> RenderPlan:
+    """The RenderPlan of `scene` (what `render` will trace and precompute); options as for `render`."""
+    opts = _options(options, overrides, "plan")
     if scene.gbuffer is not None:
         mats = [scene.gbuffer.material]
     else:
@@ -306,8 +309,8 @@ def content_key(cube: Cubemap) -> str:
 def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
     """(irradiance | None, prefiltered, lut) for the plan; cached when the environment is concrete."""
     dtype = jnp.dtype(opts.dtype)
-    smith = "schlick" if opts.model == "learnopengl" else "correlated"
-    lut = ASSETS.get("lut", (opts.lut_size, smith, str(dtype)), lambda: brdf_lut(opts.lut_size, smith, dtype=dtype))
+    smith = MODEL_REGISTRY[opts.model].lut_smith
+    lut = ASSETS.get("lut", (opts.lut_size, smith, str(dtype)), lambda: shipped_luts.brdf_lut(opts.lut_size, smith=smith, dtype=dtype))
     src = env.radiance
     concrete = all(is_concrete(lv) for lv in src.levels)
     key = content_key(src) if concrete else None
@@ -320,7 +323,7 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
     irr = env.irradiance
     if p.ibl_diffuse and irr is None:
         params = (opts.irradiance_size, opts.irradiance_method)
-        irr = cached("irradiance", params, lambda: irradiance(src, opts.irradiance_size, method=opts.irradiance_method))
+        irr = cached("irradiance", params, lambda: diffuse.irradiance(src, opts.irradiance_size, method=opts.irradiance_method))
     if not p.ibl_diffuse:
         irr = None
     pre = env.prefiltered
@@ -329,7 +332,7 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
 
         def compute_pre():
             kw = {} if opts.prefilter_samples is None else {"samples": opts.prefilter_samples}
-            return prefilter(
+            return specular.prefilter(
                 src,
                 p.prefilter_size,
                 num_levels=p.mapping_levels,
@@ -360,13 +363,14 @@ def _stack_materials(objects, dtype):
     """Per-object constant materials (textured objects contribute their factors), leaves (K, ...)."""
     mats = [ob.material.factors if isinstance(ob.material, TexturedMaterial) else ob.material for ob in objects]
     out = {}
-    for f, tail in (("base_color", (3,)), ("metallic", ()), ("roughness", ()), ("occlusion", ()), ("emissive", (3,))):
-        out[f] = jnp.stack([jnp.broadcast_to(jnp.asarray(getattr(m, f), dtype), tail) for m in mats])
+    for f in fields_of(Material):
+        tail = (3,) * f.rank  # RGB
+        out[f.name] = jnp.stack([jnp.broadcast_to(jnp.asarray(getattr(m, f.name), dtype), tail) for m in mats])
     return out
 
 
 def _gather_material(stack, idx) -> Material:
-    return Material.tree_unflatten(None, [stack[f][idx] for f in ("base_color", "metallic", "roughness", "occlusion", "emissive")])
+    return unchecked(Material, **{f: x[idx] for f, x in stack.items()})
 
 
 def _cast(objects, o, d, dtype):
@@ -484,7 +488,7 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype):
             B = vcross(n, T)
             pert = vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
             n = tuple(jnp.where(sel, pert[i], n[i]) for i in range(3))
-    return Material.tree_unflatten(None, [base, metallic, rough, occ, emis]), n
+    return unchecked(Material, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n
 
 
 def _cast_floats(tree, dtype):
@@ -553,7 +557,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
             hit=gb.hit,
             ray=tuple(-c for c in view),
         )
-    o, d = primary_rays(scene.camera, dtype, offset)
+    o, d = primary_rays(scene.camera, dtype=dtype, offset=offset)
     o, d = unpack3(o), unpack3(d)
     objects = scene.objects
     t, idx, hit = _cast(objects, o, d, dtype)
@@ -612,23 +616,40 @@ def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions
 _render_jit = jax.jit(_render_traced, static_argnums=(2, 3))
 
 
-def _options(options) -> RenderOptions:
-    if "options" in options:
-        raise TypeError("pass render options as keywords, e.g. render(scene, model='gltf')")
-    return RenderOptions(**options)
+_OPTION_FIELDS = tuple(f.name for f in dataclasses.fields(RenderOptions))
 
 
-def render(scene: Scene, **options) -> jax.Array:
+def _options(options, overrides: dict, fn: str) -> RenderOptions:
+    """`options` (a RenderOptions, or None for the defaults) with the keyword `overrides` applied
+    on top (`dataclasses.replace`, so the result is validated again)."""
+    if options is not None and not isinstance(options, RenderOptions):
+        raise TypeError(
+            f"{fn}: options must be a jaxpbr.RenderOptions, got {type(options).__name__}; pass "
+            f"options=RenderOptions(...), or the fields as keywords, e.g. {fn}(scene, model='gltf')"
+        )
+    unknown = sorted(set(overrides) - set(_OPTION_FIELDS))
+    if unknown:
+        raise TypeError(f"{fn}: unknown render option(s) {unknown}; the RenderOptions fields are {list(_OPTION_FIELDS)}")
+    if options is None:
+        return RenderOptions(**overrides)
+    return dataclasses.replace(options, **overrides) if overrides else options
+
+
+def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> jax.Array:
     """Render `scene` to linear HDR radiance (H, W, 3) (Rec.709 primaries, scene-referred).
 
-    options: `RenderOptions` fields as keywords (model, multiscatter, irradiance_size,
-    prefilter_size, prefilter_samples, lut_size, mapping, dtype). Differentiable with respect to
-    every array in the scene (materials, textures, lights, camera, environment texels).
+    options: a `RenderOptions` value (default: `RenderOptions()`).
+    **overrides: `RenderOptions` fields as keywords (model, multiscatter, irradiance_size,
+      irradiance_method, prefilter_size, prefilter_samples, lut_size, mapping, dtype), applied on
+      top of `options`: `render(scene, options=opts, model="learnopengl")` renders with
+      `dataclasses.replace(opts, model="learnopengl")`.
+    Differentiable with respect to every array in the scene (materials, textures, lights, camera,
+    environment texels).
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"render expects a jaxpbr.Scene, got {type(scene).__name__}")
-    opts = _options(options)
-    p = plan(scene, opts)
+    opts = _options(options, overrides, "render")
+    p = plan(scene, options=opts)
     assets = _env_assets(scene.environment, p, opts) if p.ibl else None
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
     if s == 1:
@@ -644,38 +665,31 @@ def render(scene: Scene, **options) -> jax.Array:
 # ------------------------------------------------------------------------------------------
 
 
-#: Fields whose unbatched value is a vector (trailing axis); all others are scalars.
-_VECTOR_FIELDS = {"base_color", "emissive", "position", "target", "up", "jitter", "color", "direction", "radiant"}
-
-
 def _batched(name: str, obj):
     """(B or None, obj with every field broadcast to the leading batch axis B).
 
-    A field is batched when it has one more axis than its unbatched form (vector fields (B, n),
-    scalar fields (B,)); unbatched fields are broadcast. All batched fields must agree on B."""
-    leaves, treedef = jax.tree_util.tree_flatten(obj)
-    if hasattr(obj, "_data_fields"):
-        names = list(obj._data_fields)
-    elif hasattr(obj, "_fields"):
-        names = list(obj._fields)
-    else:  # Material
-        names = ["base_color", "metallic", "roughness", "occlusion", "emissive"]
-    if len(names) != len(leaves):
+    A field is batched when it has one more axis than its declared rank (`leaf(rank=...)` in
+    `jaxpbr._pytree`: vector fields (B, n), scalar fields (B,)); unbatched fields are broadcast.
+    All batched fields must agree on B. Only objects whose children are all array leaves
+    (materials, cameras, lights) can be batched."""
+    fields = [f for f in fields_of(obj) if not f.static] if isinstance(obj, Pytree) else []
+    if not fields or not all(f.is_array for f in fields):
         raise TypeError(f"{name}: unsupported batched object {type(obj).__name__}")
     sizes = {}
-    for f, x in zip(names, leaves):
-        rank = 1 if f in _VECTOR_FIELDS else 0
-        if np.ndim(x) == rank + 1:
-            sizes[f] = int(np.shape(x)[0])
-        elif np.ndim(x) != rank:
-            raise ValueError(f"{name}.{f} has shape {np.shape(x)}; expected {'(B, n)' if rank else '(B,)'} or unbatched")
+    for f in fields:
+        x = getattr(obj, f.name)
+        if np.ndim(x) == f.rank + 1:
+            sizes[f.name] = int(np.shape(x)[0])
+        elif np.ndim(x) != f.rank:
+            expected = "(B,)" if f.rank == 0 else "(B, n)" if f.rank == 1 else f"(B, +{f.rank} axes)"
+            raise ValueError(f"{name}.{f.name} has shape {np.shape(x)}; expected {expected} or unbatched")
     if not sizes:
         raise ValueError(f"{name} has no batched field; give at least one field a leading batch axis")
     if len(set(sizes.values())) != 1:
         raise ValueError(f"{name}: every batched field must have the same leading batch axis, got {sizes}")
     B = next(iter(sizes.values()))
-    out = [x if f in sizes else jnp.broadcast_to(x, (B,) + np.shape(x)) for f, x in zip(names, leaves)]
-    return B, jax.tree_util.tree_unflatten(treedef, out)
+    out = {f.name: jnp.broadcast_to(getattr(obj, f.name), (B,) + np.shape(getattr(obj, f.name))) for f in fields if f.name not in sizes}
+    return B, evolve(obj, **out)
 
 
 def _substitute(scene: Scene, b: dict, objects_idx) -> Scene:
@@ -727,7 +741,8 @@ def render_batch(
     env_intensity=None,
     chunk: int | None = None,
     devices=None,
-    **options,
+    options: RenderOptions | None = None,
+    **overrides,
 ) -> jax.Array:
     """Render B variants of `scene` in one jitted, vmapped call -> (B, H, W, 3).
 
@@ -743,12 +758,12 @@ def render_batch(
       with `jax.sharding` (shard_map over a 1-D mesh "batch"); each device renders its share in
       chunks. Results equal the single-device path to float rounding (measured: at most 1 ulp;
       the per-device programs are compiled separately and XLA may fuse them differently).
-    options: as for `render`. Precomputes are shared by the whole batch (rotations and
+    options, **overrides: as for `render`. Precomputes are shared by the whole batch (rotations and
     intensities need none).
     """
     from jax.sharding import Mesh
 
-    opts = _options(options)
+    opts = _options(options, overrides, "render_batch")
     b: dict[str, Any] = {}
     sizes: list = []
     if materials is not None:
@@ -798,7 +813,7 @@ def render_batch(
     base = scene if "lights" not in b else scene.replace(lights=tuple(jax.tree_util.tree_map(lambda x: x[0], lt) for lt in b["lights"]))
     # Plan from the scene as the batch will see it (batched materials substituted, concrete).
     plan_scene = _substitute(base, {"materials": materials}, objects_idx) if materials is not None else base
-    p_plan = plan(plan_scene, opts)
+    p_plan = plan(plan_scene, options=opts)
     assets = _env_assets(base.environment, p_plan, opts) if p_plan.ibl else None
 
     if devices is None:

@@ -2,9 +2,10 @@
 
 Everything here is a JAX pytree whose array fields are leaves (so a scene can be differentiated,
 vmapped over a batch axis or passed through `jax.jit`) and whose structure -- which objects, which
-textures, image size -- is static. `jaxpbr.renderer.render` turns a `Scene` into linear HDR
-radiance; this module holds the data types and the geometry (primary rays, ray casting, surface
-attributes).
+textures, image size -- is static. The types are declared with `jaxpbr._pytree` (each field once,
+as `leaf(rank=...)`, `subtree()` or `static()`; validation in each class's `_validate`).
+`jaxpbr.renderer.render` turns a `Scene` into linear HDR radiance; this module holds the data types
+and the geometry (primary rays, ray casting, surface attributes).
 
 Conventions (DESIGN.md): right-handed, +Y up, the camera looks from `position` to `target`; pixel
 (i, j) has row i from the top. Texture coordinates follow glTF: uv = (0, 0) is the top-left corner
@@ -16,7 +17,6 @@ convention.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Any
 
@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._api import keyword_only
 from ._interp import bilinear
 from ._numerics import (
     as_float,
@@ -35,6 +36,7 @@ from ._numerics import (
     vdot,
     vnormalize,
 )
+from ._pytree import Pytree, leaf, static, subtree
 from ._validate import positive_int
 from .cubemap import Cubemap
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight
@@ -51,49 +53,6 @@ __all__ = [
     "primary_rays",
     "sample_texture",
 ]
-
-
-def _pytree(*static: str):
-    """Register a frozen dataclass as a pytree: the fields named in `static` are auxiliary data
-    (part of the traced program's structure), the others leaves. Unflatten bypasses __init__ so the
-    tracers, None and sentinels that transformations put in the tree are never validated."""
-
-    def wrap(cls):
-        names = [f.name for f in dataclasses.fields(cls)]
-        data = tuple(n for n in names if n not in static)
-
-        def flatten(obj):
-            return tuple(getattr(obj, n) for n in data), tuple(getattr(obj, n) for n in static)
-
-        def unflatten(aux, children):
-            obj = object.__new__(cls)
-            for n, c in zip(data, children):
-                object.__setattr__(obj, n, c)
-            for n, a in zip(static, aux):
-                object.__setattr__(obj, n, a)
-            return obj
-
-        jax.tree_util.register_pytree_node(cls, flatten, unflatten)
-        cls._data_fields = data
-        return cls
-
-    return wrap
-
-
-def evolve(obj, **changes):
-    """A copy of a scene dataclass with some fields replaced, *without* validation (for traced or
-    batched values inside transformations; user code should use `dataclasses.replace`)."""
-    new = object.__new__(type(obj))
-    for f in dataclasses.fields(obj):
-        object.__setattr__(new, f.name, changes.pop(f.name, getattr(obj, f.name)))
-    if changes:
-        raise TypeError(f"{type(obj).__name__} has no field(s) {sorted(changes)}")
-    return new
-
-
-def _set(obj, **values):
-    for k, v in values.items():
-        object.__setattr__(obj, k, v)
 
 
 def _vec(name: str, x, n: int = 3) -> jax.Array:
@@ -127,9 +86,7 @@ def _static_int(name: str, x, lo: int = 1) -> int:
 # ------------------------------------------------------------------------------------------
 
 
-@_pytree("width", "height", "supersample")
-@dataclasses.dataclass(frozen=True, eq=False)
-class Camera:
+class Camera(Pytree):
     """Pinhole perspective camera.
 
     position, target, up: (3,) world-space points / vector (leaves: may be batched or traced).
@@ -140,16 +97,16 @@ class Camera:
         temporal accumulation; (0, 0) samples the pixel (or sub-cell) centres.
     """
 
-    position: Any = (0.0, 0.0, 24.0)
-    target: Any = (0.0, 0.0, 0.0)
-    up: Any = (0.0, 1.0, 0.0)
-    fov_y_deg: Any = 45.0
-    width: int = 1280
-    height: int = 720
-    supersample: int = 1
-    jitter: Any = (0.0, 0.0)
+    position: Any = leaf((0.0, 0.0, 24.0), rank=1)
+    target: Any = leaf((0.0, 0.0, 0.0), rank=1)
+    up: Any = leaf((0.0, 1.0, 0.0), rank=1)
+    fov_y_deg: Any = leaf(45.0)
+    width: int = static(1280)
+    height: int = static(720)
+    supersample: int = static(1)
+    jitter: Any = leaf((0.0, 0.0), rank=1)
 
-    def __post_init__(self):
+    def _validate(self) -> None:
         _static_int("Camera.width", self.width)
         _static_int("Camera.height", self.height)
         _static_int("Camera.supersample", self.supersample)
@@ -164,10 +121,7 @@ class Camera:
                 raise ValueError("Camera.target must differ from Camera.position")
             if np.any(np.linalg.norm(np.cross(f, np.asarray(up, np.float64)), axis=-1) < 1e-12):
                 raise ValueError("Camera.up must not be parallel to the viewing direction; pick another up")
-        _set(self, position=pos, target=tgt, up=up, fov_y_deg=fov, jitter=jit)
-
-    def replace(self, **changes) -> "Camera":
-        return dataclasses.replace(self, **changes)
+        self._set(position=pos, target=tgt, up=up, fov_y_deg=fov, jitter=jit)
 
 
 def camera_basis(cam: Camera, dtype):
@@ -181,7 +135,8 @@ def camera_basis(cam: Camera, dtype):
     return pos, fwd, right, up
 
 
-def primary_rays(cam: Camera, dtype=jnp.float32, offset=(0.5, 0.5)):
+@keyword_only("dtype", "offset")
+def primary_rays(cam: Camera, *, dtype=jnp.float32, offset=(0.5, 0.5)):
     """Ray origins and unit directions of every pixel, each (H, W, 3).
 
     offset: sample position inside the pixel in pixel units ((0.5, 0.5) = centre), to which
@@ -227,9 +182,7 @@ def _texture(name: str, x, min_channels: int, *, lo=0.0, hi=1.0):
     return x
 
 
-@_pytree()
-@dataclasses.dataclass(frozen=True, eq=False)
-class TexturedMaterial:
+class TexturedMaterial(Pytree):
     """A glTF metallic-roughness material with textures; each texture multiplies its factor.
 
     factors: `Material` holding the glTF factors (base_color, metallic, roughness, occlusion
@@ -244,19 +197,18 @@ class TexturedMaterial:
     emissive_texture: (H, W, 3) linear RGB >= 0, multiplied by factors.emissive.
     """
 
-    factors: Material = dataclasses.field(default_factory=Material)
-    base_color_texture: Any = None
-    metallic_roughness_texture: Any = None
-    occlusion_texture: Any = None
-    normal_texture: Any = None
-    emissive_texture: Any = None
-    normal_scale: Any = 1.0
+    factors: Material = subtree(default_factory=Material)
+    base_color_texture: Any = leaf(None, rank=3)
+    metallic_roughness_texture: Any = leaf(None, rank=3)
+    occlusion_texture: Any = leaf(None, rank=3)
+    normal_texture: Any = leaf(None, rank=3)
+    emissive_texture: Any = leaf(None, rank=3)
+    normal_scale: Any = leaf(1.0)
 
-    def __post_init__(self):
+    def _validate(self) -> None:
         if not isinstance(self.factors, Material):
             raise TypeError(f"TexturedMaterial.factors must be a Material, got {type(self.factors).__name__}")
-        _set(
-            self,
+        self._set(
             base_color_texture=_texture("base_color_texture", self.base_color_texture, 3),
             metallic_roughness_texture=_texture("metallic_roughness_texture", self.metallic_roughness_texture, 3),
             occlusion_texture=_texture("occlusion_texture", self.occlusion_texture, 1),
@@ -289,24 +241,20 @@ def _check_material(owner: str, m):
         raise TypeError(f"{owner}.material must be a Material or TexturedMaterial, got {type(m).__name__}")
 
 
-@_pytree()
-@dataclasses.dataclass(frozen=True, eq=False)
-class Sphere:
+class Sphere(Pytree):
     """Analytic sphere. uv: u = 0.5 + atan2(n.x, n.z)/(2 pi) (u = 0.5 faces +Z, growing towards +X),
     v = 0.5 - asin(n.y)/pi (v = 0 at the north pole, +Y); T = dP/du."""
 
-    center: Any = (0.0, 0.0, 0.0)
-    radius: Any = 1.0
-    material: Any = dataclasses.field(default_factory=Material)
+    center: Any = leaf((0.0, 0.0, 0.0), rank=1)
+    radius: Any = leaf(1.0)
+    material: Any = subtree(default_factory=Material)
 
-    def __post_init__(self):
+    def _validate(self) -> None:
         _check_material("Sphere", self.material)
-        _set(self, center=_vec("Sphere.center", self.center), radius=_scalar("Sphere.radius", self.radius, lo=0.0, open_lo=True))
+        self._set(center=_vec("Sphere.center", self.center), radius=_scalar("Sphere.radius", self.radius, lo=0.0, open_lo=True))
 
 
-@_pytree()
-@dataclasses.dataclass(frozen=True, eq=False)
-class Plane:
+class Plane(Pytree):
     """Infinite plane through `point` with normal `normal`, shaded on the side facing the camera.
 
     tangent: direction of +u in the plane (projected onto it and normalised); default: the world
@@ -314,13 +262,13 @@ class Plane:
     * uv_scale, B = N x T (so an upright image is not mirrored when seen from the normal's side).
     """
 
-    point: Any = (0.0, 0.0, 0.0)
-    normal: Any = (0.0, 1.0, 0.0)
-    material: Any = dataclasses.field(default_factory=Material)
-    tangent: Any = None
-    uv_scale: Any = 1.0
+    point: Any = leaf((0.0, 0.0, 0.0), rank=1)
+    normal: Any = leaf((0.0, 1.0, 0.0), rank=1)
+    material: Any = subtree(default_factory=Material)
+    tangent: Any = leaf(None, rank=1)
+    uv_scale: Any = leaf(1.0)
 
-    def __post_init__(self):
+    def _validate(self) -> None:
         _check_material("Plane", self.material)
         n = _vec("Plane.normal", self.normal)
         if is_concrete(n) and np.any(np.linalg.norm(np.asarray(n), axis=-1) == 0):
@@ -332,7 +280,7 @@ class Plane:
             t = axis - nn * jnp.sum(nn * axis, -1, keepdims=True)
             t = t / jnp.linalg.norm(t, axis=-1, keepdims=True)
         t = _vec("Plane.tangent", t)
-        _set(self, point=_vec("Plane.point", self.point), normal=n, tangent=t, uv_scale=_scalar("Plane.uv_scale", self.uv_scale))
+        self._set(point=_vec("Plane.point", self.point), normal=n, tangent=t, uv_scale=_scalar("Plane.uv_scale", self.uv_scale))
 
 
 # ------------------------------------------------------------------------------------------
@@ -340,9 +288,7 @@ class Plane:
 # ------------------------------------------------------------------------------------------
 
 
-@_pytree("show_background")
-@dataclasses.dataclass(frozen=True, eq=False)
-class Environment:
+class Environment(Pytree):
     """Distant lighting from a cube map, also drawn as the background.
 
     radiance: Cubemap of linear radiance (level 0 is used; mips are rebuilt).
@@ -354,14 +300,14 @@ class Environment:
         computing them from `radiance` (e.g. loaded from disk, or to differentiate through them).
     """
 
-    radiance: Any = None
-    intensity: Any = 1.0
-    rotation: Any = 0.0
-    show_background: bool = True
-    irradiance: Any = None
-    prefiltered: Any = None
+    radiance: Any = subtree(None)
+    intensity: Any = leaf(1.0)
+    rotation: Any = leaf(0.0)
+    show_background: bool = static(True)
+    irradiance: Any = subtree(None)
+    prefiltered: Any = subtree(None)
 
-    def __post_init__(self):
+    def _validate(self) -> None:
         if not isinstance(self.radiance, Cubemap):
             raise TypeError(
                 "Environment.radiance must be a jaxpbr.Cubemap (e.g. Cubemap.from_equirect(img, face_size=128))"
@@ -370,29 +316,26 @@ class Environment:
             x = getattr(self, name)
             if x is not None and not isinstance(x, Cubemap):
                 raise TypeError(f"Environment.{name} must be a Cubemap or None")
-        _set(
-            self,
+        self._set(
             intensity=_scalar("Environment.intensity", self.intensity, lo=0.0),
             rotation=_scalar("Environment.rotation", self.rotation),
         )
 
 
-@_pytree()
-@dataclasses.dataclass(frozen=True, eq=False)
-class GBuffer:
+class GBuffer(Pytree):
     """Per-pixel surface data from the user's own rasteriser (or the ray caster).
 
     hit: (H, W) bool, False where no surface (background); position, normal (shading normal),
     view (unit direction to the viewer): (H, W, 3); material: `Material` with (H, W) leaves.
     """
 
-    hit: Any
-    position: Any
-    normal: Any
-    view: Any
-    material: Any
+    hit: Any = leaf(rank=2)
+    position: Any = leaf(rank=3)
+    normal: Any = leaf(rank=3)
+    view: Any = leaf(rank=3)
+    material: Any = subtree()
 
-    def __post_init__(self):
+    def _validate(self) -> None:
         if not isinstance(self.material, Material):
             raise TypeError("GBuffer.material must be a Material with per-pixel (H, W[, 3]) leaves")
         hit = jnp.asarray(self.hit)
@@ -404,7 +347,7 @@ class GBuffer:
             if x.shape != hit.shape + (3,):
                 raise ValueError(f"GBuffer.{name} has shape {x.shape}; expected {hit.shape + (3,)}")
             vals[name] = x
-        _set(self, hit=hit, **vals)
+        self._set(hit=hit, **vals)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -414,9 +357,7 @@ class GBuffer:
 _LIGHT_TYPES = (PointLight, DirectionalLight, SpotLight, LightSet)
 
 
-@_pytree("ambient")
-@dataclasses.dataclass(frozen=True, eq=False)
-class Scene:
+class Scene(Pytree):
     """Camera + geometry (analytic `objects` or a user `gbuffer`) + lights + optional environment.
 
     objects: sequence of Sphere / Plane; gbuffer: a GBuffer instead (then `camera` is optional).
@@ -426,15 +367,15 @@ class Scene:
     ambient: LearnOpenGL's constant `ambient * albedo * ao` term (static; 0 = off, the default).
     """
 
-    camera: Any = None
-    objects: Any = ()
-    lights: Any = ()
-    environment: Any = None
-    gbuffer: Any = None
-    background: Any = (0.0, 0.0, 0.0)
-    ambient: float = 0.0
+    camera: Any = subtree(None)
+    objects: Any = subtree(())
+    lights: Any = subtree(())
+    environment: Any = subtree(None)
+    gbuffer: Any = subtree(None)
+    background: Any = leaf((0.0, 0.0, 0.0), rank=1)
+    ambient: float = static(0.0)
 
-    def __post_init__(self):
+    def _validate(self) -> None:
         objects = tuple(self.objects) if isinstance(self.objects, (list, tuple)) else (self.objects,)
         lights = self.lights
         if isinstance(lights, _LIGHT_TYPES):
@@ -460,10 +401,7 @@ class Scene:
             raise TypeError("Scene.environment must be an Environment or None")
         if not isinstance(self.ambient, (int, float)) or not math.isfinite(self.ambient) or self.ambient < 0:
             raise ValueError(f"Scene.ambient must be a finite number >= 0, got {self.ambient!r}")
-        _set(self, objects=objects, lights=lights, background=_vec("Scene.background", self.background), ambient=float(self.ambient))
-
-    def replace(self, **changes) -> "Scene":
-        return dataclasses.replace(self, **changes)
+        self._set(objects=objects, lights=lights, background=_vec("Scene.background", self.background), ambient=float(self.ambient))
 
     @property
     def image_shape(self) -> tuple[int, int]:

@@ -17,7 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import image
-from .lut import DEFAULT_SAMPLES, _lut_shape, compute_brdf_lut
+from ._api import keyword_only
+from .lut import DEFAULT_SAMPLES, _lut_shape, compute_brdf_lut, resolve_smith
 
 __all__ = ["brdf_lut", "shipped_manifest"]
 
@@ -41,9 +42,15 @@ def shipped_manifest() -> dict:
     return json.loads(text)
 
 
+#: LUT Smith name (`jaxpbr.lut.SMITH_VARIANTS`) -> the name MANIFEST.json and the shipped file
+#: names use (they predate the rename of "schlick" to "schlick_ggx" and stay as they are).
+_MANIFEST_SMITH = {"correlated": "correlated", "schlick_ggx": "schlick"}
+
+
 def _shipped_entry(n_r: int, n_nov: int, smith: str, samples: int):
+    name = _MANIFEST_SMITH[smith]
     for e in shipped_manifest().get("luts", []):
-        if e["size"] == [n_r, n_nov] and e["smith"] == smith and e["samples"] == samples:
+        if e["size"] == [n_r, n_nov] and e["smith"] == name and e["samples"] == samples:
             return e
     return None
 
@@ -57,13 +64,17 @@ def _load(filename: str) -> np.ndarray:
     return arr
 
 
-def brdf_lut(size=128, smith: str = "correlated", *, samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True):
+@keyword_only("smith")
+def brdf_lut(size=128, *, smith: str = "correlated", samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True):
     """Split-sum BRDF LUT (n_r, n_nov, 2) of (A, B); layout of `jaxpbr.lut.compute_brdf_lut`.
 
+    smith: "correlated" (default; for the gltf model) or "schlick_ggx" (Schlick-GGX k = alpha/2;
+    for learnopengl); "schlick" is a deprecated alias of "schlick_ggx".
     Served from the shipped float32 EXR when `use_shipped`, dtype is float32 and (size, smith,
     samples) match a manifest entry (128^2 and 256^2, both Smith variants, default samples);
     computed otherwise. `samples=None` means the default quadrature.
     """
+    smith = resolve_smith(smith, "brdf_lut")
     n_r, n_nov = _lut_shape(size)
     n = DEFAULT_SAMPLES if samples is None else samples
     if use_shipped and jnp.dtype(dtype) == jnp.dtype(jnp.float32):

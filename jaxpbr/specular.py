@@ -33,12 +33,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._api import keyword_only
 from ._numerics import is_concrete, safe_div
+from ._validate import positive_int
 from .conventions import luminance
 from .cubemap import (
     Cubemap,
     _mip_count,
-    _positive_int,
     _Pyramid,
     _subtexel_points,
     face_to_dir,
@@ -75,17 +76,19 @@ DEFAULT_LOD_BIAS = 1.0
 # ------------------------------------------------------------------------------------------
 
 
-def level_roughness(num_levels: int, mapping: str = "linear") -> np.ndarray:
+@keyword_only("mapping")
+def level_roughness(num_levels: int, *, mapping: str = "linear") -> np.ndarray:
     """Perceptual roughness r_m of each level m = 0..M-1 (float64)."""
     _check_mapping(mapping)
-    M = _positive_int(num_levels, "num_levels")
+    M = positive_int("num_levels", num_levels)
     x = np.arange(M) / max(M - 1, 1)
     if mapping == "linear":
         return x
     return 1.0 - np.sqrt(1.0 - x)
 
 
-def roughness_to_lod(r, num_levels: int, mapping: str = "linear"):
+@keyword_only("mapping")
+def roughness_to_lod(r, num_levels: int, *, mapping: str = "linear"):
     """Fractional mip level for perceptual roughness r (clamped to [0, 1]), for `Cubemap.sample`."""
     _check_mapping(mapping)
     r = jnp.clip(r, 0.0, 1.0)
@@ -385,7 +388,7 @@ def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: in
             return np.asarray(Cubemap(env.levels[0].astype(jnp.float64)).sample(jnp.asarray(dirs)))
         alpha = r * r
         S0 = env.face_size
-        q = _reference_supersample(alpha, S0) if supersample is None else _positive_int(supersample, "supersample")
+        q = _reference_supersample(alpha, S0) if supersample is None else positive_int("supersample", supersample)
         sub, w = _subtexel_points(S0, q)  # (6,S,S,q*q,3), (S,S,q*q)
         om = texel_solid_angles(S0)[..., None] * w[None]  # (6,S,S,q*q)
         L = np.asarray(env.levels[0], np.float64)  # (6,S,S,C)
@@ -395,7 +398,7 @@ def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: in
         ).reshape(-1, C + 1)
         src = jnp.asarray(sub.reshape(-1, 3).T)  # (3, Ns)
         # Bound the (chunk, Ns) kernel block to ~2^24 float64 elements whatever the source size.
-        chunk = max(1, min(_positive_int(chunk, "chunk"), (1 << 24) // src.shape[1]))
+        chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // src.shape[1]))
         out = _reference_sum(jnp.asarray(dirs.reshape(-1, 3)), src, jnp.asarray(Lw), alpha, chunk=chunk)
         out = np.asarray(out)
     return (out[:, :C] / out[:, C:]).reshape(shape + (C,))
@@ -463,7 +466,7 @@ def prefilter(
         raise ValueError(f"unknown prefilter method {method!r}; choose one of {PREFILTER_METHODS}")
     _check_mapping(mapping)
     S0 = env.face_size
-    S = S0 if size is None else _positive_int(size, "size")
+    S = S0 if size is None else positive_int("size", size)
     ratio = S0 // S if S <= S0 else 0
     if ratio == 0 or S0 % S or ratio & (ratio - 1):
         raise ValueError(
@@ -471,7 +474,7 @@ def prefilter(
             f"(1, 2, 4, ...); resample the environment with Cubemap.from_equirect/from_function first"
         )
     most = _mip_count(S)
-    M = most if num_levels is None else _positive_int(num_levels, "num_levels")
+    M = most if num_levels is None else positive_int("num_levels", num_levels)
     last = M - 1 if max_level is None else int(max_level)
     if not 0 <= last <= M - 1:
         raise ValueError(f"max_level must be in [0, {M - 1}] for a {M}-level chain, got {max_level}")
@@ -480,15 +483,15 @@ def prefilter(
     if samples is None:
         samples = DEFAULT_SAMPLES
     if isinstance(samples, (int, np.integer)) and not isinstance(samples, bool):
-        per_level = default_sample_counts(_positive_int(samples, "samples"), S, M)
+        per_level = default_sample_counts(positive_int("samples", samples), S, M)
     else:
         per_level = list(samples)
     if len(per_level) != M:
         raise ValueError(f"samples has {len(per_level)} entries; expected one per level ({M})")
-    per_level = [_positive_int(n, "samples") for n in per_level]
+    per_level = [positive_int("samples", n) for n in per_level]
 
     full = env.level_cube(0).with_mips()  # area-correct pyramid of the source
-    rough = level_roughness(M, mapping)
+    rough = level_roughness(M, mapping=mapping)
     levels = [full.levels[int(round(math.log2(ratio)))]]  # r = 0: the source at the output size
     idx = None  # candidate bright texels (None: none), their excess radiance `bright`
     n_exact = "0"
@@ -522,7 +525,7 @@ def prefilter(
         else:
             local, w, lod = _fis_samples(alpha, per_level[m], S0, src.num_levels, float(lod_bias))
             dt = env.dtype
-            lv = _fis_level(flat, sizes, dirs, local, w, lod, _positive_int(chunk, "chunk"), dt)
+            lv = _fis_level(flat, sizes, dirs, local, w, lod, positive_int("chunk", chunk), dt)
             if idx is not None:
                 lv = lv + _bright_level(dirs, idx, bright, S0, alpha, 64, dt)
             lv = lv.reshape(6, Sm, Sm, -1)

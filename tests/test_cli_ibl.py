@@ -176,3 +176,16 @@ def test_six_face_input(tmp_path):
     expect = np.asarray(irradiance(Cubemap(faces), 4).levels[0])
     np.testing.assert_allclose(levels[0][..., :3], expect, rtol=1e-6)
     assert main(["irradiance", *paths[:5], "-o", str(out)]) != 0
+
+
+def test_lut_smith_schlick_ggx_and_its_deprecated_alias(tmp_path, capsys):
+    """--smith schlick_ggx is the LUT's Schlick-GGX (k = alpha/2); the old --smith schlick still
+    works, with a one-line warning, and writes the current name into the metadata."""
+    a, b = tmp_path / "a.exr", tmp_path / "b.exr"
+    assert main(["lut", "--size", "8", "--smith", "schlick_ggx", "-o", str(a), "--quiet", "--no-error"]) == 0
+    assert "deprecated" not in capsys.readouterr().err
+    assert main(["lut", "--size", "8", "--smith", "schlick", "-o", str(b), "--quiet", "--no-error"]) == 0
+    assert "--smith schlick is deprecated; use --smith schlick_ggx" in capsys.readouterr().err
+    np.testing.assert_array_equal(image.read(a), image.read(b))
+    for p in (a, b):
+        assert json.loads(p.with_name(p.name + ".json").read_text())["smith"] == "schlick_ggx"

@@ -82,10 +82,10 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
     # LUT --------------------------------------------------------------------------------------
     lut, _t = time_calls(lambda: np.asarray(compute_brdf_lut(256)), rounds=2)
     lfirst, t_lut = _t.first, _t.best
-    e_lut = lut_error(lut, "correlated", texels=None)
+    e_lut = lut_error(lut, smith="correlated", texels=None)
     hl, _t = time_calls(lambda: hammersley_lut(256, 1024), rounds=2)
     _, t_h = _t.first, _t.best
-    e_h = lut_error(hl, "correlated", texels=None)
+    e_h = lut_error(hl, smith="correlated", texels=None)
     lines += [
         "BRDF LUT 256^2, height-correlated (max |error| at every texel vs float64 quadrature):",
         f"  jaxpbr converged quadrature: {t_lut:.2f} s (compile {max(0.0, lfirst - t_lut):.2f} s), max {e_lut['max']:.1e}, mean {e_lut['mean']:.1e}",

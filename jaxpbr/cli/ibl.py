@@ -8,6 +8,7 @@ files it already wrote, so there are never partial results.
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -19,12 +20,20 @@ from ..conventions import cube_conventions, library_versions
 from ..cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
 from ..diffuse import irradiance, sh9_project
 from ..errors import InputError
+from ..lut import SMITH_ALIASES, SMITH_VARIANTS
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..shipped_luts import brdf_lut
 from ..specular import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES, prefilter
 from ._common import Progress, positive_int_arg
 
 __all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
+
+# LUT Smith terms: the current names, then the deprecated aliases (still accepted).
+_SMITH_CHOICES = SMITH_VARIANTS + tuple(SMITH_ALIASES)
+_SMITH_HELP = (
+    "LUT Smith term: correlated = height-correlated Smith (glTF/Filament, default), schlick_ggx = "
+    "Schlick-GGX k=alpha/2 (Karis/LearnOpenGL); 'schlick' is a deprecated alias of schlick_ggx"
+)
 
 
 # ------------------------------------------------------------------------------------------
@@ -48,7 +57,7 @@ def add_commands(sub) -> None:
 
     p = sub.add_parser("lut", help="generate the split-sum BRDF LUT (EXR)", description="Converged split-sum LUT (A, B) with (n_r, n_nov) texels; the EXR's R = A, G = B, B = 0; row j at r = (j+0.5)/n_r (row 0 at the top), column i at NoV = (i+0.5)/n_nov.")
     p.add_argument("--size", type=positive_int_arg, default=128, help="texels per side (default: %(default)s)")
-    p.add_argument("--smith", choices=("correlated", "schlick"), default="correlated", help="Smith term: height-correlated (glTF/Filament) or Schlick-GGX k=alpha/2 (Karis/LearnOpenGL)")
+    p.add_argument("--smith", choices=_SMITH_CHOICES, default="correlated", help=_SMITH_HELP)
     p.add_argument("--samples", type=positive_int_arg, default=None, help="quadrature samples per texel (default: the library default)")
     p.add_argument("-o", "--output", default="brdf_lut.exr", help="output .exr (default: %(default)s)")
     p.add_argument("--full-check", action="store_true", help="measure the error at every texel (slower) instead of the edges + 1024 random texels")
@@ -75,7 +84,7 @@ def add_commands(sub) -> None:
     p.add_argument("--irradiance-size", type=positive_int_arg, default=32)
     p.add_argument("--irradiance-method", choices=("exact", "sh9"), default="exact")
     p.add_argument("--lut-size", type=positive_int_arg, default=128)
-    p.add_argument("--smith", choices=("correlated", "schlick"), default="correlated")
+    p.add_argument("--smith", choices=_SMITH_CHOICES, default="correlated", help=_SMITH_HELP)
     p.add_argument("--out-dir", default=".", help="directory for irradiance.ktx2, prefiltered.ktx2, brdf_lut.exr and ibl.json (default: current)")
     p.add_argument("--ktx-format", choices=("rgba16f", "rgba32f"), default="rgba16f")
     p.add_argument("--no-error", action="store_true")
@@ -105,13 +114,16 @@ def cmd_lut(args) -> int:
 def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
     out = outs.check(Path(out_path or args.output), (".exr",))
     t0 = time.perf_counter()
-    lut = np.asarray(brdf_lut(args.size, smith=args.smith, samples=args.samples, use_shipped=False))
+    smith = SMITH_ALIASES.get(args.smith, args.smith)
+    if smith != args.smith:
+        print(f"jaxpbr: warning: --smith {args.smith} is deprecated; use --smith {smith}", file=sys.stderr)
+    lut = np.asarray(brdf_lut(args.size, smith=smith, samples=args.samples, use_shipped=False))
     seconds = time.perf_counter() - t0
-    err = None if args.no_error else lut_error(lut, args.smith, texels=None if getattr(args, "full_check", False) else 1024)
+    err = None if args.no_error else lut_error(lut, smith=smith, texels=None if getattr(args, "full_check", False) else 1024)
     meta = {
         "quantity": "split-sum BRDF LUT: int f_spec (n.l) dl = F0*A + F90*B; R = A, G = B, B = 0",
         "layout": f"row j: r = (j+0.5)/{lut.shape[0]} (row 0 at the top), column i: NoV = (i+0.5)/{lut.shape[1]}; bilinear, clamp to edge",
-        "smith": args.smith,
+        "smith": smith,
         "alpha": "alpha = r^2 (r perceptual roughness)",
     }
     rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), lut.dtype)], -1)
@@ -128,10 +140,10 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
         "conventions": cube_conventions(),
         "versions": library_versions(),
     }
-    write_json(out.with_name(out.name + ".json"), side, outs)
+    write_json(out.with_name(out.name + ".json"), side, outputs=outs)
     if not args.quiet:
         e = f"; max |error| {err['max']:.2e} over {err['texels']} texels" if err else ""
-        print(f"wrote {out} ({lut.shape[0]}x{lut.shape[1]}, smith {args.smith}, {seconds:.2f} s{e})")
+        print(f"wrote {out} ({lut.shape[0]}x{lut.shape[1]}, smith {smith}, {seconds:.2f} s{e})")
     return side
 
 
@@ -169,7 +181,7 @@ def _irradiance(args, outs: OutputSet, env=None, out_path: Path | None = None, s
             "E/pi = max(0, sum A_l L_lm Y_lm(n))/pi with A = (pi, 2pi/3, pi/4); order (0,0),(1,-1),(1,0),(1,1),(2,-2),(2,-1),(2,0),(2,1),(2,2)",
             "values": np.asarray(sh9_project(env)).tolist(),
         }
-    write_json(out.with_name(out.name + ".json"), side, outs)
+    write_json(out.with_name(out.name + ".json"), side, outputs=outs)
     if not args.quiet:
         e = f"; error vs exact: mean {100 * err['mean']:.3f} %, max {100 * err['max']:.3f} %" if err else ""
         print(f"wrote {out} ({size}^2 irradiance, {method}, {seconds:.2f} s{e})")
@@ -213,7 +225,7 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
         "conventions": cube_conventions(),
         "versions": library_versions(),
     }
-    write_json(out.with_name(out.name + ".json"), side, outs)
+    write_json(out.with_name(out.name + ".json"), side, outputs=outs)
     if not args.quiet:
         e = ""
         if rows:
@@ -234,7 +246,7 @@ def cmd_ibl(args) -> int:
         pre = _prefilter(args, outs, env=env, out_path=d / "prefiltered.ktx2")
         args.size, args.samples = args.lut_size, None
         lut = _lut(args, outs, out_path=d / "brdf_lut.exr")
-        write_json(d / "ibl.json", {"irradiance": irr, "prefiltered": pre, "brdf_lut": lut}, outs)
+        write_json(d / "ibl.json", {"irradiance": irr, "prefiltered": pre, "brdf_lut": lut}, outputs=outs)
         return 0
 
     return _run(go)

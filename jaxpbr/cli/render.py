@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import color, image
+from ..brdf_terms import MODELS
 from ..conventions import CONVENTIONS
 from ..demo import demo_scene
 from ..renderer import RenderOptions, plan, render
@@ -35,7 +36,7 @@ def add_command(sub) -> None:
     r.add_argument("--width", type=positive_int_arg, default=None, help="image width (default: 1280, or the scene's)")
     r.add_argument("--height", type=positive_int_arg, default=None, help="image height (default: 720, or the scene's)")
     r.add_argument("--supersample", type=positive_int_arg, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
-    r.add_argument("--model", choices=("gltf", "learnopengl"), default=None, help="BRDF model (default: gltf, or the scene's)")
+    r.add_argument("--model", choices=MODELS, default=None, help="BRDF model (default: gltf, or the scene's)")
     r.add_argument("--exposure", type=float, default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
@@ -96,14 +97,15 @@ def cmd_render(args) -> int:
         description = f"scene file {Path(args.scene).name}"
     if args.model is not None:
         options["model"] = args.model
-    model = options.get("model", "gltf")
+    opts = RenderOptions(**options)
+    model = opts.model
     tonemap = args.tonemap or display_opts.get("tonemap") or ("reinhard" if model == "learnopengl" else "aces")
     encoding = args.encoding or display_opts.get("encoding") or ("gamma2.2" if model == "learnopengl" else "srgb")
     ev = args.exposure if args.exposure is not None else float(display_opts.get("exposure", 0.0))
 
     t0 = time.perf_counter()
-    the_plan = plan(scene, RenderOptions(**options))
-    hdr_device = render(scene, **options)
+    the_plan = plan(scene, options=opts)
+    hdr_device = render(scene, options=opts)
     display = np.asarray(color.tonemap(color.exposure(hdr_device, ev), tonemap))
     hdr = np.asarray(hdr_device)  # one device -> host copy of each image
     t_render = time.perf_counter() - t0
@@ -115,7 +117,7 @@ def cmd_render(args) -> int:
         "jaxpbr:scene": description,
         "jaxpbr:plan": the_plan.describe(),
         "jaxpbr:model": model,
-        "jaxpbr:render_options": repr(RenderOptions(**options)),
+        "jaxpbr:render_options": repr(opts),
         "jaxpbr:exposure_ev": float(ev),
         "jaxpbr:tonemap": tonemap,
         "jaxpbr:encoding": encoding,

@@ -26,7 +26,7 @@ from .timing import time_calls, to_host
 __all__ = ["add_command", "cmd_report_precompute", "precompute_report"]
 
 
-def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schlick"), log=print) -> list[dict]:
+def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schlick_ggx"), log=print) -> list[dict]:
     rows = []
     for smith in smiths:
         for size in sizes:
@@ -36,7 +36,7 @@ def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schli
                 first, best = _t.first, _t.best
                 # Every texel up to 128^2; above that the edges + 4096 random texels (the every-texel
                 # figures of the shipped 256^2 LUTs are in luts/MANIFEST.json).
-                err = lut_error(lut, smith, texels=None if size <= 128 else 4096)
+                err = lut_error(lut, smith=smith, texels=None if size <= 128 else 4096)
                 rows.append(dict(what="lut", env="-", variant=f"{smith} {size}^2", param=n or "default", seconds=best, compile_s=max(0.0, first - best), mean=err["mean"], max=err["max"], unit="abs"))
                 log(f"  lut {smith} {size}^2 samples={n or 'default'}: max {err['max']:.2e} in {best:.2f} s")
     return rows
