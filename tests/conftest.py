@@ -1,6 +1,57 @@
 """Test configuration: float64 is enabled so references and float64 kernel paths can be checked;
-float32 paths are exercised by passing float32 arrays explicitly."""
+float32 paths are exercised by passing float32 arrays explicitly.
+
+Most of the suite's time is XLA compilation, so JAX's persistent compilation cache is on: compiled
+programs are stored under `.pytest_cache/d/jax-compilation-cache` (`pytest --cache-clear` empties
+it) or under $JAXPBR_TEST_CACHE (set it to "" to turn the cache off). Later sessions and the other
+pytest-xdist workers load a program instead of compiling it again (measured: a file's second run
+takes ~30% of its first); the cache key is the program, the compile options and the jax/jaxlib
+version, so a stale entry is never used, only kept: past CACHE_MAX_BYTES the oldest entries go."""
+
+import os
+from pathlib import Path
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+
+CACHE_MAX_BYTES = 1 << 30
+
+
+def _prune(path, max_bytes=CACHE_MAX_BYTES):
+    """Delete the oldest cache files until the directory holds at most max_bytes / 2."""
+    files = [(p.stat().st_mtime, p.stat().st_size, p) for p in Path(path).iterdir() if p.is_file()]
+    total = sum(s for _, s, _ in files)
+    if total <= max_bytes:
+        return
+    for _, size, p in sorted(files):
+        p.unlink(missing_ok=True)
+        total -= size
+        if total <= max_bytes // 2:
+            break
+
+
+def pytest_configure(config):
+    path = os.environ.get("JAXPBR_TEST_CACHE")
+    if path is None:
+        cache = getattr(config, "cache", None)  # None under `-p no:cacheprovider`
+        if cache is None:
+            return
+        try:
+            path = str(cache.mkdir("jax-compilation-cache"))
+        except OSError:  # read-only checkout: compile as usual
+            return
+    if not path:
+        return
+    if "PYTEST_XDIST_WORKER" not in os.environ:  # the controlling process, before any worker starts
+        Path(path).mkdir(parents=True, exist_ok=True)
+        _prune(path)
+    # Set before the first compilation (JAX decides once per process whether the cache is used), and
+    # in the environment for the Python subprocesses that tests start.
+    for name, value in (
+        ("jax_compilation_cache_dir", path),
+        ("jax_persistent_cache_min_compile_time_secs", 0.0),
+        ("jax_persistent_cache_min_entry_size_bytes", 0),
+    ):
+        jax.config.update(name, value)
+        os.environ[name.upper()] = str(value)

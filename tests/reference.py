@@ -351,3 +351,25 @@ def cube_geometry(S):
             np.stack([gl_inverse(f, s0, t0), gl_inverse(f, s1, t0), gl_inverse(f, s1, t1), gl_inverse(f, s0, t1)], -2)
         )
     return np.stack(cen), np.stack(cor)
+
+
+def solid_angles(S):
+    """Texel solid angles (6,S,S) by the corner formula: the solid angle of [0,x]x[0,y] on the plane z=1
+    is atan2(xy, sqrt(1+x^2+y^2)) (same for every face)."""
+    e = np.linspace(-1.0, 1.0, S + 1)
+    A = lambda x, y: np.arctan2(x * y, np.sqrt(1.0 + x * x + y * y))  # noqa: E731
+    x0, x1, y0, y1 = e[None, :-1], e[None, 1:], e[:-1, None], e[1:, None]
+    return np.broadcast_to(A(x1, y1) - A(x0, y1) - A(x1, y0) + A(x0, y0), (6, S, S))
+
+
+def polygon_moment(V):
+    """Exact first moment  int w dw  over the spherical (central) projection of a planar convex polygon
+    V (..., k, 3) (Lambert / Arvo: 1/2 sum_edges theta_e * unit(v_e x v_e+1)), oriented to point at the
+    polygon; repeated vertices are allowed. For texels: polygon_moment(cube_geometry(S)[1])."""
+    U = V / np.linalg.norm(V, axis=-1, keepdims=True)
+    W = np.roll(U, -1, axis=-2)
+    cr = np.cross(U, W)
+    nrm = np.linalg.norm(cr, axis=-1)
+    th = np.arctan2(nrm, np.sum(U * W, -1))
+    m = 0.5 * np.sum(th[..., None] * cr / np.where(nrm > 0, nrm, 1.0)[..., None], -2)
+    return m * np.sign(np.sum(m * V.mean(-2), -1))[..., None]

@@ -47,15 +47,7 @@ gl_inverse = ref.gl_inverse
 FACE_NORMALS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
 
 
-def polygon_moment(V):
-    """int w dw over the central projection of the planar convex polygon V (..., k, 3); repeated vertices ok."""
-    U = V / np.linalg.norm(V, axis=-1, keepdims=True)
-    W = np.roll(U, -1, axis=-2)
-    cr = np.cross(U, W)
-    nrm = np.linalg.norm(cr, axis=-1)
-    th = np.arctan2(nrm, np.sum(U * W, -1))
-    m = 0.5 * np.sum(th[..., None] * cr / np.where(nrm > 0, nrm, 1.0)[..., None], -2)
-    return m * np.sign(np.sum(m * V.mean(-2), -1))[..., None]
+polygon_moment = ref.polygon_moment  # int w dw over the central projection of a planar convex polygon
 
 
 class Geo:

@@ -19,7 +19,7 @@ def const_cube(value, size=4, levels=3, dtype=jnp.float64):
 
 @pytest.fixture(scope="module")
 def luts():
-    return {s: compute_brdf_lut(32, smith=s, dtype=jnp.float64) for s in ("correlated", "schlick")}
+    return {s: compute_brdf_lut(32, smith=s, dtype=jnp.float64) for s in ("correlated", "schlick_ggx")}
 
 
 def _dirs(nov, phi=0.3):
@@ -91,7 +91,7 @@ def test_learnopengl_ambient_matches_glsl_transcription(luts):
     kD = (1 - F)(1 - metallic); ambient = (kD * irradiance * albedo + prefiltered * (F * brdf.x +
     brdf.y)) * ao, with the Schlick-GGX (k = alpha/2) LUT."""
     irr, pre = const_cube(0.7), const_cube(1.3)
-    lut = luts["schlick"]
+    lut = luts["schlick_ggx"]
     nov = np.array([0.05, 0.3, 0.9])
     n, v = _dirs(nov)
     albedo, metallic, r, ao = np.array([0.9, 0.4, 0.1]), 0.25, np.array([0.2, 0.6, 1.0]), 0.8
@@ -175,7 +175,7 @@ def test_bad_model_and_multiscatter_combination(luts):
     with pytest.raises(ValueError, match="unknown IBL model"):
         shade_ibl(jnp.asarray([0.0, 0, 1]), jnp.asarray([0.0, 0, 1]), m, env, env, luts["correlated"], model="phong")
     with pytest.raises(ValueError, match="gltf model only"):
-        shade_ibl(jnp.asarray([0.0, 0, 1]), jnp.asarray([0.0, 0, 1]), m, env, env, luts["schlick"], model="learnopengl", multiscatter=True)
+        shade_ibl(jnp.asarray([0.0, 0, 1]), jnp.asarray([0.0, 0, 1]), m, env, env, luts["schlick_ggx"], model="learnopengl", multiscatter=True)
 
 
 def test_jit_matches_eager(luts):

@@ -28,7 +28,7 @@ TABLE = {
         0.75: [(0.8770, 0.0747), (0.7958, 0.0526), (0.7165, 0.0279), (0.6547, 0.0085), (0.6312, 0.0016), (0.6268, 0.0)],
         1.0: [(0.8819, 0.0394), (0.7363, 0.0239), (0.5868, 0.0109), (0.4477, 0.0030), (0.3639, 0.0006), (0.3068, 0.0)],
     },
-    "schlick": {
+    "schlick_ggx": {
         0.25: [(0.3553, 0.3367), (0.3913, 0.2911), (0.6573, 0.1733), (0.9023, 0.0305), (0.9717, 0.0014), (0.9943, 0.0)],
         0.5: [(0.6601, 0.1278), (0.5902, 0.0984), (0.6094, 0.0609), (0.7285, 0.0185), (0.8275, 0.0024), (0.8950, 0.0)],
         0.75: [(0.6904, 0.0460), (0.6409, 0.0353), (0.5935, 0.0206), (0.5730, 0.0070), (0.5821, 0.0015), (0.6036, 0.0)],
@@ -57,7 +57,7 @@ def test_reference_matches_math_tables(smith):
     rows = TABLE[smith]
     r = np.repeat(list(rows), len(NOV_TABLE))
     mu = np.tile(NOV_TABLE, len(rows))
-    got = lut_reference(mu, r, smith)
+    got = lut_reference(mu, r, smith=smith)
     expect = np.concatenate([np.array(v, float) for v in rows.values()])
     np.testing.assert_allclose(got, expect, atol=1e-4)
 
@@ -66,26 +66,26 @@ def test_reference_matches_math_tables(smith):
 def test_reference_closed_forms(smith):
     mu = np.array([1e-9, 1e-3, 0.02, 0.3, 0.77, 1.0])
     # r = 0: the mirror, exactly (MATH.md §7.2 "Limits")
-    np.testing.assert_allclose(lut_reference(mu, 0.0, smith), _closed_form_r0(mu), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(lut_reference(mu, 0.0, smith=smith), _closed_form_r0(mu), rtol=0, atol=1e-12)
     # NoV = 1, r = 1: D = 1/pi, G1(v) = 1 and both variants have G2 = 2c/(1+c), c = n.l, so
     # f (n.l) dl = c/(1+c) dc: E = A + B = 1 - ln 2 exactly (MATH.md §7.3), and with
     # v.h = sqrt((1+c)/2), B = int_0^1 c/(1+c) (1 - sqrt((1+c)/2))^5 dc = 3.36e-5 (so A alone is
     # not 1 - ln 2, as MATH.md §7.2 words it; the difference is below its 1e-4 precision).
     b_exact = integrate.quad(lambda c: c / (1 + c) * (1 - np.sqrt((1 + c) / 2)) ** 5, 0, 1, epsabs=1e-15)[0]
-    a, b = lut_reference(1.0, 1.0, smith)
+    a, b = lut_reference(1.0, 1.0, smith=smith)
     assert abs(a + b - (1.0 - np.log(2.0))) < 1e-10 and abs(b - b_exact) < 1e-10
     # B(NoV = 1) < 1e-4 for every r (MATH.md §7.2)
-    assert np.all(lut_reference(1.0, np.array([0.1, 0.25, 0.5, 0.75]), smith)[:, 1] < 1e-4)
+    assert np.all(lut_reference(1.0, np.array([0.1, 0.25, 0.5, 0.75]), smith=smith)[:, 1] < 1e-4)
 
 
 def test_reference_normal_incidence_albedo_math_7_3():
     """E(mu = 1) = A + B for the height-correlated lobe, quoted to 6 decimals (MATH.md §7.3)."""
     r = np.array([0.1, 0.25, 0.5, 0.75, 1.0])
-    e = lut_reference(np.ones_like(r), r, "correlated").sum(-1)
+    e = lut_reference(np.ones_like(r), r, smith="correlated").sum(-1)
     np.testing.assert_allclose(e, [0.999899, 0.995688, 0.915812, 0.626886, 0.306853], atol=1e-6)
     # and E(mu) at 0.5, 0.1 to the table's 4 decimals
-    e5 = lut_reference(0.5, r[1:], "correlated").sum(-1)
-    e1 = lut_reference(0.1, r[1:], "correlated").sum(-1)
+    e5 = lut_reference(0.5, r[1:], smith="correlated").sum(-1)
+    e1 = lut_reference(0.1, r[1:], smith="correlated").sum(-1)
     np.testing.assert_allclose(e5, [0.9883, 0.8572, 0.6632, 0.4507], atol=1e-4)
     np.testing.assert_allclose(e1, [0.8968, 0.8916, 0.8484, 0.7602], atol=1e-4)
 
@@ -97,11 +97,11 @@ def test_reference_grazing_limit():
     (MATH.md quotes correlated A = 0.4895 / 0.8067 / 0.9520 at NoV = 1e-6; those sum to 0.9997 and
     are ~3.5e-4 low: the limit is 0.489829 / 0.807064 / 0.952381 by a direct 2-D quadrature.)"""
     r = np.array([0.25, 0.5, 1.0])
-    corr = lut_reference(1e-6, r, "correlated")
+    corr = lut_reference(1e-6, r, smith="correlated")
     np.testing.assert_allclose(corr.sum(-1), 1.0, atol=1e-4)
     np.testing.assert_allclose(corr[:, 1], [0.5102, 0.1929, 0.0476], atol=1e-4)  # MATH's B values
-    np.testing.assert_allclose(lut_reference(1e-9, 1.0, "correlated"), [20 / 21, 1 / 21], atol=1e-6)
-    sch = lut_reference(1e-6, r, "schlick")
+    np.testing.assert_allclose(lut_reference(1e-9, 1.0, smith="correlated"), [20 / 21, 1 / 21], atol=1e-6)
+    sch = lut_reference(1e-6, r, smith="schlick_ggx")
     np.testing.assert_allclose(sch, [(0.4492, 0.4029), (0.7010, 0.1384), (0.5940, 0.0197)], atol=1e-4)
 
 
@@ -135,7 +135,7 @@ def _scipy_l_space(mu, r, smith):
 @pytest.mark.parametrize("smith", SMITH_VARIANTS)
 def test_reference_matches_independent_scipy_integral(smith):
     for mu, r in [(0.35, 0.8), (0.9, 0.6)]:
-        np.testing.assert_allclose(lut_reference(mu, r, smith), _scipy_l_space(mu, r, smith), atol=1e-8)
+        np.testing.assert_allclose(lut_reference(mu, r, smith=smith), _scipy_l_space(mu, r, smith), atol=1e-8)
 
 
 @pytest.mark.slow
@@ -147,8 +147,8 @@ def test_reference_converged_under_refinement():
     mu = np.array([0.5 / 256] * 5 + [0.3, 0.999])
     r = np.array([0.5 / 256, 0.01, 0.0215, 0.2, 1.0, 0.5, 0.05])
     for smith in SMITH_VARIANTS:
-        base = lut_reference(mu, r, smith)
-        fine = lut_reference(mu, r, smith, order=14, levels=8)
+        base = lut_reference(mu, r, smith=smith)
+        fine = lut_reference(mu, r, smith=smith, order=14, levels=8)
         np.testing.assert_allclose(base, fine, rtol=0, atol=1e-8)
 
 
@@ -160,7 +160,7 @@ def test_reference_validates_its_arguments():
     with pytest.raises(ValueError, match="roughness must lie in"):
         lut_reference(0.5, -0.1)
     with pytest.raises(ValueError, match="smith must be one of"):
-        lut_reference(0.5, 0.5, "separable")
+        lut_reference(0.5, 0.5, smith="separable")
     with pytest.raises(ValueError, match="order must be a positive int"):
         lut_reference(0.5, 0.5, order=0)
 
@@ -172,12 +172,12 @@ def test_reference_validates_its_arguments():
 
 # Small tables for the every-texel check: non-square in both orientations (a transposed or
 # shifted layout is off by far more than the tolerance), one float32 and one float64.
-SMALL = {"correlated": ((32, 24), jnp.float32), "schlick": ((24, 32), jnp.float64)}
+SMALL = {"correlated": ((32, 24), jnp.float32), "schlick_ggx": ((24, 32), jnp.float64)}
 
 
 @pytest.fixture(scope="module")
 def small_luts():
-    return {s: compute_brdf_lut(size, s, dtype=dt) for s, (size, dt) in SMALL.items()}
+    return {s: compute_brdf_lut(size, smith=s, dtype=dt) for s, (size, dt) in SMALL.items()}
 
 
 @pytest.mark.parametrize("smith", SMITH_VARIANTS)
@@ -189,7 +189,7 @@ def test_lut_every_texel_matches_reference(small_luts, smith):
     lut = small_luts[smith]
     assert lut.shape == (n_r, n_nov, 2) and lut.dtype == dtype
     R, M = np.meshgrid(_centres(n_r), _centres(n_nov), indexing="ij")
-    err = np.abs(np.asarray(lut, np.float64) - lut_reference(M, R, smith))
+    err = np.abs(np.asarray(lut, np.float64) - lut_reference(M, R, smith=smith))
     assert err.max() < 1e-5, (err.max(), np.unravel_index(err.argmax(), err.shape))
 
 
@@ -202,11 +202,11 @@ def test_lut_first_row_approaches_the_mirror():
     but within 1e-5 of that product."""
     for n in (128,):  # 256 in the slow test
         c = _centres(n)
-        row = lut_reference(c, c[0], "correlated")
+        row = lut_reference(c, c[0], smith="correlated")
         assert np.abs(row - _closed_form_r0(c)).max() < 1e-4
         k = c[0] ** 2 / 2
         g1 = c / (c * (1 - k) + k)
-        row = lut_reference(c, c[0], "schlick")
+        row = lut_reference(c, c[0], smith="schlick_ggx")
         assert np.abs(row - g1[:, None] ** 2 * _closed_form_r0(c)).max() < 1e-5
         assert np.abs(row - _closed_form_r0(c)).max() > 1e-3  # the first-order effect is real
 
@@ -231,6 +231,27 @@ def test_lut_first_row_approaches_the_mirror():
 def test_compute_brdf_lut_rejects_bad_arguments(kwargs, match):
     with pytest.raises(ValueError, match=match):
         compute_brdf_lut(**kwargs)
+
+
+def test_schlick_is_a_deprecated_alias_of_schlick_ggx():
+    """The LUT's Schlick-GGX (k = alpha/2) is "schlick_ggx" (distinct from brdf's Smith-GGX
+    "separable"); the old name "schlick" still works, with a DeprecationWarning."""
+    with pytest.warns(DeprecationWarning, match="schlick_ggx"):
+        old = compute_brdf_lut(8, smith="schlick")
+    np.testing.assert_array_equal(np.asarray(old), np.asarray(compute_brdf_lut(8, smith="schlick_ggx")))
+    with pytest.warns(DeprecationWarning, match="schlick_ggx"):
+        ref_old = lut_reference(0.5, 0.5, smith="schlick")
+    np.testing.assert_array_equal(ref_old, lut_reference(0.5, 0.5, smith="schlick_ggx"))
+
+
+def test_positional_smith_still_works_with_a_deprecation_warning():
+    with pytest.warns(DeprecationWarning, match="smith=... by keyword"):
+        old = compute_brdf_lut(8, "schlick_ggx")
+    np.testing.assert_array_equal(np.asarray(old), np.asarray(compute_brdf_lut(8, smith="schlick_ggx")))
+    with pytest.warns(DeprecationWarning, match="positionally"):
+        np.testing.assert_array_equal(lut_reference(0.5, 0.5, "correlated"), lut_reference(0.5, 0.5))
+    with pytest.raises(TypeError, match="positional"):
+        compute_brdf_lut(8, "correlated", 864)
 
 
 # --------------------------------------------------------------------------------------------
@@ -342,8 +363,8 @@ def test_full_size_lut_every_texel_within_1e4_of_reference(n, smith):
     reference, both Smith variants (measured max 1.4e-6; the reference takes ~1-2 min at 256^2)."""
     c = _centres(n)
     R, M = np.meshgrid(c, c, indexing="ij")
-    lut = np.asarray(compute_brdf_lut(n, smith), np.float64)
-    err = np.abs(lut - lut_reference(M, R, smith))
+    lut = np.asarray(compute_brdf_lut(n, smith=smith), np.float64)
+    err = np.abs(lut - lut_reference(M, R, smith=smith))
     assert err.max() < 1e-4
     assert err.max() < 1e-5  # the documented margin of the default rule
     # the first row against the mirror (see test_lut_first_row_approaches_the_mirror)

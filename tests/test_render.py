@@ -29,7 +29,7 @@ def small_env(S=16):
 
 def test_primary_rays_centre_and_corners():
     cam = jp.Camera(width=W, height=H, fov_y_deg=60.0)
-    o, d = primary_rays(cam, jnp.float64)
+    o, d = primary_rays(cam, dtype=jnp.float64)
     d = np.asarray(d)
     np.testing.assert_allclose(d[H // 2, W // 2], [0, 0, -1], atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
@@ -141,7 +141,7 @@ def test_off_centre_pixel_matches_float64_reference_raycast():
     )
     img = np.asarray(jp.render(scene))
     with jax.enable_x64(True):
-        o, d = primary_rays(scene.camera, jnp.float64)
+        o, d = primary_rays(scene.camera, dtype=jnp.float64)
     o, d = np.asarray(o), np.asarray(d)
     c, rad = np.array([0.2, -0.1, 0.0]), 1.3
     checked = 0
@@ -261,8 +261,10 @@ def test_gbuffer_scene_equals_direct_kernels():
     irr = jp.irradiance(env, 32)
     pre = jp.prefilter(env)
     lut = jp.brdf_lut(128)
-    want = np.asarray(jp.shade_direct(p, n, v, m, lights) + jp.shade_ibl(n, v, m, irr, pre, lut))
-    bg = np.asarray(env.sample(-v.astype(np.float32)))
+    # Jitted (one program each instead of ~200 eager primitive compilations).
+    kernels = jax.jit(lambda p, n, v, m: jp.shade_direct(p, n, v, m, lights) + jp.shade_ibl(n, v, m, irr, pre, lut))
+    want = np.asarray(kernels(p, n, v, m))
+    bg = np.asarray(jax.jit(lambda c, d: c.sample(d))(env, -v.astype(np.float32)))
     want = np.where(hit[..., None], want, bg)
     np.testing.assert_allclose(img, want, rtol=1e-5, atol=1e-6)
 
@@ -285,7 +287,7 @@ def test_supersampling_is_the_mean_of_jittered_renders():
 
 def _primitives(scene, **options):
     opts = R.RenderOptions(**options)
-    p = R.plan(scene, opts)
+    p = R.plan(scene, options=opts)
     assets = R._env_assets(scene.environment, p, opts) if p.ibl else None
     jaxpr = jax.make_jaxpr(lambda s, a: R._render_traced(s, a, p, opts))(scene, assets)
     text = str(jaxpr)

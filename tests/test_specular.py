@@ -68,41 +68,16 @@ def c_alpha(alpha):
 
 
 # ----------------------------------------------------------------------------------------------
-# Independent cube geometry (GL face table; see test_cubemap.py) for exact texel means
+# Independent cube geometry (GL face table, tests/reference.py) for exact texel means
 # ----------------------------------------------------------------------------------------------
 
 
-gl_inverse = ref.gl_inverse
-
-
-def texel_corners(S):
-    e = np.linspace(-1.0, 1.0, S + 1)
-    t0, s0 = np.meshgrid(e[:-1], e[:-1], indexing="ij")
-    t1, s1 = np.meshgrid(e[1:], e[1:], indexing="ij")
-    return np.stack(
-        [
-            np.stack([gl_inverse(f, s0, t0), gl_inverse(f, s1, t0), gl_inverse(f, s1, t1), gl_inverse(f, s0, t1)], -2)
-            for f in range(6)
-        ]
-    )
-
-
-def ref_solid_angles(S):
-    e = np.linspace(-1.0, 1.0, S + 1)
-    A = lambda x, y: np.arctan2(x * y, np.sqrt(1.0 + x * x + y * y))  # noqa: E731
-    x0, x1, y0, y1 = e[None, :-1], e[None, 1:], e[:-1, None], e[1:, None]
-    return np.broadcast_to(A(x1, y1) - A(x0, y1) - A(x1, y0) + A(x0, y0), (6, S, S))
+ref_solid_angles = ref.solid_angles
 
 
 def texel_moments(S):
     """Exact int_texel w dw (Lambert / Arvo closed form for the central projection of a planar polygon)."""
-    V = texel_corners(S)
-    U = V / np.linalg.norm(V, axis=-1, keepdims=True)
-    W = np.roll(U, -1, axis=-2)
-    cr = np.cross(U, W)
-    nrm = np.linalg.norm(cr, axis=-1)
-    m = 0.5 * np.sum((np.arctan2(nrm, np.sum(U * W, -1)) / nrm)[..., None] * cr, -2)
-    return m * np.sign(np.sum(m * V.mean(-2), -1))[..., None]
+    return ref.polygon_moment(ref.cube_geometry(S)[1])
 
 
 def unit(v):
@@ -132,17 +107,17 @@ def samples_list(M, n):
 def test_level_roughness_and_lod_are_consistent(M):
     m = np.arange(M)
     x = m / max(M - 1, 1)
-    lin = level_roughness(M, "linear")
-    quad = level_roughness(M, "quadratic")
+    lin = level_roughness(M, mapping="linear")
+    quad = level_roughness(M, mapping="quadratic")
     np.testing.assert_allclose(lin, x, rtol=0, atol=4 * EPS64)  # r_m = m/(M-1) (glTF viewer / LearnOpenGL)
     np.testing.assert_allclose(quad, 1 - np.sqrt(1 - x), rtol=0, atol=4 * EPS64)  # Filament
     assert lin[0] == 0.0 and quad[0] == 0.0 and lin[-1] == (1.0 if M > 1 else 0.0) and quad[-1] == lin[-1]
     # lod(r_m) = m: linear lod = r (M-1); Filament's lod = (M-1) r (2 - r).
-    np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(lin), M, "linear")), m, atol=16 * EPS64 * M)
-    np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(quad), M, "quadratic")), m, atol=16 * EPS64 * M)
+    np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(lin), M, mapping="linear")), m, atol=16 * EPS64 * M)
+    np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(quad), M, mapping="quadratic")), m, atol=16 * EPS64 * M)
     r = np.linspace(0, 1, 11)
     np.testing.assert_allclose(
-        np.asarray(roughness_to_lod(jnp.asarray(r), M, "quadratic")), (M - 1) * r * (2 - r), atol=1e-15 * M
+        np.asarray(roughness_to_lod(jnp.asarray(r), M, mapping="quadratic")), (M - 1) * r * (2 - r), atol=1e-15 * M
     )
 
 
@@ -152,7 +127,7 @@ def test_roughness_to_lod_clamps_and_batches():
     assert lod.shape == (2, 3)
     np.testing.assert_allclose(lod, [[0, 0, 1.5], [5, 5, 2.5]], atol=1e-15)
     np.testing.assert_allclose(
-        np.asarray(jax.jit(lambda x: roughness_to_lod(x, 6, "quadratic"))(r)),
+        np.asarray(jax.jit(lambda x: roughness_to_lod(x, 6, mapping="quadratic"))(r)),
         5 * np.clip(r, 0, 1) * (2 - np.clip(r, 0, 1)),
         atol=1e-15,
     )
@@ -161,7 +136,7 @@ def test_roughness_to_lod_clamps_and_batches():
 
 
 def test_mapping_errors():
-    for f in (lambda: level_roughness(4, "cubic"), lambda: roughness_to_lod(0.5, 4, "Linear")):
+    for f in (lambda: level_roughness(4, mapping="cubic"), lambda: roughness_to_lod(0.5, 4, mapping="Linear")):
         with pytest.raises(ValueError, match="unknown roughness->mip mapping"):
             f()
     with pytest.raises(ValueError, match="num_levels must be a positive integer"):
