@@ -119,21 +119,24 @@ def write_cubemap(path, cube: Cubemap, *, fmt: str = "rgba16f", metadata: dict |
     """Write every mip of a cube map: KTX2 (all mips in one file, faces in KTX order, `fmt`
     rgba16f | rgba32f, metadata as `jaxpbr:` key/values) or EXR (one file per mip and face:
     `<stem>_m<m>_<px|nx|py|ny|pz|nz>.exr`, metadata in each header). Every file is written
-    atomically and registered with `outputs` (for rollback) as soon as it exists."""
+    atomically and registered with `outputs` (for rollback) as soon as it exists; without
+    `outputs`, a failure midway removes the files this call already wrote (no partial cube)."""
     path = Path(path)
     metadata = metadata or {}
-    outs = outputs if outputs is not None else OutputSet()
+    if outputs is None:
+        with OutputSet() as own:
+            return write_cubemap(path, cube, fmt=fmt, metadata=metadata, outputs=own)
     levels = [np.asarray(lv, np.float32) for lv in cube.levels]
     flat_meta = {f"jaxpbr:{k}": (v if isinstance(v, str) else json.dumps(v)) for k, v in metadata.items()}
     if path.suffix.lower() == ".ktx2":
         write_ktx2(path, levels, fmt=fmt, metadata=flat_meta)
-        outs.add(path)
+        outputs.add(path)
         return [str(path)]
     names = []
     for m, lv in enumerate(levels):
         for f in range(6):
             p = path.with_name(f"{path.stem}_m{m}_{FACE_FILE_NAMES[f]}.exr")
             image.write(p, lv[f], metadata={**metadata, "jaxpbr:mip": m, "jaxpbr:face": FACE_FILE_NAMES[f]})
-            outs.add(p)
+            outputs.add(p)
             names.append(str(p))
     return names

@@ -189,3 +189,25 @@ def test_lut_smith_schlick_ggx_and_its_deprecated_alias(tmp_path, capsys):
     np.testing.assert_array_equal(image.read(a), image.read(b))
     for p in (a, b):
         assert json.loads(p.with_name(p.name + ".json").read_text())["smith"] == "schlick_ggx"
+
+
+def test_write_cubemap_failure_midway_leaves_no_faces(tmp_path, monkeypatch):
+    """Per-face EXR output: if the 8th face fails (a full disk), the 7 already written are removed."""
+    from jaxpbr import cubeio
+
+    cube = Cubemap(np.ones((6, 4, 4, 3), np.float32)).with_mips(2)
+    real_write, calls = cubeio.image.write, []
+
+    def flaky(path, img, **kw):
+        calls.append(path)
+        if len(calls) == 8:
+            raise OSError("No space left on device")
+        real_write(path, img, **kw)
+
+    monkeypatch.setattr(cubeio.image, "write", flaky)
+    with pytest.raises(OSError, match="No space left"):
+        cubeio.write_cubemap(tmp_path / "pre.exr", cube)
+    assert len(calls) == 8 and _files(tmp_path) == []
+    monkeypatch.setattr(cubeio.image, "write", real_write)
+    names = cubeio.write_cubemap(tmp_path / "pre.exr", cube)
+    assert len(names) == 12 and len(_files(tmp_path)) == 12

@@ -31,7 +31,7 @@ import numpy as np
 from .. import envs
 from .. import lights as _lights
 from .._validate import positive_int
-from ..atomic import atomic_write
+from ..atomic import OutputSet, atomic_write
 from ..cubeio import ENVIRONMENT_HELP, load_environment
 from ..cubemap import Cubemap
 from ..diffuse import irradiance
@@ -309,17 +309,17 @@ def write_report(result: dict, output_dir, *, prefix: str = "render_report", log
     d = Path(output_dir)
     if not d.is_dir():
         raise FileNotFoundError(f"output directory {str(d)!r} does not exist; create it first")
-    written = []
-    for suffix, text in ((".md", markdown(result)), (".json", to_json(result))):
-        path = d / f"{prefix}{suffix}"
-        atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
-        written.append(path)
-    png = d / f"{prefix}.png"
-    if plot(result, png):
-        written.append(png)
-    else:
-        log("matplotlib is not installed: wrote the table and JSON only, no figure (pip install 'jaxpbr[report]')")
-    return written
+    with OutputSet() as outs:  # all of them or none: a failure removes what was already written
+        for suffix, text in ((".md", markdown(result)), (".json", to_json(result))):
+            path = d / f"{prefix}{suffix}"
+            atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
+            outs.add(path)
+        png = d / f"{prefix}.png"
+        if plot(result, png):
+            outs.add(png)
+        else:
+            log("matplotlib is not installed: wrote the table and JSON only, no figure (pip install 'jaxpbr[report]')")
+    return list(outs.written)
 
 
 # ------------------------------------------------------------------------------------------
