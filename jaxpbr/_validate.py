@@ -1,14 +1,20 @@
 """Validators for configuration values (sizes, counts, option names), shared by every module.
 
 Configuration is static (it shapes the traced program), so it is always concrete and always checked.
-Each raises `ValueError` naming the argument, the value and the fix.
+Array inputs (colours, positions, intensities) may be tracers under jit/vmap/grad: their shapes are
+always checked, their values only when concrete (`check_values`). Each raises `ValueError` naming
+the argument, the value and the fix.
 """
 
 from __future__ import annotations
 
 import numbers
 
-__all__ = ["choice", "positive_int"]
+import numpy as np
+
+from ._numerics import as_float, is_concrete
+
+__all__ = ["check_values", "choice", "positive_int", "vector"]
 
 
 def positive_int(name: str, value, *, minimum: int = 1, where: str | None = None, fix: str | None = None) -> int:
@@ -30,3 +36,26 @@ def choice(name: str, value, options) -> str:
     if value not in options:
         raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(map(repr, options))}")
     return value
+
+
+def vector(name: str, x, n: int = 3):
+    """`x` as a float array (`as_float`: Python numbers stay weakly typed) with a trailing axis of `n`."""
+    x = as_float(x)
+    if x.ndim == 0 or x.shape[-1] != n:
+        raise ValueError(f"{name} must have a trailing axis of {n}, got shape {x.shape}.")
+    return x
+
+
+def check_values(name: str, x, *, lo=None, hi=None, open_lo: bool = False, finite: bool = True):
+    """Check the values of a concrete array (finite; >= lo, or > lo with `open_lo`; <= hi);
+    tracers pass unchecked (their values do not exist yet). Returns `x`."""
+    if not is_concrete(x):
+        return x
+    a = np.asarray(x)
+    if finite and not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or Inf; pass finite values.")
+    if lo is not None and a.size and (np.any(a <= lo) if open_lo else np.any(a < lo)):
+        raise ValueError(f"{name} must be {'>' if open_lo else '>='} {lo:g}, got {a.min():g}.")
+    if hi is not None and a.size and np.any(a > hi):
+        raise ValueError(f"{name} must be <= {hi:g}, got {a.max():g}.")
+    return x

@@ -32,6 +32,7 @@ from ._numerics import (
     vnormalize,
 )
 from ._pytree import Pytree, fields_of, leaf
+from ._validate import check_values, vector
 from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, geometry_soa
 from .material import Material
 
@@ -56,26 +57,6 @@ MIN_LIGHT_DISTANCE = 1e-4
 
 # KHR_lights_punctual: lightAngleScale = 1 / max(0.001, cos(inner) - cos(outer)).
 _MIN_CONE_COS_DELTA = 1e-3
-
-
-def _vec3(name: str, x) -> jax.Array:
-    x = as_float(x)
-    if x.ndim == 0 or x.shape[-1] != 3:
-        raise ValueError(f"{name} must have a trailing axis of 3, got shape {x.shape}.")
-    return x
-
-
-def _check(name: str, x: jax.Array, *, lo: float | None = None, hi: float | None = None, finite=True):
-    """Validate concrete values; tracers pass through unchecked."""
-    if not is_concrete(x):
-        return
-    a = np.asarray(x)
-    if finite and not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains NaN or Inf; pass finite values.")
-    if lo is not None and a.size and a.min() < lo:
-        raise ValueError(f"{name} must be >= {lo:g}, got {a.min():g}.")
-    if hi is not None and a.size and a.max() > hi:
-        raise ValueError(f"{name} must be <= {hi:g}, got {a.max():g}.")
 
 
 def _range_arg(range_) -> jax.Array:
@@ -108,15 +89,15 @@ class PointLight(Pytree):
 
     def _validate(self) -> None:
         self._set(
-            position=_vec3("PointLight.position", self.position),
-            color=_vec3("PointLight.color", self.color),
+            position=vector("PointLight.position", self.position),
+            color=vector("PointLight.color", self.color),
             intensity=as_float(self.intensity),
             inv_range=as_float(self.inv_range),
         )
-        _check("PointLight.position", self.position)
-        _check("PointLight.color", self.color, lo=0.0)
-        _check("PointLight.intensity", self.intensity, lo=0.0)
-        _check("PointLight.inv_range", self.inv_range, lo=0.0, finite=False)
+        check_values("PointLight.position", self.position)
+        check_values("PointLight.color", self.color, lo=0.0)
+        check_values("PointLight.intensity", self.intensity, lo=0.0)
+        check_values("PointLight.inv_range", self.inv_range, lo=0.0, finite=False)
 
 
 class DirectionalLight(Pytree):
@@ -130,15 +111,15 @@ class DirectionalLight(Pytree):
 
     def _validate(self) -> None:
         self._set(
-            direction=_vec3("DirectionalLight.direction", self.direction),
-            color=_vec3("DirectionalLight.color", self.color),
+            direction=vector("DirectionalLight.direction", self.direction),
+            color=vector("DirectionalLight.color", self.color),
             intensity=as_float(self.intensity),
         )
-        _check("DirectionalLight.direction", self.direction)
+        check_values("DirectionalLight.direction", self.direction)
         if is_concrete(self.direction) and np.any(np.linalg.norm(np.asarray(self.direction), axis=-1) == 0):
             raise ValueError("DirectionalLight.direction must be a non-zero vector.")
-        _check("DirectionalLight.color", self.color, lo=0.0)
-        _check("DirectionalLight.intensity", self.intensity, lo=0.0)
+        check_values("DirectionalLight.color", self.color, lo=0.0)
+        check_values("DirectionalLight.intensity", self.intensity, lo=0.0)
 
 
 class SpotLight(Pytree):
@@ -182,20 +163,20 @@ class SpotLight(Pytree):
 
     def _validate(self) -> None:
         self._set(
-            position=_vec3("SpotLight.position", self.position),
-            direction=_vec3("SpotLight.direction", self.direction),
-            color=_vec3("SpotLight.color", self.color),
+            position=vector("SpotLight.position", self.position),
+            direction=vector("SpotLight.direction", self.direction),
+            color=vector("SpotLight.color", self.color),
             intensity=as_float(self.intensity),
             inner_cone_angle=as_float(self.inner_cone_angle),
             outer_cone_angle=as_float(self.outer_cone_angle),
             inv_range=as_float(self.inv_range),
         )
-        _check("SpotLight.position", self.position)
-        _check("SpotLight.color", self.color, lo=0.0)
-        _check("SpotLight.intensity", self.intensity, lo=0.0)
-        _check("SpotLight.inner_cone_angle", self.inner_cone_angle, lo=0.0)
-        _check("SpotLight.outer_cone_angle", self.outer_cone_angle, lo=0.0, hi=math.pi / 2 + 1e-12)
-        _check("SpotLight.inv_range", self.inv_range, lo=0.0, finite=False)
+        check_values("SpotLight.position", self.position)
+        check_values("SpotLight.color", self.color, lo=0.0)
+        check_values("SpotLight.intensity", self.intensity, lo=0.0)
+        check_values("SpotLight.inner_cone_angle", self.inner_cone_angle, lo=0.0)
+        check_values("SpotLight.outer_cone_angle", self.outer_cone_angle, lo=0.0, hi=math.pi / 2 + 1e-12)
+        check_values("SpotLight.inv_range", self.inv_range, lo=0.0, finite=False)
         if is_concrete(self.inner_cone_angle) and is_concrete(self.outer_cone_angle):
             if np.any(np.asarray(self.inner_cone_angle) >= np.asarray(self.outer_cone_angle)):
                 raise ValueError(

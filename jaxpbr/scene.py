@@ -37,7 +37,7 @@ from ._numerics import (
     vnormalize,
 )
 from ._pytree import Pytree, leaf, static, subtree
-from ._validate import positive_int
+from ._validate import check_values, positive_int, vector
 from .cubemap import Cubemap
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight
 from .material import Material
@@ -56,29 +56,11 @@ __all__ = [
 
 
 def _vec(name: str, x, n: int = 3) -> jax.Array:
-    x = as_float(x)
-    if x.ndim == 0 or x.shape[-1] != n:
-        raise ValueError(f"{name} must have a trailing axis of {n}, got shape {x.shape}")
-    if is_concrete(x) and not np.all(np.isfinite(np.asarray(x))):
-        raise ValueError(f"{name} contains NaN or Inf; pass finite values")
-    return x
+    return check_values(name, vector(name, x, n))
 
 
 def _scalar(name: str, x, *, lo=None, hi=None, open_lo=False) -> jax.Array:
-    x = as_float(x)
-    if is_concrete(x):
-        a = np.asarray(x)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"{name} contains NaN or Inf; pass finite values")
-        if lo is not None and (np.any(a <= lo) if open_lo else np.any(a < lo)):
-            raise ValueError(f"{name} must be {'>' if open_lo else '>='} {lo}, got {a.min():g}")
-        if hi is not None and np.any(a > hi):
-            raise ValueError(f"{name} must be <= {hi}, got {a.max():g}")
-    return x
-
-
-def _static_int(name: str, x, lo: int = 1) -> int:
-    return positive_int(name, x, minimum=lo)
+    return check_values(name, as_float(x), lo=lo, hi=hi, open_lo=open_lo)
 
 
 # ------------------------------------------------------------------------------------------
@@ -107,9 +89,9 @@ class Camera(Pytree):
     jitter: Any = leaf((0.0, 0.0), rank=1)
 
     def _validate(self) -> None:
-        _static_int("Camera.width", self.width)
-        _static_int("Camera.height", self.height)
-        _static_int("Camera.supersample", self.supersample)
+        positive_int("Camera.width", self.width)
+        positive_int("Camera.height", self.height)
+        positive_int("Camera.supersample", self.supersample)
         pos = _vec("Camera.position", self.position)
         tgt = _vec("Camera.target", self.target)
         up = _vec("Camera.up", self.up)
