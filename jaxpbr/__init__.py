@@ -24,7 +24,7 @@ from .lights import (
 )
 from .lut import compute_brdf_lut, lut_lookup, lut_reference
 from .material import Material
-from .renderer import RenderOptions, render, render_batch
+from .renderer import RenderOptions, bake, render, render_batch
 from .scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
 from .shipped_luts import brdf_lut
 from .specular import prefilter, prefilter_reference, roughness_to_lod
@@ -32,6 +32,7 @@ from .specular import prefilter, prefilter_reference, roughness_to_lod
 __all__ = [
     "__version__",
     "atomic",
+    "bake",
     "CONVENTIONS",
     "Camera",
     "Cubemap",

@@ -62,6 +62,7 @@ from .scene import (
 
 __all__ = [
     "ASSETS",
+    "bake",
     "RenderOptions",
     "RenderPlan",
     "plan",
@@ -90,7 +91,7 @@ class RenderOptions:
         power-of-two divisor of it); prefilter_samples: `jaxpbr.prefilter` samples (None = default).
     lut_size: split-sum LUT resolution (shipped 128 / 256 load instantly).
     mapping: roughness -> mip mapping of the prefiltered map ("linear" | "quadratic").
-    dtype: "float32" | "float64" for the shading.
+    dtype: float32 | float64 for the shading: a name, a NumPy or a JAX dtype (stored as its name).
     """
 
     model: str = "gltf"
@@ -105,8 +106,13 @@ class RenderOptions:
 
     def __post_init__(self):
         check_options(self.model, multiscatter=self.multiscatter)
-        if self.dtype not in ("float32", "float64"):
-            raise ValueError(f"dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        try:
+            name = np.dtype(self.dtype).name  # "float32", np.float64, jnp.float32, np.dtype(...)
+        except TypeError:
+            name = None
+        if name not in ("float32", "float64"):
+            raise ValueError(f"dtype must be float32 or float64 (a name, NumPy or JAX dtype), got {self.dtype!r}")
+        object.__setattr__(self, "dtype", name)  # normalised: equal options hash alike
         for name in ("irradiance_size", "lut_size"):
             positive_int(name, getattr(self, name))
 
@@ -149,31 +155,56 @@ class RenderPlan:
 # ------------------------------------------------------------------------------------------
 
 
-def _bound(x, fn, fallback: float) -> float:
-    """fn(concrete values) or the fallback for traced values."""
-    if x is None:
+_RANGES: dict = {}  # (id(array), reduction) -> (weakref to the array, value)
+
+
+@functools.partial(jax.jit, static_argnames=("op", "channel"))
+def _reduce(x, *, op: str, channel):
+    x = x if channel is None else x[..., channel]
+    return jnp.max(x) if op == "max" else jnp.min(x)
+
+
+def _bound(x, op: str, fallback: float, channel: int | None = None) -> float:
+    """max / min of the concrete values of x (a channel of its last axis if given), or the
+    fallback for traced values and None.
+
+    A device array is reduced on the device and only the scalar comes back (the per-pixel maps of
+    a G-buffer never travel to the host), and the result is remembered per array object (arrays are
+    immutable): rendering the same scene again copies nothing."""
+    if x is None or not is_concrete(x):
         return fallback
-    if not is_concrete(x):
-        return fallback
-    return float(fn(np.asarray(x)))
+    if not isinstance(x, jax.Array):
+        a = np.asarray(x)
+        a = a if channel is None else a[..., channel]
+        return float(a.max() if op == "max" else a.min())
+    memo = (id(x), op, channel)
+    hit = _RANGES.get(memo)
+    if hit is not None and hit[0]() is x:
+        return hit[1]
+    value = float(x if x.size == 1 and channel is None else _reduce(x, op=op, channel=channel))
+    try:
+        _RANGES[memo] = (weakref.ref(x, lambda _, k=memo: _RANGES.pop(k, None)), value)
+    except TypeError:  # not weak-referenceable: just do not remember
+        pass
+    return value
 
 
 def _material_ranges(m) -> tuple[float, float, bool]:
     """(max roughness, min metallic, may emit) of a Material or TexturedMaterial."""
     if isinstance(m, TexturedMaterial):
         f = m.factors
-        r = _bound(f.roughness, np.max, 1.0)
-        met = _bound(f.metallic, np.min, 0.0)
+        r = _bound(f.roughness, "max", 1.0)
+        met = _bound(f.metallic, "min", 0.0)
         mr = m.metallic_roughness_texture
         if mr is not None:
-            r *= _bound(mr, lambda a: a[..., 1].max(), 1.0)
-            met *= _bound(mr, lambda a: a[..., 2].min(), 0.0)
-        emits = _bound(f.emissive, np.max, 1.0) > 0
+            r *= _bound(mr, "max", 1.0, channel=1)
+            met *= _bound(mr, "min", 0.0, channel=2)
+        emits = _bound(f.emissive, "max", 1.0) > 0
         return r, met, emits
     return (
-        _bound(m.roughness, np.max, 1.0),
-        _bound(m.metallic, np.min, 0.0),
-        _bound(m.emissive, np.max, 1.0) > 0,
+        _bound(m.roughness, "max", 1.0),
+        _bound(m.metallic, "min", 0.0),
+        _bound(m.emissive, "max", 1.0) > 0,
     )
 
 
@@ -218,7 +249,7 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
             # roughness_to_lod in plain Python (this runs at trace time, possibly inside a jit).
             lod = r * (M - 1) if opts.mapping == "linear" else r * (2.0 - r) * (M - 1)
             levels = min(M, int(math.ceil(lod - 1e-9)) + 1)
-        diffuse = opts.multiscatter or met_min < 1.0 or env.irradiance is not None
+        diffuse = opts.multiscatter or met_min < 1.0
     else:
         size, M, levels, diffuse = 0, 0, 0, False
     return RenderPlan(
@@ -243,6 +274,9 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
 
 class AssetCache:
     """LRU cache of precomputed IBL maps keyed by (environment content hash, kind, parameters).
+
+    It only ever holds concrete arrays: `get` evaluates the precompute eagerly
+    (`jax.ensure_compile_time_eval`), and the renderer caches nothing for a traced environment.
 
     `stats[kind]` counts hits and misses ("irradiance", "prefilter", "lut"), which is how tests
     and users check what a render actually computed.
@@ -273,7 +307,14 @@ class AssetCache:
             self._store.move_to_end(full)
             return self._store[full]
         st["misses"] += 1
-        value = compute()
+        # Everything cached is a function of concrete inputs (a concrete environment's texels,
+        # sizes, options), so it is evaluated eagerly even when the caller is being traced
+        # (render under jit / grad / vmap of a scene whose environment is a constant): the result
+        # is a concrete array, never a tracer of that trace, and the next render reuses it.
+        with jax.ensure_compile_time_eval():
+            value = compute()
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(value)):
+            raise AssertionError(f"AssetCache: the {kind} precompute returned a tracer; it depends on a traced input")
         self._store[full] = value
         while len(self._store) > self.maxsize:
             self._store.popitem(last=False)
@@ -306,28 +347,48 @@ def content_key(cube: Cubemap) -> str:
     return key
 
 
+def _lut_smith(opts: RenderOptions) -> str:
+    return MODEL_REGISTRY[opts.model].lut_smith
+
+
 def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
-    """(irradiance | None, prefiltered, lut) for the plan; cached when the environment is concrete."""
+    """(irradiance | None, prefiltered, lut) for the plan, in the render dtype.
+
+    Maps the environment carries (`bake`, or loaded from disk) are used as they are. Missing ones
+    are computed: for a concrete environment through the content-addressed `ASSETS` cache (once
+    per environment content and parameters, concrete even under an outer jit / grad / vmap); for
+    a traced environment (differentiating wrt its texels) inside the trace, never cached."""
     dtype = jnp.dtype(opts.dtype)
-    smith = MODEL_REGISTRY[opts.model].lut_smith
-    lut = ASSETS.get("lut", (opts.lut_size, smith, str(dtype)), lambda: shipped_luts.brdf_lut(opts.lut_size, smith=smith, dtype=dtype))
+    smith = _lut_smith(opts)
+    if env.lut is not None:
+        if env.lut_smith != smith:
+            raise ValueError(
+                f"the environment's LUT was baked for Smith variant {env.lut_smith!r}, but model "
+                f"{opts.model!r} reads a {smith!r} LUT; bake it with model={opts.model!r} (jaxpbr.bake)"
+            )
+        lut = env.lut
+    else:
+        lut = ASSETS.get(
+            "lut", (opts.lut_size, smith, dtype.name), lambda: shipped_luts.brdf_lut(opts.lut_size, smith=smith, dtype=dtype)
+        )
     src = env.radiance
-    concrete = all(is_concrete(lv) for lv in src.levels)
-    key = content_key(src) if concrete else None
+    need_irr = p.ibl_diffuse and env.irradiance is None
+    need_pre = env.prefiltered is None
+    key = None
+    if (need_irr or need_pre) and all(is_concrete(lv) for lv in src.levels):
+        key = content_key(src)
 
     def cached(kind, params, compute):
         if key is None:
             return compute()
         return ASSETS.get(kind, (key,) + params, compute)
 
-    irr = env.irradiance
-    if p.ibl_diffuse and irr is None:
+    irr = env.irradiance if p.ibl_diffuse else None
+    if need_irr:
         params = (opts.irradiance_size, opts.irradiance_method)
         irr = cached("irradiance", params, lambda: diffuse.irradiance(src, opts.irradiance_size, method=opts.irradiance_method))
-    if not p.ibl_diffuse:
-        irr = None
     pre = env.prefiltered
-    if pre is None:
+    if need_pre:
         params = (p.prefilter_size, p.prefilter_levels, p.mapping_levels, opts.mapping, opts.prefilter_samples)
 
         def compute_pre():
@@ -350,8 +411,49 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
                 pre = Cubemap(longer.levels[: p.prefilter_levels], longer.info)
         if pre is None:
             pre = cached("prefilter", params, compute_pre)
-    cast = lambda c: None if c is None else Cubemap([lv.astype(dtype) for lv in c.levels], c.info)  # noqa: E731
+    def cast(c):
+        if c is None or all(lv.dtype == dtype for lv in c.levels):
+            return c
+        return Cubemap([lv.astype(dtype) for lv in c.levels], c.info)
+
     return cast(irr), cast(pre), jnp.asarray(lut, dtype)
+
+
+@keyword_only("options")
+def bake(environment: Environment, *, options: RenderOptions | None = None, **overrides) -> Environment:
+    """The environment with every IBL asset a render can need precomputed: the irradiance map, the
+    whole prefiltered chain (all roughnesses) and the split-sum LUT of the model's Smith variant.
+
+        env = jaxpbr.bake(jaxpbr.Environment(radiance=cube))
+        step = jax.jit(jax.value_and_grad(lambda m: loss(jaxpbr.render(scene(m, env)))))
+
+    A render of a scene with a baked environment precomputes nothing, under `jit`, `grad` and
+    `vmap` alike, and the baked environment is a pytree that can be passed into a jitted function
+    as an argument (or closed over as a constant). Maps the environment already carries are kept.
+    options, **overrides: as for `render` (irradiance_size / _method, prefilter_size / _samples,
+    mapping, lut_size, dtype, and the model, which picks the LUT's Smith variant); a render
+    with a model reading another LUT raises.
+
+    For a concrete environment the assets come from (and go into) the content-addressed cache
+    `ASSETS`: baking the same texels twice computes once. A traced environment (differentiating
+    with respect to its texels) is baked inside the trace, differentiably, and not cached.
+    """
+    if not isinstance(environment, Environment):
+        raise TypeError(f"bake expects a jaxpbr.Environment, got {type(environment).__name__}")
+    opts = _options(options, overrides, "bake")
+    size = _prefilter_size(environment, opts)
+    if environment.prefiltered is not None:
+        levels = environment.prefiltered.num_levels
+        M = int(environment.prefiltered.metadata.get("mapping_levels", levels))
+    else:
+        levels = M = _mip_count(size)
+    full = RenderPlan(
+        direct=False, ibl=True, ibl_diffuse=True, env_background=environment.show_background, emissive=False,
+        textured=(), normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels,
+        mapping_levels=M,
+    )
+    irr, pre, lut = _env_assets(environment, full, opts)
+    return environment.replace(irradiance=irr, prefiltered=pre, lut=lut, lut_smith=_lut_smith(opts))
 
 
 # ------------------------------------------------------------------------------------------

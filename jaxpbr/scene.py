@@ -280,6 +280,9 @@ class Environment(Pytree):
     show_background: draw the environment where rays miss (static); else Scene.background.
     irradiance, prefiltered: optional precomputed maps (E/pi and LD mips) to use instead of
         computing them from `radiance` (e.g. loaded from disk, or to differentiate through them).
+    lut, lut_smith: optional split-sum LUT (n_r, n_nov, 2) and the Smith variant it was computed
+        for (static; `brdf_terms.MODEL_REGISTRY[model].lut_smith`); a render with a model whose
+        variant differs raises. `jaxpbr.bake(environment)` fills irradiance, prefiltered and lut.
     """
 
     radiance: Any = subtree(None)
@@ -288,6 +291,14 @@ class Environment(Pytree):
     show_background: bool = static(True)
     irradiance: Any = subtree(None)
     prefiltered: Any = subtree(None)
+    lut: Any = leaf(None, rank=3)
+    lut_smith: str | None = static(None)
+
+    @property
+    def baked(self) -> bool:
+        """True when the precomputed assets are all present (`jaxpbr.bake`): a render needs no
+        precompute of this environment."""
+        return self.irradiance is not None and self.prefiltered is not None and self.lut is not None
 
     def _validate(self) -> None:
         if not isinstance(self.radiance, Cubemap):
@@ -298,6 +309,16 @@ class Environment(Pytree):
             x = getattr(self, name)
             if x is not None and not isinstance(x, Cubemap):
                 raise TypeError(f"Environment.{name} must be a Cubemap or None")
+        if self.lut is not None:
+            lut = jnp.asarray(self.lut)
+            if lut.ndim != 3 or lut.shape[-1] != 2:
+                raise ValueError(f"Environment.lut must be an (n_r, n_nov, 2) split-sum LUT, got shape {lut.shape}")
+            if self.lut_smith is None:
+                raise ValueError(
+                    "Environment.lut needs lut_smith, the Smith variant it was computed for "
+                    "('correlated' for gltf, 'schlick_ggx' for learnopengl); jaxpbr.bake sets both"
+                )
+            self._set(lut=lut)
         self._set(
             intensity=_scalar("Environment.intensity", self.intensity, lo=0.0),
             rotation=_scalar("Environment.rotation", self.rotation),

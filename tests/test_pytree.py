@@ -54,6 +54,7 @@ EXAMPLES = {
     "Sphere": lambda: jp.Sphere(center=(0.0, 1.0, 0.0), radius=2.0, material=jp.Material(roughness=0.3)),
     "Plane": lambda: jp.Plane(point=(0.0, -1.0, 0.0), normal=(0.0, 1.0, 0.0)),
     "Environment": lambda: jp.Environment(radiance=_cube(), intensity=2.0, rotation=0.5),
+    "BakedEnvironment": lambda: jp.Environment(radiance=_cube(), lut=np.zeros((8, 4, 2)), lut_smith="correlated"),
     "GBuffer": _gbuffer,
     "Scene": lambda: jp.Scene(
         camera=_camera(),
@@ -90,14 +91,14 @@ DOCUMENTED = {
     ),
     jp.Sphere: dict(center=(3,), radius=()),
     jp.Plane: dict(point=(3,), normal=(3,), tangent=(3,), uv_scale=()),
-    jp.Environment: dict(intensity=(), rotation=()),
+    jp.Environment: dict(intensity=(), rotation=(), lut=(-1, -1, 2)),
     jp.GBuffer: dict(hit=(-1, -1), position=(-1, -1, 3), normal=(-1, -1, 3), view=(-1, -1, 3)),
     jp.Scene: dict(background=(3,)),
     jp.Cubemap: dict(levels=(6, -1, -1, -1)),
 }
 STATIC = {
     jp.Camera: {"width", "height", "supersample"},
-    jp.Environment: {"show_background"},
+    jp.Environment: {"show_background", "lut_smith"},
     jp.Scene: {"ambient"},
     jp.Cubemap: {"info"},
 }
