@@ -5,7 +5,6 @@ from __future__ import annotations
 import importlib.metadata
 import platform
 
-import numpy as np
 
 #: Rec.709 / sRGB luminance weights of linear RGB (ITU-R BT.709, Y = 0.2126 R + 0.7152 G + 0.0722 B).
 REC709_LUMA = (0.2126, 0.7152, 0.0722)
@@ -15,7 +14,10 @@ def luminance(rgb):
     """Luminance (...) of linear Rec.709 RGB (..., 3) (NumPy or JAX); the channel mean for other
     channel counts (a grey or non-RGB map has no primaries to weight)."""
     if rgb.shape[-1] == 3:
-        return rgb @ np.asarray(REC709_LUMA, dtype=rgb.dtype)
+        # A weighted sum, not `rgb @ w`: a matmul would run at the backend's default precision
+        # (TF32 on NVIDIA GPUs), and three multiply-adds fuse with their neighbours anyway.
+        r, g, b = REC709_LUMA
+        return rgb[..., 0] * r + rgb[..., 1] * g + rgb[..., 2] * b
     return rgb.mean(-1)
 
 

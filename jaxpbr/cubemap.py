@@ -34,7 +34,7 @@ import numpy as np
 
 from ._api import keyword_only
 from ._interp import bilinear, lerp2
-from ._numerics import is_concrete
+from ._numerics import HIGHEST, is_concrete
 from ._pytree import Pytree, leaf, static
 from ._validate import positive_int
 
@@ -321,14 +321,17 @@ def downsample(level: jax.Array) -> jax.Array:
     return w / ow
 
 
-@functools.partial(jax.jit, static_argnums=1)
-def _mip_chain(level0, num_levels: int):
-    """Level 0 and num_levels - 1 `downsample` steps, compiled as one program (op-by-op dispatch of
-    the chain cost over a second of compilation at 256^2)."""
+def _mip_chain_impl(level0, num_levels: int):
+    """Level 0 and num_levels - 1 `downsample` steps (traceable; `_mip_chain` is its jit)."""
     levels = [level0]
     for _ in range(num_levels - 1):
         levels.append(downsample(levels[-1]))
     return tuple(levels)
+
+
+#: The pyramid compiled as one program (op-by-op dispatch of the chain cost over a second of
+#: compilation at 256^2).
+_mip_chain = jax.jit(_mip_chain_impl, static_argnums=1)
 
 
 def _mip_count(size: int) -> int:
@@ -469,16 +472,23 @@ class Cubemap(Pytree):
         S = positive_int("face_size", face_size)
         q = positive_int("supersample", supersample)
         dirs, w = _subtexel_points(S, q)  # (6, S, S, q*q, 3), (S, S, q*q) (same on every face)
-        with jax.enable_x64(True):
-            vals = jnp.asarray(fn(jnp.asarray(dirs)), jnp.float64)
-            if vals.ndim == dirs.ndim - 1:
+        def filtered(d, wt):
+            vals = jnp.asarray(fn(d), jnp.float64)
+            if vals.ndim == d.ndim - 1:
                 vals = vals[..., None]
-            if vals.shape[:-1] != dirs.shape[:-1]:
+            if vals.shape[:-1] != d.shape[:-1]:
                 raise ValueError(
-                    f"fn returned shape {vals.shape} for directions of shape {dirs.shape}; "
+                    f"fn returned shape {vals.shape} for directions of shape {d.shape}; "
                     "expected (..., C) radiance for (..., 3) directions"
                 )
-            level = jnp.sum(vals * jnp.asarray(w)[None, ..., None], axis=-2)
+            return jnp.sum(vals * wt[None, ..., None], axis=-2)
+
+        with jax.enable_x64(True):
+            args = (jnp.asarray(dirs), jnp.asarray(w))
+            try:  # one compiled program for fn and the filter (not one per operation of fn)
+                level = jax.jit(filtered)(*args)
+            except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+                level = filtered(*args)  # fn needs concrete values (e.g. NumPy inside): eagerly
             level = np.asarray(level)
         _check_finite(level, "fn")
         return cls((jnp.asarray(level, dtype),), info)
@@ -532,7 +542,7 @@ class Cubemap(Pytree):
         rad = rad.reshape(H, q, W, q, C)
         wy = np.cos((0.5 - (1.0 - vd)) * np.pi).reshape(H, q)  # cos(latitude) ~ solid angle per sample
         wy = wy / wy.sum(1, keepdims=True)
-        return jnp.einsum("hawbc,ha->hwc", rad, jnp.asarray(wy, rad.dtype)) / q
+        return jnp.einsum("hawbc,ha->hwc", rad, jnp.asarray(wy, rad.dtype), precision=HIGHEST) / q
 
 
 # ------------------------------------------------------------------------------------------

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._numerics import HIGHEST
 from ._validate import positive_int
 from .cubemap import (
     _FACE_TABLE,
@@ -95,7 +96,7 @@ def sh9_project(env: Cubemap, *, level: int = 0) -> jax.Array:
     S = lv.shape[1]
     Y = sh9_basis(jnp.asarray(texel_directions(S), lv.dtype)).reshape(-1, 9)
     w = jnp.asarray(texel_solid_angles(S), lv.dtype).reshape(-1, 1)
-    return Y.T @ (lv.reshape(-1, lv.shape[-1]) * w)
+    return jnp.matmul(Y.T, lv.reshape(-1, lv.shape[-1]) * w, precision=HIGHEST)
 
 
 def sh9_irradiance(coeffs, n) -> jax.Array:
@@ -106,7 +107,7 @@ def sh9_irradiance(coeffs, n) -> jax.Array:
     """
     coeffs = jnp.asarray(coeffs)
     a = jnp.asarray(_SH9_A, coeffs.dtype)[:, None] / math.pi
-    e = sh9_basis(jnp.asarray(n, coeffs.dtype)) @ (coeffs * a)
+    e = jnp.matmul(sh9_basis(jnp.asarray(n, coeffs.dtype)), coeffs * a, precision=HIGHEST)
     return jnp.maximum(e, 0.0)
 
 
@@ -158,19 +159,23 @@ def irradiance_at(env: Cubemap, n, *, method: str = "exact", source_size: int | 
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
     n = jnp.asarray(n, env.dtype)
+    s = _source_size(env.face_size, source_size) if method == "exact" else 0
+    # Bound the (chunk, Ns, C) intermediate of the exact convolution to ~2^24 elements.
+    chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // max(1, 6 * s * s * env.channels)))
+    return _irradiance_at(env.levels[0], n, method=method, source_size=s, chunk=chunk)
+
+
+@functools.partial(jax.jit, static_argnames=("method", "source_size", "chunk"))
+def _irradiance_at(level0, n, *, method: str, source_size: int, chunk: int):
+    """`irradiance_at` as one compiled program (moments, pyramid sums and the chunked convolution)."""
+    env = Cubemap((level0,))
     if method == "sh9":
         return sh9_irradiance(sh9_project(env), n)
-    S = env.face_size
-    s = _source_size(S, source_size)
-    lm = _moment_pyramid(env, s).reshape(-1, env.channels, 3)  # (Ns, C, 3)
-    flat = n.reshape(-1, 3)
-    # Bound the (chunk, Ns, C) intermediate to ~2^24 elements whatever the source size.
-    chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // (lm.shape[0] * lm.shape[1])))
-    out = _exact_conv(flat, lm, chunk=chunk)
+    lm = _moment_pyramid(env, source_size).reshape(-1, env.channels, 3)  # (Ns, C, 3)
+    out = _exact_conv(n.reshape(-1, 3), lm, chunk=chunk)
     return out.reshape(n.shape[:-1] + (env.channels,))
 
 
-@functools.partial(jax.jit, static_argnames=("chunk",))
 def _exact_conv(n, lm, *, chunk):
     N = n.shape[0]
     pad = (-N) % chunk
@@ -180,7 +185,7 @@ def _exact_conv(n, lm, *, chunk):
     def one(nc):
         # n . (L m) per source texel and channel (a (chunk,3)@(3,Ns*C) product), clamped at the
         # horizon, summed over the source texels.
-        dots = (nc @ lmT).reshape(nc.shape[0], -1, lm.shape[1])
+        dots = jnp.matmul(nc, lmT, precision=HIGHEST).reshape(nc.shape[0], -1, lm.shape[1])
         return jnp.sum(jnp.maximum(dots, 0.0), axis=1) / math.pi
 
     out = jax.lax.map(one, npad)
@@ -218,7 +223,7 @@ def irradiance(
     size = positive_int("size", size)
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
-    dirs = jnp.asarray(texel_directions(size), env.dtype)
+    dirs = jnp.asarray(np.asarray(texel_directions(size), env.dtype))  # host cast: no XLA program
     vals = irradiance_at(env, dirs, method=method, source_size=source_size, chunk=chunk)
     info = {
         "quantity": "Ebar = E/pi (cosine-weighted mean radiance), value at texel centres",

@@ -273,7 +273,7 @@ def _read_oiio(path: Path, ext: str):
 # ----------------------------------------------------------------------------------------------------- write
 
 
-def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb") -> None:
+def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", encoded=False) -> None:
     """Write an image atomically; the extension picks the format.
 
     Args:
@@ -292,6 +292,9 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb") -> N
         ``"gamma2.2"`` (``max(c, 0) ** (1/2.2)``) or ``"linear"`` (values written as given — pass data that is
         already display-encoded, or non-colour data). The file is tagged sRGB (sRGB chunk) or gamma 2.2 (gAMA
         chunk) accordingly; ``"linear"`` keeps OpenImageIO's default sRGB tag.
+      encoded: ``.png`` only: the values already carry the transfer function ``encoding`` (e.g. applied on the
+        device with :func:`jaxpbr.color.encode`, in the same program as the tone map): they are written as given
+        and the file is tagged for ``encoding``.
 
     Raises:
       ValueError: bad shape, channel count, dtype, NaN/Inf or out-of-range values, bad options or metadata.
@@ -326,7 +329,7 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb") -> N
             )
         writer = lambda tmp: _write_oiio(tmp, "hdr", payload, {})  # noqa: E731
     else:
-        payload = _png_payload(arr, bits, encoding)
+        payload = _png_payload(arr, bits, "linear" if encoded else encoding)
         attrs = _png_metadata(metadata)
         attrs["oiio:UnassociatedAlpha"] = 1  # store alpha as given (OIIO would otherwise un-premultiply)
         if encoding in _PNG_COLORSPACE:

@@ -59,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._api import keyword_only
+from ._numerics import HIGHEST
 from ._validate import positive_int
 from .conventions import luminance
 from .cubemap import (
@@ -179,7 +180,7 @@ def _apply(k3, om, L):
 
     k3: three arrays (P, T, q2); om broadcasting to (P, T, q2); L (T, C) or (P, T, C) -> (P, 3, C)."""
     spec = "pt,tc->pc" if L.ndim == 2 else "pt,ptc->pc"
-    return jnp.stack([jnp.einsum(spec, jnp.sum(k * om, -1), L) for k in k3], 1)
+    return jnp.stack([jnp.einsum(spec, jnp.sum(k * om, -1), L, precision=HIGHEST) for k in k3], 1)
 
 
 def _window_texels(R, S: int, half: int):
@@ -255,9 +256,9 @@ def _terms_chunk(nc, vc, ac, L, far_dirs, far_om, texel_om, bright, *, q_far, q_
     if parts:
         nol, vol, om, Ls = (jnp.concatenate(x, 1) for x in zip(*parts))
         k3 = _kernels(nol, vol, nov[:, None], ac[:, None], smith)
-        out = jnp.stack([jnp.einsum("pm,pmc->pc", k * om, Ls) for k in k3], 1)
-    nol = jnp.einsum("pk,tsk->pts", nc, far_dirs)
-    vol = jnp.einsum("pk,tsk->pts", vc, far_dirs)
+        out = jnp.stack([jnp.einsum("pm,pmc->pc", k * om, Ls, precision=HIGHEST) for k in k3], 1)
+    nol = jnp.einsum("pk,tsk->pts", nc, far_dirs, precision=HIGHEST)
+    vol = jnp.einsum("pk,tsk->pts", vc, far_dirs, precision=HIGHEST)
     k3 = _kernels(nol, vol, nov[:, None, None], a2c, smith)
     return out + _apply(k3, far_om[None] * keep[..., None], L)
 
@@ -284,12 +285,12 @@ def _subtexel_dots(idx, nc, vc, S: int, q: int, texel_om):
     om = w * (texel_om[idx] / jnp.sum(w, -1))[..., None]
     Tm = jnp.asarray(_FACE_TABLE, nc.dtype)[f]  # (..., 3 out, 3 in)
     if idx.ndim == 1:
-        an = jnp.einsum("pc,kci->pki", nc, Tm)
-        av = jnp.einsum("pc,kci->pki", vc, Tm)
+        an = jnp.einsum("pc,kci->pki", nc, Tm, precision=HIGHEST)
+        av = jnp.einsum("pc,kci->pki", vc, Tm, precision=HIGHEST)
         sc, tc, inv, om = sc[None], tc[None], inv[None], om[None]
     else:
-        an = jnp.einsum("pc,pkci->pki", nc, Tm)
-        av = jnp.einsum("pc,pkci->pki", vc, Tm)
+        an = jnp.einsum("pc,pkci->pki", nc, Tm, precision=HIGHEST)
+        av = jnp.einsum("pc,pkci->pki", vc, Tm, precision=HIGHEST)
     nol = (an[..., 0:1] * sc + an[..., 1:2] * tc + an[..., 2:3]) * inv
     vol = (av[..., 0:1] * sc + av[..., 1:2] * tc + av[..., 2:3]) * inv
     return nol, vol, om

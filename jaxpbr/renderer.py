@@ -40,7 +40,7 @@ from . import (  # called through the module: tests count precompute calls
     specular,
 )
 from ._api import keyword_only
-from ._numerics import is_concrete, pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from ._numerics import is_concrete, outside_traces, pack3, small_sq, unpack3, vcross, vdot, vnormalize
 from ._pytree import Pytree, evolve, fields_of, unchecked
 from ._validate import positive_int
 from .brdf_terms import MODEL_REGISTRY, check_options
@@ -181,7 +181,10 @@ def _bound(x, op: str, fallback: float, channel: int | None = None) -> float:
     hit = _RANGES.get(memo)
     if hit is not None and hit[0]() is x:
         return hit[1]
-    value = float(x if x.size == 1 and channel is None else _reduce(x, op=op, channel=channel))
+    if x.size == 1 and channel is None:
+        value = float(x)
+    else:  # on the device, outside any trace the caller may be in (plan runs at trace time)
+        value = outside_traces(lambda: float(_reduce(x, op=op, channel=channel)))
     try:
         _RANGES[memo] = (weakref.ref(x, lambda _, k=memo: _RANGES.pop(k, None)), value)
     except TypeError:  # not weak-referenceable: just do not remember
@@ -275,8 +278,8 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
 class AssetCache:
     """LRU cache of precomputed IBL maps keyed by (environment content hash, kind, parameters).
 
-    It only ever holds concrete arrays: `get` evaluates the precompute eagerly
-    (`jax.ensure_compile_time_eval`), and the renderer caches nothing for a traced environment.
+    It only ever holds concrete arrays: `get` runs the precompute outside any trace
+    (`_numerics.outside_traces`), and the renderer caches nothing for a traced environment.
 
     `stats[kind]` counts hits and misses ("irradiance", "prefilter", "lut"), which is how tests
     and users check what a render actually computed.
@@ -307,12 +310,7 @@ class AssetCache:
             self._store.move_to_end(full)
             return self._store[full]
         st["misses"] += 1
-        # Everything cached is a function of concrete inputs (a concrete environment's texels,
-        # sizes, options), so it is evaluated eagerly even when the caller is being traced
-        # (render under jit / grad / vmap of a scene whose environment is a constant): the result
-        # is a concrete array, never a tracer of that trace, and the next render reuses it.
-        with jax.ensure_compile_time_eval():
-            value = compute()
+        value = outside_traces(compute)
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(value)):
             raise AssertionError(f"AssetCache: the {kind} precompute returned a tracer; it depends on a traced input")
         self._store[full] = value

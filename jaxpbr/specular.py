@@ -34,12 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._api import keyword_only
-from ._numerics import is_concrete, safe_div
+from ._numerics import HIGHEST, is_concrete, outside_traces, safe_div
 from ._validate import positive_int
 from .conventions import luminance
 from .cubemap import (
     Cubemap,
     _mip_count,
+    _mip_chain_impl,
     _Pyramid,
     _subtexel_points,
     face_to_dir,
@@ -121,6 +122,17 @@ def _check_mapping(mapping):
 # ------------------------------------------------------------------------------------------
 
 
+@functools.partial(jax.jit, static_argnames=("n",))
+def _ggx_lobe_samples(alpha, *, n: int):
+    """n GGX half vectors (Hammersley points through `sample_ggx_h`) and the density of their
+    reflected directions p_l = p_h / (4 n.h) for n = v = +z, as one program per n (the sample
+    counts are few: one compile each, not one per level and per operation)."""
+    dt = jnp.result_type(float)
+    h = sample_ggx_h(hammersley(n, dt), alpha)
+    cos_h = h[:, 2]
+    return h, pdf_ggx_h(cos_h, alpha) / (4.0 * cos_h)
+
+
 @functools.lru_cache(maxsize=64)
 def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_bias: float):
     """Local-frame light directions (n, 3), weights NoL (n,), source LODs (n,) for v = n = +z.
@@ -130,16 +142,18 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
     Evaluated once per (alpha, n, source) in float64, eagerly even when `prefilter` is being traced
     (jit / grad): these are constants of the computation.
     """
-    with jax.ensure_compile_time_eval(), jax.enable_x64(True):
-        h = np.asarray(sample_ggx_h(hammersley(n, jnp.float64), alpha))
-        cos_h = h[:, 2]
-        pdf = np.asarray(pdf_ggx_h(jnp.asarray(cos_h), alpha)) / (4.0 * cos_h)
+    def run():
+        with jax.enable_x64(True):
+            h, pdf = _ggx_lobe_samples(np.float64(alpha), n=n)
+            return np.asarray(h, np.float64), np.asarray(pdf, np.float64)
+
+    h, pdf = outside_traces(run)
+    cos_h = h[:, 2]
     local = 2.0 * cos_h[:, None] * h
     local[:, 2] -= 1.0
     nol = local[:, 2]
     keep = nol > 0
-    # Samples below the horizon keep their slot with weight 0, so every level has n samples and
-    # one compiled kernel serves all levels.
+    # Samples below the horizon keep their slot with weight 0 (fixed shapes).
     local[~keep] = (0.0, 0.0, 1.0)
     omega_s = 1.0 / (n * pdf)
     omega_p = 4.0 * math.pi / (6.0 * src_size * src_size)
@@ -147,59 +161,47 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
     return local, np.where(keep, nol, 0.0), np.where(keep, lod, 0.0)
 
 
-@jax.jit
-def _pyramid_flat(levels):
-    return _Pyramid(levels).flat
-
-
-#: FIS samples are evaluated in batches of this many, so one compiled kernel serves every level
-#: whatever its sample count (compiling one kernel per distinct count cost seconds).
+#: FIS samples per row of work: a level's n samples are n / FIS_BATCH rows per output direction
+#: (the last padded with weight 0), so every level runs through the same compiled loop body.
 FIS_BATCH = 256
 
 
-@functools.partial(jax.jit, static_argnames=("sizes",))
-def _fis_chunk(flat, R, local, w, lod, *, sizes):
-    """Unnormalised sum_k w_k L(l_k) at unit directions R (chunk, 3) for one batch of fixed
-    local-frame samples (k, 3) with weights (k,) and source LODs (k,).
+def _rows_in_chunks(fn, chunk: int, *xs):
+    """fn(*chunks) over fixed-size chunks of the leading axis of the arrays xs (all of length N),
+    with `lax.map` (one compiled loop body, not an unrolled Python loop); the last chunk is padded
+    with copies of the first row. -> (N, ...)."""
+    N = xs[0].shape[0]
+    chunk = min(chunk, N)
+    pad = (-N) % chunk
 
-    Rematerialised under differentiation (`jax.checkpoint`): the backward pass recomputes the
-    (chunk, k) lookups instead of storing them for every chunk, so differentiating a prefilter
-    wrt the environment keeps the memory of one chunk."""
-    return jax.checkpoint(functools.partial(_fis_chunk_body, sizes=sizes))(flat, R, local, w, lod)
+    def prep(x):
+        if pad:
+            x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
+        return x.reshape((-1, chunk) + x.shape[1:])
+
+    out = jax.lax.map(lambda c: fn(*c), tuple(prep(x) for x in xs))
+    return out.reshape((-1,) + out.shape[2:])[:N]
 
 
-def _fis_chunk_body(flat, R, local, w, lod, *, sizes):
+def _fis_rows_body(flat, R, table, local, w, lod, *, sizes):
+    """Unnormalised sum_k w_k L(l_k) for a chunk of rows: directions R (chunk, 3), each with its
+    own batch of FIS_BATCH local-frame samples (index `table` (chunk,) into local (T, k, 3), weights
+    w (T, k), source LODs lod (T, k))."""
     pyr = _Pyramid(None, flat=flat, sizes=list(sizes))
     t, b = tangent_frame(R)
-    l = t[:, None, :] * local[None, :, 0:1] + b[:, None, :] * local[None, :, 1:2] + R[:, None, :] * local[None, :, 2:3]
-    rad = pyr.sample(l, lod[None, :])  # (chunk, k, C)
-    return jnp.einsum("ckz,k->cz", rad, w)
+    lc, wc, dc = local[table], w[table], lod[table]  # (chunk, k, 3), (chunk, k), (chunk, k)
+    l = t[:, None, :] * lc[..., 0:1] + b[:, None, :] * lc[..., 1:2] + R[:, None, :] * lc[..., 2:3]
+    rad = pyr.sample(l, dc)  # (chunk, k, C)
+    return jnp.einsum("ckz,ck->cz", rad, wc, precision=HIGHEST)
 
 
-def _fis_level(flat, sizes, dirs, local, w, lod, chunk, dtype):
-    """LD = sum w L / sum w over all directions (N, 3): fixed-size chunks of directions (the last
-    padded) times fixed-size batches of samples (the last padded with weight 0)."""
-    N = dirs.shape[0]
-    pad = (-N) % chunk
-    d = np.concatenate([dirs, np.tile(dirs[:1], (pad, 1))]) if pad else dirs
-    k = len(w)
-    kpad = (-k) % FIS_BATCH
-    if kpad:
-        local = np.concatenate([local, np.tile([[0.0, 0.0, 1.0]], (kpad, 1))])
-        w = np.concatenate([w, np.zeros(kpad)])
-        lod = np.concatenate([lod, np.zeros(kpad)])
-    batches = [
-        tuple(jnp.asarray(a[i : i + FIS_BATCH], dtype) for a in (local, w, lod)) for i in range(0, len(w), FIS_BATCH)
-    ]
-    out = []
-    for i in range(0, len(d), chunk):
-        Rc = jnp.asarray(d[i : i + chunk], dtype)
-        acc = None
-        for bl, bw, bd in batches:
-            part = _fis_chunk(flat, Rc, bl, bw, bd, sizes=sizes)
-            acc = part if acc is None else acc + part
-        out.append(acc)
-    return jnp.concatenate(out)[:N] / jnp.asarray(np.sum(w), dtype)
+def _fis_rows(flat, sizes, R, table, local, w, lod, chunk: int):
+    """`_fis_rows_body` over all rows, in chunks. Rematerialised under differentiation
+    (`jax.checkpoint`): the backward pass recomputes the (chunk, k) lookups instead of storing
+    them for every chunk, so differentiating a prefilter wrt the environment keeps the memory of
+    one chunk."""
+    body = jax.checkpoint(functools.partial(_fis_rows_body, sizes=sizes))
+    return _rows_in_chunks(lambda Rc, tc: body(flat, Rc, tc, local, w, lod), chunk, R, table)
 
 
 # ------------------------------------------------------------------------------------------
@@ -317,7 +319,6 @@ def _subtexel_points_at(idx, S: int, q: int):
     return d, om[:, None] * w
 
 
-@functools.partial(jax.jit, static_argnames=("S", "q", "dtype"))
 def _bright_sources(idx, bright, norm, *, S, q, dtype):
     """Sub-texel directions (k q^2, 3) and weights B Omega / W(alpha) (k q^2, C) of the bright texels
     idx (k,) with excess radiance bright (k, C), both possibly traced; norm = W(alpha)."""
@@ -326,8 +327,6 @@ def _bright_sources(idx, bright, norm, *, S, q, dtype):
     return sub.reshape(-1, 3).astype(dtype), Bw.astype(dtype)
 
 
-@jax.jit
-@jax.checkpoint  # rematerialised under differentiation: memory of one chunk (see _fis_chunk)
 def _bright_chunk(R, sub, Bw, a2):
     """sum_j B_j K(R.w_j) Omega_j for R (chunk, 3), sub-texel directions (n, 3), B Omega (n, C).
 
@@ -336,22 +335,73 @@ def _bright_chunk(R, sub, Bw, a2):
     c = 1.0 - 0.5 * q
     d = 0.25 * q + (1.0 - 0.25 * q) * a2
     k = a2 / (math.pi * d * d) * jnp.maximum(c, 0.0)
-    return k @ Bw
+    return jnp.matmul(k, Bw, precision=HIGHEST)
 
 
-def _bright_level(dirs, idx, bright, S0, alpha, chunk, dtype):
-    """Exact (sub-texel) convolution of the sparse bright part for output directions (N, 3).
+#: Output directions per chunk of the exact bright-texel convolution.
+BRIGHT_CHUNK = 64
+
+
+def _bright_all(R, level_of, idx, bright, S0: int, alphas: tuple, chunk: int = BRIGHT_CHUNK):
+    """Exact (sub-texel) convolution of the sparse bright part at output directions R (N, 3), each
+    of level `level_of` (N,) with GGX width alphas[level]; every chunk of R lies in one level.
 
     idx (k,) flat texel indices and bright (k, C) excess radiance may be traced (zero rows are
-    unselected candidates)."""
-    q = _reference_supersample(alpha, S0)
-    sub_j, Bw_j = _bright_sources(idx, bright, lobe_normalizer(alpha), S=S0, q=q, dtype=np.dtype(dtype))
-    N = dirs.shape[0]
-    pad = (-N) % chunk
-    d = np.concatenate([dirs, np.tile(dirs[:1], (pad, 1))]) if pad else dirs
-    a2 = jnp.asarray(alpha * alpha, dtype)
-    out = [_bright_chunk(jnp.asarray(d[i : i + chunk], dtype), sub_j, Bw_j, a2) for i in range(0, len(d), chunk)]
-    return jnp.concatenate(out)[:N]
+    unselected candidates). Each level's sub-texel sources (q x q per texel, q from its alpha) are
+    padded with zero weights to a common count so that one compiled loop body serves every level.
+    Rematerialised under differentiation, like `_fis_rows`."""
+    srcs = []
+    for alpha in alphas:
+        q = _reference_supersample(alpha, S0)
+        srcs.append(_bright_sources(idx, bright, lobe_normalizer(alpha), S=S0, q=q, dtype=R.dtype))
+    n = max(sub.shape[0] for sub, _ in srcs)
+    pad = lambda x: jnp.pad(x, ((0, n - x.shape[0]), (0, 0)))  # noqa: E731  (weight 0: adds nothing)
+    sub = jnp.stack([pad(a) for a, _ in srcs])  # (M, n, 3)
+    Bw = jnp.stack([pad(b) for _, b in srcs])  # (M, n, C)
+    a2 = jnp.asarray([a * a for a in alphas], R.dtype)
+
+    def chunk_fn(Rc, lc):
+        j = lc[0]  # levels are padded to whole chunks: one source set per chunk
+        return _bright_chunk(Rc, sub[j], Bw[j], a2[j])
+
+    return _rows_in_chunks(jax.checkpoint(chunk_fn), chunk, R, level_of)
+
+
+@functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright"))
+def _prefilter_fis(level0, idx, bright, R, table, local, w, lod, *, sizes, plan, chunk, S0, n_bright):
+    """Every FIS level of a prefilter as one compiled program.
+
+    level0: the (residual) source; its area-correct pyramid (`sizes`) is built here. R (rows, 3)
+    and table (rows,) are the rows of work of all levels: level m contributes N_m directions x
+    nb_m sample batches, direction-major. plan: per level (N_m, nb_m, alpha_m). Returns the levels'
+    LD (6, S_m, S_m, C) as a tuple: the rows' sums reduced over batches and divided by the sample weights'
+    sum, plus the exact convolution of the first n_bright bright-texel candidates (idx, bright:
+    None for none)."""
+    flat = _Pyramid(_mip_chain_impl(level0, len(sizes))).flat
+    sums = _fis_rows(flat, sizes, R, table, local, w, lod, chunk)
+    out, row, tab = [], 0, 0
+    for N, nb, _ in plan:
+        part = sums[row : row + N * nb].reshape(N, nb, -1).sum(1)
+        out.append(part / jnp.sum(w[tab : tab + nb]))
+        row += N * nb
+        tab += nb
+    faces = lambda x: x.reshape(6, math.isqrt(x.shape[0] // 6), -1, x.shape[-1])  # noqa: E731  (N, C) -> (6, S, S, C)
+    if idx is None:
+        return tuple(faces(o) for o in out)
+    # Bright pass: each level's directions padded to whole chunks (one source set per chunk).
+    Rb, lv_of, spans, pos, start = [], [], [], 0, 0
+    for m, (N, nb, _) in enumerate(plan):
+        Rm = R[start : start + N * nb : nb]  # the level's directions (rows are direction-major)
+        start += N * nb
+        padn = (-N) % BRIGHT_CHUNK
+        Rb.append(jnp.concatenate([Rm, jnp.broadcast_to(Rm[:1], (padn, 3))]) if padn else Rm)
+        lv_of.append(jnp.full((N + padn,), m, jnp.int32))
+        spans.append((pos, N))
+        pos += N + padn
+    ex = _bright_all(
+        jnp.concatenate(Rb), jnp.concatenate(lv_of), idx[:n_bright], bright[:n_bright], S0, tuple(a for _, _, a in plan)
+    )
+    return tuple(faces(o + ex[p : p + N]) for o, (p, N) in zip(out, spans))
 
 
 # ------------------------------------------------------------------------------------------
@@ -412,10 +462,10 @@ def _reference_sum(R, src, Lw, alpha, *, chunk):
     a2 = alpha * alpha
 
     def one(Rc):
-        c = Rc @ src  # (chunk, Ns)
+        c = jnp.matmul(Rc, src, precision=HIGHEST)  # (chunk, Ns)
         d = 0.5 * (1.0 - c) + 0.5 * (1.0 + c) * a2
         k = jnp.maximum(c, 0.0) / (d * d)
-        return k @ Lw
+        return jnp.matmul(k, Lw, precision=HIGHEST)
 
     out = jax.lax.map(one, Rp)
     return out.reshape(-1, Lw.shape[1])[:N]
@@ -490,48 +540,71 @@ def prefilter(
         raise ValueError(f"samples has {len(per_level)} entries; expected one per level ({M})")
     per_level = [positive_int("samples", n) for n in per_level]
 
-    full = env.level_cube(0).with_mips()  # area-correct pyramid of the source
+    full = env.level_cube(0).with_mips(int(round(math.log2(ratio))) + 1)  # down to the output size
     rough = level_roughness(M, mapping=mapping)
-    levels = [full.levels[int(round(math.log2(ratio)))]]  # r = 0: the source at the output size
-    idx = None  # candidate bright texels (None: none), their excess radiance `bright`
+    levels = [full.levels[-1]]  # r = 0: the source at the output size
+    idx = bright = None  # candidate bright texels (None: none) and their excess radiance
+    n_bright = 0  # how many of the candidates are convolved exactly
     n_exact = "0"
     if method == "fis":
         exact_texels = int(exact_texels)
         if exact_texels < 0:
             raise ValueError(f"exact_texels must be >= 0, got {exact_texels}")
-        src = full
-        level0 = env.levels[0]
+        src_level0 = env.levels[0]
         if 0 < exact_texels < 6 * S0 * S0:
-            resid, idx, bright, sel = _split_bright_fixed(level0, exact_texels)
+            resid, idx, bright, sel = _split_bright_fixed(src_level0, exact_texels)
             if is_concrete(sel):
                 # Concrete values: convolve only the selected texels (a prefix of the candidates,
-                # which come in decreasing luminance), as many as there are.
+                # which come in decreasing luminance), rounded up to a power of two (the extra
+                # candidates have zero excess) so that few distinct programs are compiled.
                 n = int(np.count_nonzero(np.asarray(sel)))
                 n_exact = str(n)
-                idx, bright = (idx[:n], bright[:n]) if n else (None, None)
+                n_bright = min(exact_texels, 1 << max(0, n - 1).bit_length()) if n else 0
             else:
                 n_exact = f"<={exact_texels}"  # traced: the count is not known here
-            if idx is not None:
-                src = Cubemap((resid,)).with_mips()
-        flat = _pyramid_flat(src.levels)
-        sizes = tuple(int(lv.shape[1]) for lv in src.levels)
-    for m in range(1, last + 1):
-        Sm = max(1, S >> m)
-        dirs = texel_directions(Sm).reshape(-1, 3)
-        alpha = float(rough[m]) ** 2
-        if method == "reference":
-            ld = prefilter_reference(env, dirs, float(rough[m]))
-            lv = jnp.asarray(ld.reshape(6, Sm, Sm, -1), env.dtype)
-        else:
-            local, w, lod = _fis_samples(alpha, per_level[m], S0, src.num_levels, float(lod_bias))
-            dt = env.dtype
-            lv = _fis_level(flat, sizes, dirs, local, w, lod, positive_int("chunk", chunk), dt)
-            if idx is not None:
-                lv = lv + _bright_level(dirs, idx, bright, S0, alpha, 64, dt)
-            lv = lv.reshape(6, Sm, Sm, -1)
-        levels.append(lv)
-        if progress is not None:
-            progress(m, last)
+                n_bright = exact_texels
+            if n_bright:
+                src_level0 = resid
+            else:
+                idx = bright = None
+        sizes = tuple(S0 >> i for i in range(_mip_count(S0)))
+        dt = np.dtype(env.dtype)
+        # Rows of work of all levels (direction-major: N_m directions x nb_m sample batches) and
+        # their sample tables stacked: one program computes the whole chain.
+        plan, R_rows, tables, tabs, t0 = [], [], [], [], 0
+        for m in range(1, last + 1):
+            dirs = texel_directions(max(1, S >> m)).reshape(-1, 3)
+            alpha = float(rough[m]) ** 2
+            local, w, lod = _fis_samples(alpha, per_level[m], S0, len(sizes), float(lod_bias))
+            kpad = (-len(w)) % FIS_BATCH
+            if kpad:
+                local = np.concatenate([local, np.tile([[0.0, 0.0, 1.0]], (kpad, 1))])
+                w, lod = np.concatenate([w, np.zeros(kpad)]), np.concatenate([lod, np.zeros(kpad)])
+            nb = len(w) // FIS_BATCH
+            tables.append((local.reshape(nb, FIS_BATCH, 3), w.reshape(nb, FIS_BATCH), lod.reshape(nb, FIS_BATCH)))
+            R_rows.append(np.repeat(dirs, nb, axis=0))
+            tabs.append(np.tile(np.arange(t0, t0 + nb, dtype=np.int32), len(dirs)))
+            plan.append((len(dirs), nb, alpha))
+            t0 += nb
+        if plan:
+            dev = lambda x, t=dt: jnp.asarray(np.asarray(x, t))  # noqa: E731  (host -> device, no XLA op)
+            lvs = _prefilter_fis(
+                src_level0, idx, bright,
+                dev(np.concatenate(R_rows)), dev(np.concatenate(tabs), np.int32),
+                *(dev(np.concatenate([tb[i] for tb in tables])) for i in range(3)),
+                sizes=sizes, plan=tuple(plan), chunk=positive_int("chunk", chunk), S0=S0, n_bright=n_bright,
+            )
+            for m, lv in enumerate(lvs, start=1):
+                levels.append(lv)
+                if progress is not None:
+                    progress(m, last)
+    else:
+        for m in range(1, last + 1):
+            Sm = max(1, S >> m)
+            ld = prefilter_reference(env, texel_directions(Sm).reshape(-1, 3), float(rough[m]))
+            levels.append(jnp.asarray(ld.reshape(6, Sm, Sm, -1), env.dtype))
+            if progress is not None:
+                progress(m, last)
     info = {
         "quantity": "LD(R, r_m) = int L D (R.l)+ dl / int D (R.l)+ dl, n = v = R (Karis split sum)",
         "roughness_mapping": mapping,

@@ -13,23 +13,9 @@ from pathlib import Path
 
 import jax
 
+from jaxpbr.cli._cache import prune
+
 jax.config.update("jax_enable_x64", True)
-
-CACHE_MAX_BYTES = 1 << 30
-
-
-def _prune(path, max_bytes=CACHE_MAX_BYTES):
-    """Delete the oldest cache files until the directory holds at most max_bytes / 2."""
-    files = [(p.stat().st_mtime, p.stat().st_size, p) for p in Path(path).iterdir() if p.is_file()]
-    total = sum(s for _, s, _ in files)
-    if total <= max_bytes:
-        return
-    for _, size, p in sorted(files):
-        p.unlink(missing_ok=True)
-        total -= size
-        if total <= max_bytes // 2:
-            break
-
 
 def pytest_configure(config):
     path = os.environ.get("JAXPBR_TEST_CACHE")
@@ -45,7 +31,7 @@ def pytest_configure(config):
         return
     if "PYTEST_XDIST_WORKER" not in os.environ:  # the controlling process, before any worker starts
         Path(path).mkdir(parents=True, exist_ok=True)
-        _prune(path)
+        prune(path)
     # Set before the first compilation (JAX decides once per process whether the cache is used), and
     # in the environment for the Python subprocesses that tests start.
     for name, value in (

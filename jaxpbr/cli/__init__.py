@@ -21,6 +21,7 @@ from . import (
     report_precompute,
     report_render,
 )
+from . import _cache
 from ._common import CLIError
 
 __all__ = ["CLIError", "build_parser", "main"]
@@ -62,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 0
+    _cache.enable()
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning  # the library's warnings as one line, like errors

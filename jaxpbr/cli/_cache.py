@@ -1,0 +1,85 @@
+"""JAX's persistent compilation cache for the command line.
+
+Most of a cold `jaxpbr` run is XLA compilation; the compiled programs are the same from run to
+run, so the CLI keeps them on disk (JAX's persistent compilation cache): a warm rerun skips the
+compiler. Where the cache lives, in order:
+
+1. `JAXPBR_COMPILATION_CACHE`: a directory, or "0" / "off" / "" to switch the cache off;
+2. `JAX_COMPILATION_CACHE_DIR` (JAX's own setting), if the user set it;
+3. `$XDG_CACHE_HOME/jaxpbr/jax-compilation-cache` (default `~/.cache/...`; on Windows
+   `%LOCALAPPDATA%\\jaxpbr\\...`).
+
+The directory is pruned to `MAX_BYTES` (oldest files first). The cache key is the program, the
+compile options, the backend and the jax/jaxlib versions, so a stale entry is never used; a
+directory that cannot be created or written leaves the run uncached (JAX warns), never failing it.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import jax
+
+#: Largest cache size kept; beyond it the oldest files are deleted down to half.
+MAX_BYTES = 1 << 30
+
+ENV = "JAXPBR_COMPILATION_CACHE"
+_OFF = ("", "0", "off", "false", "no")
+
+
+def default_dir() -> Path:
+    if sys.platform == "win32" and os.environ.get("LOCALAPPDATA"):
+        base = Path(os.environ["LOCALAPPDATA"])
+    else:
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+    return base / "jaxpbr" / "jax-compilation-cache"
+
+
+def cache_dir() -> Path | None:
+    """The directory the CLI uses, or None when switched off (see the module docstring)."""
+    own = os.environ.get(ENV)
+    if own is not None:
+        return None if own.strip().lower() in _OFF else Path(own).expanduser()
+    jax_dir = os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
+    if jax_dir:
+        return Path(jax_dir).expanduser()
+    return default_dir()
+
+
+def prune(path: Path, max_bytes: int = MAX_BYTES) -> None:
+    """Delete the oldest files until the directory holds at most max_bytes / 2 (when over max_bytes)."""
+    try:
+        files = [(p.stat().st_mtime, p.stat().st_size, p) for p in Path(path).iterdir() if p.is_file()]
+    except OSError:
+        return
+    total = sum(s for _, s, _ in files)
+    if total <= max_bytes:
+        return
+    for _, size, p in sorted(files):
+        try:
+            p.unlink()
+        except OSError:
+            continue
+        total -= size
+        if total <= max_bytes // 2:
+            break
+
+
+def enable(path: Path | None = None) -> Path | None:
+    """Turn the persistent cache on (before the first compilation); returns the directory or None."""
+    path = cache_dir() if path is None else path
+    if path is None:
+        return None
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # unwritable location: run uncached
+    prune(path)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    # Every program: the CLI's are many small ones, and reading one back is far cheaper than
+    # compiling it (JAX's default caches only those that took over a second).
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
