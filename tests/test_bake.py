@@ -211,3 +211,29 @@ def test_asset_cache_refuses_a_tracer():
 
     jax.jit(f)(x)
     assert not cache._store
+
+
+def test_one_program_render_equals_the_staged_one(monkeypatch):
+    """`render` runs staged on XLA:CPU and as one program elsewhere (renderer.STAGED = None lets
+    the backend decide); both give the same image (float rounding of a differently fused program)."""
+    scene = _scene(0.4, _env())
+    monkeypatch.setattr(renderer, "STAGED", True)
+    staged = np.asarray(jp.render(scene))
+    monkeypatch.setattr(renderer, "STAGED", False)
+    fused = np.asarray(jp.render(scene))
+    np.testing.assert_allclose(fused, staged, rtol=2e-5, atol=2e-6)
+    monkeypatch.setattr(renderer, "STAGED", None)
+    assert renderer._staged() == (jax.default_backend() == "cpu")
+
+
+def test_supersampling_compiles_one_geometry_program():
+    """The sub-pixel offset is traced: s = 1, 2, 3 reuse one compiled geometry program (issue 13:
+    it was a static argument, s^2 programs)."""
+    renderer._geometry_jit.clear_cache() if hasattr(renderer._geometry_jit, "clear_cache") else None
+    env = _env()
+    before = renderer._geometry_jit._cache_size()
+    for s in (1, 2, 3):
+        scene = _scene(0.4, env).replace(camera=jp.Camera(position=(0.0, 0.0, 3.2), width=12, height=12, supersample=s))
+        img = jp.render(scene)
+        assert np.all(np.isfinite(np.asarray(img)))
+    assert renderer._geometry_jit._cache_size() - before == 1

@@ -13,6 +13,7 @@ import warnings
 
 from .._version import __version__
 from . import (
+    bench_grad,
     bench_ibl,
     bench_render,
     bench_shade,
@@ -42,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     bsub = b.add_subparsers(dest="bench", metavar="BENCH")
     b.set_defaults(func=lambda args: b.print_help() or 0)
     bench_shade.add_command(bsub)
+    bench_grad.add_command(bsub)
     bench_ibl.add_command(bsub)
     bench_render.add_command(bsub)
 
