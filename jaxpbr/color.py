@@ -128,7 +128,11 @@ def exposure(c, ev):
     """
     c = _as_float(c)
     ev = jnp.asarray(ev, dtype=c.dtype)
-    return c * 2.0**ev
+    # 2**ev = 2**n * 2**f with n = floor(ev), f in [0, 1): the integer part is an exact scaling
+    # (ldexp) on every backend and exp2(0) = 1, so integer stops are exact; `2.0 ** ev` is a pow
+    # whose float64 result for integer ev is exact in the CPU's libm but not on GPUs.
+    n = jnp.floor(ev)
+    return jnp.ldexp(c * jnp.exp2(ev - n), jnp.clip(n, -4096, 4096).astype(jnp.int32))
 
 
 # --------------------------------------------------------------------------------------------------- tone maps

@@ -471,7 +471,7 @@ class Cubemap(Pytree):
         """
         S = positive_int("face_size", face_size)
         q = positive_int("supersample", supersample)
-        dirs, w = _subtexel_points(S, q)  # (6, S, S, q*q, 3), (S, S, q*q) (same on every face)
+
         def filtered(d, wt):
             vals = jnp.asarray(fn(d), jnp.float64)
             if vals.ndim == d.ndim - 1:
@@ -484,14 +484,15 @@ class Cubemap(Pytree):
             return jnp.sum(vals * wt[None, ..., None], axis=-2)
 
         with jax.enable_x64(True):
-            args = (jnp.asarray(dirs), jnp.asarray(w))
-            try:  # one compiled program for fn and the filter (not one per operation of fn)
-                level = jax.jit(filtered)(*args)
+            try:  # one compiled program: the sub-texel grid, fn and the filter
+                level = jax.jit(lambda: filtered(*_subtexel_points(S, q, xp=jnp)))()
             except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
-                level = filtered(*args)  # fn needs concrete values (e.g. NumPy inside): eagerly
+                # fn needs concrete values (e.g. NumPy inside): eagerly, on the host grid
+                # (6, S, S, q*q, 3) with weights (S, S, q*q), the same on every face.
+                level = filtered(*(jnp.asarray(a) for a in _subtexel_points(S, q)))
             level = np.asarray(level)
         _check_finite(level, "fn")
-        return cls((jnp.asarray(level, dtype),), info)
+        return cls((jax.device_put(level.astype(dtype)),), info)
 
     @classmethod
     def from_equirect(cls, img, face_size: int, *, dtype=jnp.float32, info: Any = ()) -> "Cubemap":
@@ -559,21 +560,32 @@ def _check_finite(a: np.ndarray, what: str) -> None:
         raise ValueError(f"{what} contains {int(bad.sum())} NaN/Inf values; fix or clamp the input first")
 
 
-@functools.lru_cache(maxsize=16)
-def _subtexel_points(S: int, q: int):
+def _subtexel_points(S: int, q: int, *, xp=np):
     """Directions (6, S, S, q*q, 3) of a q x q grid inside every texel and their normalised
-    solid-angle weights (S, S, q*q): dOmega = ds dt / (1 + sc^2 + tc^2)^(3/2) on the face plane."""
-    o = (np.arange(q) + 0.5) / q
-    c = (np.arange(S)[:, None] + o[None, :]) / S  # (S, q)
-    t = np.broadcast_to(c[:, None, :, None], (S, S, q, q)).reshape(S, S, q * q)
-    s = np.broadcast_to(c[None, :, None, :], (S, S, q, q)).reshape(S, S, q * q)
-    dirs = np.stack([face_to_dir(np.full(s.shape, f), s, t, xp=np) for f in range(6)])
-    r2 = np.sum(dirs[0] ** 2, axis=-1)
+    solid-angle weights (S, S, q*q): dOmega = ds dt / (1 + sc^2 + tc^2)^(3/2) on the face plane.
+    NumPy float64 (read-only arrays, cached) or, with xp=jnp, traceable (inside a jitted program
+    the grid is generated on the device instead of copied there; never cached: tracers)."""
+    return _subtexel_points_np(S, q) if xp is np else _subtexel_grid(S, q, jnp)
+
+
+@functools.lru_cache(maxsize=16)
+def _subtexel_points_np(S: int, q: int):
+    return _subtexel_grid(S, q, np)
+
+
+def _subtexel_grid(S: int, q: int, xp):
+    o = (xp.arange(q) + 0.5) / q
+    c = (xp.arange(S)[:, None] + o[None, :]) / S  # (S, q)
+    t = xp.broadcast_to(c[:, None, :, None], (S, S, q, q)).reshape(S, S, q * q)
+    s = xp.broadcast_to(c[None, :, None, :], (S, S, q, q)).reshape(S, S, q * q)
+    dirs = xp.stack([face_to_dir(xp.full(s.shape, f), s, t, xp=xp) for f in range(6)])
+    r2 = xp.sum(dirs[0] ** 2, axis=-1)
     w = r2**-1.5
     w = w / w.sum(-1, keepdims=True)
-    dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
-    dirs.setflags(write=False)
-    w.setflags(write=False)
+    dirs = dirs / xp.linalg.norm(dirs, axis=-1, keepdims=True)
+    if xp is np:
+        dirs.setflags(write=False)
+        w.setflags(write=False)
     return dirs, w
 
 

@@ -223,7 +223,7 @@ def irradiance(
     size = positive_int("size", size)
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
-    dirs = jnp.asarray(np.asarray(texel_directions(size), env.dtype))  # host cast: no XLA program
+    dirs = jax.device_put(np.asarray(texel_directions(size), env.dtype))  # a copy, no XLA program
     vals = irradiance_at(env, dirs, method=method, source_size=source_size, chunk=chunk)
     info = {
         "quantity": "Ebar = E/pi (cosine-weighted mean radiance), value at texel centres",

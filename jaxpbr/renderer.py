@@ -25,9 +25,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import json
 import math
 import weakref
 from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -43,6 +45,8 @@ from ._api import keyword_only
 from ._numerics import is_concrete, outside_traces, pack3, small_sq, unpack3, vcross, vdot, vnormalize
 from ._pytree import Pytree, evolve, fields_of, unchecked
 from ._validate import positive_int
+from ._version import __version__
+from .atomic import atomic_write
 from .brdf_terms import MODEL_REGISTRY, check_options
 from .cubemap import Cubemap, _mip_count
 from .ibl import shade_ibl
@@ -287,12 +291,25 @@ class AssetCache:
 
     `stats[kind]` counts hits and misses ("irradiance", "prefilter", "lut"), which is how tests
     and users check what a render actually computed.
+
+    `directory`: optionally a folder where computed cube maps are also kept across processes
+    (`use_directory`; the command line turns it on, under the user's cache dir): a map found
+    there is loaded instead of computed. Files are keyed by the SHA-1 of (kind, key, jaxpbr and
+    jax versions), written atomically, and a file that cannot be read is recomputed; failing to
+    write one never fails the render. `stats[kind]["disk"]` counts the maps loaded from it.
     """
 
-    def __init__(self, maxsize: int = 16):
+    DISK_KINDS = ("irradiance", "prefilter")
+
+    def __init__(self, maxsize: int = 16, directory=None):
         self.maxsize = maxsize
         self._store: OrderedDict = OrderedDict()
         self.stats: dict[str, dict[str, int]] = {}
+        self.directory = None if directory is None else Path(directory)
+
+    def use_directory(self, directory) -> None:
+        """Keep computed maps in `directory` too (None: memory only)."""
+        self.directory = None if directory is None else Path(directory)
 
     def clear(self) -> None:
         self._store.clear()
@@ -314,13 +331,50 @@ class AssetCache:
             self._store.move_to_end(full)
             return self._store[full]
         st["misses"] += 1
-        value = outside_traces(compute)
-        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(value)):
-            raise AssertionError(f"AssetCache: the {kind} precompute returned a tracer; it depends on a traced input")
+        value = self._load(kind, key)
+        if value is not None:
+            st["disk"] = st.get("disk", 0) + 1
+        else:
+            value = outside_traces(compute)
+            if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(value)):
+                raise AssertionError(f"AssetCache: the {kind} precompute returned a tracer; it depends on a traced input")
+            self._save(kind, key, value)
         self._store[full] = value
         while len(self._store) > self.maxsize:
             self._store.popitem(last=False)
         return value
+
+    def _path(self, kind, key):
+        if self.directory is None or kind not in self.DISK_KINDS:
+            return None
+        name = hashlib.sha1(repr((kind, key, __version__, jax.__version__)).encode()).hexdigest()
+        return self.directory / f"{kind}-{name}.npz"
+
+    def _load(self, kind, key):
+        path = self._path(kind, key)
+        if path is None or not path.is_file():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                n = int(z["num_levels"])
+                levels = [jnp.asarray(z[f"level{i}"]) for i in range(n)]
+                info = json.loads(str(z["info"]))
+            return Cubemap(levels, info)
+        except Exception:  # unreadable or from an incompatible writer: compute it again
+            return None
+
+    def _save(self, kind, key, value) -> None:
+        path = self._path(kind, key)
+        if path is None or not isinstance(value, Cubemap):
+            return
+        arrays = {f"level{i}": np.asarray(lv) for i, lv in enumerate(value.levels)}
+        arrays["num_levels"] = np.asarray(len(value.levels))
+        arrays["info"] = np.asarray(json.dumps(dict(value.info)))
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
+        except OSError:  # full disk, read-only cache dir: the render goes on uncached
+            pass
 
 
 ASSETS = AssetCache()
@@ -765,7 +819,7 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
     for k in range(s * s):
         # The sub-pixel offset is an argument, not a static value: one compiled program per stage
         # whatever the supersampling (before: one per offset, s^2 of them).
-        off = jnp.asarray(((k % s + 0.5) / s, (k // s + 0.5) / s), dtype)
+        off = jax.device_put(np.asarray(((k % s + 0.5) / s, (k // s + 0.5) / s), dtype))
         one = _render_pass(scene, assets, p, opts, off, staged=True)
         acc = one if acc is None else acc + one
     return acc if s == 1 else acc / (s * s)

@@ -13,6 +13,7 @@ import json
 from importlib import resources
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -80,5 +81,5 @@ def brdf_lut(size=128, *, smith: str = "correlated", samples: int | None = None,
     if use_shipped and jnp.dtype(dtype) == jnp.dtype(jnp.float32):
         entry = _shipped_entry(n_r, n_nov, smith, n)
         if entry is not None:
-            return jnp.asarray(_load(entry["file"]))
+            return jax.device_put(_load(entry["file"]))  # (jnp.asarray would compile a copy program)
     return compute_brdf_lut(size, smith=smith, samples=n, dtype=dtype)

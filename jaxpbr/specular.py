@@ -587,7 +587,7 @@ def prefilter(
             plan.append((len(dirs), nb, alpha))
             t0 += nb
         if plan:
-            dev = lambda x, t=dt: jnp.asarray(np.asarray(x, t))  # noqa: E731  (host -> device, no XLA op)
+            dev = lambda x, t=dt: jax.device_put(np.asarray(x, t))  # noqa: E731  (a copy, no XLA program)
             lvs = _prefilter_fis(
                 src_level0, idx, bright,
                 dev(np.concatenate(R_rows)), dev(np.concatenate(tabs), np.int32),

@@ -18,6 +18,9 @@ from jaxpbr.cli._cache import prune
 jax.config.update("jax_enable_x64", True)
 
 def pytest_configure(config):
+    # The command line keeps baked IBL maps in the user's cache dir; tests that call it (in process
+    # or as a subprocess) must neither read nor fill it (tests/test_compile.py uses its own dirs).
+    os.environ["JAXPBR_ASSET_CACHE"] = "off"
     path = os.environ.get("JAXPBR_TEST_CACHE")
     if path is None:
         cache = getattr(config, "cache", None)  # None under `-p no:cacheprovider`

@@ -66,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     _cache.enable()
+    _cache.enable_assets()
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning  # the library's warnings as one line, like errors

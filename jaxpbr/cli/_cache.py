@@ -1,4 +1,4 @@
-"""JAX's persistent compilation cache for the command line.
+"""The command line's caches on disk: JAX's persistent compilation cache and the baked IBL maps.
 
 Most of a cold `jaxpbr` run is XLA compilation; the compiled programs are the same from run to
 run, so the CLI keeps them on disk (JAX's persistent compilation cache): a warm rerun skips the
@@ -12,6 +12,11 @@ compiler. Where the cache lives, in order:
 The directory is pruned to `MAX_BYTES` (oldest files first). The cache key is the program, the
 compile options, the backend and the jax/jaxlib versions, so a stale entry is never used; a
 directory that cannot be created or written leaves the run uncached (JAX warns), never failing it.
+
+The irradiance and prefiltered maps the renderer computes are kept too (`renderer.ASSETS`, keyed by
+the environment's content, the parameters and the jaxpbr / jax versions), so rendering a scene
+again with the same environment loads them instead of computing them:
+`JAXPBR_ASSET_CACHE` (a directory, or "0" / "off") else `<cache base>/jaxpbr/assets`.
 """
 
 from __future__ import annotations
@@ -26,15 +31,26 @@ import jax
 MAX_BYTES = 1 << 30
 
 ENV = "JAXPBR_COMPILATION_CACHE"
+ASSET_ENV = "JAXPBR_ASSET_CACHE"
 _OFF = ("", "0", "off", "false", "no")
 
 
-def default_dir() -> Path:
+def _base() -> Path:
     if sys.platform == "win32" and os.environ.get("LOCALAPPDATA"):
-        base = Path(os.environ["LOCALAPPDATA"])
-    else:
-        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-    return base / "jaxpbr" / "jax-compilation-cache"
+        return Path(os.environ["LOCALAPPDATA"]) / "jaxpbr"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "jaxpbr"
+
+
+def default_dir() -> Path:
+    return _base() / "jax-compilation-cache"
+
+
+def asset_dir() -> Path | None:
+    """Where baked maps are kept, or None when switched off."""
+    own = os.environ.get(ASSET_ENV)
+    if own is not None:
+        return None if own.strip().lower() in _OFF else Path(own).expanduser()
+    return _base() / "assets"
 
 
 def cache_dir() -> Path | None:
@@ -67,8 +83,24 @@ def prune(path: Path, max_bytes: int = MAX_BYTES) -> None:
             break
 
 
+def enable_assets() -> Path | None:
+    """Keep the renderer's computed IBL maps on disk; returns the directory or None."""
+    from ..renderer import ASSETS
+
+    path = asset_dir()
+    if path is not None:
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            return None
+        prune(path)
+    ASSETS.use_directory(path)
+    return path
+
+
 def enable(path: Path | None = None) -> Path | None:
-    """Turn the persistent cache on (before the first compilation); returns the directory or None."""
+    """Turn the persistent compilation cache on (before the first compilation); returns the
+    directory or None."""
     path = cache_dir() if path is None else path
     if path is None:
         return None

@@ -1,0 +1,119 @@
+"""Compile once (issue 10, item 2): the number of XLA programs a cold `jaxpbr render` compiles, the
+CLI's persistent caches (compiled programs, baked IBL maps) and where they live."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import jaxpbr as jp
+from jaxpbr import renderer
+from jaxpbr.cli import _cache
+
+#: At most this many XLA programs for the demo from a cold start (issue 10: 221 before).
+MAX_PROGRAMS = 25
+
+
+def _cli_env(tmp_path, **extra):
+    env = dict(os.environ)
+    for name in ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"):
+        env.pop(name, None)
+    env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), **extra)
+    return env
+
+
+def test_cold_demo_render_compiles_few_programs(tmp_path):
+    """The demo (49 spheres, 4 lights, IBL with a 128^2 sky: irradiance, 8 prefiltered mips, LUT),
+    at a small image size, with every cache off: count the XLA compilations."""
+    out = subprocess.run(
+        [sys.executable, "-m", "jaxpbr", "render", "--width", "64", "--height", "36", "-o", str(tmp_path / "d.png")],
+        capture_output=True, text=True, timeout=600,
+        env=_cli_env(tmp_path, JAX_LOG_COMPILES="1", JAXPBR_COMPILATION_CACHE="off", JAXPBR_ASSET_CACHE="off"),
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    programs = [line for line in out.stderr.splitlines() if "Finished XLA compilation" in line]
+    assert 0 < len(programs) <= MAX_PROGRAMS, "\n".join(programs)
+    assert not (tmp_path / "xdg").exists()  # both caches off: nothing written
+
+
+def test_cli_caches_default_location_and_switches(tmp_path, monkeypatch):
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.delenv(_cache.ENV, raising=False)
+    monkeypatch.delenv(_cache.ASSET_ENV, raising=False)
+    # As in a fresh process (the test session itself runs with a compilation cache configured).
+    monkeypatch.setattr(_cache, "jax", SimpleNamespace(config=SimpleNamespace(jax_compilation_cache_dir=None)))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert _cache.cache_dir() == tmp_path / "jaxpbr" / "jax-compilation-cache"
+    assert _cache.asset_dir() == tmp_path / "jaxpbr" / "assets"
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "theirs"))  # the user's JAX setting wins
+    assert _cache.cache_dir() == tmp_path / "theirs"
+    monkeypatch.setenv(_cache.ENV, str(tmp_path / "mine"))  # ...and jaxpbr's own over it
+    assert _cache.cache_dir() == tmp_path / "mine"
+    for off in ("0", "off", "OFF", ""):
+        monkeypatch.setenv(_cache.ENV, off)
+        monkeypatch.setenv(_cache.ASSET_ENV, off)
+        assert _cache.cache_dir() is None and _cache.asset_dir() is None
+
+
+def test_prune_deletes_the_oldest_files(tmp_path):
+    for i in range(10):
+        p = tmp_path / f"f{i}"
+        p.write_bytes(b"x" * 100)
+        os.utime(p, (1000 + i, 1000 + i))
+    _cache.prune(tmp_path, max_bytes=500)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == [f"f{i}" for i in range(8, 10)] or left == [f"f{i}" for i in range(5, 10)][-len(left):]
+    assert sum(p.stat().st_size for p in tmp_path.iterdir()) <= 250
+
+
+@pytest.fixture
+def disk_assets(tmp_path):
+    renderer.ASSETS.clear()
+    renderer.ASSETS.use_directory(tmp_path / "assets")
+    yield tmp_path / "assets"
+    renderer.ASSETS.use_directory(None)
+    renderer.ASSETS.clear()
+
+
+def _scene(env):
+    return jp.Scene(
+        camera=jp.Camera(position=(0.0, 0.0, 3.2), width=12, height=12),
+        objects=[jp.Sphere(material=jp.Material(metallic=0.5, roughness=0.5))],
+        environment=env,
+    )
+
+
+def test_asset_cache_on_disk_round_trip(disk_assets, monkeypatch):
+    env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16))
+    first = np.asarray(jp.render(_scene(env)))
+    files = sorted(p.name.split("-")[0] for p in disk_assets.iterdir())
+    assert files == ["irradiance", "prefilter"]
+    # A new process (memory cache empty) loads the maps instead of computing them.
+    renderer.ASSETS.clear()
+    monkeypatch.setattr(jp.specular, "prefilter", lambda *a, **k: pytest.fail("prefilter recomputed"))
+    monkeypatch.setattr(jp.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance recomputed"))
+    again = np.asarray(jp.render(_scene(env)))
+    np.testing.assert_array_equal(again, first)
+    assert renderer.ASSETS.stats["prefilter"]["disk"] == 1 and renderer.ASSETS.stats["irradiance"]["disk"] == 1
+
+
+def test_asset_cache_recomputes_an_unreadable_file_and_survives_an_unwritable_dir(disk_assets, tmp_path):
+    env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16))
+    first = np.asarray(jp.render(_scene(env)))
+    for p in disk_assets.iterdir():
+        p.write_bytes(b"not an npz")  # truncated / foreign file
+    renderer.ASSETS.clear()
+    np.testing.assert_array_equal(np.asarray(jp.render(_scene(env))), first)
+    assert "disk" not in renderer.ASSETS.stats["prefilter"]
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    renderer.ASSETS.use_directory(blocker / "assets")  # cannot be created: renders uncached
+    renderer.ASSETS.clear()
+    np.testing.assert_array_equal(np.asarray(jp.render(_scene(env))), first)
+    assert not Path(blocker / "assets").exists()
