@@ -485,7 +485,8 @@ class Cubemap(Pytree):
 
         with jax.enable_x64(True):
             try:  # one compiled program: the sub-texel grid, fn and the filter
-                level = jax.jit(lambda: filtered(*_subtexel_points(S, q, xp=jnp)))()
+                coords = jax.device_put(_subtexel_coords(S, q))
+                level = jax.jit(lambda c: filtered(*_subtexel_grid(S, q, jnp, c)))(coords)
             except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
                 # fn needs concrete values (e.g. NumPy inside): eagerly, on the host grid
                 # (6, S, S, q*q, 3) with weights (S, S, q*q), the same on every face.
@@ -573,12 +574,22 @@ def _subtexel_points_np(S: int, q: int):
     return _subtexel_grid(S, q, np)
 
 
-def _subtexel_grid(S: int, q: int, xp):
+def _subtexel_coords(S: int, q: int, xp=np):
+    """Face coordinates (S, q) of the q sub-texel centres of each of the S texels along an axis."""
     o = (xp.arange(q) + 0.5) / q
-    c = (xp.arange(S)[:, None] + o[None, :]) / S  # (S, q)
+    return (xp.arange(S)[:, None] + o[None, :]) / S
+
+
+def _subtexel_grid(S: int, q: int, xp, c=None):
+    """`_subtexel_points` from the coordinates c (S, q) (default `_subtexel_coords`). Inside a jit,
+    pass c as an argument: a grid computed from constants alone is constant-folded by XLA at
+    compile time (seconds for a 256^2 cube)."""
+    c = _subtexel_coords(S, q, xp) if c is None else c
     t = xp.broadcast_to(c[:, None, :, None], (S, S, q, q)).reshape(S, S, q * q)
     s = xp.broadcast_to(c[None, :, None, :], (S, S, q, q)).reshape(S, S, q * q)
-    dirs = xp.stack([face_to_dir(xp.full(s.shape, f), s, t, xp=xp) for f in range(6)])
+    # A Python int face: its table row is a constant (a (S, S, q*q) face array would make XLA
+    # constant-fold a gather of that size at compile time: 5 s at 256^2).
+    dirs = xp.stack([face_to_dir(f, s, t, xp=xp) for f in range(6)])
     r2 = xp.sum(dirs[0] ** 2, axis=-1)
     w = r2**-1.5
     w = w / w.sum(-1, keepdims=True)

@@ -29,6 +29,7 @@ import json
 import math
 import weakref
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -747,6 +748,8 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     for k in p_plan.textured:
         g = (_texture_jit if staged else _texture)(scene, k, opts, g)
     direct = (_shade_direct_jit if staged else _shade_direct)(scene, p_plan, opts, g)
+    if callable(assets):  # staged: assets still being computed on another thread
+        assets = assets()
     return (_shade_rest_jit if staged else _shade_rest)(scene, assets, p_plan, opts, g, direct)
 
 
@@ -808,9 +811,21 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
         raise TypeError(f"render expects a jaxpbr.Scene, got {type(scene).__name__}")
     opts = _options(options, overrides, "render")
     p = plan(scene, options=opts)
-    assets = _env_assets(scene.environment, p, opts) if p.ibl else None
+    env = scene.environment
     if not _staged():
-        return _render_jit(scene, assets, p, opts)
+        return _render_jit(scene, _env_assets(env, p, opts) if p.ibl else None, p, opts)
+    if p.ibl and all(is_concrete(lv) for lv in env.radiance.levels):
+        # The assets of a concrete environment are computed (or loaded) on a worker thread while
+        # this one traces, compiles and runs the geometry and direct-lighting stages, which do
+        # not need them: on a cold start the compilations overlap (XLA compiles without the GIL).
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-assets") as pool:
+            future = pool.submit(outside_traces, lambda: _env_assets(env, p, opts))
+            return _render_staged(scene, future.result, p, opts)
+    return _render_staged(scene, (lambda a: lambda: a)(_env_assets(env, p, opts) if p.ibl else None), p, opts)
+
+
+def _render_staged(scene: Scene, assets, p: RenderPlan, opts: RenderOptions):
+    """`render` as separate compiled stages; assets() gives the IBL assets when the last stage needs them."""
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
     if s > 1:  # the stages do not depend on s (a static field): one program for every s
         scene = evolve(scene, camera=evolve(scene.camera, supersample=1))
