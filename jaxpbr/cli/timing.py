@@ -26,6 +26,13 @@ class Timing:
 
     first: float
     per_call: tuple[float, ...]
+    #: Seconds of single calls each synchronised on its own (dispatch + launch + sync included):
+    #: what one isolated call costs, as opposed to the back-to-back throughput of `per_call`.
+    single: tuple[float, ...] = ()
+
+    @property
+    def single_median(self) -> float:
+        return statistics.median(self.single) if self.single else float("nan")
 
     @property
     def best(self) -> float:
@@ -41,8 +48,9 @@ class Timing:
         return max(0.0, self.first - self.best)
 
 
-def time_calls(fn, *, rounds: int = 3, number: int = 1):
-    """Call `fn()` once (timed as `first`), then `rounds` rounds of `number` back-to-back calls.
+def time_calls(fn, *, rounds: int = 3, number: int = 1, single: int = 0):
+    """Call `fn()` once (timed as `first`), then `rounds` rounds of `number` back-to-back calls,
+    then `single` calls each synchronised on its own (`Timing.single`, dispatch-inclusive).
 
     Returns `(last result, Timing)`; every result is synchronised with `jax.block_until_ready`.
     """
@@ -58,7 +66,12 @@ def time_calls(fn, *, rounds: int = 3, number: int = 1):
         jax.block_until_ready(outs)
         per_call.append((time.perf_counter() - t0) / number)
         out = outs[-1]
-    return out, Timing(first, tuple(per_call))
+    alone = []
+    for _ in range(single):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn())
+        alone.append(time.perf_counter() - t0)
+    return out, Timing(first, tuple(per_call), tuple(alone))
 
 
 def to_host(tree):
