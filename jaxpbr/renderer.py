@@ -1031,5 +1031,63 @@ def render_batch(
     if pad:
         b = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), b)
     mesh = Mesh(np.asarray(devices), ("batch",)) if ndev > 1 else None
+    leaves = jax.tree_util.tree_leaves((base, b))
+    if mesh is None and _staged() and all(is_concrete(x) for x in leaves):
+        return _render_batch_staged(base, assets, b, p_plan, opts, objects_idx, chunk)[:B]
     out = _batch_jit(base, assets, b, p_plan, opts, objects_idx, chunk, mesh)
     return out[:B]
+
+
+_CHUNK_STATIC = ("p_plan", "opts", "objects_idx")
+
+
+@functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
+def _geometry_chunk(scene, bc, off, *, p_plan, opts, objects_idx):
+    """The geometry stage vmapped over a chunk of batched inputs bc (the sub-pixel offset shared)."""
+    return jax.vmap(lambda x: _geometry(_substitute(scene, x, objects_idx), p_plan, opts, off))(bc)
+
+
+@functools.partial(jax.jit, static_argnames=("k",) + _CHUNK_STATIC)
+def _texture_chunk(scene, bc, g, *, k, p_plan, opts, objects_idx):
+    return jax.vmap(lambda x, gx: _texture(_substitute(scene, x, objects_idx), k, opts, gx))(bc, g)
+
+
+@functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
+def _direct_chunk(scene, bc, g, *, p_plan, opts, objects_idx):
+    return jax.vmap(lambda x, gx: _shade_direct(_substitute(scene, x, objects_idx), p_plan, opts, gx))(bc, g)
+
+
+@functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
+def _rest_chunk(scene, bc, g, assets, direct, *, p_plan, opts, objects_idx):
+    def one(x, gx, dx):
+        return _shade_rest(_substitute(scene, x, objects_idx), assets, p_plan, opts, gx, dx)
+
+    return jax.vmap(one)(bc, g, direct)
+
+
+def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
+    """`render_batch` on XLA:CPU: for each chunk of `chunk` images, the render's stages as
+    separate programs, each vmapped over the chunk (one program over the whole chunk fuses and
+    recomputes producers on XLA:CPU, measured 3x slower than a Python loop of `render`; see
+    `_render_pass`). Host loop over the chunks; the batched inputs are sliced on the host."""
+    s = 1 if scene.gbuffer is not None else scene.camera.supersample
+    if s > 1:
+        scene = evolve(scene, camera=evolve(scene.camera, supersample=1))
+    dtype = jnp.dtype(opts.dtype)
+    host = jax.tree_util.tree_map(np.asarray, b)
+    total = jax.tree_util.tree_leaves(host)[0].shape[0]
+    kw = dict(p_plan=p_plan, opts=opts, objects_idx=objects_idx)
+    outs = []
+    for i in range(0, total, chunk):
+        bc = jax.tree_util.tree_map(lambda x: jax.device_put(x[i : i + chunk]), host)
+        acc = None
+        for k in range(s * s):
+            off = jax.device_put(np.asarray(((k % s + 0.5) / s, (k // s + 0.5) / s), dtype))
+            g = _geometry_chunk(scene, bc, off, **kw)
+            for t in p_plan.textured:
+                g = _texture_chunk(scene, bc, g, k=t, **kw)
+            direct = _direct_chunk(scene, bc, g, **kw)
+            one = _rest_chunk(scene, bc, g, assets, direct, **kw)
+            acc = one if acc is None else acc + one
+        outs.append(acc if s == 1 else acc / (s * s))
+    return jnp.concatenate(outs) if len(outs) > 1 else outs[0]

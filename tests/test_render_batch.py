@@ -129,10 +129,17 @@ SHARD_SCRIPT = textwrap.dedent(
     scene = base_scene()
     mats = batched_materials(7)  # not a multiple of 4: padding path
     sharded = jp.render_batch(scene, materials=mats, chunk=2)
+    # The sharded path runs each device's share as one program per chunk; on one device XLA:CPU
+    # runs the stages as separate programs (renderer.STAGED = None). Compare like with like:
+    jp.renderer.STAGED = False
     single = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
-    a, b = np.asarray(sharded), np.asarray(single)
+    jp.renderer.STAGED = None
+    staged = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
+    a, b, c = np.asarray(sharded), np.asarray(single), np.asarray(staged)
     rel = float((np.abs(a - b) / np.maximum(np.abs(b), 1e-6)).max())
-    print(json.dumps(dict(shape=a.shape, max_abs=float(np.abs(a - b).max()), max_rel=rel, equal=bool((a == b).all()))))
+    rel_staged = float((np.abs(c - b) / np.maximum(np.abs(b), 1e-6)).max())
+    print(json.dumps(dict(shape=a.shape, max_abs=float(np.abs(a - b).max()), max_rel=rel, equal=bool((a == b).all()),
+                          max_rel_staged=rel_staged)))
     """
 )
 
@@ -155,3 +162,22 @@ def test_sharded_over_four_cpu_devices_equals_single_device():
     # Each device runs the same per-image math on its share, compiled as a separate program: XLA
     # may fuse it differently (measured: 1 ulp at a few pixels, not bitwise). Bound: 4 float32 ulps.
     assert res["max_rel"] <= 4 * 2.0**-23, res
+    # The staged single-device batch (XLA:CPU's default) against the one-program batch: float32
+    # rounding of differently fused programs (as tests/test_bake.py bounds for render).
+    assert res["max_rel_staged"] <= 2e-5, res
+
+
+def test_staged_batch_equals_a_loop_of_renders():
+    """On XLA:CPU render_batch runs the stages as separate programs vmapped over each chunk: the
+    same programs' math as `render` per image (bitwise here; bounded by float32 rounding)."""
+    from jaxpbr import renderer
+
+    scene = base_scene()
+    mats = batched_materials(5)
+    imgs = np.asarray(jp.render_batch(scene, materials=mats, chunk=2))
+    assert renderer._staged()
+    for i in range(5):
+        m = jax.tree_util.tree_map(lambda x: x[i], mats)
+        objs = [o.replace(material=m) for o in scene.objects]
+        one = np.asarray(jp.render(scene.replace(objects=objs)))
+        np.testing.assert_allclose(imgs[i], one, rtol=2e-6, atol=1e-7)
