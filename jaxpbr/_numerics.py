@@ -24,6 +24,7 @@ __all__ = [
     "eps",
     "is_concrete",
     "outside_traces",
+    "with_callers_context",
     "pack3",
     "safe_div",
     "safe_normalize",
@@ -202,6 +203,13 @@ def outside_traces(compute):
     arrays. (`jax.ensure_compile_time_eval` would also give concrete values, but it evaluates jitted
     functions op by op: hundreds of dispatches and compilations.) The caller's thread-local x64
     mode and default device are carried over."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-assets") as pool:
+        return pool.submit(with_callers_context(compute)).result()
+
+
+def with_callers_context(compute):
+    """compute wrapped to run, on another thread, under the calling thread's x64 mode and default
+    device (both thread-local in JAX)."""
     x64 = bool(jax.config.jax_enable_x64)
     device = jax.config.jax_default_device
 
@@ -209,5 +217,4 @@ def outside_traces(compute):
         with jax.enable_x64(x64), jax.default_device(device):
             return compute()
 
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-assets") as pool:
-        return pool.submit(run).result()
+    return run

@@ -27,6 +27,7 @@ import functools
 import hashlib
 import json
 import math
+import threading
 import weakref
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
@@ -43,7 +44,7 @@ from . import (  # called through the module: tests count precompute calls
     specular,
 )
 from ._api import keyword_only
-from ._numerics import is_concrete, outside_traces, pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from ._numerics import is_concrete, outside_traces, with_callers_context, pack3, small_sq, unpack3, vcross, vdot, vnormalize
 from ._pytree import Pytree, evolve, fields_of, unchecked
 from ._validate import positive_int
 from ._version import __version__
@@ -307,42 +308,50 @@ class AssetCache:
         self._store: OrderedDict = OrderedDict()
         self.stats: dict[str, dict[str, int]] = {}
         self.directory = None if directory is None else Path(directory)
+        # The renderer fills the cache from worker threads: the store and the counters are
+        # updated under this lock (the precomputes themselves run outside it, concurrently).
+        self._lock = threading.RLock()
 
     def use_directory(self, directory) -> None:
         """Keep computed maps in `directory` too (None: memory only)."""
         self.directory = None if directory is None else Path(directory)
 
     def clear(self) -> None:
-        self._store.clear()
-        self.stats.clear()
+        with self._lock:
+            self._store.clear()
+            self.stats.clear()
 
     def find(self, kind: str, match):
         """A cached value of `kind` whose key satisfies match(key), counted as a hit; else None."""
-        for (k, key), value in self._store.items():
-            if k == kind and match(key):
-                self.stats.setdefault(kind, {"hits": 0, "misses": 0})["hits"] += 1
-                return value
+        with self._lock:
+            for (k, key), value in self._store.items():
+                if k == kind and match(key):
+                    self.stats.setdefault(kind, {"hits": 0, "misses": 0})["hits"] += 1
+                    return value
         return None
 
     def get(self, kind: str, key, compute):
-        st = self.stats.setdefault(kind, {"hits": 0, "misses": 0})
         full = (kind, key)
-        if full in self._store:
-            st["hits"] += 1
-            self._store.move_to_end(full)
-            return self._store[full]
-        st["misses"] += 1
+        with self._lock:
+            st = self.stats.setdefault(kind, {"hits": 0, "misses": 0})
+            if full in self._store:
+                st["hits"] += 1
+                self._store.move_to_end(full)
+                return self._store[full]
+            st["misses"] += 1
         value = self._load(kind, key)
         if value is not None:
-            st["disk"] = st.get("disk", 0) + 1
+            with self._lock:
+                st["disk"] = st.get("disk", 0) + 1
         else:
             value = outside_traces(compute)
             if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(value)):
                 raise AssertionError(f"AssetCache: the {kind} precompute returned a tracer; it depends on a traced input")
             self._save(kind, key, value)
-        self._store[full] = value
-        while len(self._store) > self.maxsize:
-            self._store.popitem(last=False)
+        with self._lock:
+            self._store[full] = value
+            while len(self._store) > self.maxsize:
+                self._store.popitem(last=False)
         return value
 
     def _path(self, kind, key):
@@ -415,6 +424,26 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
     are computed: for a concrete environment through the content-addressed `ASSETS` cache (once
     per environment content and parameters, concrete even under an outer jit / grad / vmap); for
     a traced environment (differentiating wrt its texels) inside the trace, never cached."""
+    key = _env_key(env, p)
+    return _asset_irradiance(env, p, opts, key), _asset_prefiltered(env, p, opts, key), _asset_lut(env, opts)
+
+
+def _env_key(env: Environment, p: RenderPlan):
+    """The content key of a concrete environment with maps still to compute, else None."""
+    missing = (p.ibl_diffuse and env.irradiance is None) or env.prefiltered is None
+    if missing and all(is_concrete(lv) for lv in env.radiance.levels):
+        return content_key(env.radiance)
+    return None
+
+
+def _in_dtype(c, opts: RenderOptions):
+    dtype = jnp.dtype(opts.dtype)
+    if c is None or all(lv.dtype == dtype for lv in c.levels):
+        return c
+    return Cubemap([lv.astype(dtype) for lv in c.levels], c.info)
+
+
+def _asset_lut(env: Environment, opts: RenderOptions):
     dtype = jnp.dtype(opts.dtype)
     smith = _lut_smith(opts)
     if env.lut is not None:
@@ -428,27 +457,28 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
         lut = ASSETS.get(
             "lut", (opts.lut_size, smith, dtype.name), lambda: shipped_luts.brdf_lut(opts.lut_size, smith=smith, dtype=dtype)
         )
-    src = env.radiance
-    need_irr = p.ibl_diffuse and env.irradiance is None
-    need_pre = env.prefiltered is None
-    key = None
-    if (need_irr or need_pre) and all(is_concrete(lv) for lv in src.levels):
-        key = content_key(src)
+    return jnp.asarray(lut, dtype)
 
-    def cached(kind, params, compute):
-        if key is None:
-            return compute()
-        return ASSETS.get(kind, (key,) + params, compute)
 
-    irr = env.irradiance if p.ibl_diffuse else None
-    if need_irr:
+def _asset_irradiance(env: Environment, p: RenderPlan, opts: RenderOptions, key):
+    if not p.ibl_diffuse:
+        return None
+    irr = env.irradiance
+    if irr is None:
+        src = env.radiance
         params = (opts.irradiance_size, opts.irradiance_method)
-        irr = cached("irradiance", params, lambda: diffuse.irradiance(src, opts.irradiance_size, method=opts.irradiance_method))
+        compute = lambda: diffuse.irradiance(src, opts.irradiance_size, method=opts.irradiance_method)  # noqa: E731
+        irr = compute() if key is None else ASSETS.get("irradiance", (key,) + params, compute)
+    return _in_dtype(irr, opts)
+
+
+def _asset_prefiltered(env: Environment, p: RenderPlan, opts: RenderOptions, key):
     pre = env.prefiltered
-    if need_pre:
+    if pre is None:
+        src = env.radiance
         params = (p.prefilter_size, p.prefilter_levels, p.mapping_levels, opts.mapping, opts.prefilter_samples)
 
-        def compute_pre():
+        def compute():
             kw = {} if opts.prefilter_samples is None else {"samples": opts.prefilter_samples}
             return specular.prefilter(
                 src,
@@ -459,21 +489,18 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
                 **kw,
             )
 
-        if key is not None:
+        if key is None:
+            pre = compute()
+        else:
             # A longer chain of the same map already cached: its first levels are this one.
             longer = ASSETS.find(
                 "prefilter", lambda k: k[0] == key and k[1] == params[0] and k[3:] == params[2:] and k[2] > params[1]
             )
             if longer is not None:
                 pre = Cubemap(longer.levels[: p.prefilter_levels], longer.info)
-        if pre is None:
-            pre = cached("prefilter", params, compute_pre)
-    def cast(c):
-        if c is None or all(lv.dtype == dtype for lv in c.levels):
-            return c
-        return Cubemap([lv.astype(dtype) for lv in c.levels], c.info)
-
-    return cast(irr), cast(pre), jnp.asarray(lut, dtype)
+            else:
+                pre = ASSETS.get("prefilter", (key,) + params, compute)
+    return _in_dtype(pre, opts)
 
 
 @keyword_only("options")
@@ -815,12 +842,16 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
     if not _staged():
         return _render_jit(scene, _env_assets(env, p, opts) if p.ibl else None, p, opts)
     if p.ibl and all(is_concrete(lv) for lv in env.radiance.levels):
-        # The assets of a concrete environment are computed (or loaded) on a worker thread while
-        # this one traces, compiles and runs the geometry and direct-lighting stages, which do
-        # not need them: on a cold start the compilations overlap (XLA compiles without the GIL).
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-assets") as pool:
-            future = pool.submit(outside_traces, lambda: _env_assets(env, p, opts))
-            return _render_staged(scene, future.result, p, opts)
+        # The prefiltered and irradiance maps of a concrete environment are computed (or loaded)
+        # on two worker threads while this one traces, compiles and runs the geometry and
+        # direct-lighting stages, which do not need them: on a cold start the compilations and
+        # runs overlap (XLA compiles and runs without holding the GIL).
+        key = _env_key(env, p)
+        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxpbr-assets") as pool:
+            pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key)))
+            irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key)))
+            lut = _asset_lut(env, opts)
+            return _render_staged(scene, lambda: (irr.result(), pre.result(), lut), p, opts)
     return _render_staged(scene, (lambda a: lambda: a)(_env_assets(env, p, opts) if p.ibl else None), p, opts)
 
 
