@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import shutil
 from pathlib import Path
 
 from ._api import keyword_only
@@ -81,12 +82,14 @@ def write_json(path, data, *, outputs: "OutputSet | None" = None) -> Path:
 class OutputSet:
     """The files one command writes: validate targets before any work, remove them all on failure.
 
-    Use as a context manager (`with OutputSet() as outs: ...`): if the block raises, every file
-    registered with `add` is deleted again and the exception propagates.
+    Use as a context manager (`with OutputSet() as outs: ...`): if the block raises (an error,
+    KeyboardInterrupt, or the CLI's SIGTERM), every file registered with `add` is deleted again,
+    every file registered with `protect` gets its old content back, and the exception propagates.
     """
 
     def __init__(self):
         self.written: list[Path] = []
+        self._backups: dict[Path, Path] = {}  # existing file -> hard link keeping its old content
 
     def check(self, path, suffixes: tuple[str, ...]) -> Path:
         """Validate an output path before any work: suffix, existing writable directory, not a directory."""
@@ -105,12 +108,45 @@ class OutputSet:
     def add(self, path) -> None:
         self.written.append(Path(path))
 
+    def protect(self, paths) -> None:
+        """Keep the current content of these existing files (before any work): a rollback puts it
+        back, so an interrupted re-bake leaves the previous complete set as it was instead of a mix
+        of new and old files. The old content is kept as a hidden hard link (a copy where the
+        file system has no links) next to each file and removed once the set is complete."""
+        for p in map(Path, paths):
+            if p in self._backups or not p.is_file():
+                continue
+            keep = p.with_name(f".{p.name}.jaxpbr-old-{secrets.token_hex(4)}")
+            try:
+                os.link(p, keep)
+            except OSError:
+                shutil.copy2(p, keep)
+            self._backups[p] = keep
+
     def rollback(self) -> None:
         for p in self.written:
             try:
                 p.unlink()
             except FileNotFoundError:
                 pass
+        for p, keep in self._backups.items():
+            try:
+                untouched = os.path.samefile(keep, p)
+            except FileNotFoundError:
+                untouched = False
+            if untouched:  # still the old file (rename() between two links of one file is a no-op)
+                keep.unlink()
+            else:
+                os.replace(keep, p)
+        self._backups.clear()
+
+    def _discard_backups(self) -> None:
+        for keep in self._backups.values():
+            try:
+                keep.unlink()
+            except FileNotFoundError:
+                pass
+        self._backups.clear()
 
     def __enter__(self) -> "OutputSet":
         return self
@@ -118,4 +154,6 @@ class OutputSet:
     def __exit__(self, exc_type, exc, tb) -> bool:
         if exc_type is not None:
             self.rollback()
+        else:
+            self._discard_backups()
         return False

@@ -24,6 +24,7 @@ write leaves no file behind and never a half-written one.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import warnings
@@ -101,6 +102,31 @@ def _check_readable(path: Path) -> None:
         raise PermissionError(f"image file {str(path)!r} is not readable (check its permissions)")
 
 
+#: The first bytes of each format (OpenEXR magic 20000630 little-endian; PNG signature; Radiance
+#: "#?RADIANCE" or "#?RGBE" program type line).
+_SIGNATURES = {
+    ".exr": (b"\x76\x2f\x31\x01",),
+    ".png": (b"\x89PNG\r\n\x1a\n",),
+    ".hdr": (b"#?RADIANCE", b"#?RGBE"),
+}
+_FORMAT_NAMES = {".exr": "OpenEXR", ".png": "PNG", ".hdr": "Radiance HDR"}
+
+
+def _check_format(path: Path, ext: str) -> None:
+    """Refuse a file whose content is not the format its extension names (a PNG renamed .hdr would
+    otherwise be read by content and its 8-bit code values taken as linear radiance)."""
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if any(head.startswith(sig) for sig in _SIGNATURES[ext]):
+        return
+    actual = next((_FORMAT_NAMES[e] for e, sigs in _SIGNATURES.items() if any(head.startswith(s) for s in sigs)), None)
+    what = f"its content is {actual}" if actual else "its content is not an image format jaxpbr reads (corrupt, empty or truncated?)"
+    raise ValueError(
+        f"{str(path)!r} has the extension {ext} but {what}; give the file the extension of its real format"
+        + (" (and note that PNG holds display-encoded values, not linear radiance)" if actual == "PNG" else "")
+    )
+
+
 # ------------------------------------------------------------------------------------------------------ read
 
 
@@ -143,6 +169,7 @@ def _read(path, channels, want_metadata):
     path = Path(os.fspath(path))
     ext = _extension(path)
     _check_readable(path)
+    _check_format(path, ext)
     if channels is not None and ext != ".exr":
         raise ValueError(f"channels= selects EXR channels by name; {str(path)!r} is a {ext} file")
     if ext == ".exr":
@@ -335,7 +362,49 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", enco
         if encoding in _PNG_COLORSPACE:
             attrs["oiio:ColorSpace"] = _PNG_COLORSPACE[encoding]
         writer = lambda tmp: _write_oiio(tmp, "png", payload, attrs)  # noqa: E731
-    atomic_write(path, writer)
+    atomic_write(path, _read_back(writer, arr.shape))
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    """Silence writes to the process's stderr (file descriptor 2, where C libraries print) for the
+    duration; Python-level errors are raised as usual."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _read_back(writer, shape):
+    """`writer` followed by a check that the temporary file decodes to an image of `shape` (H, W).
+
+    The image libraries do not always report a failed write: on a full disk OpenImageIO's PNG and
+    HDR writers and OpenEXR returned normally and left 0-byte or truncated files (issue 13). Reading
+    the file back before it replaces the destination turns that into an error, and the
+    destination is left as it was."""
+
+    def run(tmp):
+        writer(tmp)
+        try:
+            with _quiet_stderr():  # libpng prints its own complaint about a truncated file
+                img, _ = _read(tmp, None, want_metadata=False)
+        except (ValueError, OSError) as e:
+            raise OSError(f"the image was not written completely (is the disk full?): {e}") from e
+        if img.shape[:2] != tuple(shape[:2]):
+            raise OSError(
+                f"the image was not written completely (is the disk full?): it reads back as {img.shape[:2]}, "
+                f"expected {tuple(shape[:2])}"
+            )
+
+    return run
 
 
 def _validated_image(img) -> np.ndarray:

@@ -8,6 +8,8 @@ stderr with a non-zero exit status (`--debug` shows the traceback instead).
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 import warnings
 
@@ -23,7 +25,7 @@ from . import (
     report_render,
 )
 from . import _cache
-from ._common import CLIError
+from ._common import PENDING, CLIError, Terminated, raise_pending
 
 __all__ = ["CLIError", "build_parser", "main"]
 
@@ -59,27 +61,65 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"jaxpbr: warning: {message}", file=sys.stderr)
 
 
-def main(argv: list[str] | None = None) -> int:
+def _catch_signals():
+    """SIGINT and SIGTERM raise in the main thread (KeyboardInterrupt / Terminated) and are also
+    remembered (`_common.raise_pending`): Python drops an exception raised while a garbage
+    collection callback runs ("Exception ignored in: _xla_gc_callback"), which once let an
+    interrupted bake run on and exit 0. Returns the previous handlers."""
+
+    def handler(signum, frame):
+        exc = Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+        PENDING[0] = exc
+        raise exc()
+
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            previous[sig] = signal.signal(sig, handler)
+        except ValueError:  # not the main thread: leave the defaults
+            pass
+    return previous
+
+
+def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 0
+    if entry is None:  # the console script and `python -m jaxpbr` call main() with sys.argv
+        entry = argv is None
     _cache.enable()
     _cache.enable_assets()
+    PENDING[0] = None
+    previous = _catch_signals()
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning  # the library's warnings as one line, like errors
-            return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        print("jaxpbr: interrupted", file=sys.stderr)
-        return 130
+            code = int(args.func(args) or 0)
+            raise_pending()  # a signal whose exception was swallowed (files already final: report it)
+            return code
+    except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (Terminated): files already rolled back
+        terminated = isinstance(exc, Terminated)
+        print("jaxpbr: terminated" if terminated else "jaxpbr: interrupted", file=sys.stderr)
+        code = 128 + signal.SIGTERM if terminated else 130
+        if entry:
+            # Worker threads (a precompute still running) would keep the process alive until
+            # they finish; everything that must be undone has been undone by now.
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(code)
+        return code
     except Exception as exc:  # one line on stderr unless --debug
         if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"jaxpbr: error: {msg}", file=sys.stderr)
-        return 2 if isinstance(exc, (CLIError, ValueError, FileNotFoundError)) else 1
+        # 2: the user can fix it (bad input, a file or disk problem, too little memory); 1: a bug.
+        return 2 if isinstance(exc, (CLIError, ValueError, OSError, MemoryError)) else 1
+    finally:
+        for sig, h in previous.items():
+            signal.signal(sig, h)
 
 
 if __name__ == "__main__":  # pragma: no cover

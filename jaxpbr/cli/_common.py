@@ -34,6 +34,23 @@ def nonnegative_int_arg(text: str) -> int:
     return value
 
 
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread by SIGTERM, so that a terminated command rolls back exactly like an
+    interrupted one (every cleanup path handles KeyboardInterrupt)."""
+
+
+#: The exception type of a signal received during the current command (see `cli._catch_signals`).
+PENDING: list = [None]
+
+
+def raise_pending() -> None:
+    """Raise the exception of a signal received earlier whose first raise was swallowed; commands
+    call it before committing their outputs (and the progress bar calls it)."""
+    if PENDING[0] is not None:
+        exc, PENDING[0] = PENDING[0], None
+        raise exc()
+
+
 class Progress:
     """A one-line progress indicator on stderr (silent when `quiet`); the library's precomputes take
     it as their `progress(done, total)` callback and know nothing of the terminal."""
@@ -42,6 +59,7 @@ class Progress:
         self.label, self.quiet, self.t0 = label, quiet, time.perf_counter()
 
     def __call__(self, done: int, total: int) -> None:
+        raise_pending()
         if self.quiet:
             return
         width = 24

@@ -24,7 +24,7 @@ from ..lut import SMITH_ALIASES, SMITH_VARIANTS
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..shipped_luts import brdf_lut
 from ..specular import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES, prefilter
-from ._common import Progress, positive_int_arg
+from ._common import Progress, positive_int_arg, raise_pending
 
 __all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
 
@@ -102,9 +102,20 @@ def _prefilter_args(p):
     p.add_argument("--exact-texels", type=int, default=DEFAULT_EXACT_TEXELS, help="brightest texels convolved exactly (default: %(default)s; 0 = off)")
 
 
+def _checked(outs: OutputSet, path: Path, suffixes) -> Path:
+    """The output path validated before any work, and what it will replace protected: the file,
+    its JSON sidecar and, for EXR cubes, its per-mip face files keep their old content until the
+    command succeeds (a failure or a signal puts them back)."""
+    out = outs.check(path, suffixes)
+    outs.protect([out, out.with_name(out.name + ".json"), *out.parent.glob(f"{out.stem}_m*_*.exr")])
+    return out
+
+
 def _run(fn):
     with OutputSet() as outs:
-        return fn(outs)
+        code = fn(outs)
+        raise_pending()  # an interrupt whose exception was swallowed: roll back, do not commit
+        return code
 
 
 def cmd_lut(args) -> int:
@@ -112,7 +123,7 @@ def cmd_lut(args) -> int:
 
 
 def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
-    out = outs.check(Path(out_path or args.output), (".exr",))
+    out = _checked(outs, Path(out_path or args.output), (".exr",))
     t0 = time.perf_counter()
     smith = SMITH_ALIASES.get(args.smith, args.smith)
     if smith != args.smith:
@@ -153,7 +164,7 @@ def cmd_irradiance(args) -> int:
 
 def _irradiance(args, outs: OutputSet, env=None, out_path: Path | None = None, size=None, method=None) -> dict:
 
-    out = outs.check(Path(out_path or args.output), (".ktx2", ".exr"))
+    out = _checked(outs, Path(out_path or args.output), (".ktx2", ".exr"))
     env = env if env is not None else load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
     size = size or args.size
     method = method or args.method
@@ -193,7 +204,7 @@ def cmd_prefilter(args) -> int:
 
 
 def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) -> dict:
-    out = outs.check(Path(out_path or args.output), (".ktx2", ".exr"))
+    out = _checked(outs, Path(out_path or args.output), (".ktx2", ".exr"))
     if args.exact_texels < 0:
         raise InputError(f"--exact-texels must be >= 0, got {args.exact_texels}")
     env = env if env is not None else load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
@@ -240,6 +251,9 @@ def cmd_ibl(args) -> int:
         d = Path(args.out_dir)
         if not d.is_dir():
             raise InputError(f"--out-dir {str(d)!r} does not exist; create it first")
+        # A complete set already there is kept until the new one is complete: an interrupted
+        # or failed re-bake puts the old files back (issue 13: it left a mix naming a missing file).
+        outs.protect(p for stem in ("irradiance", "prefiltered", "brdf_lut", "ibl") for p in d.glob(f"{stem}*"))
         env = load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
         args.output = None
         irr = _irradiance(args, outs, env=env, out_path=d / "irradiance.ktx2", size=args.irradiance_size, method=args.irradiance_method)

@@ -109,6 +109,11 @@ def cmd_render(args) -> int:
     if args.model is not None:
         options["model"] = args.model
     opts = RenderOptions(**options)
+    if opts.dtype == "float64":
+        # A float64 render needs JAX's 64-bit mode (off by default): without it every float64
+        # request is silently truncated to float32 (issue 13: a scene asking for float64 rendered in
+        # float32 with a screen of warnings).
+        jax.config.update("jax_enable_x64", True)
     model = opts.model
     tonemap = args.tonemap or display_opts.get("tonemap") or ("reinhard" if model == "learnopengl" else "aces")
     encoding = args.encoding or display_opts.get("encoding") or ("gamma2.2" if model == "learnopengl" else "srgb")

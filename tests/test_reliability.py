@@ -1,0 +1,229 @@
+"""Probe cases of issue 13 (nothing lost, nothing silent), each reproduced first and kept fixed here.
+
+Covered so far: a full disk (a real tiny tmpfs when the machine allows mounting one, and an
+injected silent short write otherwise), files whose content is not the format their extension
+names, SIGTERM rolling back like SIGINT, a scene asking for float64, and exit status 2 for
+user-facing errors. (The tracer in the asset cache and one program per supersampling offset are
+in tests/test_bake.py.)
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import jaxpbr as jp
+from jaxpbr import image
+
+
+# ---------------------------------------------------------------------------------- full disk
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 64 KiB tmpfs (needs mount privileges; skipped where there are none)."""
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    if shutil.which("mount") is None:
+        pytest.skip("no mount command")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+@pytest.mark.parametrize("ext", [".png", ".exr", ".hdr"])
+def test_image_write_to_a_full_disk_raises_and_leaves_nothing(tiny_disk, ext):
+    img = np.random.default_rng(0).random((300, 300, 3)).astype(np.float32)  # far more than 64 KiB
+    with pytest.raises(OSError):
+        image.write(tiny_disk / f"x{ext}", img)
+    assert list(tiny_disk.iterdir()) == []
+
+
+def test_render_to_a_full_disk_fails_with_one_line_and_status_2(tiny_disk):
+    out = subprocess.run(
+        [sys.executable, "-m", "jaxpbr", "render", "--width", "640", "--height", "360", "-o", str(tiny_disk / "r.png")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert out.returncode == 2, out.stderr
+    lines = [ln for ln in out.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("jaxpbr: error:") and "disk" in lines[0], out.stderr
+    assert list(tiny_disk.iterdir()) == []
+
+
+@pytest.mark.parametrize("ext", [".png", ".hdr", ".exr"])
+@pytest.mark.parametrize("how", ["empty", "truncated"])
+def test_a_silently_short_write_is_caught(tmp_path, monkeypatch, ext, how):
+    """The image libraries returned normally on ENOSPC and left a 0-byte or truncated file: the
+    write is read back before it replaces the destination, whose old content survives."""
+    dest = tmp_path / f"x{ext}"
+    old = np.full((8, 8, 3), 0.25, np.float32)
+    image.write(dest, old)
+    before = dest.read_bytes()
+    real = {"png": image._write_oiio, "hdr": image._write_oiio, "exr": image._write_exr}[ext[1:]]
+
+    def short(tmp, *a, **k):
+        real(tmp, *a, **k)
+        data = Path(tmp).read_bytes()
+        Path(tmp).write_bytes(b"" if how == "empty" else data[: len(data) // 2])
+
+    monkeypatch.setattr(image, "_write_exr" if ext == ".exr" else "_write_oiio", short)
+    with pytest.raises(OSError, match="not written completely"):
+        image.write(dest, np.random.default_rng(1).random((64, 64, 3)).astype(np.float32))
+    assert dest.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == [dest.name]  # no temporary file left
+
+
+# ------------------------------------------------------------------------- content, not the name
+
+
+@pytest.mark.parametrize("real, named", [(".png", ".hdr"), (".png", ".exr"), (".exr", ".hdr"), (".hdr", ".png")])
+def test_a_renamed_image_is_refused_naming_its_real_format(tmp_path, real, named):
+    src = tmp_path / f"img{real}"
+    image.write(src, np.full((4, 8, 3), 0.5, np.float32))
+    renamed = tmp_path / f"img{named}"
+    src.rename(renamed)
+    want = {".png": "PNG", ".exr": "OpenEXR", ".hdr": "Radiance HDR"}[real]
+    with pytest.raises(ValueError, match=f"content is {want}"):
+        image.read(renamed)
+
+
+def test_garbage_with_an_image_extension_is_refused(tmp_path):
+    bad = tmp_path / "sky.hdr"
+    bad.write_bytes(b"hello, not an image")
+    with pytest.raises(ValueError, match="not an image format"):
+        image.read(bad)
+
+
+def test_cli_refuses_a_png_renamed_hdr_before_any_work(tmp_path):
+    png = tmp_path / "pano.png"
+    image.write(png, np.full((16, 32, 3), 0.5, np.float32))
+    fake = tmp_path / "pano.hdr"
+    png.rename(fake)
+    out = subprocess.run(
+        [sys.executable, "-m", "jaxpbr", "irradiance", str(fake), "-o", str(tmp_path / "irr.ktx2")],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 2 and "content is PNG" in out.stderr, out.stderr
+    assert len([ln for ln in out.stderr.splitlines() if ln.strip()]) == 1
+    assert not (tmp_path / "irr.ktx2").exists()
+
+
+# --------------------------------------------------------------------------------- signals
+
+
+def _wait_for(pred, timeout):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if pred():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_during_a_bake_rolls_back(tmp_path, sig):
+    """`jaxpbr ibl` killed after its first output appeared: nothing of the new set is left (the
+    issue: only SIGINT rolled back; SIGTERM left irradiance.ktx2 + its sidecar)."""
+    out_dir = tmp_path / "set"
+    out_dir.mkdir()
+    env = dict(os.environ, JAXPBR_COMPILATION_CACHE="off")
+    p = subprocess.Popen(
+        [sys.executable, "-m", "jaxpbr", "ibl", "procedural:sky", "--face-size", "64", "--out-dir", str(out_dir), "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )
+    try:
+        seen = _wait_for(lambda: any(out_dir.iterdir()) or p.poll() is not None, 300)
+        assert seen and p.poll() is None, "the bake finished before a file appeared; cannot probe"
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == (130 if sig == signal.SIGINT else 128 + signal.SIGTERM), err
+    assert sorted(q.name for q in out_dir.iterdir()) == [], err
+
+
+# ------------------------------------------------------------------------------ scene dtype
+
+
+def test_scene_file_float64_renders_in_float64(tmp_path):
+    scene = tmp_path / "s.toml"
+    scene.write_text(
+        '[render]\ndtype = "float64"\n[camera]\nwidth = 8\nheight = 6\n'
+        '[[objects]]\ntype = "sphere"\ncenter = [0.0, 0.0, -3.0]\nradius = 1.0\n'
+        '[[lights]]\ntype = "point"\nposition = [2.0, 2.0, 0.0]\nintensity = 10.0\n'
+    )
+    out = subprocess.run(
+        [sys.executable, "-m", "jaxpbr", "render", str(scene), "-o", str(tmp_path / "s.png"), "--hdr"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "warn" not in out.stderr.lower(), out.stderr
+    meta = image.read_with_metadata(tmp_path / "s.exr")[1]
+    assert "float64" in meta["jaxpbr:render_options"]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupted_rebake_keeps_the_previous_set(tmp_path, sig):
+    """A complete set in the folder, then a re-bake interrupted after its first new file appeared:
+    the previous set is there, byte for byte (the issue: the rollback deleted the new irradiance,
+    which had replaced the old one, leaving an ibl.json naming a missing file)."""
+    out_dir = tmp_path / "set"
+    out_dir.mkdir()
+    env = dict(os.environ, JAXPBR_COMPILATION_CACHE="off")
+    cmd = [sys.executable, "-m", "jaxpbr", "ibl", "procedural:sky", "--face-size", "32", "--out-dir", str(out_dir), "--quiet"]
+    first = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+    assert first.returncode == 0, first.stderr
+    before = {p.name: p.read_bytes() for p in out_dir.iterdir()}
+    assert {"irradiance.ktx2", "prefiltered.ktx2", "brdf_lut.exr", "ibl.json"} <= set(before)
+    stamp = {p.name: p.stat().st_mtime_ns for p in out_dir.iterdir()}
+    cmd[cmd.index("--face-size") + 1] = "64"  # a different set, so every file changes
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        changed = lambda: any(q.name in stamp and q.stat().st_mtime_ns != stamp[q.name] for q in out_dir.iterdir() if not q.name.startswith("."))  # noqa: E731
+        seen = _wait_for(lambda: changed() or p.poll() is not None, 300)
+        assert seen and p.poll() is None, "the re-bake finished before a file was replaced; cannot probe"
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode in (130, 143), err
+    after = {q.name: q.read_bytes() for q in out_dir.iterdir()}
+    assert after == before
+
+
+def test_output_set_protect_restores_replaced_files_and_cleans_up(tmp_path):
+    from jaxpbr.atomic import OutputSet, atomic_write
+
+    a, b, c = tmp_path / "a.txt", tmp_path / "b.txt", tmp_path / "c.txt"
+    a.write_text("old a")
+    b.write_text("old b")
+    with pytest.raises(RuntimeError):
+        with OutputSet() as outs:
+            outs.protect([a, b, c])  # c does not exist yet
+            for p in (a, c):
+                atomic_write(p, lambda tmp: Path(tmp).write_text("new"))
+                outs.add(p)
+            raise RuntimeError("fails midway")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+    assert a.read_text() == "old a" and b.read_text() == "old b"
+    with OutputSet() as outs:
+        outs.protect([a, b])
+        atomic_write(a, lambda tmp: Path(tmp).write_text("new a"))
+        outs.add(a)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]  # no backups left
+    assert a.read_text() == "new a" and b.read_text() == "old b"
