@@ -15,13 +15,11 @@ import signal
 import subprocess
 import sys
 import time
-import uuid
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-import jaxpbr as jp
 from jaxpbr import image
 
 
