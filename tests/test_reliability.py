@@ -225,3 +225,59 @@ def test_output_set_protect_restores_replaced_files_and_cleans_up(tmp_path):
         outs.add(a)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]  # no backups left
     assert a.read_text() == "new a" and b.read_text() == "old b"
+
+
+# ----------------------------------------------------------------------- checks before the work
+
+
+def _render_cli(*args, timeout=300):
+    return subprocess.run([sys.executable, "-m", "jaxpbr", "render", *map(str, args)], capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("case", ["output_is_a_dir", "exr_is_a_dir", "missing_dir", "nan_exposure", "inf_exposure"])
+def test_render_refuses_bad_outputs_and_values_before_rendering(tmp_path, case):
+    out = tmp_path / "r.png"
+    args = ["--width", "16", "--height", "9", "-o", out]
+    if case == "output_is_a_dir":
+        out.mkdir()
+    elif case == "exr_is_a_dir":
+        (tmp_path / "r.exr").mkdir()
+        args.append("--hdr")
+    elif case == "missing_dir":
+        args[-1] = tmp_path / "nope" / "r.png"
+    else:
+        args += ["--exposure", "nan" if case == "nan_exposure" else "inf"]
+    t0 = time.monotonic()
+    r = _render_cli(*args)
+    assert r.returncode == 2, r.stderr
+    assert "render " not in r.stdout  # nothing was rendered
+    assert len([ln for ln in r.stderr.splitlines() if ln.strip()]) <= 2, r.stderr  # argparse: usage + error
+    assert not (tmp_path / "r.png").is_file()
+    assert time.monotonic() - t0 < 60
+
+
+def test_render_hdr_failure_leaves_no_png(tmp_path, monkeypatch):
+    """--hdr writes the PNG then the EXR; if the EXR cannot be written, the PNG goes too (in process)."""
+    from jaxpbr.cli import main
+
+    def fail_exr(*a, **k):
+        raise OSError("injected: no space left on device")
+
+    monkeypatch.setattr(image, "_write_exr", fail_exr)
+    out = tmp_path / "r.png"
+    assert main(["render", "--width", "16", "--height", "9", "-o", str(out), "--hdr"]) == 2
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_render_to_a_read_only_folder_is_refused_before_rendering(tmp_path):
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k,ro", "tmpfs", str(mnt)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip("cannot mount a read-only tmpfs here")
+    try:
+        res = _render_cli("--width", "16", "--height", "9", "-o", mnt / "r.png")
+        assert res.returncode == 2 and "not writable" in res.stderr, res.stderr
+        assert "render " not in res.stdout
+    finally:
+        subprocess.run(["umount", str(mnt)], capture_output=True)

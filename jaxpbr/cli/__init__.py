@@ -30,8 +30,16 @@ from ._common import PENDING, CLIError, Terminated, raise_pending
 __all__ = ["CLIError", "build_parser", "main"]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the command line's one-line errors: `jaxpbr render: error: ... (see --help)`
+    on stderr and exit status 2, instead of the usage block first."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="jaxpbr",
         description="Physically based shading and image-based lighting in JAX.",
     )

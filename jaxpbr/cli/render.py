@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import functools
+import math
 
 import time
 from pathlib import Path
@@ -12,10 +14,11 @@ import numpy as np
 
 from .. import color, image
 from ..brdf_terms import MODELS
+from ..atomic import OutputSet
 from ..conventions import CONVENTIONS
 from ..demo import demo_scene
 from ..renderer import RenderOptions, plan, render
-from ._common import CLIError, positive_int_arg
+from ._common import CLIError, positive_int_arg, raise_pending
 from .scene_file import load_scene
 
 __all__ = ["add_command", "cmd_render"]
@@ -40,7 +43,7 @@ def add_command(sub) -> None:
     r.add_argument("--height", type=positive_int_arg, default=None, help="image height (default: 720, or the scene's)")
     r.add_argument("--supersample", type=positive_int_arg, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
     r.add_argument("--model", choices=MODELS, default=None, help="BRDF model (default: gltf, or the scene's)")
-    r.add_argument("--exposure", type=float, default=None, help="exposure in EV stops (default: 0, or the scene's)")
+    r.add_argument("--exposure", type=_finite_float_arg, default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
         choices=_TONEMAPS,
@@ -60,12 +63,31 @@ def add_command(sub) -> None:
     r.set_defaults(func=cmd_render)
 
 
-def _check_output_path(path: Path) -> None:
-    parent = path.resolve().parent
-    if not parent.is_dir():
-        raise CLIError(f"output directory {parent} does not exist; create it or choose another --output")
+def _check_output_path(outs: OutputSet, path: Path, hdr: bool) -> None:
+    """Every output validated before any work (issue 13: a read-only folder or an output that is a
+    directory was found only after the whole render): suffix, existing writable folder, not a
+    directory; with --hdr the EXR as well. The files they replace are protected (a failure puts
+    them back)."""
     if path.suffix.lower() != ".png":
         raise CLIError(f"--output must end in .png, got {path.name!r}")
+    paths = [path] + ([path.with_suffix(".exr")] if hdr else [])
+    for p in paths:
+        try:
+            outs.check(p, (p.suffix.lower(),))
+        except ValueError as e:
+            raise CLIError(f"{e} (--output{' with --hdr' if p.suffix.lower() == '.exr' else ''})") from None
+    outs.protect(paths)
+
+
+def _finite_float_arg(text: str) -> float:
+    """argparse type: a finite float (NaN or Inf exposure rendered and then failed, or wrote white)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
 
 
 @functools.partial(jax.jit, static_argnames=("tonemap", "encoding"))
@@ -78,7 +100,12 @@ def _display(hdr, ev, *, tonemap: str, encoding: str):
 
 def cmd_render(args) -> int:
     out = Path(args.output)
-    _check_output_path(out)
+    with OutputSet() as outs:
+        _check_output_path(outs, out, args.hdr)
+        return _render_to(args, out, outs)
+
+
+def _render_to(args, out: Path, outs: OutputSet) -> int:
     display_opts: dict = {}
     if args.scene is None:
         scene = demo_scene(
@@ -139,13 +166,16 @@ def cmd_render(args) -> int:
         "jaxpbr:encoding": encoding,
         "jaxpbr:conventions": CONVENTIONS,
     }
+    raise_pending()
     image.write(out, display, bits=args.bits, encoding=encoding, encoded=True, metadata=metadata)
+    outs.add(out)
     print(f"wrote {out} ({W}x{H}, model {model}, {tonemap} + {encoding}; render {t_render:.2f} s incl. precompute and compile)")
     print(f"  {the_plan.describe()}")
     if args.hdr:
         exr = out.with_suffix(".exr")
         hdr_meta = {k: v for k, v in metadata.items() if k not in ("jaxpbr:tonemap", "jaxpbr:encoding", "jaxpbr:exposure_ev")}
         hdr_meta["jaxpbr:content"] = "linear scene-referred radiance, Rec.709 primaries"
-        image.write(exr, hdr, metadata=hdr_meta)
+        image.write(exr, hdr, metadata=hdr_meta)  # a failure here removes the PNG too
+        outs.add(exr)
         print(f"wrote {exr} (linear HDR, float32)")
     return 0
