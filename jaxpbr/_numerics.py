@@ -59,6 +59,8 @@ def as_float(x) -> jax.Array:
         if flat is not None and 0 < len(flat) <= 16:
             return jnp.stack([jnp.asarray(float(e)) for e in flat]).reshape(np.shape(x))
     x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.complexfloating):
+        raise TypeError(f"expected real values, got a {x.dtype} array (take .real explicitly if that is meant)")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
@@ -121,7 +123,12 @@ Vec3 = tuple  # (x, y, z), each an array of the same broadcastable batch shape
 
 
 def unpack3(x: jax.Array) -> Vec3:
-    """(..., 3) array -> tuple of three (...) arrays."""
+    """(..., 3) array -> tuple of three (...) arrays. Any other trailing size is a ValueError (an
+    index past the end would otherwise be clamped silently: a (1,) or (2,) vector padded, a (4,)
+    one truncated)."""
+    shape = jnp.shape(x)
+    if not shape or shape[-1] != 3:
+        raise ValueError(f"expected a 3-vector (..., 3), got an array of shape {tuple(shape)}")
     return (x[..., 0], x[..., 1], x[..., 2])
 
 

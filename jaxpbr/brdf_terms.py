@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from ._numerics import Vec3, pack3, saturate, unpack3, vcross, vdot, vnormalize
+from ._validate import check_values, vector
 from .material import F0_DIELECTRIC, Material
 
 __all__ = [
@@ -455,8 +456,12 @@ def brdf_soa(
     diffuse: str = "lambert",
     shader_epsilon: float = 1e-4,
 ) -> Vec3:
-    """Per-channel BRDF planes, masked by `g.front` (options already validated)."""
+    """Per-channel BRDF planes, masked by `g.front` (options already validated).
+
+    metallic is clamped to [0, 1] like roughness to its range: a concrete Material is validated,
+    but a traced value is not, and metallic -1 made the BRDF negative (issue 13)."""
     r = floored_roughness(roughness, min_roughness)
+    metallic = jnp.clip(metallic, 0.0, 1.0)
     if model == "gltf":
         f = _gltf(g, base, metallic, r, smith=smith, diffuse=diffuse)
     else:
@@ -498,6 +503,8 @@ def brdf(
     Returns 0 where NoV <= 0 or NoL <= 0 (the light or the viewer is below the surface).
     """
     check_options(model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon)
+    # Named shape checks (always) and finiteness (concrete values): a NaN direction gave 0.
+    n, v, l = (check_values(name, vector(name, x)) for name, x in (("n", n), ("v", v), ("l", l)))
     g = geometry(n, v, l)
     f = brdf_soa(
         g,

@@ -101,7 +101,7 @@ def shade_ibl(
     ld = pre.sample(R, roughness_to_lod(r, int(meta.get("mapping_levels", pre.num_levels)), mapping=mapping))
     ebar = irr.sample(pack3(n3)) if irr is not None else None
     base = m.base_color
-    metallic = m.metallic[..., None]
+    metallic = jnp.clip(m.metallic, 0.0, 1.0)[..., None]  # as in `brdf_soa`: traced values are not validated
 
     if model == "learnopengl":
         f0 = m.f0()

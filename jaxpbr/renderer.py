@@ -1033,6 +1033,8 @@ def render_batch(
     if len({n for n, _ in sizes}) != 1:
         raise ValueError(f"render_batch inputs must share the same leading batch axis, got sizes {sorted({n for n, _ in sizes})}")
     B = sizes[0][0]
+    if B == 0:
+        raise ValueError("render_batch got an empty batch (leading axis 0); pass at least one variant")
     if materials is not None:
         materials = sizes[0][1]
         b["materials"] = materials

@@ -18,6 +18,7 @@ convention.
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Any
 
 import jax
@@ -270,6 +271,36 @@ class Plane(Pytree):
 # ------------------------------------------------------------------------------------------
 
 
+_RADIANCE_OK: dict = {}  # id(array) -> weakref of texel arrays already found finite and >= 0
+
+
+def _check_radiance(name: str, lv) -> None:
+    """Radiance texels must be finite and non-negative (checked once per concrete array, on the
+    host; tracers pass): a NaN or negative texel otherwise came out as NaN pixels of `render` and
+    NaN texels of `prefilter`, or was silently dropped by `irradiance` (issue 13)."""
+    if not is_concrete(lv):
+        return
+    hit = _RADIANCE_OK.get(id(lv))
+    if hit is not None and hit() is lv:
+        return
+    a = np.asarray(lv)
+    finite = np.isfinite(a)
+    if not finite.all():
+        raise ValueError(
+            f"{name} has {int(a.size - np.count_nonzero(finite))} NaN/Inf values; radiance must be finite "
+            "(find where they come from, or replace them explicitly, e.g. np.nan_to_num)"
+        )
+    if a.size and a.min() < 0:
+        raise ValueError(
+            f"{name} has {int(np.count_nonzero(a < 0))} negative values (min {float(a.min()):g}); radiance cannot be "
+            "negative (clamp them with np.maximum(x, 0), or use --clamp-negative on the command line)"
+        )
+    try:
+        _RADIANCE_OK[id(lv)] = weakref.ref(lv, lambda _, i=id(lv): _RADIANCE_OK.pop(i, None))
+    except TypeError:
+        pass
+
+
 class Environment(Pytree):
     """Distant lighting from a cube map, also drawn as the background.
 
@@ -309,6 +340,11 @@ class Environment(Pytree):
             x = getattr(self, name)
             if x is not None and not isinstance(x, Cubemap):
                 raise TypeError(f"Environment.{name} must be a Cubemap or None")
+        for name in ("radiance", "irradiance", "prefiltered"):
+            cube = getattr(self, name)
+            if cube is not None:
+                for m, lv in enumerate(cube.levels):
+                    _check_radiance(f"Environment.{name}.levels[{m}]", lv)
         if self.lut is not None:
             lut = jnp.asarray(self.lut)
             if lut.ndim != 3 or lut.shape[-1] != 2:

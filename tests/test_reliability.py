@@ -17,9 +17,12 @@ import sys
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxpbr as jp
 from jaxpbr import image
 
 
@@ -281,3 +284,56 @@ def test_render_to_a_read_only_folder_is_refused_before_rendering(tmp_path):
         assert "render " not in res.stdout
     finally:
         subprocess.run(["umount", str(mnt)], capture_output=True)
+
+
+# ------------------------------------------------------------------------------ API misuse
+
+
+@pytest.mark.parametrize("shape", [(1,), (2,), (4,), (5,), ()])
+def test_brdf_refuses_vectors_that_are_not_3_vectors(shape):
+    good = np.array([0.0, 0.0, 1.0])
+    bad = np.ones(shape)
+    m = jp.Material()
+    for args in ((bad, good, good), (good, bad, good), (good, good, bad)):
+        with pytest.raises(ValueError, match=r"trailing axis of 3|3-vector"):
+            jp.brdf(*args, m)
+
+
+def test_brdf_refuses_a_nan_direction_and_names_it():
+    good = np.array([0.0, 0.0, 1.0])
+    with pytest.raises(ValueError, match="^n contains NaN"):
+        jp.brdf(np.array([np.nan, 0.0, 1.0]), good, good, jp.Material())
+
+
+def test_traced_metallic_out_of_range_is_clamped_not_negative():
+    n = jnp.array([0.0, 0.0, 1.0])
+    v = jnp.array([0.0, 0.6, 0.8])
+    l = jnp.array([0.6, 0.0, 0.8])
+
+    def f(met):  # a traced metallic is not validated (its value does not exist yet)
+        return jp.brdf(n, v, l, jp.Material(base_color=(0.9, 0.5, 0.2), metallic=met, roughness=0.5))
+
+    low, high = jax.jit(f)(-1.0), jax.jit(f)(2.0)
+    np.testing.assert_array_equal(np.asarray(low), np.asarray(jax.jit(f)(0.0)))
+    np.testing.assert_array_equal(np.asarray(high), np.asarray(jax.jit(f)(1.0)))
+    assert np.all(np.asarray(low) >= 0)
+
+
+def test_complex_values_are_refused():
+    with pytest.raises(TypeError, match="real values"):
+        jp.Material(roughness=0.5 + 0.1j)
+
+
+def test_render_batch_refuses_an_empty_batch():
+    scene = jp.Scene(camera=jp.Camera(width=4, height=4), objects=[jp.Sphere(center=(0, 0, -3))])
+    mats = jp.Material(base_color=np.zeros((0, 3)), metallic=np.zeros(0), roughness=np.zeros(0))
+    with pytest.raises(ValueError, match="empty batch"):
+        jp.render_batch(scene, materials=mats)
+
+
+@pytest.mark.parametrize("bad, what", [(np.nan, "NaN"), (-1.0, "negative")])
+def test_environment_refuses_nan_and_negative_radiance(bad, what):
+    lv = np.ones((6, 4, 4, 3), np.float32)
+    lv[2, 1, 1, 0] = bad
+    with pytest.raises(ValueError, match=what):
+        jp.Environment(radiance=jp.Cubemap([lv]))
