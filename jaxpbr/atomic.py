@@ -8,6 +8,7 @@ wrote is removed again (no partial results). `write_json` is the atomic JSON sid
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import secrets
@@ -34,7 +35,59 @@ def atomic_write(path, writer) -> None:
         raise IsADirectoryError(f"cannot write {str(path)!r}: it is an existing directory")
 
     # Hidden name in the same directory (so os.replace is an atomic rename on one file system), keeping the
-    # extension last. Created with O_EXCL and mode 0o666 so the umask applies as for any new file.
+    # extension last. Created with O_EXCL and mode 0o666 so the umask applies as for any new file. The
+    # creation is a critical section: a signal arriving between the creation and the cleanup's reach
+    # would leave the empty temporary file behind.
+    tmp = fd = None
+    try:
+        with critical():
+            tmp, fd = _create_temp(path)
+        os.close(fd)
+        fd = None
+        writer(str(tmp))
+        with critical():
+            os.replace(tmp, path)
+            tmp = None  # in place: nothing left to clean up
+    except BaseException as e:
+        if fd is not None:
+            os.close(fd)
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
+        if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, PermissionError)):
+            raise OSError(f"failed to write {str(path)!r}: {e}") from e
+        raise
+
+
+_CRITICAL = [0]
+#: Called (no arguments) when the outermost critical section ends; the command line registers the
+#: re-raise of a signal it deferred during the section.
+CRITICAL_EXIT_HOOKS: list = []
+
+
+@contextlib.contextmanager
+def critical():
+    """A few statements that must not be cut in two by a signal (creating a temporary file and
+    taking it in charge; renaming it into place). The command line's signal handlers consult
+    `in_critical()` and defer the interrupt to the end of the section."""
+    _CRITICAL[0] += 1
+    try:
+        yield
+    finally:
+        _CRITICAL[0] -= 1
+        if _CRITICAL[0] == 0:
+            for hook in CRITICAL_EXIT_HOOKS:
+                hook()
+
+
+def in_critical() -> bool:
+    return _CRITICAL[0] > 0
+
+
+def _create_temp(path: Path):
+    parent = path.parent
     for _ in range(100):
         tmp = parent / f".{path.stem}.tmp-{secrets.token_hex(4)}{path.suffix}"
         try:
@@ -48,19 +101,7 @@ def atomic_write(path, writer) -> None:
             ) from e
     else:  # pragma: no cover - 100 random collisions
         raise OSError(f"cannot create a temporary file in {str(parent)!r}")
-    os.close(fd)
-
-    try:
-        writer(str(tmp))
-        os.replace(tmp, path)
-    except BaseException as e:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, PermissionError)):
-            raise OSError(f"failed to write {str(path)!r}: {e}") from e
-        raise
+    return tmp, fd
 
 
 @keyword_only("outputs")
@@ -73,9 +114,9 @@ def write_json(path, data, *, outputs: "OutputSet | None" = None) -> Path:
         with open(tmp, "w") as f:
             f.write(text)
 
-    atomic_write(path, writer)
     if outputs is not None:
-        outputs.add(path)
+        outputs.add(path)  # before the write: a signal right after the rename still rolls it back
+    atomic_write(path, writer)
     return path
 
 
@@ -106,7 +147,13 @@ class OutputSet:
         return path
 
     def add(self, path) -> None:
-        self.written.append(Path(path))
+        """Register a file this command writes -- *before* writing it, so that a failure or a
+        signal at any moment removes it. A file already there is protected (`protect`): a rollback
+        puts its old content back instead of deleting it."""
+        path = Path(path)
+        if path not in self.written:
+            self.protect([path])
+            self.written.append(path)
 
     def protect(self, paths) -> None:
         """Keep the current content of these existing files (before any work): a rollback puts it

@@ -128,15 +128,17 @@ def write_cubemap(path, cube: Cubemap, *, fmt: str = "rgba16f", metadata: dict |
             return write_cubemap(path, cube, fmt=fmt, metadata=metadata, outputs=own)
     levels = [np.asarray(lv, np.float32) for lv in cube.levels]
     flat_meta = {f"jaxpbr:{k}": (v if isinstance(v, str) else json.dumps(v)) for k, v in metadata.items()}
+    # Each file is registered before it is written, so that a failure or a signal at any point
+    # (even between the rename into place and the registration) removes it.
     if path.suffix.lower() == ".ktx2":
-        write_ktx2(path, levels, fmt=fmt, metadata=flat_meta)
         outputs.add(path)
+        write_ktx2(path, levels, fmt=fmt, metadata=flat_meta)
         return [str(path)]
     names = []
     for m, lv in enumerate(levels):
         for f in range(6):
             p = path.with_name(f"{path.stem}_m{m}_{FACE_FILE_NAMES[f]}.exr")
-            image.write(p, lv[f], metadata={**metadata, "jaxpbr:mip": m, "jaxpbr:face": FACE_FILE_NAMES[f]})
             outputs.add(p)
+            image.write(p, lv[f], metadata={**metadata, "jaxpbr:mip": m, "jaxpbr:face": FACE_FILE_NAMES[f]})
             names.append(str(p))
     return names

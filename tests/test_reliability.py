@@ -217,15 +217,16 @@ def test_output_set_protect_restores_replaced_files_and_cleans_up(tmp_path):
         with OutputSet() as outs:
             outs.protect([a, b, c])  # c does not exist yet
             for p in (a, c):
+                outs.add(p)  # registered before the write (the protocol)
                 atomic_write(p, lambda tmp: Path(tmp).write_text("new"))
-                outs.add(p)
+            outs.add(b)  # registered, failure before it is written: its old content stays
             raise RuntimeError("fails midway")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
     assert a.read_text() == "old a" and b.read_text() == "old b"
     with OutputSet() as outs:
         outs.protect([a, b])
-        atomic_write(a, lambda tmp: Path(tmp).write_text("new a"))
         outs.add(a)
+        atomic_write(a, lambda tmp: Path(tmp).write_text("new a"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]  # no backups left
     assert a.read_text() == "new a" and b.read_text() == "old b"
 

@@ -13,6 +13,7 @@ import signal
 import sys
 import warnings
 
+from .. import atomic
 from .._version import __version__
 from . import (
     bench_grad,
@@ -78,7 +79,12 @@ def _catch_signals():
     def handler(signum, frame):
         exc = Terminated if signum == signal.SIGTERM else KeyboardInterrupt
         PENDING[0] = exc
+        if atomic.in_critical():  # raised when the section ends (atomic.CRITICAL_EXIT_HOOKS)
+            return
         raise exc()
+
+    if raise_pending not in atomic.CRITICAL_EXIT_HOOKS:
+        atomic.CRITICAL_EXIT_HOOKS.append(raise_pending)
 
     previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):

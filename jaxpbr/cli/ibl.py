@@ -138,8 +138,8 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
         "alpha": "alpha = r^2 (r perceptual roughness)",
     }
     rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), lut.dtype)], -1)
+    outs.add(out)  # registered before the write (see cubeio.write_cubemap)
     image.write(out, rgb, metadata={f"jaxpbr:{k}": v for k, v in meta.items()} | {"jaxpbr:max_abs_error": err["max"] if err else -1.0})
-    outs.add(out)
     side = {
         "kind": "brdf_lut",
         "file": out.name,

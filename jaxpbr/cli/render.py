@@ -167,15 +167,15 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         "jaxpbr:conventions": CONVENTIONS,
     }
     raise_pending()
-    image.write(out, display, bits=args.bits, encoding=encoding, encoded=True, metadata=metadata)
     outs.add(out)
+    image.write(out, display, bits=args.bits, encoding=encoding, encoded=True, metadata=metadata)
     print(f"wrote {out} ({W}x{H}, model {model}, {tonemap} + {encoding}; render {t_render:.2f} s incl. precompute and compile)")
     print(f"  {the_plan.describe()}")
     if args.hdr:
         exr = out.with_suffix(".exr")
         hdr_meta = {k: v for k, v in metadata.items() if k not in ("jaxpbr:tonemap", "jaxpbr:encoding", "jaxpbr:exposure_ev")}
         hdr_meta["jaxpbr:content"] = "linear scene-referred radiance, Rec.709 primaries"
-        image.write(exr, hdr, metadata=hdr_meta)  # a failure here removes the PNG too
         outs.add(exr)
+        image.write(exr, hdr, metadata=hdr_meta)  # a failure here removes the PNG too
         print(f"wrote {exr} (linear HDR, float32)")
     return 0

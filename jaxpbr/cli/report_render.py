@@ -312,11 +312,12 @@ def write_report(result: dict, output_dir, *, prefix: str = "render_report", log
     with OutputSet() as outs:  # all of them or none: a failure removes what was already written
         for suffix, text in ((".md", markdown(result)), (".json", to_json(result))):
             path = d / f"{prefix}{suffix}"
-            atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
             outs.add(path)
+            atomic_write(path, lambda tmp, text=text: Path(tmp).write_text(text))
         png = d / f"{prefix}.png"
-        if plot(result, png):
+        if have_matplotlib():
             outs.add(png)
+            plot(result, png)
         else:
             log("matplotlib is not installed: wrote the table and JSON only, no figure (pip install 'jaxpbr[report]')")
     return list(outs.written)
