@@ -67,6 +67,9 @@ def load_environment(paths, face_size: int | None = None, *, clamp_negative: boo
             img = img[..., None]
         if img.shape[-1] == 4:
             img = img[..., :3]
+        elif img.shape[-1] in (1, 2):  # grey (+ alpha): the same radiance in R, G and B
+            # (issue 13: a 1-channel EXR passed here and failed at the KTX2 write after the work)
+            img = np.repeat(img[..., :1], 3, axis=-1)
         bad = ~np.isfinite(img)
         if bad.any():
             raise InputError(f"{p!r} has {int(bad.any(-1).sum())} pixels with NaN/Inf values; fix the image first")

@@ -338,3 +338,31 @@ def test_environment_refuses_nan_and_negative_radiance(bad, what):
     lv[2, 1, 1, 0] = bad
     with pytest.raises(ValueError, match=what):
         jp.Environment(radiance=jp.Cubemap([lv]))
+
+
+def test_a_grey_panorama_becomes_rgb_radiance(tmp_path):
+    from jaxpbr.cubeio import load_environment
+
+    grey = tmp_path / "grey.exr"
+    image.write(grey, np.full((16, 32), 2.0, np.float32))
+    cube = load_environment(str(grey), 8)
+    assert cube.channels == 3
+    np.testing.assert_allclose(np.asarray(cube.levels[0]), 2.0, rtol=1e-6)
+
+
+def test_ibl_checks_every_output_before_any_work(tmp_path):
+    (tmp_path / "brdf_lut.exr").mkdir()  # the last output cannot be written
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "jaxpbr", "ibl", "procedural:sky", "--face-size", "16", "--out-dir", str(tmp_path)],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "brdf_lut.exr" in r.stderr, r.stderr
+    assert "wrote" not in r.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["brdf_lut.exr"]
+    assert time.monotonic() - t0 < 60
+
+
+def test_report_precompute_checks_its_output_before_the_sweep(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "jaxpbr", "report", "precompute", "--quick", "--out", str(tmp_path / "nope" / "rep")],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 2 and "does not exist" in r.stderr, r.stderr
+    assert "sweep" not in r.stderr.lower() or len(r.stderr.splitlines()) == 1

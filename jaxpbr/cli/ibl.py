@@ -254,6 +254,10 @@ def cmd_ibl(args) -> int:
         # A complete set already there is kept until the new one is complete: an interrupted
         # or failed re-bake puts the old files back (issue 13: it left a mix naming a missing file).
         outs.protect(p for stem in ("irradiance", "prefiltered", "brdf_lut", "ibl") for p in d.glob(f"{stem}*"))
+        # Every output checked before any work (issue 13: the LUT's was checked after the cubes).
+        for name, suffixes in (("irradiance.ktx2", (".ktx2",)), ("prefiltered.ktx2", (".ktx2",)),
+                               ("brdf_lut.exr", (".exr",)), ("ibl.json", (".json",))):
+            _checked(outs, d / name, suffixes)
         env = load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
         args.output = None
         irr = _irradiance(args, outs, env=env, out_path=d / "irradiance.ktx2", size=args.irradiance_size, method=args.irradiance_method)

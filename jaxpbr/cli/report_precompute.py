@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from .. import envs
-from ..atomic import atomic_write
+from ..atomic import OutputSet, atomic_write
 from ..cubeio import load_environment
 from ..diffuse import irradiance
 from ..errors import InputError
@@ -164,6 +164,9 @@ def cmd_report_precompute(args) -> int:
     for p in args.env:
         if not Path(p).exists():
             raise InputError(f"environment file {p!r} does not exist")
+    # The outputs checked before the sweep (issue 13: a bad --out was found after 20-38 s of it).
+    for suffix in (".md", ".png"):
+        OutputSet().check(Path(f"{args.out}{suffix}"), (suffix,))
     md, _ = precompute_report(args.env, out_prefix=args.out, face_size=args.face_size, quick=args.quick, log=lambda m: print(m, file=sys.stderr))
     print(md)
     png = Path(f"{args.out}.png")
