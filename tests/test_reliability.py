@@ -366,3 +366,40 @@ def test_report_precompute_checks_its_output_before_the_sweep(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "does not exist" in r.stderr, r.stderr
     assert "sweep" not in r.stderr.lower() or len(r.stderr.splitlines()) == 1
+
+
+# ------------------------------------------------------------------------------- huge sizes
+
+
+@pytest.mark.parametrize(
+    "args, flag",
+    [
+        (["lut", "--size", "100000", "-o", "{d}/x.exr"], "--size"),
+        (["render", "--width", "100000", "--height", "100000", "-o", "{d}/x.png"], "--width/--height"),
+        (["prefilter", "procedural:sky", "--face-size", "100000", "-o", "{d}/x.ktx2"], "--face-size"),
+        (["irradiance", "procedural:sky", "--size", "100000", "-o", "{d}/x.ktx2"], "--size"),
+        (["ibl", "procedural:sky", "--face-size", "100000", "--out-dir", "{d}"], "--face-size"),
+    ],
+)
+def test_huge_sizes_are_refused_before_any_work_naming_the_flag(tmp_path, args, flag):
+    """They aborted inside XLA (exit 134 with a C++ stack) or printed NumPy's allocation error."""
+    t0 = time.monotonic()
+    r = subprocess.run([sys.executable, "-m", "jaxpbr", *[a.format(d=tmp_path) for a in args]],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "GB of memory" in lines[0] and flag in lines[0] and "JAXPBR_MEMORY_LIMIT" in lines[0], r.stderr
+    assert list(tmp_path.iterdir()) == []
+    assert time.monotonic() - t0 < 60
+
+
+def test_the_memory_limit_can_be_set(monkeypatch):
+    from jaxpbr.cli._common import CLIError, require_memory
+
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "1")
+    require_memory("a small thing", 0.5e9, "lower it")
+    with pytest.raises(CLIError, match=r"needs about 2 GB of memory, more than the 1 GB available; lower it"):
+        require_memory("a big thing", 2e9, "lower it")
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "lots")
+    with pytest.raises(CLIError, match="number of gigabytes"):
+        require_memory("anything", 1.0, "x")

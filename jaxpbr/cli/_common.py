@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -81,3 +82,41 @@ def have_matplotlib() -> bool:
     except ImportError:
         return False
     return isinstance(getattr(matplotlib, "__file__", None), str)
+
+
+#: Memory limit override (GB): `JAXPBR_MEMORY_LIMIT=64 jaxpbr ...` (default: the memory available now).
+MEMORY_ENV = "JAXPBR_MEMORY_LIMIT"
+
+
+def available_memory() -> float:
+    """Bytes the command may use: $JAXPBR_MEMORY_LIMIT (GB) if set, else MemAvailable from
+    /proc/meminfo (else the physical memory)."""
+    own = os.environ.get(MEMORY_ENV)
+    if own:
+        try:
+            return float(own) * 1e9
+        except ValueError:
+            raise CLIError(f"{MEMORY_ENV} must be a number of gigabytes, got {own!r}") from None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return float("inf")
+
+
+def require_memory(what: str, nbytes: float, fix: str) -> None:
+    """Refuse before any work when `what` would need more memory than is available (issue 13:
+    huge sizes aborted inside XLA with a C++ stack, or ran the machine out of memory). The
+    estimates are per-texel / per-pixel costs measured on the CPU backend, rounded up."""
+    limit = available_memory()
+    if nbytes > limit:
+        raise CLIError(
+            f"{what} needs about {nbytes / 1e9:.3g} GB of memory, more than the {limit / 1e9:.3g} GB available; "
+            f"{fix}, or set {MEMORY_ENV}=<GB> to allow more"
+        )

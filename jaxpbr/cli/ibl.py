@@ -20,11 +20,11 @@ from ..conventions import cube_conventions, library_versions
 from ..cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
 from ..diffuse import irradiance, sh9_project
 from ..errors import InputError
-from ..lut import SMITH_ALIASES, SMITH_VARIANTS
+from ..lut import SMITH_ALIASES, SMITH_VARIANTS, _lut_shape
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..shipped_luts import brdf_lut
 from ..specular import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES, prefilter
-from ._common import Progress, positive_int_arg, raise_pending
+from ._common import Progress, positive_int_arg, raise_pending, require_memory
 
 __all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
 
@@ -102,6 +102,28 @@ def _prefilter_args(p):
     p.add_argument("--exact-texels", type=int, default=DEFAULT_EXACT_TEXELS, help="brightest texels convolved exactly (default: %(default)s; 0 = off)")
 
 
+#: Peak memory per unit, measured on the CPU backend (`/usr/bin/time -v`, issue 13) and rounded up:
+#: prefilter ~1.1 kB per source texel (256^2: 0.66 GB, 512^2: 1.97 GB peak RSS); loading and the
+#: irradiance ~0.3 kB per source texel; the LUT ~13 B per texel at 30000^2 (12 GB); plus ~0.4 GB
+#: for the process itself.
+_BASE = 0.4e9
+_PER_TEXEL = {"prefilter": 1200.0, "irradiance": 300.0}
+
+
+def _guard_cube(kind: str, face_size) -> None:
+    if face_size:
+        require_memory(f"a {kind} of a {face_size}^2 cube", _BASE + _PER_TEXEL[kind] * 6 * face_size**2, "lower --face-size")
+
+
+def _load(args, kind: str):
+    """The environment, with the memory its processing needs checked before and after loading (the
+    face size may come from the panorama)."""
+    _guard_cube(kind, args.face_size)
+    env = load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
+    _guard_cube(kind, env.face_size)
+    return env
+
+
 def _checked(outs: OutputSet, path: Path, suffixes) -> Path:
     """The output path validated before any work, and what it will replace protected: the file,
     its JSON sidecar and, for EXR cubes, its per-mip face files keep their old content until the
@@ -124,6 +146,8 @@ def cmd_lut(args) -> int:
 
 def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
     out = _checked(outs, Path(out_path or args.output), (".exr",))
+    n_r, n_nov = _lut_shape(args.size)
+    require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --size")
     t0 = time.perf_counter()
     smith = SMITH_ALIASES.get(args.smith, args.smith)
     if smith != args.smith:
@@ -165,8 +189,9 @@ def cmd_irradiance(args) -> int:
 def _irradiance(args, outs: OutputSet, env=None, out_path: Path | None = None, size=None, method=None) -> dict:
 
     out = _checked(outs, Path(out_path or args.output), (".ktx2", ".exr"))
-    env = env if env is not None else load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
     size = size or args.size
+    require_memory(f"a {size}^2 irradiance map", _BASE + 50.0 * 6 * size**2, "lower --size")
+    env = env if env is not None else _load(args, "irradiance")
     method = method or args.method
     t0 = time.perf_counter()
     irr = irradiance(env, size, method=method)
@@ -207,7 +232,7 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
     out = _checked(outs, Path(out_path or args.output), (".ktx2", ".exr"))
     if args.exact_texels < 0:
         raise InputError(f"--exact-texels must be >= 0, got {args.exact_texels}")
-    env = env if env is not None else load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
+    env = env if env is not None else _load(args, "prefilter")
     t0 = time.perf_counter()
     pre = prefilter(
         env,
@@ -258,7 +283,9 @@ def cmd_ibl(args) -> int:
         for name, suffixes in (("irradiance.ktx2", (".ktx2",)), ("prefiltered.ktx2", (".ktx2",)),
                                ("brdf_lut.exr", (".exr",)), ("ibl.json", (".json",))):
             _checked(outs, d / name, suffixes)
-        env = load_environment(args.env, args.face_size, clamp_negative=args.clamp_negative)
+        n_r, n_nov = _lut_shape(args.lut_size)
+        require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --lut-size")
+        env = _load(args, "prefilter")
         args.output = None
         irr = _irradiance(args, outs, env=env, out_path=d / "irradiance.ktx2", size=args.irradiance_size, method=args.irradiance_method)
         pre = _prefilter(args, outs, env=env, out_path=d / "prefiltered.ktx2")
