@@ -42,11 +42,13 @@ def atomic_write(path, writer) -> None:
     try:
         with critical():
             tmp, fd = _create_temp(path)
+            _TEMPS.add(tmp)
         os.close(fd)
         fd = None
         writer(str(tmp))
         with critical():
             os.replace(tmp, path)
+            _TEMPS.discard(tmp)
             tmp = None  # in place: nothing left to clean up
     except BaseException as e:
         if fd is not None:
@@ -56,9 +58,31 @@ def atomic_write(path, writer) -> None:
                 os.unlink(tmp)
             except FileNotFoundError:
                 pass
+            _TEMPS.discard(tmp)
         if isinstance(e, OSError) and not isinstance(e, (FileNotFoundError, PermissionError)):
             raise OSError(f"failed to write {str(path)!r}: {e}") from e
         raise
+
+
+#: Output sets open now and temporary files that exist now, for `emergency_rollback`.
+_ACTIVE_SETS: list = []
+_TEMPS: set = set()
+
+
+def emergency_rollback() -> None:
+    """Undo every open `OutputSet` and remove every temporary file, from any thread: for a
+    process about to exit while its main thread is stuck in a long native call (the command
+    line's signal watchdog)."""
+    for tmp in list(_TEMPS):
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+    for outs in list(_ACTIVE_SETS):
+        try:
+            outs.rollback()
+        except OSError:
+            pass
 
 
 _CRITICAL = [0]
@@ -196,9 +220,12 @@ class OutputSet:
         self._backups.clear()
 
     def __enter__(self) -> "OutputSet":
+        _ACTIVE_SETS.append(self)
         return self
 
     def __exit__(self, exc_type, exc, tb) -> bool:
+        if self in _ACTIVE_SETS:
+            _ACTIVE_SETS.remove(self)
         if exc_type is not None:
             self.rollback()
         else:

@@ -403,3 +403,26 @@ def test_the_memory_limit_can_be_set(monkeypatch):
     monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "lots")
     with pytest.raises(CLIError, match="number of gigabytes"):
         require_memory("anything", 1.0, "x")
+
+
+def test_sigterm_during_a_long_native_call_acts_within_seconds(tmp_path):
+    """While the main thread sits in one long XLA computation, Python cannot run a signal handler;
+    the watchdog thread rolls back and exits with the signal's status after a short grace period
+    (a `timeout` SIGTERM was otherwise ignored until the computation ended: minutes)."""
+    env = dict(os.environ, JAXPBR_COMPILATION_CACHE="off")
+    p = subprocess.Popen([sys.executable, "-m", "jaxpbr", "lut", "--size", "6000", "-o", str(tmp_path / "big.exr"), "--no-error"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        time.sleep(4.0)  # past start-up, inside the LUT computation
+        assert p.poll() is None, "finished too early to probe"
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=30)
+        waited = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines()[-1] == "jaxpbr: terminated"
+    assert waited < 10, waited
+    assert list(tmp_path.iterdir()) == []

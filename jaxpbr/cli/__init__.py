@@ -11,6 +11,7 @@ import argparse
 import os
 import signal
 import sys
+import threading
 import warnings
 
 from .. import atomic
@@ -95,6 +96,42 @@ def _catch_signals():
     return previous
 
 
+#: Seconds the main thread gets to act on SIGINT / SIGTERM before the watchdog does it.
+SIGNAL_GRACE_S = 2.0
+_HANDLED = threading.Event()
+
+
+def _start_watchdog() -> None:
+    """Python runs signal handlers in the main thread between bytecodes, so while that thread is
+    inside a long XLA compilation or computation an interrupt waits (a `timeout` SIGTERM was
+    ignored for minutes; the issue measured up to 13 s for SIGINT). The C-level handler also
+    writes the signal number to a wakeup pipe; this thread reads it and, if the main thread has
+    not acted within SIGNAL_GRACE_S, rolls back every open output set, removes temporary files,
+    prints the one line and exits with the signal's status itself."""
+    try:
+        r, w = os.pipe()
+        os.set_blocking(w, False)
+        signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    except (ValueError, OSError):  # not the main thread, or no pipes: no watchdog
+        return
+
+    def watch():
+        while True:
+            data = os.read(r, 1)
+            if not data or data[0] not in (signal.SIGINT, signal.SIGTERM):
+                continue
+            if _HANDLED.wait(SIGNAL_GRACE_S):
+                return
+            atomic.emergency_rollback()
+            term = data[0] == signal.SIGTERM
+            try:
+                os.write(2, b"jaxpbr: terminated\n" if term else b"jaxpbr: interrupted\n")
+            finally:
+                os._exit(128 + signal.SIGTERM if term else 130)
+
+    threading.Thread(target=watch, name="jaxpbr-signal-watchdog", daemon=True).start()
+
+
 def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -103,6 +140,8 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
         return 0
     if entry is None:  # the console script and `python -m jaxpbr` call main() with sys.argv
         entry = argv is None
+    if entry:
+        _start_watchdog()
     _cache.enable()
     _cache.enable_assets()
     PENDING[0] = None
@@ -114,6 +153,7 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
             raise_pending()  # a signal whose exception was swallowed (files already final: report it)
             return code
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (Terminated): files already rolled back
+        _HANDLED.set()
         terminated = isinstance(exc, Terminated)
         print("jaxpbr: terminated" if terminated else "jaxpbr: interrupted", file=sys.stderr)
         code = 128 + signal.SIGTERM if terminated else 130
