@@ -274,6 +274,8 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
 def cmd_ibl(args) -> int:
     def go(outs):
         d = Path(args.out_dir)
+        if d.exists() and not d.is_dir():
+            raise InputError(f"--out-dir {str(d)!r} is a file, not a folder; give a folder")
         if not d.is_dir():
             raise InputError(f"--out-dir {str(d)!r} does not exist; create it first")
         # A complete set already there is kept until the new one is complete: an interrupted
