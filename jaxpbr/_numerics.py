@@ -9,6 +9,7 @@ where using where").
 
 from __future__ import annotations
 
+import weakref
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -23,7 +24,9 @@ __all__ = [
     "dot",
     "eps",
     "is_concrete",
+    "map_row_chunks",
     "outside_traces",
+    "remember_per_array",
     "with_callers_context",
     "pack3",
     "safe_div",
@@ -225,3 +228,39 @@ def with_callers_context(compute):
             return compute()
 
     return run
+
+
+def remember_per_array(cache: dict, x, tag, compute):
+    """compute(), remembered per (array object, tag) in `cache` for as long as the array lives.
+
+    Arrays are immutable, so a value derived from one (a content hash, a range, a validity
+    check) holds while the object exists: the weak reference drops the entry with the array, and
+    the identity test guards against a new array that reuses a freed one's id. Objects that are
+    not weak-referenceable are not remembered."""
+    key = (id(x), tag)
+    hit = cache.get(key)
+    if hit is not None and hit[0]() is x:
+        return hit[1]
+    value = compute()
+    try:
+        cache[key] = (weakref.ref(x, lambda _, k=key: cache.pop(k, None)), value)
+    except TypeError:
+        pass
+    return value
+
+
+def map_row_chunks(fn, chunk: int, *xs):
+    """fn(*chunks) over fixed-size chunks of the leading axis of the arrays xs (all of length N),
+    with `lax.map` (one compiled loop body, not an unrolled Python loop); the last chunk is padded
+    with copies of the first row and the padding dropped again. -> (N, ...)."""
+    N = xs[0].shape[0]
+    chunk = min(chunk, N)
+    pad = (-N) % chunk
+
+    def prep(x):
+        if pad:
+            x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
+        return x.reshape((-1, chunk) + x.shape[1:])
+
+    out = jax.lax.map(lambda c: fn(*c), tuple(prep(x) for x in xs))
+    return out.reshape((-1,) + out.shape[2:])[:N]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import importlib.metadata
 import platform
 
-
 #: Rec.709 / sRGB luminance weights of linear RGB (ITU-R BT.709, Y = 0.2126 R + 0.7152 G + 0.0722 B).
 REC709_LUMA = (0.2126, 0.7152, 0.0722)
 

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import HIGHEST
+from ._numerics import HIGHEST, map_row_chunks
 from ._validate import positive_int
 from .cubemap import (
     _FACE_TABLE,
@@ -177,9 +177,6 @@ def _irradiance_at(level0, n, *, method: str, source_size: int, chunk: int):
 
 
 def _exact_conv(n, lm, *, chunk):
-    N = n.shape[0]
-    pad = (-N) % chunk
-    npad = jnp.concatenate([n, jnp.zeros((pad, 3), n.dtype)]).reshape(-1, chunk, 3)
     lmT = jnp.transpose(lm, (2, 0, 1)).reshape(3, -1)  # (3, Ns*C)
 
     def one(nc):
@@ -188,8 +185,7 @@ def _exact_conv(n, lm, *, chunk):
         dots = jnp.matmul(nc, lmT, precision=HIGHEST).reshape(nc.shape[0], -1, lm.shape[1])
         return jnp.sum(jnp.maximum(dots, 0.0), axis=1) / math.pi
 
-    out = jax.lax.map(one, npad)
-    return out.reshape(-1, lm.shape[1])[:N]
+    return map_row_chunks(one, chunk, n)
 
 
 def _source_size(S: int, source_size: int | None) -> int:

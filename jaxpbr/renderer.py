@@ -28,7 +28,6 @@ import hashlib
 import json
 import math
 import threading
-import weakref
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -44,7 +43,18 @@ from . import (  # called through the module: tests count precompute calls
     specular,
 )
 from ._api import keyword_only
-from ._numerics import is_concrete, outside_traces, with_callers_context, pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from ._numerics import (
+    is_concrete,
+    outside_traces,
+    pack3,
+    remember_per_array,
+    small_sq,
+    unpack3,
+    vcross,
+    vdot,
+    vnormalize,
+    with_callers_context,
+)
 from ._pytree import Pytree, evolve, fields_of, unchecked
 from ._validate import positive_int
 from ._version import __version__
@@ -161,7 +171,7 @@ class RenderPlan:
 # ------------------------------------------------------------------------------------------
 
 
-_RANGES: dict = {}  # (id(array), reduction) -> (weakref to the array, value)
+_RANGES: dict = {}  # (id(array), (op, channel)) -> (weakref to the array, value)
 #: Arrays up to this many elements are reduced on the host (copying them costs less than a program).
 _HOST_REDUCE_MAX = 64
 
@@ -181,25 +191,18 @@ def _bound(x, op: str, fallback: float, channel: int | None = None) -> float:
     immutable): rendering the same scene again copies nothing."""
     if x is None or not is_concrete(x):
         return fallback
-    if not isinstance(x, jax.Array):
+
+    def host():
         a = np.asarray(x)
         a = a if channel is None else a[..., channel]
         return float(a.max() if op == "max" else a.min())
-    memo = (id(x), op, channel)
-    hit = _RANGES.get(memo)
-    if hit is not None and hit[0]() is x:
-        return hit[1]
+
+    if not isinstance(x, jax.Array):
+        return host()
     if x.size <= _HOST_REDUCE_MAX:  # a material constant: a few bytes to copy
-        a = np.asarray(x)
-        a = a if channel is None else a[..., channel]
-        value = float(a.max() if op == "max" else a.min())
-    else:  # per-pixel maps: on the device, outside any trace the caller may be in (plan runs at trace time)
-        value = outside_traces(lambda: float(_reduce(x, op=op, channel=channel)))
-    try:
-        _RANGES[memo] = (weakref.ref(x, lambda _, k=memo: _RANGES.pop(k, None)), value)
-    except TypeError:  # not weak-referenceable: just do not remember
-        pass
-    return value
+        return remember_per_array(_RANGES, x, (op, channel), host)
+    # Per-pixel maps: on the device, outside any trace the caller may be in (plan runs at trace time).
+    return remember_per_array(_RANGES, x, (op, channel), lambda: outside_traces(lambda: float(_reduce(x, op=op, channel=channel))))
 
 
 def _material_ranges(m) -> tuple[float, float, bool]:
@@ -344,9 +347,9 @@ class AssetCache:
             with self._lock:
                 st["disk"] = st.get("disk", 0) + 1
         else:
+            # On another thread: a compute that closed over a tracer raises UnexpectedTracerError
+            # there instead of returning it, so the store never holds one.
             value = outside_traces(compute)
-            if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(value)):
-                raise AssertionError(f"AssetCache: the {kind} precompute returned a tracer; it depends on a traced input")
             self._save(kind, key, value)
         with self._lock:
             self._store[full] = value
@@ -367,7 +370,7 @@ class AssetCache:
         try:
             with np.load(path, allow_pickle=False) as z:
                 n = int(z["num_levels"])
-                levels = [jnp.asarray(z[f"level{i}"]) for i in range(n)]
+                levels = [jax.device_put(z[f"level{i}"]) for i in range(n)]
                 info = json.loads(str(z["info"]))
             return Cubemap(levels, info)
         except Exception:  # unreadable or from an incompatible writer: compute it again
@@ -390,7 +393,7 @@ class AssetCache:
 ASSETS = AssetCache()
 
 
-_KEYS: dict = {}  # id(level-0 array) -> (weakref to it, content key)
+_KEYS: dict = {}  # (id(level-0 array), "sha1") -> (weakref to it, content key)
 
 
 def content_key(cube: Cubemap) -> str:
@@ -399,18 +402,14 @@ def content_key(cube: Cubemap) -> str:
     Remembered per array object (arrays are immutable), so rendering the same environment again
     neither copies it to the host nor hashes it again."""
     lv = cube.levels[0]
-    hit = _KEYS.get(id(lv))
-    if hit is not None and hit[0]() is lv:
-        return hit[1]
-    a = np.ascontiguousarray(np.asarray(lv))
-    h = hashlib.sha1(a.tobytes())
-    h.update(repr((a.shape, str(a.dtype))).encode())
-    key = h.hexdigest()
-    try:
-        _KEYS[id(lv)] = (weakref.ref(lv, lambda _, i=id(lv): _KEYS.pop(i, None)), key)
-    except TypeError:  # not weak-referenceable: just do not remember
-        pass
-    return key
+
+    def digest():
+        a = np.ascontiguousarray(np.asarray(lv))
+        h = hashlib.sha1(a.tobytes())
+        h.update(repr((a.shape, str(a.dtype))).encode())
+        return h.hexdigest()
+
+    return remember_per_array(_KEYS, lv, "sha1", digest)
 
 
 def _lut_smith(opts: RenderOptions) -> str:
@@ -851,22 +850,27 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
             pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key)))
             irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key)))
             lut = _asset_lut(env, opts)
-            return _render_staged(scene, lambda: (irr.result(), pre.result(), lut), p, opts)
-    return _render_staged(scene, (lambda a: lambda: a)(_env_assets(env, p, opts) if p.ibl else None), p, opts)
+            return _supersampled(scene, opts, lambda sc, off: _render_pass(
+                sc, lambda: (irr.result(), pre.result(), lut), p, opts, off, staged=True))
+    assets = _env_assets(env, p, opts) if p.ibl else None
+    return _supersampled(scene, opts, lambda sc, off: _render_pass(sc, assets, p, opts, off, staged=True))
 
 
-def _render_staged(scene: Scene, assets, p: RenderPlan, opts: RenderOptions):
-    """`render` as separate compiled stages; assets() gives the IBL assets when the last stage needs them."""
+def _supersampled(scene: Scene, opts: RenderOptions, one_pass):
+    """The mean of one_pass(scene, offset) over the camera's s x s sub-pixel offsets, run from the
+    host one after another (`render` and `render_batch` outside transformations).
+
+    The offset is an argument, not a static value, and the passes get the scene with
+    supersample = 1 (a static field the stages do not read): one compiled program per stage
+    whatever s (before: one per offset, s^2 of them)."""
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
-    if s > 1:  # the stages do not depend on s (a static field): one program for every s
+    if s > 1:
         scene = evolve(scene, camera=evolve(scene.camera, supersample=1))
     dtype = jnp.dtype(opts.dtype)
     acc = None
     for k in range(s * s):
-        # The sub-pixel offset is an argument, not a static value: one compiled program per stage
-        # whatever the supersampling (before: one per offset, s^2 of them).
         off = jax.device_put(np.asarray(((k % s + 0.5) / s, (k // s + 0.5) / s), dtype))
-        one = _render_pass(scene, assets, p, opts, off, staged=True)
+        one = one_pass(scene, off)
         acc = one if acc is None else acc + one
     return acc if s == 1 else acc / (s * s)
 
@@ -889,6 +893,21 @@ def _staged() -> bool:
 # ------------------------------------------------------------------------------------------
 # Batches
 # ------------------------------------------------------------------------------------------
+
+
+# The batch set-up runs in NumPy for concrete inputs: each eager jnp operation would compile a
+# program of its own (a dozen for one render_batch call).
+
+
+def _broadcast_batch(x, shape):
+    return np.broadcast_to(np.asarray(x), shape) if is_concrete(x) else jnp.broadcast_to(x, shape)
+
+
+def _pad_last(x, pad: int):
+    """x with its last entry along the leading axis repeated `pad` more times."""
+    xp = np if is_concrete(x) else jnp
+    x = np.asarray(x) if xp is np else x
+    return xp.concatenate([x, xp.repeat(x[-1:], pad, axis=0)])
 
 
 def _batched(name: str, obj):
@@ -914,7 +933,7 @@ def _batched(name: str, obj):
     if len(set(sizes.values())) != 1:
         raise ValueError(f"{name}: every batched field must have the same leading batch axis, got {sizes}")
     B = next(iter(sizes.values()))
-    out = {f.name: jnp.broadcast_to(getattr(obj, f.name), (B,) + np.shape(getattr(obj, f.name))) for f in fields if f.name not in sizes}
+    out = {f.name: _broadcast_batch(getattr(obj, f.name), (B,) + np.shape(getattr(obj, f.name))) for f in fields if f.name not in sizes}
     return B, evolve(obj, **out)
 
 
@@ -1062,7 +1081,7 @@ def render_batch(
     per_dev = -(-per_dev // chunk) * chunk
     pad = per_dev * ndev - B
     if pad:
-        b = jax.tree_util.tree_map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), b)
+        b = jax.tree_util.tree_map(lambda x: _pad_last(x, pad), b)
     mesh = Mesh(np.asarray(devices), ("batch",)) if ndev > 1 else None
     leaves = jax.tree_util.tree_leaves((base, b))
     if mesh is None and _staged() and all(is_concrete(x) for x in leaves):
@@ -1102,25 +1121,25 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
     """`render_batch` on XLA:CPU: for each chunk of `chunk` images, the render's stages as
     separate programs, each vmapped over the chunk (one program over the whole chunk fuses and
     recomputes producers on XLA:CPU, measured 3x slower than a Python loop of `render`; see
-    `_render_pass`). Host loop over the chunks; the batched inputs are sliced on the host."""
-    s = 1 if scene.gbuffer is not None else scene.camera.supersample
-    if s > 1:
-        scene = evolve(scene, camera=evolve(scene.camera, supersample=1))
-    dtype = jnp.dtype(opts.dtype)
-    host = jax.tree_util.tree_map(np.asarray, b)
-    total = jax.tree_util.tree_leaves(host)[0].shape[0]
+    `_render_pass`). Host loop over the chunks."""
     kw = dict(p_plan=p_plan, opts=opts, objects_idx=objects_idx)
-    outs = []
-    for i in range(0, total, chunk):
-        bc = jax.tree_util.tree_map(lambda x: jax.device_put(x[i : i + chunk]), host)
-        acc = None
-        for k in range(s * s):
-            off = jax.device_put(np.asarray(((k % s + 0.5) / s, (k // s + 0.5) / s), dtype))
-            g = _geometry_chunk(scene, bc, off, **kw)
+    b = jax.device_put(b)  # once (set up on the host): each chunk is then cut on the device
+    total = jax.tree_util.tree_leaves(b)[0].shape[0]
+
+    def one_pass(bc):
+        def run(sc, off):
+            g = _geometry_chunk(sc, bc, off, **kw)
             for t in p_plan.textured:
-                g = _texture_chunk(scene, bc, g, k=t, **kw)
-            direct = _direct_chunk(scene, bc, g, **kw)
-            one = _rest_chunk(scene, bc, g, assets, direct, **kw)
-            acc = one if acc is None else acc + one
-        outs.append(acc if s == 1 else acc / (s * s))
+                g = _texture_chunk(sc, bc, g, k=t, **kw)
+            return _rest_chunk(sc, bc, g, assets, _direct_chunk(sc, bc, g, **kw), **kw)
+
+        return run
+
+    # The chunk is cut on the device by one program (its start is an argument).
+    outs = [_supersampled(scene, opts, one_pass(_take_chunk(b, i, n=chunk))) for i in range(0, total, chunk)]
     return jnp.concatenate(outs) if len(outs) > 1 else outs[0]
+
+
+@functools.partial(jax.jit, static_argnames=("n",))
+def _take_chunk(b, start, *, n):
+    return jax.tree_util.tree_map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, n), b)

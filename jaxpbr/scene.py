@@ -18,7 +18,6 @@ convention.
 from __future__ import annotations
 
 import math
-import weakref
 from typing import Any
 
 import jax
@@ -30,6 +29,7 @@ from ._interp import bilinear
 from ._numerics import (
     as_float,
     is_concrete,
+    remember_per_array,
     safe_div,
     safe_sqrt,
     small_sq,
@@ -271,18 +271,18 @@ class Plane(Pytree):
 # ------------------------------------------------------------------------------------------
 
 
-_RADIANCE_OK: dict = {}  # id(array) -> weakref of texel arrays already found finite and >= 0
+_RADIANCE_OK: dict = {}  # texel arrays already found finite and >= 0 (`remember_per_array`)
 
 
 def _check_radiance(name: str, lv) -> None:
     """Radiance texels must be finite and non-negative (checked once per concrete array, on the
     host; tracers pass): a NaN or negative texel otherwise came out as NaN pixels of `render` and
     NaN texels of `prefilter`, or was silently dropped by `irradiance` (issue 13)."""
-    if not is_concrete(lv):
-        return
-    hit = _RADIANCE_OK.get(id(lv))
-    if hit is not None and hit() is lv:
-        return
+    if is_concrete(lv):
+        remember_per_array(_RADIANCE_OK, lv, "radiance", lambda: _radiance_values_ok(name, lv))
+
+
+def _radiance_values_ok(name: str, lv) -> bool:
     a = np.asarray(lv)
     finite = np.isfinite(a)
     if not finite.all():
@@ -295,10 +295,7 @@ def _check_radiance(name: str, lv) -> None:
             f"{name} has {int(np.count_nonzero(a < 0))} negative values (min {float(a.min()):g}); radiance cannot be "
             "negative (clamp them with np.maximum(x, 0), or use --clamp-negative on the command line)"
         )
-    try:
-        _RADIANCE_OK[id(lv)] = weakref.ref(lv, lambda _, i=id(lv): _RADIANCE_OK.pop(i, None))
-    except TypeError:
-        pass
+    return True
 
 
 class Environment(Pytree):

@@ -34,13 +34,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._api import keyword_only
-from ._numerics import HIGHEST, is_concrete, outside_traces, safe_div
+from ._numerics import HIGHEST, is_concrete, map_row_chunks, outside_traces, safe_div
 from ._validate import positive_int
 from .conventions import luminance
 from .cubemap import (
     Cubemap,
-    _mip_count,
     _mip_chain_impl,
+    _mip_count,
     _Pyramid,
     _subtexel_points,
     face_to_dir,
@@ -166,23 +166,6 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
 FIS_BATCH = 256
 
 
-def _rows_in_chunks(fn, chunk: int, *xs):
-    """fn(*chunks) over fixed-size chunks of the leading axis of the arrays xs (all of length N),
-    with `lax.map` (one compiled loop body, not an unrolled Python loop); the last chunk is padded
-    with copies of the first row. -> (N, ...)."""
-    N = xs[0].shape[0]
-    chunk = min(chunk, N)
-    pad = (-N) % chunk
-
-    def prep(x):
-        if pad:
-            x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
-        return x.reshape((-1, chunk) + x.shape[1:])
-
-    out = jax.lax.map(lambda c: fn(*c), tuple(prep(x) for x in xs))
-    return out.reshape((-1,) + out.shape[2:])[:N]
-
-
 def _fis_rows_body(flat, R, table, local, w, lod, *, sizes):
     """Unnormalised sum_k w_k L(l_k) for a chunk of rows: directions R (chunk, 3), each with its
     own batch of FIS_BATCH local-frame samples (index `table` (chunk,) into local (T, k, 3), weights
@@ -201,7 +184,7 @@ def _fis_rows(flat, sizes, R, table, local, w, lod, chunk: int):
     them for every chunk, so differentiating a prefilter wrt the environment keeps the memory of
     one chunk."""
     body = jax.checkpoint(functools.partial(_fis_rows_body, sizes=sizes))
-    return _rows_in_chunks(lambda Rc, tc: body(flat, Rc, tc, local, w, lod), chunk, R, table)
+    return map_row_chunks(lambda Rc, tc: body(flat, Rc, tc, local, w, lod), chunk, R, table)
 
 
 # ------------------------------------------------------------------------------------------
@@ -364,7 +347,7 @@ def _bright_all(R, level_of, idx, bright, S0: int, alphas: tuple, chunk: int = B
         j = lc[0]  # levels are padded to whole chunks: one source set per chunk
         return _bright_chunk(Rc, sub[j], Bw[j], a2[j])
 
-    return _rows_in_chunks(jax.checkpoint(chunk_fn), chunk, R, level_of)
+    return map_row_chunks(jax.checkpoint(chunk_fn), chunk, R, level_of)
 
 
 @functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright"))
@@ -456,9 +439,6 @@ def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: in
 
 @functools.partial(jax.jit, static_argnames=("chunk",))
 def _reference_sum(R, src, Lw, alpha, *, chunk):
-    N = R.shape[0]
-    pad = (-N) % chunk
-    Rp = jnp.concatenate([R, jnp.tile(R[:1], (pad, 1))]).reshape(-1, chunk, 3)
     a2 = alpha * alpha
 
     def one(Rc):
@@ -467,8 +447,7 @@ def _reference_sum(R, src, Lw, alpha, *, chunk):
         k = jnp.maximum(c, 0.0) / (d * d)
         return jnp.matmul(k, Lw, precision=HIGHEST)
 
-    out = jax.lax.map(one, Rp)
-    return out.reshape(-1, Lw.shape[1])[:N]
+    return map_row_chunks(one, chunk, R)
 
 
 # ------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import warnings
 from .. import atomic
 from .._version import __version__
 from . import (
+    _cache,
     bench_grad,
     bench_ibl,
     bench_render,
@@ -26,7 +27,6 @@ from . import (
     report_precompute,
     report_render,
 )
-from . import _cache
 from ._common import PENDING, CLIError, Terminated, raise_pending
 
 __all__ = ["CLIError", "build_parser", "main"]

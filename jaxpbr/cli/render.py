@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import functools
 import math
-
 import time
 from pathlib import Path
 
@@ -13,8 +12,8 @@ import jax
 import numpy as np
 
 from .. import color, image
-from ..brdf_terms import MODELS
 from ..atomic import OutputSet
+from ..brdf_terms import MODELS
 from ..conventions import CONVENTIONS
 from ..demo import demo_scene
 from ..renderer import RenderOptions, plan, render
