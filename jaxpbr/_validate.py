@@ -13,8 +13,9 @@ import numbers
 import numpy as np
 
 from ._numerics import as_float, is_concrete
+from ._pytree import fields_of
 
-__all__ = ["check_values", "choice", "positive_int", "vector"]
+__all__ = ["batch_shape", "check_values", "choice", "positive_int", "vector"]
 
 
 def positive_int(name: str, value, *, minimum: int = 1, where: str | None = None, fix: str | None = None) -> int:
@@ -59,3 +60,24 @@ def check_values(name: str, x, *, lo=None, hi=None, open_lo: bool = False, finit
     if hi is not None and a.size and np.any(a > hi):
         raise ValueError(f"{name} must be <= {hi:g}, got {a.max():g}.")
     return x
+
+
+def batch_shape(where: str, *named, material=None) -> tuple:
+    """The broadcast of the inputs' batch axes, or a ValueError naming the inputs that disagree.
+
+    named: (name, array, rank) triples (rank: the trailing axes that are not batch axes, 1 for a
+    3-vector); material: a `Pytree` whose array leaves are added as "m.<field>" with their declared
+    ranks. Shapes are static, so this works on tracers too (a JAX broadcasting TypeError named
+    neither the function nor the field)."""
+    items = [(name, np.shape(x), rank) for name, x, rank in named]
+    if material is not None:
+        items += [(f"m.{f.name}", np.shape(getattr(material, f.name)), f.rank) for f in fields_of(material) if f.is_array]
+    batches = [(name, shape[: len(shape) - rank] if len(shape) >= rank else shape) for name, shape, rank in items]
+    try:
+        return np.broadcast_shapes(*(b for _, b in batches))
+    except ValueError:
+        listed = ", ".join(f"{name} {b}" for name, b in batches if b)
+        raise ValueError(
+            f"{where}: the inputs' batch axes do not broadcast ({listed}); give them equal leading axes, "
+            f"or size-1 / no batch axes for the ones shared by all"
+        ) from None

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from ._numerics import Vec3, pack3, saturate, unpack3, vcross, vdot, vnormalize
-from ._validate import check_values, vector
+from ._validate import batch_shape, check_values, vector
 from .material import F0_DIELECTRIC, Material
 
 __all__ = [
@@ -505,6 +505,7 @@ def brdf(
     check_options(model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon)
     # Named shape checks (always) and finiteness (concrete values): a NaN direction gave 0.
     n, v, l = (check_values(name, vector(name, x)) for name, x in (("n", n), ("v", v), ("l", l)))
+    batch_shape("brdf", ("n", n, 1), ("v", v, 1), ("l", l, 1), material=m)
     g = geometry(n, v, l)
     f = brdf_soa(
         g,

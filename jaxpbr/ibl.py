@@ -22,6 +22,7 @@ import jax.numpy as jnp
 
 from ._numerics import as_float, pack3, unpack3, vdot, vnormalize
 from .brdf_terms import MODELS, check_options, fresnel_schlick_roughness
+from ._validate import batch_shape
 from .cubemap import Cubemap
 from .lut import lut_lookup
 from .material import F0_DIELECTRIC, Material
@@ -85,6 +86,7 @@ def shade_ibl(
     check_options(model, what="IBL model", multiscatter=multiscatter)
     if irr is None and multiscatter:
         raise ValueError("multiscatter compensation needs the irradiance map (irr) even for metals")
+    batch_shape("shade_ibl", ("n", n, 1), ("v", v, 1), material=m)
     n3 = vnormalize(unpack3(as_float(n)))
     v3 = vnormalize(unpack3(as_float(v)))
     nov_raw = vdot(n3, v3)

@@ -32,7 +32,7 @@ from ._numerics import (
     vnormalize,
 )
 from ._pytree import Pytree, fields_of, leaf
-from ._validate import check_values, vector
+from ._validate import batch_shape, check_values, vector
 from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, geometry_soa
 from .material import Material
 
@@ -318,6 +318,7 @@ def shade_direct(
     check_options(model, min_roughness=min_roughness, **brdf_options)
     ls = pack_lights(lights)
     num = ls.num_lights
+    batch_shape("shade_direct", ("p", p, 1), ("n", n, 1), ("v", v, 1), material=m)
     p3 = unpack3(p)
     n3 = vnormalize(unpack3(n))
     v3 = vnormalize(unpack3(v))

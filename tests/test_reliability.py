@@ -324,6 +324,35 @@ def test_traced_metallic_out_of_range_is_clamped_not_negative():
     assert np.all(np.asarray(low) >= 0)
 
 
+def _batch_case(kernel):
+    """(fn, args, names): a kernel whose inputs' batch axes disagree (n, v of 10; l of 7, a
+    roughness of 4 or a v of 3), and the names the message must contain."""
+    n = np.tile([0.0, 0.0, 1.0], (10, 1))
+    v = np.tile([0.0, 0.6, 0.8], (10, 1))
+    r4 = np.full(4, 0.5)
+    if kernel == "brdf":
+        return (lambda n, v, l: jp.brdf(n, v, l, jp.Material())), (n, v, v[:7]), ("brdf", "n (10,)", "l (7,)")
+    if kernel == "brdf_material":
+        return (lambda n, v, r: jp.brdf(n, v, v, jp.Material(roughness=r))), (n, v, r4), ("brdf", "m.roughness (4,)")
+    if kernel == "shade_direct":
+        light = jp.DirectionalLight(direction=(0.0, -1.0, 0.0))
+        fn = lambda n, v, r: jp.shade_direct(jnp.zeros_like(n), n, v, jp.Material(roughness=r), [light])  # noqa: E731
+        return fn, (n, v, r4), ("shade_direct", "m.roughness (4,)")
+    env = jp.Cubemap([np.ones((6, 2, 2, 3), np.float32)])
+    lut = np.ones((4, 4, 2), np.float32)
+    return (lambda n, v: jp.shade_ibl(n, v, jp.Material(), env, env, lut)), (n, v[:3]), ("shade_ibl", "v (3,)")
+
+
+@pytest.mark.parametrize("kernel", ["brdf", "brdf_material", "shade_direct", "shade_ibl"])
+@pytest.mark.parametrize("traced", [False, True])
+def test_mismatched_batch_axes_name_the_function_and_the_inputs(kernel, traced):
+    fn, args, names = _batch_case(kernel)
+    with pytest.raises(ValueError, match="batch axes do not broadcast") as err:
+        (jax.jit(fn) if traced else fn)(*args)
+    for name in names:
+        assert name in str(err.value)
+
+
 def test_complex_values_are_refused():
     with pytest.raises(TypeError, match="real values"):
         jp.Material(roughness=0.5 + 0.1j)
