@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import sys
 import warnings
 from pathlib import Path
 
@@ -172,10 +173,11 @@ def _read(path, channels, want_metadata):
     _check_format(path, ext)
     if channels is not None and ext != ".exr":
         raise ValueError(f"channels= selects EXR channels by name; {str(path)!r} is a {ext} file")
-    if ext == ".exr":
-        img, meta = _read_exr(path, channels)
-    else:
-        img, meta = _read_oiio(path, ext)
+    with _quiet_native():  # a corrupt file: the libraries' own lines, beside the error raised below
+        if ext == ".exr":
+            img, meta = _read_exr(path, channels)
+        else:
+            img, meta = _read_oiio(path, ext)
     if img.ndim != 3 or img.shape[0] == 0 or img.shape[1] == 0:
         raise ValueError(f"{str(path)!r} holds an empty or malformed image of shape {img.shape}")
     return img, (meta if want_metadata else {})
@@ -366,21 +368,29 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", enco
 
 
 @contextlib.contextmanager
-def _quiet_stderr():
-    """Silence writes to the process's stderr (file descriptor 2, where C libraries print) for the
-    duration; Python-level errors are raised as usual."""
-    try:
-        saved = os.dup(2)
-    except OSError:  # no stderr to silence
-        yield
-        return
+def _quiet_native():
+    """Silence what C and C++ libraries print to the process's stdout and stderr (file descriptors
+    1 and 2) for the duration: OpenEXR's Python binding prints "Warning: Exception raised reading
+    pixel data" on stdout and libOpenEXR / libpng their own lines on stderr for a corrupt file,
+    beside the one error jaxpbr raises (issue 13). Python-level errors are raised as usual; Python's
+    own buffered output is flushed first so none of it is lost."""
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    saved = []
     try:
         with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), 2)
+            for fd in (1, 2):
+                try:
+                    saved.append((fd, os.dup(fd)))
+                except OSError:  # no such stream: nothing to silence
+                    continue
+                os.dup2(null.fileno(), fd)
             yield
     finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
 
 
 def _read_back(writer, shape):
@@ -394,8 +404,7 @@ def _read_back(writer, shape):
     def run(tmp):
         writer(tmp)
         try:
-            with _quiet_stderr():  # libpng prints its own complaint about a truncated file
-                img, _ = _read(tmp, None, want_metadata=False)
+            img, _ = _read(tmp, None, want_metadata=False)
         except (ValueError, OSError) as e:
             raise OSError(f"the image was not written completely (is the disk full?): {e}") from e
         if img.shape[:2] != tuple(shape[:2]):

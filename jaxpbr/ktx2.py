@@ -52,6 +52,7 @@ import numpy as np
 
 from ._version import __version__
 from .atomic import atomic_write
+from .errors import Float16RangeError
 
 __all__ = ["FORMATS", "read_ktx2", "write_ktx2"]
 
@@ -250,10 +251,11 @@ def _validated_levels(levels, form: _Format) -> tuple[list[np.ndarray], bool]:
         total = sum(n for _, n, _ in over)
         peak = max(p for _, _, p in over)
         if form.type_size == 2:
-            raise ValueError(
+            raise Float16RangeError(
                 f"{total} value(s) exceed the float16 range of format {form.name!r} (|x| <= 65504; largest "
                 f"|x| = {peak:.6g}, levels {[m for m, _, _ in over]}); they would become Inf. Pre-expose the data "
-                f"(scale it down, and record the scale in metadata) or use fmt={form.wide!r}."
+                f"(scale it down, and record the scale in metadata) or use fmt={form.wide!r}.",
+                fmt=form.name, wide=form.wide, count=total, peak=peak,
             )
         raise ValueError(
             f"{total} value(s) exceed the float32 range (largest |x| = {peak:.6g}); they would become Inf"

@@ -108,6 +108,22 @@ def test_garbage_with_an_image_extension_is_refused(tmp_path):
         image.read(bad)
 
 
+@pytest.mark.parametrize("ext", [".exr", ".hdr", ".png"])
+def test_a_truncated_image_gives_one_line_and_nothing_on_stdout(tmp_path, ext):
+    """OpenEXR's binding printed a warning on stdout and libOpenEXR a line on stderr, beside ours."""
+    rng = np.random.default_rng(0)
+    whole = tmp_path / f"whole{ext}"
+    image.write(whole, rng.random((64, 128, 3)).astype(np.float32))
+    cut = tmp_path / f"cut{ext}"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size * 2 // 3])
+    r = subprocess.run([sys.executable, "-m", "jaxpbr", "prefilter", str(cut), "--quiet", "-o", str(tmp_path / "p.ktx2")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stdout == ""
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("jaxpbr: error:") and "cut" in lines[0], r.stderr
+
+
 def test_cli_refuses_a_png_renamed_hdr_before_any_work(tmp_path):
     png = tmp_path / "pano.png"
     image.write(png, np.full((16, 32, 3), 0.5, np.float32))
@@ -392,6 +408,65 @@ def test_ibl_checks_every_output_before_any_work(tmp_path):
     assert "wrote" not in r.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == ["brdf_lut.exr"]
     assert time.monotonic() - t0 < 60
+
+
+def _no_work(monkeypatch):
+    """Make every precompute of the IBL commands fail loudly: a refusal must come before them."""
+    import jaxpbr.cli.ibl as cli_ibl
+
+    def started(*a, **k):
+        raise AssertionError("the work started before the input was refused")
+
+    for name in ("prefilter", "irradiance", "brdf_lut"):
+        monkeypatch.setattr(cli_ibl, name, started)
+
+
+@pytest.fixture
+def hot_panorama(tmp_path):
+    """A 64 x 128 panorama with a 1e6-radiance spot: beyond float16 (65504) at every size."""
+    img = np.ones((64, 128, 3), np.float32)
+    img[20:28, 40:48] = 1e6
+    path = tmp_path / "hot.exr"
+    image.write(path, img)
+    return path
+
+
+@pytest.mark.parametrize("command", ["prefilter", "ibl"])
+def test_float16_overflow_is_refused_before_the_work_naming_the_flag(tmp_path, monkeypatch, capsys, hot_panorama, command):
+    from jaxpbr.cli import main
+
+    _no_work(monkeypatch)
+    out = ["-o", str(tmp_path / "p.ktx2")] if command == "prefilter" else ["--out-dir", str(tmp_path)]
+    assert main([command, str(hot_panorama), "--quiet", *out]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--ktx-format rgba32f" in err[0] and "fmt=" not in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["hot.exr"]
+
+
+def test_float16_overflow_found_at_the_write_names_the_flag(tmp_path, capsys):
+    """Irradiance cannot be bounded before it is computed: its write refuses, naming the flag."""
+    from jaxpbr.cli import main
+
+    uniform = tmp_path / "uniform.exr"
+    image.write(uniform, np.full((16, 32, 3), 1e5, np.float32))
+    assert main(["irradiance", str(uniform), "--size", "4", "--quiet", "--no-error", "-o", str(tmp_path / "irr.ktx2")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--ktx-format rgba32f" in err[0] and "fmt=" not in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["uniform.exr"]
+
+
+@pytest.mark.parametrize("command", ["prefilter", "ibl"])
+@pytest.mark.parametrize("face", [None, "64"])
+def test_a_prefilter_size_that_is_not_a_mip_is_refused_before_the_work(tmp_path, monkeypatch, capsys, command, face):
+    from jaxpbr.cli import main
+
+    _no_work(monkeypatch)
+    out = ["-o", str(tmp_path / "p.ktx2")] if command == "prefilter" else ["--out-dir", str(tmp_path)]
+    sizes = ["--face-size", face] if face else []
+    assert main([command, "procedural:sky", *sizes, "--size", "48", "--quiet", *out]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--size 48" in err[0] and "from_equirect" not in err[0], err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_report_precompute_checks_its_output_before_the_sweep(tmp_path):

@@ -19,7 +19,7 @@ from ..atomic import OutputSet, write_json
 from ..conventions import cube_conventions, library_versions
 from ..cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
 from ..diffuse import irradiance, sh9_project
-from ..errors import InputError
+from ..errors import Float16RangeError, InputError
 from ..lut import SMITH_ALIASES, SMITH_VARIANTS, _lut_shape
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..shipped_luts import brdf_lut
@@ -133,6 +133,51 @@ def _checked(outs: OutputSet, path: Path, suffixes) -> Path:
     return out
 
 
+def _check_prefilter_size(args, face_size) -> None:
+    """--size must be the environment cube's face size divided by a power of two (checked before
+    the work, with the flags named; the library's message names its API)."""
+    S = args.size
+    if not face_size or S is None:
+        return
+    ratio = face_size // S if S <= face_size else 0
+    if ratio == 0 or face_size % S or ratio & (ratio - 1):
+        sizes = ", ".join(str(face_size >> i) for i in range(min(4, face_size.bit_length())))
+        raise InputError(
+            f"--size {S} must be the environment cube's face size ({face_size}) divided by a power of two "
+            f"({sizes}, ...); choose one of those, or set --face-size to a multiple of {S} by a power of two"
+        )
+
+
+def _check_half_range(args, out: Path, peak: float, what: str) -> None:
+    """Refuse, before the work, values that a float16 KTX2 file cannot hold."""
+    if out.suffix.lower() == ".ktx2" and args.ktx_format == "rgba16f" and peak > 65504.0:
+        raise InputError(
+            f"{what} reaches {peak:.6g}, beyond the float16 range of --ktx-format rgba16f (65504); "
+            f"use --ktx-format rgba32f, or scale the environment down"
+        )
+
+
+def _prefilter_checks(args, env, out: Path) -> None:
+    """What a prefilter of `env` into `out` can be refused for, once the environment is loaded."""
+    _check_prefilter_size(args, env.face_size)
+    # Level 0 is the environment at the output size; every other level averages it.
+    top = env.level_cube(0)
+    if args.size and args.size < env.face_size:
+        top = top.with_mips(env.face_size.bit_length() - args.size.bit_length() + 1)
+    _check_half_range(args, out, float(np.max(np.abs(np.asarray(top.levels[-1])))), "the environment's radiance" + (" at --size" if args.size else ""))
+
+
+def _write_cube(out: Path, cube, args, meta, outs: OutputSet):
+    """`write_cubemap`, with a float16 range failure reported in terms of the flags."""
+    try:
+        return write_cubemap(out, cube, fmt=args.ktx_format, metadata=meta, outputs=outs)
+    except Float16RangeError as exc:
+        raise InputError(
+            f"{exc.count} value(s) of {out.name} reach {exc.peak:.6g}, beyond the float16 range of "
+            f"--ktx-format {exc.fmt} (65504); use --ktx-format {exc.wide}, or scale the environment down"
+        ) from None
+
+
 def _run(fn):
     with OutputSet() as outs:
         code = fn(outs)
@@ -199,7 +244,7 @@ def _irradiance(args, outs: OutputSet, env=None, out_path: Path | None = None, s
     seconds = time.perf_counter() - t0
     err = None if args.no_error else irradiance_error(env, irr)
     meta = {"quantity": "Ebar = E/pi (cosine-weighted mean radiance) at texel centres", "method": method, **irr.metadata}
-    files = write_cubemap(out, irr, fmt=args.ktx_format, metadata=meta, outputs=outs)
+    files = _write_cube(out, irr, args, meta, outs)
     side = {
         "kind": "irradiance",
         "files": files,
@@ -232,7 +277,9 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
     out = _checked(outs, Path(out_path or args.output), (".ktx2", ".exr"))
     if args.exact_texels < 0:
         raise InputError(f"--exact-texels must be >= 0, got {args.exact_texels}")
+    _check_prefilter_size(args, args.face_size)
     env = env if env is not None else _load(args, "prefilter")
+    _prefilter_checks(args, env, out)
     t0 = time.perf_counter()
     pre = prefilter(
         env,
@@ -248,7 +295,7 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
     seconds = time.perf_counter() - t0
     rows = None if args.no_error or args.method == "reference" else prefilter_error(env, pre)
     meta = dict(pre.metadata)
-    files = write_cubemap(out, pre, fmt=args.ktx_format, metadata=meta, outputs=outs)
+    files = _write_cube(out, pre, args, meta, outs)
     side = {
         "kind": "prefiltered_specular",
         "files": files,
@@ -287,7 +334,9 @@ def cmd_ibl(args) -> int:
             _checked(outs, d / name, suffixes)
         n_r, n_nov = _lut_shape(args.lut_size)
         require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --lut-size")
+        _check_prefilter_size(args, args.face_size)
         env = _load(args, "prefilter")
+        _prefilter_checks(args, env, d / "prefiltered.ktx2")
         args.output = None
         irr = _irradiance(args, outs, env=env, out_path=d / "irradiance.ktx2", size=args.irradiance_size, method=args.irradiance_method)
         pre = _prefilter(args, outs, env=env, out_path=d / "prefiltered.ktx2")
