@@ -15,7 +15,8 @@ At r = 0 the lobe is a mirror and `A = 1 - (1 - mu)^5`, `B = (1 - mu)^5` exactly
 
 Layout (DESIGN.md, Conventions): shape `(n_roughness, n_nov, 2)`, element `[j, i]` at
 `r = (j + 0.5) / n_roughness`, `NoV = (i + 0.5) / n_nov`, channels (A, B); `lut_lookup` is bilinear
-between texel centres and clamped to the edge.
+between texel centres, uses the closed form at r = 0 and extrapolates linearly over the last half
+texel to r = 1 and NoV = 1 (`lut_padded`).
 
 Why not Monte Carlo: the usual 1024-sample Hammersley estimate (GGX NDF sampling) is off by up
 to 1.3e-2 at the texels of a 256^2 table, mean 7.7e-4 (measured against `lut_reference`; MATH.md
@@ -39,12 +40,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._api import keyword_only
-from ._interp import bilinear
+from ._interp import bilinear, lerp
 from ._validate import positive_int
 from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated
 
 __all__ = [
     "DEFAULT_SAMPLES",
+    "LOOKUP_EDGES",
     "SMITH_ALIASES",
     "SMITH_VARIANTS",
     "compute_brdf_lut",
@@ -469,29 +471,81 @@ def lut_reference(n_dot_v, roughness, *, smith: str = "correlated", order: int =
 # ============================================================================================
 
 
-def lut_lookup(lut: jax.Array, n_dot_v: jax.Array, roughness: jax.Array) -> jax.Array:
-    """Bilinear lookup of a LUT in the layout of `compute_brdf_lut`, clamped to the edge.
+#: Edge rules of `lut_lookup` (see there).
+LOOKUP_EDGES = ("split_sum", "clamp")
+
+
+def lut_padded(lut, *, xp=jnp):
+    """The (n_r, n_nov, C) table extended half a texel to r = 1 and NoV = 1: (n_r + 1, n_nov + 1, C).
+
+    Row n_r is r = 1 and column n_nov is NoV = 1, each extrapolated linearly from the last two
+    rows / columns (a table of one row or column repeats it). Works on NumPy (xp=np) and JAX arrays."""
+    n_r, n_nov, _ = lut.shape
+    ext = lambda a, b: a + 0.5 * (a - b)  # noqa: E731  (linear, half a texel past a)
+    rows = xp.concatenate([lut, (ext(lut[-1], lut[-2]) if n_r > 1 else lut[-1])[None]], 0)
+    return xp.concatenate([rows, (ext(rows[:, -1], rows[:, -2]) if n_nov > 1 else rows[:, -1])[:, None]], 1)
+
+
+def lut_coordinates(n_dot_v, roughness, n_r: int, n_nov: int, *, xp=jnp):
+    """(x, y, t): continuous (column, row) coordinates into `lut_padded`'s table, and the weight t
+    of the table against the r = 0 closed form (t < 1 only for r < 0.5/n_r).
+
+    Texel centres stay where the file has them (x = i, y = j); r in [1 - 0.5/n_r, 1] maps onto
+    [n_r - 1, n_r] and NoV in [1 - 0.5/n_nov, 1] onto [n_nov - 1, n_nov] (the extrapolated edges);
+    r in [0, 0.5/n_r] reads the first row, blended with the closed form by t = 2 n_r r. Beyond
+    [0, 1] the coordinates clamp (in `bilinear`); NoV below the first centre clamps to it."""
+    r, mu = roughness, n_dot_v
+    # >= : at a band's boundary the bilinear segment is the band's, so the derivative must be too.
+    y = xp.where(r >= 1.0 - 0.5 / n_r, 2.0 * n_r * r - n_r, n_r * r - 0.5)
+    x = xp.where(mu >= 1.0 - 0.5 / n_nov, 2.0 * n_nov * mu - n_nov, n_nov * mu - 0.5)
+    return x, y, xp.where(r < 0.5 / n_r, xp.maximum(2.0 * n_r * r, 0.0), 1.0)
+
+
+def lut_r0(n_dot_v, *, xp=jnp):
+    """The split-sum (A, B) at r = 0 (a mirror: G = 1 for both Smith variants, F at v.h = NoV):
+    (1 - (1 - mu)^5, (1 - mu)^5) with mu = NoV clamped to [0, 1]. -> (..., 2)."""
+    mu = xp.clip(n_dot_v, 0.0, 1.0)
+    # A = 1 - (1 - mu)^5 expanded (Horner): no cancellation against 1 at small mu.
+    a = mu * (5.0 + mu * (-10.0 + mu * (10.0 + mu * (-5.0 + mu))))
+    return xp.stack([a, (1.0 - mu) ** 5], -1)
+
+
+def lut_lookup(lut: jax.Array, n_dot_v: jax.Array, roughness: jax.Array, *, edges: str = "split_sum") -> jax.Array:
+    """Bilinear lookup of a LUT in the layout of `compute_brdf_lut`.
 
     Args:
       lut: (n_roughness, n_nov, C) table, texel [j, i] at r = (j + 0.5)/n_roughness,
-        NoV = (i + 0.5)/n_nov (C = 2 for (A, B)).
-      n_dot_v, roughness: broadcasting arrays (any values; outside the texel-centre range the
-        edge texels are used, like GL_CLAMP_TO_EDGE with linear filtering).
+        NoV = (i + 0.5)/n_nov.
+      n_dot_v, roughness: broadcasting arrays (any values; beyond [0, 1] the edges clamp).
+      edges: "split_sum" (default; C = 2, the (A, B) table): exact edges: the closed form at r = 0
+        (`lut_r0`, blended linearly with the first row over the first half texel), linear
+        extrapolation over the last half texel to r = 1 and to NoV = 1 (`lut_padded`); the
+        NoV -> 0 side clamps to the first column (A and B are discontinuous at the corner
+        r = 0, NoV = 0). "clamp": GL_CLAMP_TO_EDGE with linear filtering on both axes (any C).
+        Why: the last texel centre is at r = 1 - 0.5/n_r, and clamping there read 1.28 % high at
+        r = 1 in a 128^2 table (a white furnace at r = 1 came out 0.89 % bright; issue 13);
+        extrapolating to r = 0 from a coarse table was worse than clamping (6.9e-3 on 24 rows),
+        while the closed form is exact.
     Returns:
       broadcast(n_dot_v, roughness).shape + (C,), in the LUT's dtype (promoted with the inputs).
 
-    Exact at texel centres, linear in each coordinate between them. Differentiable: the gradient
-    with respect to NoV and r is the bilinear slope inside, 0 in the clamped margins (half a texel
-    at each edge, and beyond), finite everywhere; the gradient with respect to `lut` is the
-    bilinear weights. NaN inputs give NaN.
+    Exact at texel centres, linear in each coordinate between them (and piecewise linear across
+    the half-texel edge bands). Differentiable: the gradient with respect to NoV and r is the
+    bilinear slope, 0 where the coordinates clamp, finite everywhere; the gradient with respect to
+    `lut` is the bilinear weights. NaN inputs give NaN.
     """
+    if edges not in LOOKUP_EDGES:
+        raise ValueError(f"unknown LUT edges {edges!r}; choose one of {', '.join(map(repr, LOOKUP_EDGES))}")
     lut = jnp.asarray(lut)
     if lut.ndim != 3:
         raise ValueError(f"lut_lookup: lut must have shape (n_roughness, n_nov, channels), got {lut.shape}")
-    n_r, n_nov, _ = lut.shape
+    n_r, n_nov, C = lut.shape
     dtype = jnp.result_type(lut.dtype, jnp.asarray(n_dot_v).dtype, jnp.asarray(roughness).dtype, float)
     mu, r = jnp.broadcast_arrays(jnp.asarray(n_dot_v, dtype), jnp.asarray(roughness, dtype))
-
-    # Clamp-to-edge on both axes (GL_CLAMP_TO_EDGE with linear filtering): outside the centre
-    # range the edge texels are used and the coordinate gradient is 0.
-    return bilinear(lut.astype(dtype), mu * n_nov - 0.5, r * n_r - 0.5)
+    lut = lut.astype(dtype)
+    if edges == "clamp":
+        return bilinear(lut, mu * n_nov - 0.5, r * n_r - 0.5)
+    if C != 2:
+        raise ValueError(f"edges='split_sum' reads an (A, B) table (2 channels), got {C}; use edges='clamp'")
+    x, y, t = lut_coordinates(mu, r, n_r, n_nov)
+    return lerp(lut_r0(mu), bilinear(lut_padded(lut), x, y), t[..., None])

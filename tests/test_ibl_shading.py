@@ -49,16 +49,16 @@ def test_white_furnace_multiscatter_metal_and_white_dielectric_return_one(luts, 
 
 def test_white_furnace_without_compensation_loses_single_scatter_energy(luts):
     """Without multiscatter a F0 = 1 metal in a white furnace reflects E(mu) = A + B < 1 (MATH 7.3):
-    at r = 1, NoV = 1 that is 1 - ln 2 (to the LUT's bilinear interpolation near the edge)."""
+    at r = 1, NoV = 1 that is 1 - ln 2. The lookup extrapolates over the last half texel of the
+    32^2 LUT to that corner (clamping to the texel centre (1 - 1/64, 1 - 1/64) read 0.3258,
+    1.9e-2 high; issue 13); bound: the linear extrapolation's error there, ~1e-3 on 32 rows."""
     env = const_cube(1.0)
     lut = luts["correlated"]
     n, v = _dirs(np.array([1.0]))
     m = jp.Material(base_color=(1.0, 1.0, 1.0), metallic=1.0, roughness=jnp.asarray([1.0]))
     out = np.asarray(shade_ibl(jnp.asarray(n), jnp.asarray(v), m, env, env, lut))
-    # The lookup clamps to the texel centre (r, NoV) = (1 - 1/64, 1 - 1/64) of a 32^2 LUT.
-    ab = np.asarray(lut)[-1, -1]
-    np.testing.assert_allclose(out, ab.sum(), rtol=1e-12)
-    assert abs(out[0, 0] - (1 - np.log(2))) < 0.02  # E varies slowly near (1, 1)
+    assert abs(out[0, 0] - (1 - np.log(2))) < 2e-3
+    assert abs(out[0, 0] - (1 - np.log(2))) < abs(np.asarray(lut)[-1, -1].sum() - (1 - np.log(2))) / 10
 
 
 def test_gltf_split_sum_formula_against_hand_computation(luts):

@@ -7,6 +7,8 @@ l-space written here from the textbook terms of tests/reference.py. `lut_referen
 an oracle for `compute_brdf_lut` after it has passed those checks.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,6 +19,7 @@ import reference as ref
 from jaxpbr.lut import SMITH_VARIANTS, compute_brdf_lut, lut_lookup, lut_reference
 
 lookup = jax.jit(lut_lookup)  # one compilation per shape instead of one per primitive (eager)
+lookup_clamped = jax.jit(functools.partial(lut_lookup, edges="clamp"))
 
 NOV_TABLE = np.array([0.02, 0.1, 0.25, 0.5, 0.75, 1.0])
 # MATH.md §7.2, rows r, columns NoV_TABLE, entries (A, B).
@@ -285,8 +288,8 @@ def test_lookup_exact_at_texel_centres_and_bilinear_between():
 
 
 def test_lookup_clamps_to_edge():
-    """Beyond the outermost texel centres the value is that at the clamped coordinates: the
-    bilinear table function evaluated there (its exact interpolant inside)."""
+    """edges="clamp": beyond the outermost texel centres the value is that at the clamped
+    coordinates: the bilinear table function evaluated there (its exact interpolant inside)."""
     table = _bilinear_table(4, 6)
     lo_mu, hi_mu, lo_r, hi_r = 0.5 / 6, 5.5 / 6, 0.5 / 4, 3.5 / 4
     f = lambda m, r: np.array([1 + 2 * r + 3 * m + 5 * r * m, -r * m + 0.5])
@@ -297,9 +300,47 @@ def test_lookup_clamps_to_edge():
         (7.0, -2.0, hi_mu, lo_r),
         (0.4, 1.5, 0.4, hi_r),
     ]:
-        np.testing.assert_allclose(lookup(table, mu, r), f(mu_c, r_c), atol=1e-14)
+        np.testing.assert_allclose(lookup_clamped(table, mu, r), f(mu_c, r_c), atol=1e-14)
     # a 1 x 1 table is a constant
-    np.testing.assert_allclose(lookup(np.full((1, 1, 2), 0.25), np.array([0.0, 0.7, 3.0]), 0.5), 0.25)
+    np.testing.assert_allclose(lookup_clamped(np.full((1, 1, 2), 0.25), np.array([0.0, 0.7, 3.0]), 0.5), 0.25)
+
+
+def test_lookup_split_sum_edges():
+    """Default edges: up to r = 1 and NoV = 1 the table is extrapolated linearly over the last half
+    texel, so a bilinear table function is reproduced exactly to the corner (it clamped at the last
+    centres: 1.28 % high at r = 1 in a 128^2 LUT, issue 13); below the first row's centre the value
+    blends linearly into the r = 0 closed form (1 - (1 - mu)^5, (1 - mu)^5); beyond [0, 1] it clamps."""
+    n_r, n_nov = 4, 6
+    table = _bilinear_table(n_r, n_nov)
+    f = lambda m, r: np.stack([1 + 2 * r + 3 * m + 5 * r * m, -r * m + 0.5], -1)  # noqa: E731
+    rng = np.random.default_rng(3)
+    mu = np.concatenate([rng.uniform(0.5 / n_nov, 1.0, 200), [1.0, 1.0, 5.5 / 6]])
+    r = np.concatenate([rng.uniform(0.5 / n_r, 1.0, 200), [1.0, 3.5 / 4, 1.0]])
+    np.testing.assert_allclose(lookup(table, mu, r), f(mu, r), atol=1e-13)
+    np.testing.assert_allclose(lookup(table, 7.0, 2.0), f(1.0, 1.0), atol=1e-13)  # clamped beyond
+    # r = 0: the closed form, exactly, at every NoV in [0, 1]
+    m = np.linspace(0.0, 1.0, 101)
+    np.testing.assert_allclose(lookup(table, m, 0.0), _closed_form_r0(m), rtol=0, atol=1e-15)
+    # between r = 0 and the first centre: linear in r between the two
+    rr = 0.3 * 0.5 / n_r
+    mm = np.linspace(0.5 / n_nov, 1.0, 21)
+    expect = _closed_form_r0(mm) + (f(mm, 0.5 / n_r) - _closed_form_r0(mm)) * 0.3
+    np.testing.assert_allclose(lookup(table, mm, rr), expect, atol=1e-13)
+    with pytest.raises(ValueError, match="edges"):
+        lut_lookup(table, 0.5, 0.5, edges="mirror")
+    with pytest.raises(ValueError, match="2 channels"):
+        lut_lookup(np.zeros((4, 4, 3)), 0.5, 0.5)
+
+
+def test_lookup_edges_against_the_float64_reference(small_luts):
+    """The measured gain at the edges of a 24 x 24 table (old: clamp to the edge texels)."""
+    lut = small_luts["correlated"]
+    pts = [(0.5, 1.0), (0.9, 1.0), (1.0, 0.5), (1.0, 1.0), (0.5, 0.999)]
+    for mu, r in pts:
+        ref = lut_reference(mu, r)
+        new = np.abs(np.asarray(lookup(lut, mu, r)) - ref).max()
+        old = np.abs(np.asarray(lookup_clamped(lut, mu, r)) - ref).max()
+        assert new < 2.5e-3 and new < old / 3, (mu, r, new, old)
 
 
 def test_lookup_shapes_dtype_jit_vmap():
@@ -329,25 +370,21 @@ def test_lookup_gradients_finite_everywhere():
     g_t, g_mu, g_r = jax.jit(jax.grad(f, argnums=(0, 1, 2)))(table, mu, r)
     for g in (g_t, g_mu, g_r):
         assert np.isfinite(np.asarray(g)).all()
-    # inside: the slope of the bilinear function; in the clamped margins: 0
+    # inside and in the extrapolated bands up to NoV = 1, r = 1: the slope of the bilinear
+    # function; where the coordinates clamp (NoV below the first centre, beyond [0, 1]): 0
     m_, r_ = np.asarray(mu), np.asarray(r)
-    inside = (m_ > 1 / 16) & (m_ < 15 / 16) & (r_ > 1 / 16) & (r_ < 15 / 16)
+    inside = (m_ > 1 / 16) & (m_ < 1.0) & (r_ > 1 / 16) & (r_ < 1.0)
     np.testing.assert_allclose(np.asarray(g_mu)[inside], ((3 + 5 * r_) + 2 * r_)[inside], rtol=1e-5)
-    assert np.all(np.asarray(g_mu)[(m_ < 1 / 16) | (m_ > 15 / 16)] == 0.0)
+    assert np.all(np.asarray(g_mu)[((m_ < 1 / 16) | (m_ > 1.0)) & (r_ >= 1 / 16)] == 0.0)
 
 
 def test_lookup_r0_against_closed_form(small_luts):
-    """At r = 0 the lookup clamps to the first row (r = 1/64) and interpolates linearly in NoV
-    (24 columns). Bound: the row's own deviation from the mirror (2.2e-4 at r = 1/64, < 3e-4) +
-    the linear interpolation error of (1 - mu)^5, h^2/8 max|f''| = 20/(8 n^2), + in the
-    half-texel margins the clamp, 5 * 0.5/n (|f'| <= 5)."""
-    n = 24
+    """At r = 0 the lookup is the mirror's closed form at every NoV in [0, 1] (it clamped to the
+    first row, r = 1/48, and interpolated in NoV: up to 5.4e-4 off on 24 columns; issue 13)."""
     mu = np.linspace(0.0, 1.0, 201)
-    got = np.asarray(lookup(small_luts["correlated"], mu, 0.0), np.float64)
-    err = np.abs(got - _closed_form_r0(mu)).max(-1)
-    inside = (mu >= 0.5 / n) & (mu <= 1 - 0.5 / n)
-    assert err[inside].max() < 3e-4 + 20 / (8 * n * n)
-    assert err[~inside].max() < 3e-4 + 5 * 0.5 / n
+    for smith in SMITH_VARIANTS:
+        got = np.asarray(lookup(small_luts[smith], mu, 0.0), np.float64)
+        np.testing.assert_allclose(got, _closed_form_r0(mu), rtol=0, atol=1e-6)
 
 
 # --------------------------------------------------------------------------------------------

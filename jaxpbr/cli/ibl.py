@@ -99,7 +99,7 @@ def _prefilter_args(p):
     p.add_argument("--mapping", choices=("linear", "quadratic"), default="linear", help="roughness->mip: r_m = m/(M-1) or Filament's (default: %(default)s)")
     p.add_argument("--method", choices=("fis", "reference"), default="fis", help="filtered importance sampling or the float64 brute-force reference (slow)")
     p.add_argument("--samples", type=positive_int_arg, default=DEFAULT_SAMPLES, help="FIS samples on the large levels (default: %(default)s; small levels get more)")
-    p.add_argument("--exact-texels", type=int, default=DEFAULT_EXACT_TEXELS, help="brightest texels convolved exactly (default: %(default)s; 0 = off)")
+    p.add_argument("--exact-texels", type=int, default=None, help=f"brightest texels convolved exactly (default: {DEFAULT_EXACT_TEXELS} per 256^2 of face area, i.e. 4096 at 1024^2; 0 = off)")
 
 
 #: Peak memory per unit, measured on the CPU backend (`/usr/bin/time -v`, issue 13) and rounded up:
@@ -275,7 +275,7 @@ def cmd_prefilter(args) -> int:
 
 def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) -> dict:
     out = _checked(outs, Path(out_path or args.output), (".ktx2", ".exr"))
-    if args.exact_texels < 0:
+    if args.exact_texels is not None and args.exact_texels < 0:
         raise InputError(f"--exact-texels must be >= 0, got {args.exact_texels}")
     _check_prefilter_size(args, args.face_size)
     env = env if env is not None else _load(args, "prefilter")

@@ -24,6 +24,7 @@ import numpy as np
 from ..cubemap import Cubemap, _corner_mask, _pad_index
 from ..ibl import MIN_N_DOT_V
 from ..material import F0_DIELECTRIC
+from ..lut import lut_coordinates, lut_padded, lut_r0
 
 __all__ = [
     "GBUFFER_KEYS",
@@ -212,22 +213,28 @@ class NumpyCube:
 
 
 def lut_lookup_numpy(lut: np.ndarray, n_dot_v: np.ndarray, roughness: np.ndarray) -> np.ndarray:
-    """NumPy port of `jaxpbr.lut.lut_lookup` (bilinear, clamp to edge) for float32 (P,) inputs."""
-    n_r, n_nov, C = lut.shape
-    flat = lut.reshape(n_r * n_nov, C)
+    """NumPy port of `jaxpbr.lut.lut_lookup` (split-sum edges: the closed form at r = 0, the table
+    extended to r = 1 and NoV = 1, bilinear, clamped beyond) for float32 (P,) inputs."""
+    table = lut_padded(np.asarray(lut), xp=np)
+    n_r, n_nov = lut.shape[:2]
+    H, W, C = table.shape
+    flat = table.reshape(H * W, C)
+    x, y, t = lut_coordinates(n_dot_v, roughness, n_r, n_nov, xp=np)
 
-    def axis(u, n):
-        x = np.clip(u * _F32(n) - 0.5, 0.0, n - 1.0)
-        i0 = np.clip(np.floor(x), 0, max(n - 2, 0)).astype(np.intp)
-        return i0, np.minimum(i0 + 1, n - 1), x - i0.astype(_F32)
+    def axis(c, n):
+        c = np.clip(c, 0.0, n - 1.0)
+        i0 = np.clip(np.floor(c), 0, max(n - 2, 0)).astype(np.intp)
+        return i0, np.minimum(i0 + 1, n - 1), (c - i0).astype(_F32)
 
-    j0, j1, fr = axis(roughness, n_r)
-    i0, i1, fm = axis(n_dot_v, n_nov)
+    j0, j1, fr = axis(y, H)
+    i0, i1, fm = axis(x, W)
     fm, fr = fm[:, None], fr[:, None]
-    r0, r1 = j0 * n_nov, j1 * n_nov
+    r0, r1 = j0 * W, j1 * W
     top = flat.take(r0 + i0, axis=0) * (1.0 - fm) + flat.take(r0 + i1, axis=0) * fm
     bot = flat.take(r1 + i0, axis=0) * (1.0 - fm) + flat.take(r1 + i1, axis=0) * fm
-    return top * (1.0 - fr) + bot * fr
+    ab = top * (1.0 - fr) + bot * fr
+    edge = lut_r0(n_dot_v, xp=np).astype(_F32)
+    return edge + (ab - edge) * t.astype(_F32)[:, None]
 
 
 @dataclass(frozen=True)
