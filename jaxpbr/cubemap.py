@@ -198,49 +198,66 @@ def _pad_index(size: int) -> np.ndarray:
     re-projecting); a corner pad averages the three texels that meet at the cube corner.
     """
     S = size
-    idx = np.empty((6, S + 2, S + 2, 3), dtype=np.int64)
     ii, jj = np.meshgrid(np.arange(-1, S + 1), np.arange(-1, S + 1), indexing="ij")
-
-    def nearest(face, i, j):
-        d = face_to_dir(np.full(np.shape(i), face), (j + 0.5) / S, (i + 0.5) / S, xp=np)
-        f2, s2, t2 = dir_to_face(d, xp=np)
-        j2 = np.clip(np.floor(s2 * S).astype(np.int64), 0, S - 1)
-        i2 = np.clip(np.floor(t2 * S).astype(np.int64), 0, S - 1)
-        return (f2 * S + i2) * S + j2
-
-    for f in range(6):
-        ci, cj = np.clip(ii, 0, S - 1), np.clip(jj, 0, S - 1)
-        own = (f * S + ci) * S + cj
-        inside_i = (ii >= 0) & (ii < S)
-        inside_j = (jj >= 0) & (jj < S)
-        edge_a = nearest(f, ii, cj)  # out in i only (or corner: the texel across the i edge)
-        edge_b = nearest(f, ci, jj)  # out in j only (or corner: the texel across the j edge)
-        interior = inside_i & inside_j
-        out_i_only = ~inside_i & inside_j
-        out_j_only = inside_i & ~inside_j
-        corner = ~inside_i & ~inside_j
-        for k in range(3):
-            idx[f, ..., k] = np.where(interior, own, 0)
-        for k in range(3):
-            idx[f, ..., k] = np.where(out_i_only, edge_a, idx[f, ..., k])
-            idx[f, ..., k] = np.where(out_j_only, edge_b, idx[f, ..., k])
-        idx[f, ..., 0] = np.where(corner, own, idx[f, ..., 0])
-        idx[f, ..., 1] = np.where(corner, edge_a, idx[f, ..., 1])
-        idx[f, ..., 2] = np.where(corner, edge_b, idx[f, ..., 2])
+    idx = np.stack([_pad_sources(S, f, ii.ravel(), jj.ravel()).reshape(S + 2, S + 2, 3) for f in range(6)])
     idx.setflags(write=False)
     return idx
 
 
 def _pad_level(level: jax.Array) -> jax.Array:
-    """(6, S, S, C) -> (6, S+2, S+2, C) with the seam pad of `_pad_index`."""
+    """(6, S, S, C) -> (6, S+2, S+2, C) with the seam pad of `_pad_index`: the interior copied,
+    the border (`_pad_border`: O(S) indices, not a (6, S+2, S+2, 3) table, which XLA embedded as
+    a constant: 75 MB at 1024^2 and ~1 GB of compile memory; issue 13) gathered and scattered."""
     S, C = level.shape[1], level.shape[3]
-    flat = level.reshape(6 * S * S, C)
-    idx = jnp.asarray(_pad_index(S), dtype=jnp.int32)
-    g = flat[idx]  # (6, S+2, S+2, 3, C)
+    pos, src, corner = _pad_border(S)
+    g = level.reshape(6 * S * S, C)[jnp.asarray(src)]  # (E, 3, C)
     # Only the corner pads average (three distinct texels); elsewhere the three indices are equal
     # and the texel is copied exactly ((3v)/3 is not always v in floating point).
-    corner = jnp.asarray(_corner_mask(S))[..., None]
-    return jnp.where(corner, (g[..., 0, :] + g[..., 1, :] + g[..., 2, :]) * (1.0 / 3.0), g[..., 0, :])
+    val = jnp.where(jnp.asarray(corner)[:, None], (g[:, 0] + g[:, 1] + g[:, 2]) * (1.0 / 3.0), g[:, 0])
+    padded = jnp.pad(level, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, C)
+    return padded.at[jnp.asarray(pos)].set(val).reshape(6, S + 2, S + 2, C)
+
+
+@functools.lru_cache(maxsize=64)
+def _pad_border(S: int):
+    """The border cells of the seam pad: flat positions (E,) into (6, S+2, S+2), their three
+    source indices (E, 3) into (6*S*S) (as in `_pad_index`) and whether each is a corner (E,);
+    E = 6 (4S + 4). int32 / bool NumPy arrays."""
+    k = np.arange(-1, S + 1)
+    ii = np.concatenate([np.full(S + 2, -1), np.full(S + 2, S), np.arange(S), np.arange(S)])
+    jj = np.concatenate([k, k, np.full(S, -1), np.full(S, S)])
+    pos, src, corner = [], [], []
+    for f in range(6):
+        pos.append((f * (S + 2) + ii + 1) * (S + 2) + jj + 1)
+        src.append(_pad_sources(S, f, ii, jj))
+        corner.append(((ii < 0) | (ii >= S)) & ((jj < 0) | (jj >= S)))
+    out = np.concatenate(pos).astype(np.int32), np.concatenate(src).astype(np.int32), np.concatenate(corner)
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+def _pad_sources(S: int, f: int, ii, jj):
+    """The three source indices (n, 3) of the pad cells (ii, jj) in [-1, S] of face f (see
+    `_pad_index`): interior cells repeat their own index; an edge pad is the nearest texel of the
+    neighbouring face (the face plane extended one half texel past the edge and re-projected); a
+    corner pad lists its own clamped texel and the two across its edges."""
+
+    def nearest(i, j):
+        d = face_to_dir(np.full(np.shape(i), f), (j + 0.5) / S, (i + 0.5) / S, xp=np)
+        f2, s2, t2 = dir_to_face(d, xp=np)
+        j2 = np.clip(np.floor(s2 * S).astype(np.int64), 0, S - 1)
+        i2 = np.clip(np.floor(t2 * S).astype(np.int64), 0, S - 1)
+        return (f2 * S + i2) * S + j2
+
+    ci, cj = np.clip(ii, 0, S - 1), np.clip(jj, 0, S - 1)
+    own = (f * S + ci) * S + cj
+    inside_i, inside_j = (ii >= 0) & (ii < S), (jj >= 0) & (jj < S)
+    edge_a = nearest(ii, cj)  # out in i only (or corner: the texel across the i edge)
+    edge_b = nearest(ci, jj)  # out in j only (or corner: the texel across the j edge)
+    one = np.where(inside_i & inside_j, own, np.where(~inside_i & inside_j, edge_a, edge_b))
+    corner = ~inside_i & ~inside_j
+    return np.stack([np.where(corner, own, one), np.where(corner, edge_a, one), np.where(corner, edge_b, one)], -1)
 
 
 @functools.lru_cache(maxsize=64)
@@ -315,9 +332,10 @@ def downsample(level: jax.Array) -> jax.Array:
     S = level.shape[1]
     if S % 2:
         raise ValueError(f"cannot halve a cube face of odd size {S}; use a power-of-two face size")
-    om = jnp.asarray(texel_solid_angles(S), level.dtype)[..., None]
+    # One face's solid angles (the six are identical): a smaller constant in the program.
+    om = jnp.asarray(texel_solid_angles(S)[0], level.dtype)[None, ..., None]
     w = (level * om).reshape(6, S // 2, 2, S // 2, 2, -1).sum((2, 4))
-    ow = om.reshape(6, S // 2, 2, S // 2, 2, 1).sum((2, 4))
+    ow = om.reshape(1, S // 2, 2, S // 2, 2, 1).sum((2, 4))
     return w / ow
 
 
@@ -522,12 +540,14 @@ class Cubemap(Pytree):
             img = _halve_equirect(img)
             H = img.shape[0]
         q = int(min(16, max(1, math.ceil(cube_texel / (math.pi / H)))))
-        pts, w = _subtexel_points(S, q)  # (6,S,S,q*q,3), (S,S,q*q)
-        faces = [
-            np.asarray(_equirect_bilinear_avg(jnp.asarray(img), jnp.asarray(pts[f], img.dtype), jnp.asarray(w, img.dtype)))
-            for f in range(6)
-        ]
-        return cls((jnp.asarray(np.stack(faces), dtype),), info)
+        # Rows of texels in blocks of ~2^20 sub-texel points, generated on the device: the grid
+        # of a 1024^2 cube was 600 MB of float64 on the host (kept in a cache) and the load's
+        # peak 2.1 GB (issue 13).
+        B = max(1, min(S, _EQUIRECT_POINTS // (S * q * q)))
+        coords = _subtexel_coords(S, q).astype(img.dtype)
+        rows = np.concatenate([coords, np.repeat(coords[-1:], (-S) % B, 0)]).reshape(-1, B, q)
+        level = _equirect_faces(jax.device_put(img), jax.device_put(rows), jax.device_put(coords), q=q)
+        return cls((level.astype(dtype),), info)
 
     def to_equirect(self, height: int | None = None, *, lod=0.0, supersample: int = 1) -> jax.Array:
         """Equirect panorama (H, 2H, C) of this map (seam-aware bilinear / trilinear lookups at
@@ -609,12 +629,29 @@ def _halve_equirect(img: np.ndarray) -> np.ndarray:
     return (num / den).astype(img.dtype)
 
 
-@jax.jit
-def _equirect_bilinear_avg(img, pts, w):
-    """Mean over the last point axis of bilinear equirect lookups: pts (S, S, n, 3), w (S, S, n)."""
+#: Sub-texel points per block of `_equirect_faces` (bounds its memory: ~50 MB of float32 per block).
+_EQUIRECT_POINTS = 1 << 20
+
+
+@functools.partial(jax.jit, static_argnames=("q",))
+def _equirect_faces(img, rows, cols, *, q: int):
+    """The six faces (6, S, S, C) of a cube from an equirect panorama img (H, W, C): each texel the
+    solid-angle-weighted mean of bilinear lookups at its q x q sub-texel points. rows (nb, B, q):
+    the t coordinates of the sub-texel centres, in blocks of B texel rows (the last block padded);
+    cols (S, q): the s coordinates. One block of rows at a time (`lax.map`)."""
     H, W, C = img.shape
-    u, v_up = dir_to_equirect(pts)
-    x = u * W - 0.5
-    y = (1.0 - v_up) * H - 0.5
-    val = bilinear(img, x, y, wrap_x=True)  # longitude wraps, latitude clamps at the poles
-    return jnp.sum(val * w[..., None], axis=-2)
+    S = cols.shape[0]
+    s = jnp.broadcast_to(cols[None, :, None, :], (rows.shape[1], S, q, q)).reshape(rows.shape[1], S, q * q)
+
+    def block(face, ct):
+        t = jnp.broadcast_to(ct[:, None, :, None], s.shape[:2] + (q, q)).reshape(s.shape)
+        d = face_to_dir(face, s, t, xp=jnp)  # a Python int face: no constant-folded face table
+        r2 = jnp.sum(d * d, -1)
+        w = r2**-1.5
+        w = w / jnp.sum(w, -1, keepdims=True)
+        u, v_up = dir_to_equirect(d / jnp.sqrt(r2)[..., None])
+        val = bilinear(img, u * W - 0.5, (1.0 - v_up) * H - 0.5, wrap_x=True)  # longitude wraps, latitude clamps
+        return jnp.sum(val * w[..., None], axis=-2)  # (B, S, C)
+
+    faces = [jax.lax.map(functools.partial(block, f), rows).reshape(-1, S, C)[:S] for f in range(6)]
+    return jnp.stack(faces)

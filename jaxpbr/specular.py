@@ -273,8 +273,8 @@ def _split_bright_fixed(level0, max_texels: int, min_ratio: float = 4.0):
     S, C = level0.shape[1], level0.shape[-1]
     L = level0.astype(hp).reshape(-1, C)
     lum = luminance(L)
-    om = jnp.asarray(texel_solid_angles(S).reshape(-1), hp)
-    mean = jnp.sum(lum * om) / (4.0 * math.pi)
+    om = jnp.asarray(texel_solid_angles(S)[0], hp)  # one face: the six are identical (a 6x smaller constant)
+    mean = jnp.sum(lum.reshape(6, S, S) * om) / (4.0 * math.pi)
     vals, idx = jax.lax.top_k(lum, max_texels + 1)
     tau = jnp.maximum(min_ratio * mean, vals[max_texels])
     vals, idx = vals[:max_texels], idx[:max_texels]
@@ -438,8 +438,8 @@ def _bright_all(R, level_of, idx, bright, slot, S0: int, alphas: tuple, n_slots:
     return map_row_chunks(jax.checkpoint(chunk_fn), chunk, R, level_of)
 
 
-@functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "n_slots", "far"))
-def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, *, sizes, plan, chunk, S0, n_bright, n_slots, far):
+@functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "n_slots", "far", "bright_chunk"))
+def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, *, sizes, plan, chunk, S0, n_bright, n_slots, far, bright_chunk):
     """Every FIS level of a prefilter as one compiled program.
 
     level0: the (residual) source; its area-correct pyramid (`sizes`) is built here. R (rows, 3)
@@ -464,7 +464,7 @@ def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, *, sizes,
     for m, (N, nb, _) in enumerate(plan):
         Rm = R[start : start + N * nb : nb]  # the level's directions (rows are direction-major)
         start += N * nb
-        padn = (-N) % BRIGHT_CHUNK
+        padn = (-N) % bright_chunk
         Rb.append(jnp.concatenate([Rm, jnp.broadcast_to(Rm[:1], (padn, 3))]) if padn else Rm)
         lv_of.append(jnp.full((N + padn,), m, jnp.int32))
         spans.append((pos, N))
@@ -473,7 +473,7 @@ def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, *, sizes,
         slot = bright_cells(idx[:n_bright], S0)[0]
     ex = _bright_all(
         jnp.concatenate(Rb), jnp.concatenate(lv_of), idx[:n_bright], bright[:n_bright], slot, S0,
-        tuple(a for _, _, a in plan), n_slots, far,
+        tuple(a for _, _, a in plan), n_slots, far, bright_chunk,
     )
     return tuple(faces(o + ex[p : p + N]) for o, (p, N) in zip(out, spans))
 
@@ -671,7 +671,7 @@ def prefilter(
                 src_level0, idx, bright, None if slot is None else dev(slot, np.int32),
                 dev(np.concatenate(R_rows)), dev(np.concatenate(tabs), np.int32),
                 *(dev(np.concatenate([tb[i] for tb in tables])) for i in range(3)),
-                sizes=sizes, plan=tuple(plan), chunk=positive_int("chunk", chunk), S0=S0, n_bright=n_bright, n_slots=n_slots, far=float(BRIGHT_FAR),
+                sizes=sizes, plan=tuple(plan), chunk=positive_int("chunk", chunk), S0=S0, n_bright=n_bright, n_slots=n_slots, far=float(BRIGHT_FAR), bright_chunk=BRIGHT_CHUNK,
             )
             for m, lv in enumerate(lvs, start=1):
                 levels.append(lv)

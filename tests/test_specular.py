@@ -21,6 +21,7 @@ import pytest  # noqa: E402
 from scipy import integrate  # noqa: E402
 
 import reference as ref  # noqa: E402
+from jaxpbr import specular  # noqa: E402
 from jaxpbr.cubemap import Cubemap, texel_directions  # noqa: E402
 from jaxpbr.specular import (  # noqa: E402
     DEFAULT_SAMPLES,
@@ -390,6 +391,43 @@ def test_single_bright_texel():
     e_exact = max(e.max() for e in rel_errors(exact, ref))
     e_plain = max(e.max() for e in rel_errors(plain, ref))
     assert e_exact < 0.03 and e_plain > 30 * e_exact, (e_exact, e_plain)
+
+
+def test_default_exact_texels_scale_with_the_face_area():
+    """A budget of solid angle, not of texels: a 1-degree sun has ~700 texels at 1024^2 faces and
+    stayed in the sampled part with a fixed 256 (worst texel 130 %, issue 13; tests/test_slow.py)."""
+    from jaxpbr.specular import default_exact_texels
+
+    assert [default_exact_texels(S) for S in (16, 128, 256, 512, 1024, 2048)] == [256, 256, 256, 1024, 4096, 16384]
+
+
+def _small_sun(d):
+    """A 0.4-degree, 5e4-radiance sun (about one texel at 128^2) on a smooth sky."""
+    base = 1.0 + 0.5 * d[..., 1]
+    sun = jnp.where(d @ jnp.asarray(SUN) > math.cos(math.radians(0.4)), 5e4, 0.0)
+    return jnp.stack([base + sun, 0.9 * base + sun, 0.8 * base + sun], -1)
+
+
+def test_bright_far_field_matches_the_full_sum(monkeypatch):
+    """Far from the bright cells (relative to their spread and the lobe) the exact bright pass sums
+    the cells at their centroids. Against the full sum (BRIGHT_FAR = inf): within 5e-4 relative at
+    every texel of every level, and not identical (the far branch is in use); a far field that is
+    too eager (BRIGHT_FAR = 1) is caught. Chunks of 8 directions stand in for the 64 of a large map
+    (at 128^2 a chunk of 64 spans a whole face row, and every chunk is near the sun)."""
+    default = specular.BRIGHT_FAR
+    monkeypatch.setattr(specular, "BRIGHT_CHUNK", 8)
+    env = Cubemap.from_function(_small_sun, 128)
+
+    def levels(far):
+        monkeypatch.setattr(specular, "BRIGHT_FAR", far)
+        pre = prefilter(env, samples=64)
+        assert int(pre.metadata["exact_texels"]) > 0
+        return [np.asarray(lv, np.float64) for lv in pre.levels]
+
+    full, culled, eager = levels(math.inf), levels(default), levels(1.0)
+    rel = lambda a, b: max(float(np.max(np.abs(x - y) / y)) for x, y in zip(a, b))  # noqa: E731
+    assert 0.0 < rel(culled, full) < 5e-4, rel(culled, full)
+    assert rel(eager, full) > 3e-3, rel(eager, full)
 
 
 # ----------------------------------------------------------------------------------------------
