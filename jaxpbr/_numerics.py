@@ -9,6 +9,9 @@ where using where").
 
 from __future__ import annotations
 
+import contextlib
+import itertools
+import threading
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 
@@ -25,6 +28,7 @@ __all__ = [
     "eps",
     "is_concrete",
     "map_row_chunks",
+    "progress_token",
     "outside_traces",
     "remember_per_array",
     "with_callers_context",
@@ -249,18 +253,105 @@ def remember_per_array(cache: dict, x, tag, compute):
     return value
 
 
-def map_row_chunks(fn, chunk: int, *xs):
+#: At most this many progress reports per `map_row_chunks` (a host callback costs ~0.1-0.5 ms).
+MAX_REPORTS = 200
+
+
+def _report_groups(N: int, chunk: int) -> tuple[int, int]:
+    """(chunks per report, reports) for N rows in chunks of `chunk` (<= N)."""
+    n = -(-N // chunk)
+    group = -(-n // MAX_REPORTS)
+    return group, -(-n // group)
+
+
+def map_row_chunks(fn, chunk: int, *xs, token=None):
     """fn(*chunks) over fixed-size chunks of the leading axis of the arrays xs (all of length N),
     with `lax.map` (one compiled loop body, not an unrolled Python loop); the last chunk is padded
-    with copies of the first row and the padding dropped again. -> (N, ...)."""
+    with copies of the first row and the padding dropped again. -> (N, ...).
+
+    token: a traced int32 scalar from `progress_token` (or None): the chunks then run in groups
+    (an outer `lax.map` over at most MAX_REPORTS groups), each group reporting itself to the host
+    (`jax.debug.callback`), which is how one long program shows progress; `row_chunk_count` is
+    the number of reports."""
     N = xs[0].shape[0]
     chunk = min(chunk, N)
-    pad = (-N) % chunk
+    group, reports = _report_groups(N, chunk) if token is not None else (1, 0)
+    pad = (-N) % (chunk * group)
 
     def prep(x):
         if pad:
             x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])])
-        return x.reshape((-1, chunk) + x.shape[1:])
+        x = x.reshape((-1, chunk) + x.shape[1:])
+        return x if token is None else x.reshape((-1, group) + x.shape[1:])
 
-    out = jax.lax.map(lambda c: fn(*c), tuple(prep(x) for x in xs))
-    return out.reshape((-1,) + out.shape[2:])[:N]
+    if token is None:
+        out = jax.lax.map(lambda c: fn(*c), tuple(prep(x) for x in xs))
+        return out.reshape((-1,) + out.shape[2:])[:N]
+
+    def outer(g):
+        out = jax.lax.map(lambda c: fn(*c), g)
+        jax.debug.callback(_progress_tick, token, out)
+        return out
+
+    out = jax.lax.map(outer, tuple(prep(x) for x in xs))
+    return out.reshape((-1,) + out.shape[3:])[:N]
+
+
+def row_chunk_count(N: int, chunk: int) -> int:
+    """How many progress reports `map_row_chunks(..., token=)` makes for N rows."""
+    return _report_groups(N, min(chunk, N))[1] if N else 0
+
+
+class _ProgressSink:
+    """Counts chunk reports and forwards them to a `progress(done, total)` callable at most once
+    per percent. Reports arrive on XLA's callback thread; an exception from `progress` is kept
+    and re-raised on the caller's thread when the computation returns."""
+
+    def __init__(self, progress, total: int):
+        self.progress, self.total, self.done, self.shown = progress, max(1, total), 0, -1
+        self.lock, self.error = threading.Lock(), None
+
+    def add(self, n: int = 1) -> None:
+        with self.lock:
+            self.done = min(self.total, self.done + n)
+            pct = 100 * self.done // self.total
+            if pct == self.shown or self.error is not None:
+                return
+            self.shown = pct
+            try:
+                self.progress(self.done, self.total)
+            except BaseException as exc:  # noqa: BLE001  (kept for the caller's thread)
+                self.error = exc
+
+
+_SINKS: dict[int, _ProgressSink] = {}
+_TOKENS = itertools.count(1)
+
+
+def _progress_tick(token, _out) -> None:
+    # `_out` (the chunk's result) makes the report depend on the chunk's work, so XLA cannot
+    # issue it before the chunk ran.
+    sink = _SINKS.get(int(token))
+    if sink is not None:
+        sink.add()
+
+
+@contextlib.contextmanager
+def progress_token(progress, total: int):
+    """A token for `map_row_chunks(..., token=)` that reports `total` chunks to `progress(done,
+    total)` (None when progress is None: no callbacks are compiled in). Programs with host
+    callbacks are left out of JAX's persistent compilation cache, so only pass a token when
+    someone is watching. At the end `progress(total, total)` is called on the caller's thread."""
+    if progress is None:
+        yield None
+        return
+    key = next(_TOKENS)
+    sink = _SINKS[key] = _ProgressSink(progress, total)
+    try:
+        yield jnp.asarray(key, jnp.int32)
+        if sink.error is not None:
+            raise sink.error
+        if sink.shown < 100:  # the last report may have been throttled
+            progress(sink.total, sink.total)
+    finally:
+        _SINKS.pop(key, None)

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import HIGHEST, map_row_chunks
+from ._numerics import HIGHEST, map_row_chunks, progress_token, row_chunk_count
 from ._validate import positive_int
 from .cubemap import (
     _FACE_TABLE,
@@ -154,38 +154,50 @@ def _moment_pyramid(env: Cubemap, source_size: int):
     return lm
 
 
-def irradiance_at(env: Cubemap, n, *, method: str = "exact", source_size: int | None = None, chunk: int = 64):
+def irradiance_at(
+    env: Cubemap, n, *, method: str = "exact", source_size: int | None = None, chunk: int = 16, progress=None
+):
     """Ebar = E/pi at arbitrary unit normals n (..., 3) -> (..., C). See `irradiance`."""
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
     n = jnp.asarray(n, env.dtype)
     s = _source_size(env.face_size, source_size) if method == "exact" else 0
-    # Bound the (chunk, Ns, C) intermediate of the exact convolution to ~2^24 elements.
+    # Bound the (chunk, Ns, C) intermediate of the exact convolution to ~2^24 elements. The
+    # default 16 keeps it in cache (64^2 source: 16 -> 0.27 s, 227 -> 2.8 s for a 64^2 map).
     chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // max(1, 6 * s * s * env.channels)))
-    return _irradiance_at(env.levels[0], n, method=method, source_size=s, chunk=chunk)
+    total = row_chunk_count(math.prod(n.shape[:-1]), chunk) if method == "exact" else 1
+    with progress_token(progress if method == "exact" else None, total) as token:
+        out = _irradiance_at(env.levels[0], n, token, method=method, source_size=s, chunk=chunk)
+        if token is not None:
+            out = jax.block_until_ready(out)
+    if progress is not None and method != "exact":
+        progress(1, 1)
+    return out
 
 
 @functools.partial(jax.jit, static_argnames=("method", "source_size", "chunk"))
-def _irradiance_at(level0, n, *, method: str, source_size: int, chunk: int):
-    """`irradiance_at` as one compiled program (moments, pyramid sums and the chunked convolution)."""
+def _irradiance_at(level0, n, token, *, method: str, source_size: int, chunk: int):
+    """`irradiance_at` as one compiled program (moments, pyramid sums and the chunked convolution);
+    token: a `progress_token` or None."""
     env = Cubemap((level0,))
     if method == "sh9":
         return sh9_irradiance(sh9_project(env), n)
     lm = _moment_pyramid(env, source_size).reshape(-1, env.channels, 3)  # (Ns, C, 3)
-    out = _exact_conv(n.reshape(-1, 3), lm, chunk=chunk)
+    out = _exact_conv(n.reshape(-1, 3), lm, chunk=chunk, token=token)
     return out.reshape(n.shape[:-1] + (env.channels,))
 
 
-def _exact_conv(n, lm, *, chunk):
-    lmT = jnp.transpose(lm, (2, 0, 1)).reshape(3, -1)  # (3, Ns*C)
+def _exact_conv(n, lm, *, chunk, token=None):
+    C = lm.shape[1]
+    lmT = jnp.transpose(lm, (2, 1, 0)).reshape(3, -1)  # (3, C*Ns): each channel's sources contiguous
 
     def one(nc):
-        # n . (L m) per source texel and channel (a (chunk,3)@(3,Ns*C) product), clamped at the
-        # horizon, summed over the source texels.
-        dots = jnp.matmul(nc, lmT, precision=HIGHEST).reshape(nc.shape[0], -1, lm.shape[1])
-        return jnp.sum(jnp.maximum(dots, 0.0), axis=1) / math.pi
+        # n . (L m) per channel and source texel (a (chunk,3)@(3,C*Ns) product), clamped at the
+        # horizon, summed over the source texels (the contiguous last axis).
+        dots = jnp.matmul(nc, lmT, precision=HIGHEST).reshape(nc.shape[0], C, -1)
+        return jnp.sum(jnp.maximum(dots, 0.0), axis=-1) / math.pi
 
-    return map_row_chunks(one, chunk, n)
+    return map_row_chunks(one, chunk, n, token=token)
 
 
 def _source_size(S: int, source_size: int | None) -> int:
@@ -205,7 +217,8 @@ def irradiance(
     *,
     method: str = "exact",
     source_size: int | None = None,
-    chunk: int = 64,
+    chunk: int = 16,
+    progress=None,
 ) -> Cubemap:
     """Irradiance cube map storing Ebar(n) = E(n)/pi at the texel centres of a `size`^2 cube.
 
@@ -214,13 +227,15 @@ def irradiance(
     method: "exact" (cosine convolution through texel moments, see module docstring) or "sh9".
     source_size: face size of the level the exact convolution sums over (default min(S, 64));
         `source_size = env.face_size` is the full-resolution convolution.
+    progress: optional callable(done, total), in chunks of output texels (see `prefilter`: called
+        from XLA's callback thread while the program runs, and at the end).
     Returns a one-level Cubemap (6, size, size, C) with `info` recording quantity and method.
     """
     size = positive_int("size", size)
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
     dirs = jax.device_put(np.asarray(texel_directions(size), env.dtype))  # a copy, no XLA program
-    vals = irradiance_at(env, dirs, method=method, source_size=source_size, chunk=chunk)
+    vals = irradiance_at(env, dirs, method=method, source_size=source_size, chunk=chunk, progress=progress)
     info = {
         "quantity": "Ebar = E/pi (cosine-weighted mean radiance), value at texel centres",
         "irradiance_method": method,

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._api import keyword_only
-from ._numerics import HIGHEST, is_concrete, map_row_chunks, outside_traces, safe_div
+from ._numerics import HIGHEST, is_concrete, map_row_chunks, outside_traces, progress_token, row_chunk_count, safe_div
 from ._validate import positive_int
 from .conventions import luminance
 from .cubemap import (
@@ -188,13 +188,13 @@ def _fis_rows_body(flat, R, table, local, w, lod, *, sizes):
     return jnp.einsum("ckz,ck->cz", rad, wc, precision=HIGHEST)
 
 
-def _fis_rows(flat, sizes, R, table, local, w, lod, chunk: int):
+def _fis_rows(flat, sizes, R, table, local, w, lod, chunk: int, token=None):
     """`_fis_rows_body` over all rows, in chunks. Rematerialised under differentiation
     (`jax.checkpoint`): the backward pass recomputes the (chunk, k) lookups instead of storing
     them for every chunk, so differentiating a prefilter wrt the environment keeps the memory of
     one chunk."""
     body = jax.checkpoint(functools.partial(_fis_rows_body, sizes=sizes))
-    return map_row_chunks(lambda Rc, tc: body(flat, Rc, tc, local, w, lod), chunk, R, table)
+    return map_row_chunks(lambda Rc, tc: body(flat, Rc, tc, local, w, lod), chunk, R, table, token=token)
 
 
 # ------------------------------------------------------------------------------------------
@@ -386,7 +386,7 @@ def _angle(a, b):
     return 2.0 * jnp.arcsin(jnp.minimum(0.5 * jnp.linalg.norm(a - b, axis=-1), 1.0))
 
 
-def _bright_all(R, level_of, idx, bright, slot, S0: int, alphas: tuple, n_slots: int, far: float, chunk: int = BRIGHT_CHUNK):
+def _bright_all(R, level_of, idx, bright, slot, S0: int, alphas: tuple, n_slots: int, far: float, chunk: int = BRIGHT_CHUNK, token=None):
     """Exact (sub-texel) convolution of the sparse bright part at output directions R (N, 3), each
     of level `level_of` (N,) with GGX width alphas[level]; every chunk of R lies in one level.
 
@@ -435,11 +435,11 @@ def _bright_all(R, level_of, idx, bright, slot, S0: int, alphas: tuple, n_slots:
             lambda: _bright_chunk(Rc, centre, cBw[j], a2[j]),
         )
 
-    return map_row_chunks(jax.checkpoint(chunk_fn), chunk, R, level_of)
+    return map_row_chunks(jax.checkpoint(chunk_fn), chunk, R, level_of, token=token)
 
 
 @functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "n_slots", "far", "bright_chunk"))
-def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, *, sizes, plan, chunk, S0, n_bright, n_slots, far, bright_chunk):
+def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, token, *, sizes, plan, chunk, S0, n_bright, n_slots, far, bright_chunk):
     """Every FIS level of a prefilter as one compiled program.
 
     level0: the (residual) source; its area-correct pyramid (`sizes`) is built here. R (rows, 3)
@@ -449,7 +449,7 @@ def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, *, sizes,
     sum, plus the exact convolution of the first n_bright bright-texel candidates (idx, bright:
     None for none)."""
     flat = _Pyramid(_mip_chain_impl(level0, len(sizes))).flat
-    sums = _fis_rows(flat, sizes, R, table, local, w, lod, chunk)
+    sums = _fis_rows(flat, sizes, R, table, local, w, lod, chunk, token)
     out, row, tab = [], 0, 0
     for N, nb, _ in plan:
         part = sums[row : row + N * nb].reshape(N, nb, -1).sum(1)
@@ -473,7 +473,7 @@ def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, *, sizes,
         slot = bright_cells(idx[:n_bright], S0)[0]
     ex = _bright_all(
         jnp.concatenate(Rb), jnp.concatenate(lv_of), idx[:n_bright], bright[:n_bright], slot, S0,
-        tuple(a for _, _, a in plan), n_slots, far, bright_chunk,
+        tuple(a for _, _, a in plan), n_slots, far, bright_chunk, token,
     )
     return tuple(faces(o + ex[p : p + N]) for o, (p, N) in zip(out, spans))
 
@@ -576,7 +576,10 @@ def prefilter(
     exact_texels: at most this many brightest texels (default `default_exact_texels` of the
         environment's face size; those above max(4 x mean luminance, the
         (k+1)-th largest)) are clamped in the sampled map and their excess convolved exactly.
-    progress: optional callable(done_levels, total_levels) for progress reporting.
+    progress: optional callable(done, total) for progress reporting, in chunks of work (method
+        "fis": called from XLA's callback thread while the one program runs, at most once per
+        percent, and once more from the caller's thread at the end; an exception it raises is
+        re-raised here once the program returns); "reference": per level.
 
     Method "fis" is traceable in env's texel values (jax.jit, jax.grad / jax.vjp wrt env.levels[0]):
     the bright texels are a fixed-size top-k set with zero weights for the unselected ones (see
@@ -667,16 +670,23 @@ def prefilter(
             t0 += nb
         if plan:
             dev = lambda x, t=dt: jax.device_put(np.asarray(x, t))  # noqa: E731  (a copy, no XLA program)
-            lvs = _prefilter_fis(
-                src_level0, idx, bright, None if slot is None else dev(slot, np.int32),
-                dev(np.concatenate(R_rows)), dev(np.concatenate(tabs), np.int32),
-                *(dev(np.concatenate([tb[i] for tb in tables])) for i in range(3)),
-                sizes=sizes, plan=tuple(plan), chunk=positive_int("chunk", chunk), S0=S0, n_bright=n_bright, n_slots=n_slots, far=float(BRIGHT_FAR), bright_chunk=BRIGHT_CHUNK,
-            )
-            for m, lv in enumerate(lvs, start=1):
-                levels.append(lv)
-                if progress is not None:
-                    progress(m, last)
+            chunk = positive_int("chunk", chunk)
+            R_all = np.concatenate(R_rows)
+            # Progress: the FIS chunks, then the bright pass's (each level padded to whole chunks).
+            total = row_chunk_count(len(R_all), chunk)
+            if n_bright:
+                total += row_chunk_count(sum(N + (-N) % BRIGHT_CHUNK for N, _, _ in plan), BRIGHT_CHUNK)
+            with progress_token(progress, total) as token:
+                lvs = _prefilter_fis(
+                    src_level0, idx, bright, None if slot is None else dev(slot, np.int32),
+                    dev(R_all), dev(np.concatenate(tabs), np.int32),
+                    *(dev(np.concatenate([tb[i] for tb in tables])) for i in range(3)), token,
+                    sizes=sizes, plan=tuple(plan), chunk=chunk, S0=S0, n_bright=n_bright, n_slots=n_slots,
+                    far=float(BRIGHT_FAR), bright_chunk=BRIGHT_CHUNK,
+                )
+                if token is not None:
+                    lvs = jax.block_until_ready(lvs)
+            levels.extend(lvs)
     else:
         for m in range(1, last + 1):
             Sm = max(1, S >> m)

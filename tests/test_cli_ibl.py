@@ -157,7 +157,7 @@ def test_failure_after_first_file_removes_everything(tmp_path, capsys, monkeypat
         raise OSError("disk full")
 
     monkeypatch.setattr(ci, "write_json", boom)
-    _bad(["irradiance", "procedural:sky", "--face-size", "16", "--size", "4", "-o", str(tmp_path / "o.ktx2"), "--no-error"], tmp_path, capsys, "disk full")
+    _bad(["irradiance", "procedural:sky", "--face-size", "16", "--size", "4", "-o", str(tmp_path / "o.ktx2"), "--no-error", "--quiet"], tmp_path, capsys, "disk full")
 
 
 def test_six_face_input(tmp_path):

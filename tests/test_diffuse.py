@@ -708,6 +708,19 @@ def test_irradiance_map_structure_and_default_source(random_env):
 
 
 @pytest.mark.parametrize("method", ["exact", "sh9"])
+def test_progress_is_reported_and_changes_nothing(random_env, method):
+    """`jaxpbr irradiance --size 2048` ran for minutes without a sign of life (issue 13): the exact
+    convolution reports its chunks from inside the one program; sh9 reports once."""
+    env = Cubemap(jnp.asarray(random_env))
+    calls = []
+    out = irradiance(env, 8, method=method, chunk=4, progress=lambda d, t: calls.append((d, t)))
+    total = 6 * 8 * 8 // 4 if method == "exact" else 1  # 96 chunks of 4 texels: one report each
+    assert calls[-1] == (total, total) and [d for d, _ in calls] == sorted({d for d, _ in calls}), calls
+    assert len(calls) == (96 if method == "exact" else 1)
+    np.testing.assert_array_equal(np.asarray(out.levels[0]), np.asarray(irradiance(env, 8, method=method, chunk=4).levels[0]))
+
+
+@pytest.mark.parametrize("method", ["exact", "sh9"])
 def test_float32_matches_float64(random_env, method):
     env = random_env[:, ::2, ::2]  # 16^2, Ns = 1536 texels
     n = sample_normals(12, seed=10)

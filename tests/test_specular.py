@@ -247,9 +247,15 @@ def test_structure_and_metadata():
         [float(x) for x in md["level_roughness"].split(",")], [0, 0.25, 0.5, 0.75, 1.0], atol=1e-9
     )
     assert md["fis_samples"] == "64,64,64,64,64" and md["fis_lod_bias"] == "1" and "LD(R, r_m)" in md["quantity"]
+    # Progress in chunks of work (30 rows in chunks of 8: 4 reports from inside the program), the
+    # last one (total, total); the result is the same as without progress.
     calls = []
-    out = prefilter(env, 4, samples=samples_list(3, 64), progress=lambda done, total: calls.append((done, total)))
-    assert calls == [(1, 2), (2, 2)] and [lv.shape[1] for lv in out.levels] == [4, 2, 1]
+    out = prefilter(env, 4, samples=samples_list(3, 64), chunk=8, progress=lambda done, total: calls.append((done, total)))
+    assert calls[-1] == (4, 4) and [d for d, _ in calls] == [1, 2, 3, 4], calls
+    assert [lv.shape[1] for lv in out.levels] == [4, 2, 1]
+    quiet = prefilter(env, 4, samples=samples_list(3, 64), chunk=8)
+    for a, b in zip(out.levels, quiet.levels):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     out = prefilter(env, num_levels=2, samples=samples_list(2, 64))
     assert [lv.shape[1] for lv in out.levels] == [16, 8] and out.metadata["level_roughness"] == "0,1"
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import threading
 import time
 
 from .._validate import positive_int as _positive_int_value
@@ -60,7 +61,8 @@ class Progress:
         self.label, self.quiet, self.t0 = label, quiet, time.perf_counter()
 
     def __call__(self, done: int, total: int) -> None:
-        raise_pending()
+        if threading.current_thread() is threading.main_thread():
+            raise_pending()  # on XLA's callback thread a raise would only abort the program
         if self.quiet:
             return
         width = 24

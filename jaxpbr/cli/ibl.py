@@ -239,7 +239,7 @@ def _irradiance(args, outs: OutputSet, env=None, out_path: Path | None = None, s
     env = env if env is not None else _load(args, "irradiance")
     method = method or args.method
     t0 = time.perf_counter()
-    irr = irradiance(env, size, method=method)
+    irr = irradiance(env, size, method=method, progress=Progress("irradiance", args.quiet))
     np.asarray(irr.levels[0])
     seconds = time.perf_counter() - t0
     err = None if args.no_error else irradiance_error(env, irr)
