@@ -111,15 +111,21 @@ def sh9_irradiance(coeffs, n) -> jax.Array:
     return jnp.maximum(e, 0.0)
 
 
-@functools.lru_cache(maxsize=16)
 def _texel_moments(S: int) -> np.ndarray:
-    """First moments m_i = integral over texel i of w dw, float64 (6, S, S, 3), exact.
+    """First moments m_i = integral over texel i of w dw, float64 (6, S, S, 3), exact: the face
+    moments of `_face_moments` rotated onto the six faces with the face table."""
+    return np.einsum("fab,ijb->fija", _FACE_TABLE, _face_moments(S))
+
+
+@functools.lru_cache(maxsize=4)
+def _face_moments(S: int) -> np.ndarray:
+    """First moments of the texels of one face in its plane coordinates (sc, tc, 1), float64
+    (S, S, 3), read-only.
 
     A texel is a spherical quadrilateral; its moment is (1/2) sum over its edges of
     theta_e * normalize(u_e x u_e+1), with u the unit corner directions in counter-clockwise order
     seen from outside and theta_e the edge's arc length (Arvo 1995, the "vector irradiance" of a
-    polygon). Computed on one face in its plane coordinates (sc, tc, 1), then rotated onto the six
-    faces with the face table.
+    polygon).
     """
     e = np.linspace(-1.0, 1.0, S + 1)
     x0, x1 = e[None, :-1], e[None, 1:]  # sc varies along j (columns)
@@ -138,20 +144,20 @@ def _texel_moments(S: int) -> np.ndarray:
         sn = np.linalg.norm(c, axis=-1, keepdims=True)
         theta = np.arctan2(sn, np.sum(u * v, -1, keepdims=True))
         m += 0.5 * theta * c / sn
-    return np.einsum("fab,ijb->fija", _FACE_TABLE, m)
+    m.setflags(write=False)
+    return m
 
 
-def _moment_pyramid(env: Cubemap, source_size: int):
-    """(moments (6,s,s,3), radiance-weighted moments per channel (6,s,s,C,3)) at face size s:
-    sums of L_i m_i over the level-0 texels that each coarse texel covers (exact power)."""
-    lv = env.levels[0]
-    S = lv.shape[1]
-    m = jnp.asarray(_texel_moments(S), lv.dtype)
-    lm = lv[..., :, None] * m[..., None, :]  # (6,S,S,C,3)
+def _moment_pyramid(lv, mloc, source_size: int):
+    """Radiance-weighted moments per channel (6,s,s,C,3) at face size s: sums of L_i m_i over the
+    level-0 texels (6,S,S,C) that each coarse texel covers (exact power). mloc: the face moments
+    (S,S,3) (`_face_moments`), an argument of the program (as a (6,S,S,3) constant it cost
+    300 MB of program and gigabytes of compile memory at 2048^2; issue 13); the sums run in face
+    coordinates and are rotated onto the faces at the coarse size."""
+    S, C = lv.shape[1], lv.shape[-1]
     f = S // source_size
-    C = lv.shape[-1]
-    lm = lm.reshape(6, source_size, f, source_size, f, C, 3).sum((2, 4))
-    return lm
+    lm = (lv[..., :, None] * mloc[None, :, :, None, :]).reshape(6, source_size, f, source_size, f, C, 3).sum((2, 4))
+    return jnp.einsum("fab,fijcb->fijca", jnp.asarray(_FACE_TABLE, lv.dtype), lm, precision=HIGHEST)
 
 
 def irradiance_at(
@@ -166,8 +172,9 @@ def irradiance_at(
     # default 16 keeps it in cache (64^2 source: 16 -> 0.27 s, 227 -> 2.8 s for a 64^2 map).
     chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // max(1, 6 * s * s * env.channels)))
     total = row_chunk_count(math.prod(n.shape[:-1]), chunk) if method == "exact" else 1
+    mloc = jax.device_put(_face_moments(env.face_size).astype(env.dtype)) if method == "exact" else None
     with progress_token(progress if method == "exact" else None, total) as token:
-        out = _irradiance_at(env.levels[0], n, token, method=method, source_size=s, chunk=chunk)
+        out = _irradiance_at(env.levels[0], n, token, mloc, method=method, source_size=s, chunk=chunk)
         if token is not None:
             out = jax.block_until_ready(out)
     if progress is not None and method != "exact":
@@ -176,13 +183,13 @@ def irradiance_at(
 
 
 @functools.partial(jax.jit, static_argnames=("method", "source_size", "chunk"))
-def _irradiance_at(level0, n, token, *, method: str, source_size: int, chunk: int):
+def _irradiance_at(level0, n, token, mloc, *, method: str, source_size: int, chunk: int):
     """`irradiance_at` as one compiled program (moments, pyramid sums and the chunked convolution);
-    token: a `progress_token` or None."""
+    token: a `progress_token` or None; mloc: `_face_moments` of level0's face size (exact)."""
     env = Cubemap((level0,))
     if method == "sh9":
         return sh9_irradiance(sh9_project(env), n)
-    lm = _moment_pyramid(env, source_size).reshape(-1, env.channels, 3)  # (Ns, C, 3)
+    lm = _moment_pyramid(level0, mloc, source_size).reshape(-1, env.channels, 3)  # (Ns, C, 3)
     out = _exact_conv(n.reshape(-1, 3), lm, chunk=chunk, token=token)
     return out.reshape(n.shape[:-1] + (env.channels,))
 

@@ -150,6 +150,7 @@ class RenderPlan:
     prefilter_size: int
     prefilter_levels: int  # levels computed (0 without IBL)
     mapping_levels: int  # M of the roughness -> lod mapping
+    band_rows: int = 0  # the stages render bands of this many rows (0: the whole image)
 
     def describe(self) -> str:
         parts = [
@@ -742,7 +743,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
             hit=gb.hit,
             ray=tuple(-c for c in view),
         )
-    o, d = primary_rays(scene.camera, dtype=dtype, offset=offset)
+    o, d = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
     o, d = unpack3(o), unpack3(d)
     objects = scene.objects
     t, idx, hit = _cast(objects, o, d, dtype)
@@ -850,26 +851,49 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
             pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key)))
             irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key)))
             lut = _asset_lut(env, opts)
-            return _supersampled(scene, opts, lambda sc, off: _render_pass(
-                sc, lambda: (irr.result(), pre.result(), lut), p, opts, off, staged=True))
+            return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(
+                sc, lambda: (irr.result(), pre.result(), lut), pb, opts, off, staged=True))
     assets = _env_assets(env, p, opts) if p.ibl else None
-    return _supersampled(scene, opts, lambda sc, off: _render_pass(sc, assets, p, opts, off, staged=True))
+    return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True))
 
 
-def _supersampled(scene: Scene, opts: RenderOptions, one_pass):
+#: `render` (staged) renders images larger than this in bands of about this many pixels, so its
+#: memory is the image plus one band's G-buffer (~150 bytes per pixel on the CPU) at any size.
+BAND_PIXELS = 1 << 21
+
+
+def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass):
+    """`_supersampled` over the whole image, or band by band (rows of ~BAND_PIXELS pixels, one
+    compiled program per stage for every band: the band's first row is an argument) into one
+    host buffer when the image is larger; a user G-buffer is rendered whole."""
+    H, W = scene.image_shape
+    if scene.gbuffer is not None or H * W <= BAND_PIXELS:
+        return _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off))
+    rows = max(1, BAND_PIXELS // W)
+    pb = dataclasses.replace(p, band_rows=rows)
+    out = np.empty((H, W, 3), jnp.dtype(opts.dtype))
+    for y0 in range(0, H, rows):
+        band = _supersampled(scene, opts, lambda sc, off: one_pass(sc, pb, off), row0=y0)
+        out[y0 : y0 + rows] = np.asarray(band)[: H - y0]
+    return jax.device_put(out)
+
+
+def _supersampled(scene: Scene, opts: RenderOptions, one_pass, row0: int | None = None):
     """The mean of one_pass(scene, offset) over the camera's s x s sub-pixel offsets, run from the
     host one after another (`render` and `render_batch` outside transformations).
 
     The offset is an argument, not a static value, and the passes get the scene with
     supersample = 1 (a static field the stages do not read): one compiled program per stage
-    whatever s (before: one per offset, s^2 of them)."""
+    whatever s (before: one per offset, s^2 of them). row0: the first row of a band (`_banded`),
+    passed as the offset's third entry."""
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
     if s > 1:
         scene = evolve(scene, camera=evolve(scene.camera, supersample=1))
     dtype = jnp.dtype(opts.dtype)
     acc = None
     for k in range(s * s):
-        off = jax.device_put(np.asarray(((k % s + 0.5) / s, (k // s + 0.5) / s), dtype))
+        off = ((k % s + 0.5) / s, (k // s + 0.5) / s) + (() if row0 is None else (row0,))
+        off = jax.device_put(np.asarray(off, dtype))
         one = one_pass(scene, off)
         acc = one if acc is None else acc + one
     return acc if s == 1 else acc / (s * s)

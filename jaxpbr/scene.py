@@ -119,23 +119,26 @@ def camera_basis(cam: Camera, dtype):
 
 
 @keyword_only("dtype", "offset")
-def primary_rays(cam: Camera, *, dtype=jnp.float32, offset=(0.5, 0.5)):
+def primary_rays(cam: Camera, *, dtype=jnp.float32, offset=(0.5, 0.5), rows: int = 0):
     """Ray origins and unit directions of every pixel, each (H, W, 3).
 
     offset: sample position inside the pixel in pixel units ((0.5, 0.5) = centre), to which
     `cam.jitter` is added. Pixel (i, j) looks through x = (2 (j + ox)/W - 1) tan(fov/2) aspect,
     y = (1 - 2 (i + oy)/H) tan(fov/2) on the image plane at distance 1.
+    rows: 0 for the whole image; otherwise only the band of `rows` image rows starting at row
+    offset[2] (possibly traced; rows past the image bottom continue the projection), (rows, W, 3).
     """
     pos, fwd, right, up = camera_basis(cam, dtype)
     W, H = cam.width, cam.height
     t = jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2)
     jit = jnp.asarray(cam.jitter, dtype)
     x = (2.0 * (jnp.arange(W, dtype=dtype) + offset[0] + jit[0]) / W - 1.0) * t * (W / H)
-    y = (1.0 - 2.0 * (jnp.arange(H, dtype=dtype) + offset[1] + jit[1]) / H) * t
+    i = jnp.arange(H, dtype=dtype) if not rows else jnp.arange(rows, dtype=dtype) + offset[2]
+    y = (1.0 - 2.0 * (i + offset[1] + jit[1]) / H) * t
     x = x[None, :]
     y = y[:, None]
     d = vnormalize(tuple(fwd[i] + x * right[i] + y * up[i] for i in range(3)))
-    d = jnp.stack([jnp.broadcast_to(c, (H, W)) for c in d], -1)
+    d = jnp.stack([jnp.broadcast_to(c, (y.shape[0], W)) for c in d], -1)
     o = jnp.broadcast_to(jnp.stack(pos), d.shape)
     return o, d
 

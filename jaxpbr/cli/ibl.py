@@ -102,12 +102,13 @@ def _prefilter_args(p):
     p.add_argument("--exact-texels", type=int, default=None, help=f"brightest texels convolved exactly (default: {DEFAULT_EXACT_TEXELS} per 256^2 of face area, i.e. 4096 at 1024^2; 0 = off)")
 
 
-#: Peak memory per unit, measured on the CPU backend (`/usr/bin/time -v`, issue 13) and rounded up:
-#: prefilter ~1.1 kB per source texel (256^2: 0.66 GB, 512^2: 1.97 GB peak RSS); loading and the
-#: irradiance ~0.3 kB per source texel; the LUT ~13 B per texel at 30000^2 (12 GB); plus ~0.4 GB
-#: for the process itself.
+#: Peak memory per unit, measured on the CPU backend (`/usr/bin/time -v`, issue 13, after the
+#: memory fixes) and rounded up: a prefilter of a 4096x2048 panorama ~140-165 B per source texel
+#: (1024^2: 1.43 GB, 2048^2: 3.84 GB peak RSS, loading included); loading and the irradiance
+#: ~50 B per source texel (2048^2: 1.63 GB); the LUT ~13 B per texel at 30000^2 (12 GB); plus
+#: ~0.4 GB for the process itself.
 _BASE = 0.4e9
-_PER_TEXEL = {"prefilter": 1200.0, "irradiance": 300.0}
+_PER_TEXEL = {"prefilter": 200.0, "irradiance": 80.0}
 
 
 def _guard_cube(kind: str, face_size) -> None:

@@ -141,8 +141,10 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         # float32 with a screen of warnings).
         jax.config.update("jax_enable_x64", True)
     H, W = scene.image_shape
-    # ~0.15 kB per pixel measured (1280x720: 0.68 GB, 2560x1440: 1.11 GB peak RSS), plus the
-    # process; the supersampling passes run one after another and add nothing.
+    # ~0.12 kB per pixel measured with the render in bands (3840x2160: 1.52 GB, 7680x4320: 4.17 GB
+    # peak RSS; what grows is the frame's own copies: float32 HDR, display encoding, the PNG
+    # check), 0.15 kB kept as the margin, plus the process; the supersampling passes run one
+    # after another and add nothing.
     require_memory(f"rendering {W}x{H}", 0.6e9 + 150.0 * W * H, "lower --width/--height")
     model = opts.model
     tonemap = args.tonemap or display_opts.get("tonemap") or ("reinhard" if model == "learnopengl" else "aces")
