@@ -7,10 +7,11 @@ specular lobe `f_spec = D(h) V(v, l) F(v.h)` with Schlick's `F = F0 + (F90 - F0)
     A = int (1 - Fc) D V (n.l) dl,   B = int Fc D V (n.l) dl,   Fc = (1 - v.h)^5,
 
 with `alpha = r^2` (r perceptual roughness). `smith` picks V: ``"correlated"`` — height-correlated
-Smith (Heitz 2014; glTF 2.0 App. B, Filament; the default) — or ``"schlick_ggx"`` — separable
+Smith (Heitz 2014; glTF 2.0 App. B, Filament; the default) —, ``"schlick_ggx"`` — separable
 Schlick-GGX with `k = alpha / 2` (Karis 2013 for IBL; LearnOpenGL `brdf.fs`), *not* the
-`(r + 1)^2 / 8` of analytic lights (MATH.md §1.3), and not the `brdf(smith="separable")` of the
-BRDF (that is the separable Smith-GGX G2); ``"schlick"`` is a deprecated alias of ``"schlick_ggx"``.
+`(r + 1)^2 / 8` of analytic lights (MATH.md §1.3) — or ``"separable"`` — the uncorrelated Smith-GGX
+`G2 = G1(v) G1(l)` of `brdf(smith="separable")`, so that a render with that option shades its IBL
+term with the same G; ``"schlick"`` is a deprecated alias of ``"schlick_ggx"``.
 At r = 0 the lobe is a mirror and `A = 1 - (1 - mu)^5`, `B = (1 - mu)^5` exactly.
 
 Layout (DESIGN.md, Conventions): shape `(n_roughness, n_nov, 2)`, element `[j, i]` at
@@ -42,7 +43,7 @@ import numpy as np
 from ._api import keyword_only
 from ._interp import bilinear, lerp
 from ._validate import positive_int
-from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated
+from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated, v_smith_separable
 
 __all__ = [
     "DEFAULT_SAMPLES",
@@ -55,7 +56,7 @@ __all__ = [
 ]
 
 #: The two Smith terms a LUT can be built with (see the module docstring).
-SMITH_VARIANTS = ("correlated", "schlick_ggx")
+SMITH_VARIANTS = ("correlated", "schlick_ggx", "separable")
 
 #: Deprecated LUT Smith names -> current ones (accepted with a DeprecationWarning).
 SMITH_ALIASES = {"schlick": "schlick_ggx"}
@@ -206,6 +207,8 @@ def _lut_row(r, mu, lines, m: int, smith: str, node_dtype):
 
     if smith == "correlated":
         vis = lambda n_dot_l: v_smith_correlated(mu_n, n_dot_l, alpha_n)
+    elif smith == "separable":
+        vis = lambda n_dot_l: v_smith_separable(mu_n, n_dot_l, alpha_n)
     else:
         k_n = jnp.asarray(k_ibl(r), node_dtype)
         vis = lambda n_dot_l: v_schlick_ggx(mu_n, n_dot_l, k_n)
@@ -270,9 +273,9 @@ def compute_brdf_lut(
 
     Args:
       size: int n for an n x n table, or a pair `(n_roughness, n_nov)`.
-      smith: ``"correlated"`` (height-correlated Smith, glTF/Filament; default) or
+      smith: ``"correlated"`` (height-correlated Smith, glTF/Filament; default),
         ``"schlick_ggx"`` (Schlick-GGX with k = alpha/2, Karis/LearnOpenGL; ``"schlick"`` is its
-        deprecated alias).
+        deprecated alias) or ``"separable"`` (uncorrelated Smith-GGX, `brdf(smith="separable")`).
       samples: integrand evaluations per texel; the deterministic Gauss-Legendre rule uses
         6 m^2 of them with m = max(1, floor(sqrt(samples / 6))). Default `DEFAULT_SAMPLES` = 864
         (max abs error 1.4e-6 at every texel of 128^2 and 256^2, both variants).
@@ -402,6 +405,13 @@ def _reference_chunk(mu, alpha, *, smith, order, levels, alpha_levels):
             return 0.5 * (jnp.sqrt(1.0 + a3 * a3 * tan2) - 1.0)
 
         g2 = 1.0 / (1.0 + lam(mu3) + lam(n_dot_l))
+    elif smith == "separable":
+
+        def lam(c):  # the same Lambda; G2 = G1(v) G1(l) (uncorrelated)
+            tan2 = (1.0 - c * c) / (c * c)
+            return 0.5 * (jnp.sqrt(1.0 + a3 * a3 * tan2) - 1.0)
+
+        g2 = 1.0 / ((1.0 + lam(mu3)) * (1.0 + lam(n_dot_l)))
     else:
         k = 0.5 * a3
         g2 = mu3 / (mu3 * (1.0 - k) + k) * n_dot_l / (n_dot_l * (1.0 - k) + k)
@@ -417,7 +427,7 @@ def lut_reference(n_dot_v, roughness, *, smith: str = "correlated", order: int =
     Args:
       n_dot_v: NoV in (0, 1] (the integrand divides by NoV; NoV -> 0 is a limit, evaluate e.g.
         1e-6). roughness: perceptual r in [0, 1]. Both broadcast.
-      smith: ``"correlated"`` or ``"schlick_ggx"`` as in `compute_brdf_lut`.
+      smith: ``"correlated"``, ``"schlick_ggx"`` or ``"separable"`` as in `compute_brdf_lut`.
       order, levels: Gauss-Legendre points per panel, and the number of panels graded by 1/4
         towards each singular point of theta (levels - 2 towards the horizon in phi). The
         defaults agree with order 14 / levels 8 to ~1e-9 (tests, slow).

@@ -102,6 +102,9 @@ class RenderOptions:
         combination; each model's IBL reads the LUT of its `lut_smith`, "schlick_ggx" for learnopengl).
     multiscatter: Fdez-Aguera energy compensation of the IBL term (gltf only: True with another
         model raises ValueError).
+    smith: gltf only: "correlated" (the glTF spec, default) or "separable" Smith-GGX G2, for the
+        direct lighting (`brdf(smith=)`) and the IBL term alike (the split-sum LUT of that G,
+        computed on first use: only the correlated and Schlick-GGX tables are shipped).
     irradiance_size / irradiance_method: `jaxpbr.irradiance` parameters (exact convolution default).
     prefilter_size: face size of the prefiltered map (default: min(env face size, 128), a
         power-of-two divisor of it); prefilter_samples: `jaxpbr.prefilter` samples (None = default).
@@ -112,6 +115,7 @@ class RenderOptions:
 
     model: str = "gltf"
     multiscatter: bool = False
+    smith: str = "correlated"
     irradiance_size: int = 32
     irradiance_method: str = "exact"
     prefilter_size: int | None = None
@@ -121,7 +125,7 @@ class RenderOptions:
     dtype: str = "float32"
 
     def __post_init__(self):
-        check_options(self.model, multiscatter=self.multiscatter)
+        check_options(self.model, multiscatter=self.multiscatter, smith=self.smith)
         try:
             name = np.dtype(self.dtype).name  # "float32", np.float64, jnp.float32, np.dtype(...)
         except TypeError:
@@ -414,7 +418,9 @@ def content_key(cube: Cubemap) -> str:
 
 
 def _lut_smith(opts: RenderOptions) -> str:
-    return MODEL_REGISTRY[opts.model].lut_smith
+    """The LUT's Smith term: the model's (`MODEL_REGISTRY`), or the separable Smith-GGX when the
+    direct lighting uses it, so that both terms of a render shade with one G."""
+    return "separable" if opts.smith == "separable" else MODEL_REGISTRY[opts.model].lut_smith
 
 
 def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
@@ -696,7 +702,7 @@ def _shade_direct(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g):
     pos, n, view, m = g["pos"], g["n"], g["view"], g["m"]
     if p_plan.direct:
         lights = _cast_floats(list(scene.lights), dtype)
-        return shade_direct(pack3(pos), pack3(n), pack3(view), m, lights, model=opts.model, ambient=scene.ambient)
+        return shade_direct(pack3(pos), pack3(n), pack3(view), m, lights, model=opts.model, ambient=scene.ambient, smith=opts.smith)
     out = None
     if scene.ambient:
         out = scene.ambient * m.base_color * m.occlusion[..., None]

@@ -49,7 +49,9 @@ _MANIFEST_SMITH = {"correlated": "correlated", "schlick_ggx": "schlick"}
 
 
 def _shipped_entry(n_r: int, n_nov: int, smith: str, samples: int):
-    name = _MANIFEST_SMITH[smith]
+    name = _MANIFEST_SMITH.get(smith)  # "separable" is not shipped: computed on first use
+    if name is None:
+        return None
     for e in shipped_manifest().get("luts", []):
         if e["size"] == [n_r, n_nov] and e["smith"] == name and e["samples"] == samples:
             return e
@@ -69,8 +71,9 @@ def _load(filename: str) -> np.ndarray:
 def brdf_lut(size=128, *, smith: str = "correlated", samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True):
     """Split-sum BRDF LUT (n_r, n_nov, 2) of (A, B); layout of `jaxpbr.lut.compute_brdf_lut`.
 
-    smith: "correlated" (default; for the gltf model) or "schlick_ggx" (Schlick-GGX k = alpha/2;
-    for learnopengl); "schlick" is a deprecated alias of "schlick_ggx".
+    smith: "correlated" (default; for the gltf model), "schlick_ggx" (Schlick-GGX k = alpha/2;
+    for learnopengl; "schlick" is its deprecated alias) or "separable" (the uncorrelated Smith-GGX
+    of `RenderOptions(smith="separable")`; not shipped, computed).
     Served from the shipped float32 EXR when `use_shipped`, dtype is float32 and (size, smith,
     samples) match a manifest entry (128^2 and 256^2, both Smith variants, default samples);
     computed otherwise. `samples=None` means the default quadrature.

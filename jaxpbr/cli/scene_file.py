@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from .. import image
-from ..brdf_terms import MODELS
+from ..brdf_terms import MODELS, OPTION_CHOICES
 from ..color import TONEMAP_OPERATORS, TRANSFERS, srgb_decode, srgb_decode_np
 from ..cubeio import load_environment
 from ..diffuse import IRRADIANCE_METHODS
@@ -50,6 +50,7 @@ _TOP = ("render", "output", "camera", "scene", "environment", "lights", "materia
 _RENDER = (
     "model",
     "multiscatter",
+    "smith",
     "irradiance_size",
     "irradiance_method",
     "prefilter_size",
@@ -372,6 +373,8 @@ class _Loader:
                 out[key] = self.choice(x, p, MODELS)
             elif key == "multiscatter":
                 out[key] = self.boolean(x, p)
+            elif key == "smith":
+                out[key] = self.choice(x, p, OPTION_CHOICES["smith"])
             elif key == "irradiance_method":
                 out[key] = self.choice(x, p, IRRADIANCE_METHODS)
             elif key == "mapping":
