@@ -299,11 +299,12 @@ def test_learnopengl_render_uses_the_registrys_lut():
 
 def test_brdf_and_lut_smith_vocabularies_are_distinct():
     assert set(OPTION_CHOICES["smith"]) == {"correlated", "separable"}
-    assert set(jp.lut.SMITH_VARIANTS) == {"correlated", "schlick_ggx"}
-    # The only shared name means the same G (height-correlated Smith-GGX) in both.
-    assert set(OPTION_CHOICES["smith"]) & set(jp.lut.SMITH_VARIANTS) == {"correlated"}
+    assert set(jp.lut.SMITH_VARIANTS) == {"correlated", "schlick_ggx", "separable"}
+    # The shared names mean the same G in both: the height-correlated and the uncorrelated
+    # (separable) Smith-GGX G2; the LUT's Schlick-GGX (k = alpha/2) is not a brdf choice.
+    assert set(OPTION_CHOICES["smith"]) & set(jp.lut.SMITH_VARIANTS) == {"correlated", "separable"}
     with pytest.raises(ValueError, match="smith must be one of"):
-        jp.compute_brdf_lut(8, smith="separable")
+        jp.compute_brdf_lut(8, smith="schlick_k_r_plus_1")
     with pytest.raises(ValueError, match="unknown smith"):
         jp.brdf(*_simple(), smith="schlick_ggx")
 
@@ -340,7 +341,7 @@ def test_render_options_errors_name_the_fix():
     with pytest.raises(TypeError, match="options must be a jaxpbr.RenderOptions"):
         jp.render(scene, options={"model": "gltf"})
     with pytest.raises(TypeError, match="unknown render option"):
-        jp.render(scene, smith="separable")
+        jp.render(scene, visibility="separable")
     with pytest.raises(ValueError, match="multiscatter is defined for the gltf model only"):
         jp.render(scene, options=RenderOptions(model="learnopengl"), multiscatter=True)
 
