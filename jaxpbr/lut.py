@@ -42,6 +42,7 @@ import numpy as np
 
 from ._api import keyword_only
 from ._interp import bilinear, lerp
+from ._numerics import map_row_chunks, progress_token, row_chunk_count
 from ._validate import positive_int
 from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated, v_smith_separable
 
@@ -251,14 +252,14 @@ def _lut_row(r, mu, lines, m: int, smith: str, node_dtype):
 
 
 @partial(jax.jit, static_argnames=("n_r", "n_nov", "m", "smith", "node_dtype", "rows_per_chunk"))
-def _lut_fast(*, n_r, n_nov, m, smith, node_dtype, rows_per_chunk):
+def _lut_fast(token, *, n_r, n_nov, m, smith, node_dtype, rows_per_chunk):
     mu = (jnp.arange(n_nov, dtype=jnp.float64) + 0.5) / n_nov
     r = (jnp.arange(n_r, dtype=jnp.float64) + 0.5) / n_r
     lines = _phi_lines(mu, m)
     row = partial(_lut_row, mu=mu, lines=lines, m=m, smith=smith, node_dtype=node_dtype)
-    # lax.map over rows in chunks: the node arrays of one chunk are rows_per_chunk * n_nov * 6m^2,
-    # bounded whatever the LUT size.
-    return jax.lax.map(row, r, batch_size=rows_per_chunk)
+    # Rows in chunks: the node arrays of one chunk are rows_per_chunk * n_nov * 6m^2, bounded
+    # whatever the LUT size; token: a `progress_token` (reports per group of chunks) or None.
+    return map_row_chunks(jax.vmap(row), rows_per_chunk, r, token=token)
 
 
 @keyword_only("smith")
@@ -268,6 +269,7 @@ def compute_brdf_lut(
     smith: str = "correlated",
     samples: int = DEFAULT_SAMPLES,
     dtype=jnp.float32,
+    progress=None,
 ) -> jax.Array:
     """The split-sum BRDF LUT, converged to the float64 reference (see the module docstring).
 
@@ -282,6 +284,8 @@ def compute_brdf_lut(
       dtype: output dtype (float32 or float64). The rule sums in float64 either way; float32
         evaluates the integrand at the nodes in float32 (~1e-6 effect), float64 in float64
         (2-2.5x slower).
+      progress: optional callable(done, total) in groups of rows, called from XLA's callback
+        thread while the program runs and once at the end (see `jaxpbr.prefilter`).
 
     Returns:
       (n_roughness, n_nov, 2) array; `[j, i]` holds (A, B) at `r = (j + 0.5)/n_roughness`,
@@ -299,16 +303,17 @@ def compute_brdf_lut(
         raise ValueError(f"compute_brdf_lut: dtype must be float32 or float64, got {dtype}")
     node_dtype = jnp.float32 if dtype == jnp.dtype(jnp.float32) else jnp.float64
     rows = max(1, min(n_r, 4096 // n_nov))
-    with jax.enable_x64(True):
+    with jax.enable_x64(True), progress_token(progress, row_chunk_count(n_r, rows)) as token:
         out = _lut_fast(
+            token,
             n_r=n_r,
             n_nov=n_nov,
             m=_order_from_samples(samples),
             smith=smith,
             node_dtype=node_dtype,
             rows_per_chunk=rows,
-        )
-        return out.astype(dtype)
+        ).astype(dtype)
+        return out if token is None else jax.block_until_ready(out)
 
 
 # ============================================================================================

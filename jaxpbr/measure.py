@@ -48,9 +48,10 @@ def texel_subset(size: int, *, count: int, toward=None, seed: int = 0) -> np.nda
     return np.sort(sel)
 
 
-def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, seed: int = 0) -> list[dict]:
+def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, seed: int = 0, progress=None) -> list[dict]:
     """Per level m >= 1: mean and max relative error of `pre` against `prefilter_reference` at a
-    texel subset. Level 0 is the (down-sampled) source itself and has no error by construction."""
+    texel subset. Level 0 is the (down-sampled) source itself and has no error by construction.
+    progress: optional callable(done_levels, total_levels)."""
     mapping = pre.metadata.get("roughness_mapping", "linear")
     rough = level_roughness(pre.num_levels, mapping=mapping)
     sun = _brightest_direction(env)
@@ -65,18 +66,21 @@ def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, 
         rows.append(
             dict(level=m, roughness=float(rough[m]), face_size=Sm, texels=len(sel), mean=float(e.mean()), max=float(e.max()))
         )
+        if progress is not None:
+            progress(m, pre.num_levels - 1)
     return rows
 
 
-def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int = 0) -> dict:
+def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int = 0, progress=None) -> dict:
     """Mean / max relative error of an irradiance map against the full-resolution exact
-    convolution (source_size = env face size) in float64, at a texel subset."""
+    convolution (source_size = env face size) in float64, at a texel subset (`progress` as in
+    `irradiance`)."""
     S = irr.face_size
     sel = texel_subset(S, count=texels, toward=_brightest_direction(env), seed=seed)
     d = texel_directions(S).reshape(-1, 3)[sel]
     with jax.enable_x64(True):
         env64 = Cubemap(tuple(np.asarray(lv, np.float64) for lv in env.levels[:1]))
-        ref = np.asarray(irradiance_at(env64, d, method="exact", source_size=env.face_size, chunk=16))
+        ref = np.asarray(irradiance_at(env64, d, method="exact", source_size=env.face_size, chunk=16, progress=progress))
     got = np.asarray(irr.levels[0], np.float64).reshape(-1, irr.channels)[sel]
     e = _rel(got, ref)
     return dict(texels=len(sel), mean=float(e.mean()), max=float(e.max()))

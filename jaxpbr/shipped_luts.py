@@ -68,7 +68,9 @@ def _load(filename: str) -> np.ndarray:
 
 
 @keyword_only("smith")
-def brdf_lut(size=128, *, smith: str = "correlated", samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True):
+def brdf_lut(
+    size=128, *, smith: str = "correlated", samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True, progress=None
+):
     """Split-sum BRDF LUT (n_r, n_nov, 2) of (A, B); layout of `jaxpbr.lut.compute_brdf_lut`.
 
     smith: "correlated" (default; for the gltf model), "schlick_ggx" (Schlick-GGX k = alpha/2;
@@ -76,7 +78,8 @@ def brdf_lut(size=128, *, smith: str = "correlated", samples: int | None = None,
     of `RenderOptions(smith="separable")`; not shipped, computed).
     Served from the shipped float32 EXR when `use_shipped`, dtype is float32 and (size, smith,
     samples) match a manifest entry (128^2 and 256^2, both Smith variants, default samples);
-    computed otherwise. `samples=None` means the default quadrature.
+    computed otherwise (`progress` as in `compute_brdf_lut`). `samples=None` means the default
+    quadrature.
     """
     smith = resolve_smith(smith, "brdf_lut")
     n_r, n_nov = _lut_shape(size)
@@ -85,4 +88,4 @@ def brdf_lut(size=128, *, smith: str = "correlated", samples: int | None = None,
         entry = _shipped_entry(n_r, n_nov, smith, n)
         if entry is not None:
             return jax.device_put(_load(entry["file"]))  # (jnp.asarray would compile a copy program)
-    return compute_brdf_lut(size, smith=smith, samples=n, dtype=dtype)
+    return compute_brdf_lut(size, smith=smith, samples=n, dtype=dtype, progress=progress)

@@ -1,10 +1,17 @@
 """Probe cases of issue 13 (nothing lost, nothing silent), each reproduced first and kept fixed here.
 
-Covered so far: a full disk (a real tiny tmpfs when the machine allows mounting one, and an
-injected silent short write otherwise), files whose content is not the format their extension
-names, SIGTERM rolling back like SIGINT, a scene asking for float64, and exit status 2 for
-user-facing errors. (The tracer in the asset cache and one program per supersampling offset are
-in tests/test_bake.py.)
+Covered: a full disk (a real tiny tmpfs when the machine allows mounting one, and an injected
+silent short write otherwise), files whose content is not the format their extension names, a
+truncated image (one line on stderr, nothing on stdout), SIGINT and SIGTERM rolling back (also an
+interrupted re-bake over a complete set, and a signal during a long native call), a scene asking
+for float64, checks before the work (outputs, --exposure, --size that is not a mip of the cube,
+float16 overflow naming --ktx-format), huge sizes refused with the flag named, API misuse (vectors
+that are not 3-vectors, NaN directions and radiance, complex values, an empty batch, batch axes
+that do not broadcast named per input) and exit status 2 for user-facing errors. Elsewhere: the
+tracer in the asset cache, one program per supersampling offset and per render band
+(tests/test_bake.py), the prefilter's exact-texel budget and far field (tests/test_specular.py; the
+1024^2 sun in tests/test_slow.py), progress from inside the precompute programs
+(tests/test_specular.py, tests/test_diffuse.py), the LUT's exact edges (tests/test_lut.py).
 """
 
 from __future__ import annotations

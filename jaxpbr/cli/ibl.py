@@ -198,7 +198,7 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
     smith = SMITH_ALIASES.get(args.smith, args.smith)
     if smith != args.smith:
         print(f"jaxpbr: warning: --smith {args.smith} is deprecated; use --smith {smith}", file=sys.stderr)
-    lut = np.asarray(brdf_lut(args.size, smith=smith, samples=args.samples, use_shipped=False))
+    lut = np.asarray(brdf_lut(args.size, smith=smith, samples=args.samples, use_shipped=False, progress=Progress("lut", args.quiet)))
     seconds = time.perf_counter() - t0
     err = None if args.no_error else lut_error(lut, smith=smith, texels=None if getattr(args, "full_check", False) else 1024)
     meta = {
@@ -243,7 +243,7 @@ def _irradiance(args, outs: OutputSet, env=None, out_path: Path | None = None, s
     irr = irradiance(env, size, method=method, progress=Progress("irradiance", args.quiet))
     np.asarray(irr.levels[0])
     seconds = time.perf_counter() - t0
-    err = None if args.no_error else irradiance_error(env, irr)
+    err = None if args.no_error else irradiance_error(env, irr, progress=Progress("irradiance error check", args.quiet))
     meta = {"quantity": "Ebar = E/pi (cosine-weighted mean radiance) at texel centres", "method": method, **irr.metadata}
     files = _write_cube(out, irr, args, meta, outs)
     side = {
@@ -294,7 +294,8 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
     )
     [np.asarray(lv) for lv in pre.levels]
     seconds = time.perf_counter() - t0
-    rows = None if args.no_error or args.method == "reference" else prefilter_error(env, pre)
+    check = Progress("prefilter error check (float64 reference)", args.quiet)
+    rows = None if args.no_error or args.method == "reference" else prefilter_error(env, pre, progress=check)
     meta = dict(pre.metadata)
     files = _write_cube(out, pre, args, meta, outs)
     side = {
