@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from ._api import keyword_only
-from .cubemap import Cubemap, texel_directions
+from .cubemap import Cubemap, face_to_dir, texel_directions
 from .diffuse import irradiance_at
 from .lut import lut_reference, resolve_smith
 from .specular import level_roughness, prefilter_reference
@@ -27,9 +27,14 @@ def _rel(x, ref) -> np.ndarray:
 
 
 def _brightest_direction(env: Cubemap) -> np.ndarray:
-    L = np.asarray(env.levels[0], np.float64).mean(-1)
-    k = int(np.argmax(L))
-    return env.directions(0).reshape(-1, 3)[k]
+    """The centre direction of the texel with the largest channel sum (only that texel's
+    direction is computed: the full direction grid of a 2048^2 cube was 0.6 GB)."""
+    S = env.face_size
+    k = int(np.argmax(np.asarray(env.levels[0]).sum(-1)))
+    f, rem = divmod(k, S * S)
+    i, j = divmod(rem, S)
+    d = face_to_dir(np.asarray(f), np.asarray((j + 0.5) / S), np.asarray((i + 0.5) / S), xp=np)
+    return d / np.linalg.norm(d)
 
 
 @keyword_only("count")
@@ -43,7 +48,8 @@ def texel_subset(size: int, *, count: int, toward=None, seed: int = 0) -> np.nda
     sel = rng.choice(n, count, replace=False)
     if toward is not None:
         d = texel_directions(size).reshape(-1, 3)
-        near = np.argsort(-(d @ np.asarray(toward)))[: max(1, count // 8)]
+        m = max(1, count // 8)
+        near = np.argpartition(-(d @ np.asarray(toward)), m - 1)[:m]
         sel = np.union1d(sel, near)
     return np.sort(sel)
 

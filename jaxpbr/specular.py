@@ -42,7 +42,7 @@ from .cubemap import (
     _mip_chain_impl,
     _mip_count,
     _Pyramid,
-    _subtexel_points,
+    _subtexel_coords,
     face_to_dir,
     texel_directions,
     texel_solid_angles,
@@ -492,7 +492,7 @@ def _reference_supersample(alpha: float, S0: int, max_q: int = 4) -> int:
     return int(min(max_q, max(1, math.ceil(texel / (alpha / 4.0)))))
 
 
-def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: int | None = None, chunk: int = 16):
+def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: int | None = None, chunk: int = 64):
     """float64 LD(R, r) at unit directions `dirs` (..., 3) by brute force over every texel of
     env level 0 -> (..., C) float64 NumPy array.
 
@@ -513,32 +513,62 @@ def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: in
         alpha = r * r
         S0 = env.face_size
         q = _reference_supersample(alpha, S0) if supersample is None else positive_int("supersample", supersample)
-        sub, w = _subtexel_points(S0, q)  # (6,S,S,q*q,3), (S,S,q*q)
-        om = texel_solid_angles(S0)[..., None] * w[None]  # (6,S,S,q*q)
-        L = np.asarray(env.levels[0], np.float64)  # (6,S,S,C)
-        C = L.shape[-1]
-        Lw = np.concatenate(
-            [np.broadcast_to(L[..., None, :], om.shape + (C,)) * om[..., None], om[..., None]], -1
-        ).reshape(-1, C + 1)
-        src = jnp.asarray(sub.reshape(-1, 3).T)  # (3, Ns)
-        # Bound the (chunk, Ns) kernel block to ~2^24 float64 elements whatever the source size.
-        chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // src.shape[1]))
-        out = _reference_sum(jnp.asarray(dirs.reshape(-1, 3)), src, jnp.asarray(Lw), alpha, chunk=chunk)
+        chunk = positive_int("chunk", chunk)
+        # Source rows per block: the (chunk, block points) kernel stays ~2^22 float64 whatever S0.
+        B = max(1, min(S0, (1 << 22) // (chunk * S0 * q * q)))
+        nb = -(-S0 // B)
+        coords = _subtexel_coords(S0, q)  # (S0, q): the sub-texel centres' face coordinates
+        pad = nb * B - S0
+        om = np.concatenate([texel_solid_angles(S0)[0], np.zeros((pad, S0))])  # padded rows weigh 0
+        t = np.concatenate([coords, np.repeat(coords[-1:], pad, 0)])
+        L = env.levels[0]
+        L = jnp.concatenate([L, jnp.zeros((6, pad) + L.shape[2:], L.dtype)], 1) if pad else L
+        out = _reference_sum(
+            jnp.asarray(dirs.reshape(-1, 3)), L, jax.device_put(t), jax.device_put(coords), jax.device_put(om),
+            alpha, q=q, rows=B, chunk=chunk,
+        )
         out = np.asarray(out)
+        C = L.shape[-1]
     return (out[:, :C] / out[:, C:]).reshape(shape + (C,))
 
 
-@functools.partial(jax.jit, static_argnames=("chunk",))
-def _reference_sum(R, src, Lw, alpha, *, chunk):
+@functools.partial(jax.jit, static_argnames=("q", "rows", "chunk"))
+def _reference_sum(R, L, t, s, om, alpha, *, q, rows, chunk):
+    """sum over every source sub-texel of K(R.l) (L Omega, Omega) -> (N, C + 1), float64.
+
+    L (6, S', S, C) the level (rows padded to whole blocks), t (S', q) / s (S, q) the sub-texel
+    face coordinates along rows / columns, om (S', S) one face's texel solid angles (padded rows 0).
+    The sources are generated on the device block by block (`rows` texel rows of a face at a
+    time) inside each chunk of output directions: no (6 S^2 q^2, 3) source array is ever held
+    (at 2048^2 faces it was 0.6 GB on the host, cached, plus its device copy and the weights)."""
     a2 = alpha * alpha
+    S, C = s.shape[0], L.shape[-1]
+    f64 = jnp.float64
+    ss = jnp.broadcast_to(s[None, :, None, :], (rows, S, q, q)).reshape(rows, S, q * q)
+
+    def block(face, Rc, acc, start):
+        ct = jax.lax.dynamic_slice_in_dim(t, start, rows)  # (rows, q)
+        tt = jnp.broadcast_to(ct[:, None, :, None], (rows, S, q, q)).reshape(rows, S, q * q)
+        d = face_to_dir(face, ss, tt, xp=jnp)  # a Python int face: no constant-folded face table
+        r2 = jnp.sum(d * d, -1)
+        w = r2**-1.5
+        w = w / jnp.sum(w, -1, keepdims=True)
+        d = (d / jnp.sqrt(r2)[..., None]).reshape(-1, 3)
+        omq = jax.lax.dynamic_slice_in_dim(om, start, rows)[..., None] * w  # (rows, S, q*q) sub-texel solid angles
+        Lb = jax.lax.dynamic_slice_in_dim(L[face], start, rows).astype(f64)  # (rows, S, C)
+        Lw = jnp.concatenate([Lb[:, :, None, :] * omq[..., None], omq[..., None]], -1).reshape(-1, C + 1)
+        c = jnp.matmul(Rc, d.T, precision=HIGHEST)  # (chunk, P)
+        k = jnp.maximum(c, 0.0) / (0.5 * (1.0 - c) + 0.5 * (1.0 + c) * a2) ** 2
+        return acc + jnp.matmul(k, Lw, precision=HIGHEST)
 
     def one(Rc):
-        c = jnp.matmul(Rc, src, precision=HIGHEST)  # (chunk, Ns)
-        d = 0.5 * (1.0 - c) + 0.5 * (1.0 + c) * a2
-        k = jnp.maximum(c, 0.0) / (d * d)
-        return jnp.matmul(k, Lw, precision=HIGHEST)
+        acc = jnp.zeros((Rc.shape[0], C + 1), f64)
+        starts = jnp.arange(0, L.shape[1], rows)
+        for face in range(6):
+            acc, _ = jax.lax.scan(lambda a, st, f=face: (block(f, Rc, a, st), None), acc, starts)
+        return acc
 
-    return map_row_chunks(one, chunk, R)
+    return map_row_chunks(one, chunk, R.astype(f64))
 
 
 # ------------------------------------------------------------------------------------------

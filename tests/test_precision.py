@@ -93,9 +93,12 @@ def test_prefilter_reference(env):
     dirs = np.asarray([[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
     # The reference converts to NumPy at the end; walk its summation program.
     with jax.enable_x64(True):
-        src = jnp.asarray(np.random.default_rng(0).normal(size=(3, 50)))
-        Lw = jnp.ones((50, 4))
-        n, bad = not_highest(lambda R: specular._reference_sum(R, src, Lw, 0.3, chunk=2), jnp.asarray(dirs))
+        from jaxpbr.cubemap import _subtexel_coords, texel_solid_angles
+
+        L = jnp.ones((6, 4, 4, 3))
+        c = jax.device_put(_subtexel_coords(4, 2))
+        om = jax.device_put(texel_solid_angles(4)[0])
+        n, bad = not_highest(lambda R: specular._reference_sum(R, L, c, c, om, 0.3, q=2, rows=2, chunk=2), jnp.asarray(dirs))
     assert n > 0 and not bad, bad[:3]
 
 
