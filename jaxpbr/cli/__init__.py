@@ -27,7 +27,7 @@ from . import (
     report_precompute,
     report_render,
 )
-from ._common import PENDING, CLIError, Terminated, raise_pending
+from ._common import PENDING, CLIError, Terminated, close_progress_line, raise_pending
 
 __all__ = ["CLIError", "build_parser", "main"]
 
@@ -125,7 +125,7 @@ def _start_watchdog() -> None:
             atomic.emergency_rollback()
             term = data[0] == signal.SIGTERM
             try:
-                os.write(2, b"jaxpbr: terminated\n" if term else b"jaxpbr: interrupted\n")
+                os.write(2, close_progress_line().encode() + (b"jaxpbr: terminated\n" if term else b"jaxpbr: interrupted\n"))
             finally:
                 os._exit(128 + signal.SIGTERM if term else 130)
 
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (Terminated): files already rolled back
         _HANDLED.set()
         terminated = isinstance(exc, Terminated)
-        print("jaxpbr: terminated" if terminated else "jaxpbr: interrupted", file=sys.stderr)
+        print(close_progress_line() + ("jaxpbr: terminated" if terminated else "jaxpbr: interrupted"), file=sys.stderr)
         code = 128 + signal.SIGTERM if terminated else 130
         if entry:
             # Worker threads (a precompute still running) would keep the process alive until
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
         if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"jaxpbr: error: {msg}", file=sys.stderr)
+        print(f"{close_progress_line()}jaxpbr: error: {msg}", file=sys.stderr)
         # 2: the user can fix it (bad input, a file or disk problem, too little memory); 1: a bug.
         return 2 if isinstance(exc, (CLIError, ValueError, OSError, MemoryError)) else 1
     finally:

@@ -53,6 +53,18 @@ def raise_pending() -> None:
         raise exc()
 
 
+#: Whether a progress bar's line is still open on stderr (printed with "\r", no newline yet).
+_OPEN_LINE = [False]
+
+
+def close_progress_line() -> str:
+    """A newline if a progress bar's line is open (so that a message does not land on it), else ""."""
+    if _OPEN_LINE[0]:
+        _OPEN_LINE[0] = False
+        return "\n"
+    return ""
+
+
 class Progress:
     """A one-line progress indicator on stderr (silent when `quiet`); the library's precomputes take
     it as their `progress(done, total)` callback and know nothing of the terminal."""
@@ -68,6 +80,7 @@ class Progress:
         width = 24
         fill = int(width * done / max(total, 1))
         end = "\n" if done >= total else ""
+        _OPEN_LINE[0] = not end
         print(
             f"\r{self.label}: [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {time.perf_counter() - self.t0:.1f} s",
             end=end,
