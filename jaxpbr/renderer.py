@@ -829,10 +829,13 @@ def _options(options, overrides: dict, fn: str) -> RenderOptions:
     return dataclasses.replace(options, **overrides) if overrides else options
 
 
-def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> jax.Array:
+def render(scene: Scene, *, options: RenderOptions | None = None, progress=None, **overrides) -> jax.Array:
     """Render `scene` to linear HDR radiance (H, W, 3) (Rec.709 primaries, scene-referred).
 
     options: a `RenderOptions` value (default: `RenderOptions()`).
+    progress: optional callable(done, total) in passes (bands of rows x sub-pixel samples), called
+      on the caller's thread as each pass is dispatched and once when the image is ready (staged
+      renders, i.e. on the CPU outside jit; a one-program render reports only its end).
     **overrides: `RenderOptions` fields as keywords (model, multiscatter, irradiance_size,
       irradiance_method, prefilter_size, prefilter_samples, lut_size, mapping, dtype), applied on
       top of `options`: `render(scene, options=opts, model="learnopengl")` renders with
@@ -846,7 +849,10 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
     p = plan(scene, options=opts)
     env = scene.environment
     if not _staged():
-        return _render_jit(scene, _env_assets(env, p, opts) if p.ibl else None, p, opts)
+        out = _render_jit(scene, _env_assets(env, p, opts) if p.ibl else None, p, opts)
+        if progress is not None:
+            progress(1, 1)
+        return out
     if p.ibl and all(is_concrete(lv) for lv in env.radiance.levels):
         # The prefiltered and irradiance maps of a concrete environment are computed (or loaded)
         # on two worker threads while this one traces, compiles and runs the geometry and
@@ -858,9 +864,9 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
             irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key)))
             lut = _asset_lut(env, opts)
             return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(
-                sc, lambda: (irr.result(), pre.result(), lut), pb, opts, off, staged=True))
+                sc, lambda: (irr.result(), pre.result(), lut), pb, opts, off, staged=True), progress)
     assets = _env_assets(env, p, opts) if p.ibl else None
-    return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True))
+    return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), progress)
 
 
 #: `render` (staged) renders images larger than this in bands of about this many pixels, so its
@@ -868,23 +874,39 @@ def render(scene: Scene, *, options: RenderOptions | None = None, **overrides) -
 BAND_PIXELS = 1 << 21
 
 
-def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass):
+def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None):
     """`_supersampled` over the whole image, or band by band (rows of ~BAND_PIXELS pixels, one
     compiled program per stage for every band: the band's first row is an argument) into one
     host buffer when the image is larger; a user G-buffer is rendered whole."""
     H, W = scene.image_shape
+    s = 1 if scene.gbuffer is not None else scene.camera.supersample
     if scene.gbuffer is not None or H * W <= BAND_PIXELS:
-        return _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off))
-    rows = max(1, BAND_PIXELS // W)
-    pb = dataclasses.replace(p, band_rows=rows)
-    out = np.empty((H, W, 3), jnp.dtype(opts.dtype))
-    for y0 in range(0, H, rows):
-        band = _supersampled(scene, opts, lambda sc, off: one_pass(sc, pb, off), row0=y0)
-        out[y0 : y0 + rows] = np.asarray(band)[: H - y0]
-    return jax.device_put(out)
+        out = _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off), progress=_passes(progress, 0, s * s))
+    else:
+        rows = max(1, BAND_PIXELS // W)
+        pb = dataclasses.replace(p, band_rows=rows)
+        total = -(-H // rows) * s * s
+        out = np.empty((H, W, 3), jnp.dtype(opts.dtype))
+        for b, y0 in enumerate(range(0, H, rows)):
+            band = _supersampled(scene, opts, lambda sc, off: one_pass(sc, pb, off), row0=y0,
+                                 progress=_passes(progress, b * s * s, total))
+            out[y0 : y0 + rows] = np.asarray(band)[: H - y0]
+        out = jax.device_put(out)
+    if progress is not None:
+        out = jax.block_until_ready(out)
+        total = 1 if scene.gbuffer is not None or H * W <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W))
+        progress(total * s * s, total * s * s)
+    return out
 
 
-def _supersampled(scene: Scene, opts: RenderOptions, one_pass, row0: int | None = None):
+def _passes(progress, offset: int, total: int):
+    """progress(done, total) of the whole render for one `_supersampled` call's passes (None: none)."""
+    if progress is None:
+        return None
+    return lambda k: progress(offset + k, total) if offset + k < total else None
+
+
+def _supersampled(scene: Scene, opts: RenderOptions, one_pass, row0: int | None = None, progress=None):
     """The mean of one_pass(scene, offset) over the camera's s x s sub-pixel offsets, run from the
     host one after another (`render` and `render_batch` outside transformations).
 
@@ -902,6 +924,8 @@ def _supersampled(scene: Scene, opts: RenderOptions, one_pass, row0: int | None 
         off = jax.device_put(np.asarray(off, dtype))
         one = one_pass(scene, off)
         acc = one if acc is None else acc + one
+        if progress is not None:
+            progress(k + 1)
     return acc if s == 1 else acc / (s * s)
 
 

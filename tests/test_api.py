@@ -369,5 +369,7 @@ def test_cli_render_passes_the_options_value(monkeypatch, tmp_path):
     monkeypatch.setattr(cli_render, "render", fake_render)
     assert main(["render", "-o", str(tmp_path / "x.png"), "--width", "8", "--height", "4", "--model", "learnopengl",
                  "--no-environment"]) == 0
-    assert set(seen) == {"options"} and seen["options"] == RenderOptions(model="learnopengl")
+    # options as one value; progress only (None here: one pass) besides it, no splatted fields
+    assert set(seen) == {"options", "progress"} and seen["options"] == RenderOptions(model="learnopengl")
+    assert seen["progress"] is None
     assert dataclasses.is_dataclass(seen["options"])

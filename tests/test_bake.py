@@ -258,9 +258,12 @@ def test_a_large_render_runs_in_bands_equal_to_the_whole(monkeypatch, s):
     whole = np.asarray(jp.render(scene))
     monkeypatch.setattr(renderer, "BAND_PIXELS", 20 * 5)  # 5-row bands: 4 whole + one cropped
     before = renderer._geometry_jit._cache_size()
-    banded = np.asarray(jp.render(scene))
+    calls = []
+    banded = np.asarray(jp.render(scene, progress=lambda d, t: calls.append((d, t))))
     assert renderer._geometry_jit._cache_size() - before <= 1  # 5 bands x s^2 passes, at most one new program
     np.testing.assert_array_equal(banded, whole)
+    total = 5 * s * s  # a progress report per pass, the last when the image is ready
+    assert calls == [(k, total) for k in range(1, total + 1)], calls
 
 
 def test_render_with_separable_smith_uses_its_lut_and_shadows_more():

@@ -16,8 +16,8 @@ from ..atomic import OutputSet
 from ..brdf_terms import MODELS
 from ..conventions import CONVENTIONS
 from ..demo import demo_scene
-from ..renderer import RenderOptions, plan, render
-from ._common import CLIError, positive_int_arg, raise_pending, require_memory
+from ..renderer import BAND_PIXELS, RenderOptions, plan, render
+from ._common import CLIError, Progress, positive_int_arg, raise_pending, require_memory
 from .scene_file import load_scene
 
 __all__ = ["add_command", "cmd_render"]
@@ -158,7 +158,9 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
 
     t0 = time.perf_counter()
     the_plan = plan(scene, options=opts)
-    hdr_device = render(scene, options=opts)
+    # A bar only when there is more than one pass (bands of a large image, sub-pixel samples).
+    passes = scene.camera.supersample ** 2 * (1 if W * H <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W)))
+    hdr_device = render(scene, options=opts, progress=Progress("render") if passes > 1 else None)
     display = np.asarray(_display(hdr_device, ev, tonemap=tonemap, encoding=encoding))
     hdr = np.asarray(hdr_device)  # one device -> host copy of each image
     t_render = time.perf_counter() - t0
