@@ -290,7 +290,9 @@ def map_row_chunks(fn, chunk: int, *xs, token=None):
 
     def outer(g):
         out = jax.lax.map(lambda c: fn(*c), g)
-        jax.debug.callback(_progress_tick, token, out)
+        # A scalar that needs the whole group: the report comes after the group's work, and
+        # only 4 bytes go to the host (not the group's results).
+        jax.debug.callback(_progress_tick, token, jnp.sum(out))
         return out
 
     out = jax.lax.map(outer, tuple(prep(x) for x in xs))
@@ -328,9 +330,9 @@ _SINKS: dict[int, _ProgressSink] = {}
 _TOKENS = itertools.count(1)
 
 
-def _progress_tick(token, _out) -> None:
-    # `_out` (the chunk's result) makes the report depend on the chunk's work, so XLA cannot
-    # issue it before the chunk ran.
+def _progress_tick(token, _done) -> None:
+    # `_done` (a sum over the group's results) makes the report depend on the group's work, so
+    # XLA cannot issue it before the group ran.
     sink = _SINKS.get(int(token))
     if sink is not None:
         sink.add()
