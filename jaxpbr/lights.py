@@ -26,6 +26,8 @@ from ._numerics import (
     as_float,
     is_concrete,
     pack3,
+    safe_div,
+    safe_sqrt,
     saturate,
     unpack3,
     vdot,
@@ -43,6 +45,7 @@ __all__ = [
     "SpotLight",
     "UNROLL_MAX_LIGHTS",
     "MIN_LIGHT_DISTANCE",
+    "cap_irradiance",
     "pack_lights",
     "shade_direct",
 ]
@@ -351,3 +354,42 @@ def shade_direct(
         out = tuple(out[i] + amb3[i] * base[i] * m.occlusion for i in range(3))
     emissive = unpack3(m.emissive)
     return pack3(tuple(out[i] + emissive[i] for i in range(3)))
+
+
+def cap_irradiance(cos_theta, sin_sigma) -> jax.Array:
+    """Irradiance E = integral over a spherical cap of max(n.w, 0) dw, per unit radiance: the
+    cosine-weighted solid angle of a uniform disc light (a sun) of angular radius sigma whose centre
+    makes the angle theta with the normal n, including a cap partly below the horizon.
+
+    cos_theta: n . (cap centre direction); sin_sigma: sin of the angular radius, in [0, 1]
+    (broadcasting arrays). E/pi is the share of a white Lambertian's reflectance.
+
+    Closed form (the sphere/disc "form factor" with horizon clipping; Snyder 1996, Lagarde & de
+    Rousiers 2014 sec. 4.7.2): fully above the horizon (theta <= pi/2 - sigma) E = pi sin^2 sigma
+    cos theta (the cap's vector irradiance dotted with n); fully below, 0; in between, with
+    x = cot sigma and y = -x cot theta,
+    E = (cos theta acos y - x sin theta sqrt(1 - y^2)) sin^2 sigma + atan2(sin theta sqrt(1 - y^2), x).
+    The three pieces join continuously at cos^2 theta = sin^2 sigma (y = -+1 there). Values and
+    gradients are finite everywhere (double where: the straddling formula is evaluated only where
+    it applies, away from |y| = 1, where its terms have infinite slopes that cancel).
+    """
+    c = jnp.clip(as_float(cos_theta), -1.0, 1.0)
+    s = jnp.clip(as_float(sin_sigma), 0.0, 1.0)
+    c, s = jnp.broadcast_arrays(c, s)
+    s2 = s * s
+    pi_s2 = jnp.pi * s2
+    above = pi_s2 * jnp.maximum(c, 0.0)
+    sin_t = safe_sqrt(1.0 - c * c)
+    cos_sigma = safe_sqrt(1.0 - s2)
+    x = safe_div(cos_sigma, s, s > 0)  # cot sigma (unused where s = 0: no straddling there)
+    y = -x * safe_div(c, sin_t, sin_t > 0)
+    # Straddling the horizon: |theta - pi/2| < sigma, i.e. c^2 < s^2 (and y strictly inside (-1, 1)).
+    straddle = (c * c < s2) & (jnp.abs(y) < 1.0 - 1e-7)
+    # Benign inputs off the straddling lanes (double where): arctan2(0, 0) at sigma = pi/2,
+    # theta = 0 has a NaN slope that a mask alone would let into the gradient.
+    ys = jnp.where(straddle, y, 0.0)
+    xs = jnp.where(straddle, x, 1.0)
+    st = jnp.where(straddle, sin_t, 1.0)
+    root = jnp.sqrt(1.0 - ys * ys)
+    part = (c * jnp.arccos(ys) - xs * st * root) * s2 + jnp.arctan2(st * root, xs)
+    return jnp.where(straddle, jnp.maximum(part, 0.0), above)
