@@ -836,7 +836,7 @@ def render(scene: Scene, *, options: RenderOptions | None = None, progress=None,
     progress: optional callable(done, total) in passes (bands of rows x sub-pixel samples), called
       on the caller's thread as each pass is dispatched and once when the image is ready (staged
       renders, i.e. on the CPU outside jit; a one-program render reports only its end).
-    **overrides: `RenderOptions` fields as keywords (model, multiscatter, irradiance_size,
+    **overrides: `RenderOptions` fields as keywords (model, multiscatter, smith, irradiance_size,
       irradiance_method, prefilter_size, prefilter_samples, lut_size, mapping, dtype), applied on
       top of `options`: `render(scene, options=opts, model="learnopengl")` renders with
       `dataclasses.replace(opts, model="learnopengl")`.
@@ -877,15 +877,17 @@ BAND_PIXELS = 1 << 21
 def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None):
     """`_supersampled` over the whole image, or band by band (rows of ~BAND_PIXELS pixels, one
     compiled program per stage for every band: the band's first row is an argument) into one
-    host buffer when the image is larger; a user G-buffer is rendered whole."""
+    host buffer when the image is larger; a user G-buffer is rendered whole. progress: per pass
+    (bands x sub-pixel samples), the last once the image is ready."""
     H, W = scene.image_shape
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
-    if scene.gbuffer is not None or H * W <= BAND_PIXELS:
-        out = _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off), progress=_passes(progress, 0, s * s))
+    whole = scene.gbuffer is not None or H * W <= BAND_PIXELS
+    rows = H if whole else max(1, BAND_PIXELS // W)
+    total = -(-H // rows) * s * s
+    if whole:
+        out = _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off), progress=_passes(progress, 0, total))
     else:
-        rows = max(1, BAND_PIXELS // W)
         pb = dataclasses.replace(p, band_rows=rows)
-        total = -(-H // rows) * s * s
         out = np.empty((H, W, 3), jnp.dtype(opts.dtype))
         for b, y0 in enumerate(range(0, H, rows)):
             band = _supersampled(scene, opts, lambda sc, off: one_pass(sc, pb, off), row0=y0,
@@ -894,8 +896,7 @@ def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress
         out = jax.device_put(out)
     if progress is not None:
         out = jax.block_until_ready(out)
-        total = 1 if scene.gbuffer is not None or H * W <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W))
-        progress(total * s * s, total * s * s)
+        progress(total, total)
     return out
 
 
