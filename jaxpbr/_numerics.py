@@ -274,6 +274,9 @@ def map_row_chunks(fn, chunk: int, *xs, token=None):
     (`jax.debug.callback`), which is how one long program shows progress; `row_chunk_count` is
     the number of reports."""
     N = xs[0].shape[0]
+    if N == 0:  # no rows: fn's output shape for one row, with none of them
+        one = jax.eval_shape(fn, *(jax.ShapeDtypeStruct((1,) + x.shape[1:], x.dtype) for x in xs))
+        return jnp.zeros((0,) + one.shape[1:], one.dtype)
     chunk = min(chunk, N)
     group, reports = _report_groups(N, chunk) if token is not None else (1, 0)
     pad = (-N) % (chunk * group)

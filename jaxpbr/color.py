@@ -131,8 +131,10 @@ def exposure(c, ev):
     # 2**ev = 2**n * 2**f with n = floor(ev), f in [0, 1): the integer part is an exact scaling
     # (ldexp) on every backend and exp2(0) = 1, so integer stops are exact; `2.0 ** ev` is a pow
     # whose float64 result for integer ev is exact in the CPU's libm but not on GPUs.
-    n = jnp.floor(ev)
-    return jnp.ldexp(c * jnp.exp2(ev - n), jnp.clip(n, -4096, 4096).astype(jnp.int32))
+    finite = jnp.isfinite(ev)
+    n = jnp.floor(jnp.where(finite, ev, 0.0))  # double where: ev - floor(ev) is NaN at +-inf
+    out = jnp.ldexp(c * jnp.exp2(jnp.where(finite, ev, 0.0) - n), jnp.clip(n, -4096, 4096).astype(jnp.int32))
+    return jnp.where(finite, out, c * 2.0**ev)  # +-inf stops: inf or 0, as 2**ev gives
 
 
 # --------------------------------------------------------------------------------------------------- tone maps

@@ -505,7 +505,8 @@ class Cubemap(Pytree):
             try:  # one compiled program: the sub-texel grid, fn and the filter
                 coords = jax.device_put(_subtexel_coords(S, q))
                 level = jax.jit(lambda c: filtered(*_subtexel_grid(S, q, jnp, c)))(coords)
-            except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+            except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+                    jax.errors.TracerIntegerConversionError):
                 # fn needs concrete values (e.g. NumPy inside): eagerly, on the host grid
                 # (6, S, S, q*q, 3) with weights (S, S, q*q), the same on every face.
                 level = filtered(*(jnp.asarray(a) for a in _subtexel_points(S, q)))

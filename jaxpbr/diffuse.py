@@ -93,10 +93,18 @@ def sh9_project(env: Cubemap, *, level: int = 0) -> jax.Array:
     Computed in float64 when x64 is enabled, otherwise in the map's dtype.
     """
     lv = env.levels[level]
-    S = lv.shape[1]
-    Y = sh9_basis(jnp.asarray(texel_directions(S), lv.dtype)).reshape(-1, 9)
-    w = jnp.asarray(texel_solid_angles(S), lv.dtype).reshape(-1, 1)
-    return jnp.matmul(Y.T, lv.reshape(-1, lv.shape[-1]) * w, precision=HIGHEST)
+    return _sh9_sum(lv, *_sh9_tables(lv.shape[1], lv.dtype))
+
+
+def _sh9_tables(S: int, dtype):
+    """Texel directions (6,S,S,3) and solid angles (6,S,S) on the device, as arguments for the
+    projection (closed over, they were program constants growing with S^2)."""
+    return (jax.device_put(np.asarray(texel_directions(S), dtype)), jax.device_put(np.asarray(texel_solid_angles(S), dtype)))
+
+
+def _sh9_sum(lv, dirs, omega):
+    Y = sh9_basis(dirs).reshape(-1, 9)
+    return jnp.matmul(Y.T, lv.reshape(-1, lv.shape[-1]) * omega.reshape(-1, 1), precision=HIGHEST)
 
 
 def sh9_irradiance(coeffs, n) -> jax.Array:
@@ -172,9 +180,12 @@ def irradiance_at(
     # default 16 keeps it in cache (64^2 source: 16 -> 0.27 s, 227 -> 2.8 s for a 64^2 map).
     chunk = max(1, min(positive_int("chunk", chunk), (1 << 24) // max(1, 6 * s * s * env.channels)))
     total = row_chunk_count(math.prod(n.shape[:-1]), chunk) if method == "exact" else 1
-    mloc = jax.device_put(_face_moments(env.face_size).astype(env.dtype)) if method == "exact" else None
+    if method == "exact":
+        tables = jax.device_put(_face_moments(env.face_size).astype(env.dtype))
+    else:
+        tables = _sh9_tables(env.face_size, env.dtype)
     with progress_token(progress if method == "exact" else None, total) as token:
-        out = _irradiance_at(env.levels[0], n, token, mloc, method=method, source_size=s, chunk=chunk)
+        out = _irradiance_at(env.levels[0], n, token, tables, method=method, source_size=s, chunk=chunk)
         if token is not None:
             out = jax.block_until_ready(out)
     if progress is not None and method != "exact":
@@ -183,13 +194,14 @@ def irradiance_at(
 
 
 @functools.partial(jax.jit, static_argnames=("method", "source_size", "chunk"))
-def _irradiance_at(level0, n, token, mloc, *, method: str, source_size: int, chunk: int):
+def _irradiance_at(level0, n, token, tables, *, method: str, source_size: int, chunk: int):
     """`irradiance_at` as one compiled program (moments, pyramid sums and the chunked convolution);
-    token: a `progress_token` or None; mloc: `_face_moments` of level0's face size (exact)."""
+    token: a `progress_token` or None; tables: `_face_moments` of level0's face size (exact) or
+    the `_sh9_tables` (sh9), arguments rather than constants."""
     env = Cubemap((level0,))
     if method == "sh9":
-        return sh9_irradiance(sh9_project(env), n)
-    lm = _moment_pyramid(level0, mloc, source_size).reshape(-1, env.channels, 3)  # (Ns, C, 3)
+        return sh9_irradiance(_sh9_sum(level0, *tables), n)
+    lm = _moment_pyramid(level0, tables, source_size).reshape(-1, env.channels, 3)  # (Ns, C, 3)
     out = _exact_conv(n.reshape(-1, 3), lm, chunk=chunk, token=token)
     return out.reshape(n.shape[:-1] + (env.channels,))
 

@@ -95,6 +95,9 @@ def shade_ibl(
     nov = jnp.clip(nov_raw, MIN_N_DOT_V, 1.0)
     r = jnp.clip(m.roughness, 0.0, 1.0)
     nov, r = jnp.broadcast_arrays(nov, r)
+    # Traced values are not validated: clamp metallic once, for f0(), diffuse_color() and the
+    # mixes below alike (as `brdf_soa` does).
+    m = m.replace(metallic=jnp.clip(m.metallic, 0.0, 1.0))
 
     ab = lut_lookup(lut, nov, r)
     a, b = ab[..., 0], ab[..., 1]
@@ -103,7 +106,7 @@ def shade_ibl(
     ld = pre.sample(R, roughness_to_lod(r, int(meta.get("mapping_levels", pre.num_levels)), mapping=mapping))
     ebar = irr.sample(pack3(n3)) if irr is not None else None
     base = m.base_color
-    metallic = jnp.clip(m.metallic, 0.0, 1.0)[..., None]  # as in `brdf_soa`: traced values are not validated
+    metallic = m.metallic[..., None]
 
     if model == "learnopengl":
         f0 = m.f0()

@@ -28,6 +28,7 @@ import contextlib
 import json
 import os
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -367,6 +368,11 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", enco
     atomic_write(path, _read_back(writer, arr.shape))
 
 
+#: One silencing at a time: two threads swapping the process's descriptors could restore them
+#: out of order and leave stderr on /dev/null.
+_QUIET_LOCK = threading.RLock()
+
+
 @contextlib.contextmanager
 def _quiet_native():
     """Silence what C and C++ libraries print to the process's stdout and stderr (file descriptors
@@ -374,6 +380,11 @@ def _quiet_native():
     pixel data" on stdout and libOpenEXR / libpng their own lines on stderr for a corrupt file,
     beside the one error jaxpbr raises (issue 13). Python-level errors are raised as usual; Python's
     own buffered output is flushed first so none of it is lost."""
+    with _QUIET_LOCK:
+        yield from _quiet_native_locked()
+
+
+def _quiet_native_locked():
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()

@@ -347,7 +347,8 @@ class AssetCache:
                 self._store.move_to_end(full)
                 return self._store[full]
             st["misses"] += 1
-        value = self._load(kind, key)
+        # Loaded on another thread too: inside a caller's trace device_put returns a tracer.
+        value = outside_traces(lambda: self._load(kind, key))
         if value is not None:
             with self._lock:
                 st["disk"] = st.get("disk", 0) + 1
@@ -859,12 +860,17 @@ def render(scene: Scene, *, options: RenderOptions | None = None, progress=None,
         # direct-lighting stages, which do not need them: on a cold start the compilations and
         # runs overlap (XLA compiles and runs without holding the GIL).
         key = _env_key(env, p)
-        with ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxpbr-assets") as pool:
+        pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxpbr-assets")
+        try:
             pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key)))
             irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key)))
             lut = _asset_lut(env, opts)
             return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(
                 sc, lambda: (irr.result(), pre.result(), lut), pb, opts, off, staged=True), progress)
+        finally:
+            # On success both maps were used; on an error or an interrupt do not wait for a
+            # precompute still running (`with` would join it).
+            pool.shutdown(wait=False, cancel_futures=True)
     assets = _env_assets(env, p, opts) if p.ibl else None
     return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), progress)
 
@@ -887,13 +893,14 @@ def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress
     if whole:
         out = _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off), progress=_passes(progress, 0, total))
     else:
+        # Bands stay on the device (and traceable: `render` under jit/grad on the CPU takes this
+        # path too) and are joined once; the last band's rows past the image are cut off.
         pb = dataclasses.replace(p, band_rows=rows)
-        out = np.empty((H, W, 3), jnp.dtype(opts.dtype))
-        for b, y0 in enumerate(range(0, H, rows)):
-            band = _supersampled(scene, opts, lambda sc, off: one_pass(sc, pb, off), row0=y0,
-                                 progress=_passes(progress, b * s * s, total))
-            out[y0 : y0 + rows] = np.asarray(band)[: H - y0]
-        out = jax.device_put(out)
+        bands = [
+            _supersampled(scene, opts, lambda sc, off: one_pass(sc, pb, off), row0=y0, progress=_passes(progress, b * s * s, total))
+            for b, y0 in enumerate(range(0, H, rows))
+        ]
+        out = jnp.concatenate(bands)[:H]
     if progress is not None:
         out = jax.block_until_ready(out)
         progress(total, total)

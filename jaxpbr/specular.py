@@ -248,7 +248,7 @@ def split_bright(level0: np.ndarray, max_texels: int, min_ratio: float = 4.0):
 
 
 @functools.partial(jax.jit, static_argnames=("max_texels", "min_ratio"))
-def _split_bright_fixed(level0, max_texels: int, min_ratio: float = 4.0):
+def _split_bright_fixed(level0, omega, max_texels: int, min_ratio: float = 4.0):
     """`split_bright` with a fixed-size selection, traceable (jit, grad) in the texel values.
 
     level0 (6, S, S, C), 0 < max_texels < 6 S^2. Returns (residual (6,S,S,C) in level0's dtype,
@@ -273,7 +273,7 @@ def _split_bright_fixed(level0, max_texels: int, min_ratio: float = 4.0):
     S, C = level0.shape[1], level0.shape[-1]
     L = level0.astype(hp).reshape(-1, C)
     lum = luminance(L)
-    om = jnp.asarray(texel_solid_angles(S)[0], hp)  # one face: the six are identical (a 6x smaller constant)
+    om = omega.astype(hp)  # one face's solid angles (the six are identical), an argument
     mean = jnp.sum(lum.reshape(6, S, S) * om) / (4.0 * math.pi)
     vals, idx = jax.lax.top_k(lum, max_texels + 1)
     tau = jnp.maximum(min_ratio * mean, vals[max_texels])
@@ -288,7 +288,7 @@ def _split_bright_fixed(level0, max_texels: int, min_ratio: float = 4.0):
     return resid.reshape(level0.shape).astype(level0.dtype), idx, excess, sel
 
 
-def _subtexel_points_at(idx, S: int, q: int):
+def _subtexel_points_at(idx, S: int, q: int, omega):
     """Directions (k, q*q, 3) and solid angles (k, q*q) of the q x q sub-texels of the texels with
     (possibly traced) flat indices idx (k,) into (6, S, S): the points and weights of
     `cubemap._subtexel_points` (texel solid angle x normalised sub-texel weight), computed in jnp in
@@ -308,14 +308,14 @@ def _subtexel_points_at(idx, S: int, q: int):
     w = r2**-1.5
     w = w / jnp.sum(w, -1, keepdims=True)
     d = d / jnp.sqrt(r2)[..., None]
-    om = jnp.asarray(texel_solid_angles(S)[0].reshape(-1), hp)[rem]  # the six faces are identical
+    om = omega.astype(hp).reshape(-1)[rem]  # one face's solid angles (the six are identical)
     return d, om[:, None] * w
 
 
-def _bright_sources(idx, bright, norm, *, S, q, dtype):
+def _bright_sources(idx, bright, norm, omega, *, S, q, dtype):
     """Sub-texel directions (k q^2, 3) and weights B Omega / W(alpha) (k q^2, C) of the bright texels
     idx (k,) with excess radiance bright (k, C), both possibly traced; norm = W(alpha)."""
-    sub, om = _subtexel_points_at(idx, S, q)  # (k, q*q, 3), (k, q*q)
+    sub, om = _subtexel_points_at(idx, S, q, omega)  # (k, q*q, 3), (k, q*q)
     Bw = (bright[:, None, :].astype(om.dtype) * om[..., None]).reshape(-1, bright.shape[-1]) / norm
     return sub.reshape(-1, 3).astype(dtype), Bw.astype(dtype)
 
@@ -358,12 +358,12 @@ def bright_cells(idx, S0: int):
     return face * g * g + (i * g // S0) * g + (j * g // S0), 6 * g * g
 
 
-def _bright_clusters(idx, bright, slot, n_slots: int, S0: int):
+def _bright_clusters(idx, bright, slot, n_slots: int, S0: int, omega):
     """Per cell slot: power-weighted centroid direction (G, 3), power B Omega (G, C), squared rms
     angular spread rho^2 (G,) and angular extent (G,) (the largest angle from the centroid to a
     texel centre, plus the texel's half-diagonal); empty slots have zero power. Differentiable in
     bright (double-where on the empty slots)."""
-    d, om = _subtexel_points_at(idx, S0, 1)
+    d, om = _subtexel_points_at(idx, S0, 1, omega)
     d, om = d[:, 0], om[:, 0]
     P = bright.astype(om.dtype) * om[:, None]  # (k, C)
     w = jnp.sum(P, -1)  # >= 0: excess radiance is non-negative
@@ -386,7 +386,7 @@ def _angle(a, b):
     return 2.0 * jnp.arcsin(jnp.minimum(0.5 * jnp.linalg.norm(a - b, axis=-1), 1.0))
 
 
-def _bright_all(R, level_of, idx, bright, slot, S0: int, alphas: tuple, n_slots: int, far: float, chunk: int = BRIGHT_CHUNK, token=None):
+def _bright_all(R, level_of, idx, bright, slot, omega, S0: int, alphas: tuple, n_slots: int, far: float, chunk: int = BRIGHT_CHUNK, token=None):
     """Exact (sub-texel) convolution of the sparse bright part at output directions R (N, 3), each
     of level `level_of` (N,) with GGX width alphas[level]; every chunk of R lies in one level.
 
@@ -403,13 +403,13 @@ def _bright_all(R, level_of, idx, bright, slot, S0: int, alphas: tuple, n_slots:
     srcs = []
     for alpha in alphas:
         q = _reference_supersample(alpha, S0)
-        srcs.append(_bright_sources(idx, bright, lobe_normalizer(alpha), S=S0, q=q, dtype=R.dtype))
+        srcs.append(_bright_sources(idx, bright, lobe_normalizer(alpha), omega, S=S0, q=q, dtype=R.dtype))
     n = max(sub.shape[0] for sub, _ in srcs)
     pad = lambda x: jnp.pad(x, ((0, n - x.shape[0]), (0, 0)))  # noqa: E731  (weight 0: adds nothing)
     sub = jnp.stack([pad(a) for a, _ in srcs])  # (M, n, 3)
     Bw = jnp.stack([pad(b) for _, b in srcs])  # (M, n, C)
     a2 = jnp.asarray([a * a for a in alphas], R.dtype)
-    centre, cP, spread, extent, has = _bright_clusters(idx, bright, slot, n_slots, S0)
+    centre, cP, spread, extent, has = _bright_clusters(idx, bright, slot, n_slots, S0, omega)
     cBw = jnp.stack([cP / lobe_normalizer(a) for a in alphas]).astype(R.dtype)  # (M, G, C)
     centre, spread, extent = (x.astype(R.dtype) for x in (centre, spread, extent))
     half_pi = 0.5 * math.pi
@@ -439,7 +439,7 @@ def _bright_all(R, level_of, idx, bright, slot, S0: int, alphas: tuple, n_slots:
 
 
 @functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "n_slots", "far", "bright_chunk"))
-def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, token, *, sizes, plan, chunk, S0, n_bright, n_slots, far, bright_chunk):
+def _prefilter_fis(level0, idx, bright, slot, omega, R, table, local, w, lod, token, *, sizes, plan, chunk, S0, n_bright, n_slots, far, bright_chunk):
     """Every FIS level of a prefilter as one compiled program.
 
     level0: the (residual) source; its area-correct pyramid (`sizes`) is built here. R (rows, 3)
@@ -447,7 +447,9 @@ def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, token, *,
     nb_m sample batches, direction-major. plan: per level (N_m, nb_m, alpha_m). Returns the levels'
     LD (6, S_m, S_m, C) as a tuple: the rows' sums reduced over batches and divided by the sample weights'
     sum, plus the exact convolution of the first n_bright bright-texel candidates (idx, bright:
-    None for none)."""
+    None for none). slot (n_bright,): each candidate's far-field cell slot (None: the cells of
+    `bright_cells`, n_slots of them); omega: one face's texel solid angles (S0, S0), an argument
+    rather than a constant; token: a `progress_token` (None: no progress reports)."""
     flat = _Pyramid(_mip_chain_impl(level0, len(sizes))).flat
     sums = _fis_rows(flat, sizes, R, table, local, w, lod, chunk, token)
     out, row, tab = [], 0, 0
@@ -472,7 +474,7 @@ def _prefilter_fis(level0, idx, bright, slot, R, table, local, w, lod, token, *,
     if slot is None:
         slot = bright_cells(idx[:n_bright], S0)[0]
     ex = _bright_all(
-        jnp.concatenate(Rb), jnp.concatenate(lv_of), idx[:n_bright], bright[:n_bright], slot, S0,
+        jnp.concatenate(Rb), jnp.concatenate(lv_of), idx[:n_bright], bright[:n_bright], slot, omega, S0,
         tuple(a for _, _, a in plan), n_slots, far, bright_chunk, token,
     )
     return tuple(faces(o + ex[p : p + N]) for o, (p, N) in zip(out, spans))
@@ -656,8 +658,11 @@ def prefilter(
         if exact_texels < 0:
             raise ValueError(f"exact_texels must be >= 0, got {exact_texels}")
         src_level0 = env.levels[0]
+        # One face's texel solid angles in the widest float available, an argument of the
+        # programs (closed over, an S0^2 table was a constant once per level).
+        omega = jax.device_put(np.asarray(texel_solid_angles(S0)[0], jnp.result_type(float)))
         if 0 < exact_texels < 6 * S0 * S0:
-            resid, idx, bright, sel = _split_bright_fixed(src_level0, exact_texels)
+            resid, idx, bright, sel = _split_bright_fixed(src_level0, omega, exact_texels)
             n_slots = bright_cells(0, S0)[1]
             if is_concrete(sel):
                 # Concrete values: convolve only the selected texels (a prefix of the candidates,
@@ -708,7 +713,7 @@ def prefilter(
                 total += row_chunk_count(sum(N + (-N) % BRIGHT_CHUNK for N, _, _ in plan), BRIGHT_CHUNK)
             with progress_token(progress, total) as token:
                 lvs = _prefilter_fis(
-                    src_level0, idx, bright, None if slot is None else dev(slot, np.int32),
+                    src_level0, idx, bright, None if slot is None else dev(slot, np.int32), omega,
                     dev(R_all), dev(np.concatenate(tabs), np.int32),
                     *(dev(np.concatenate([tb[i] for tb in tables])) for i in range(3)), token,
                     sizes=sizes, plan=tuple(plan), chunk=chunk, S0=S0, n_bright=n_bright, n_slots=n_slots,

@@ -231,13 +231,12 @@ def test_one_program_render_equals_the_staged_one(monkeypatch):
     monkeypatch.setattr(renderer, "STAGED", False)
     fused = np.asarray(jp.render(scene))
     np.testing.assert_allclose(fused, staged, rtol=2e-5, atol=2e-6)
-    monkeypatch.setattr(renderer, "STAGED", None)
-    assert renderer._staged() == (jax.default_backend() == "cpu")
 
 
-def test_supersampling_compiles_one_geometry_program():
+def test_supersampling_compiles_one_geometry_program(monkeypatch):
     """The sub-pixel offset is traced: s = 1, 2, 3 reuse one compiled geometry program (issue 13:
     it was a static argument, s^2 programs)."""
+    monkeypatch.setattr(renderer, "STAGED", True)  # the staged path (the CPU default) is the one measured
     renderer._geometry_jit.clear_cache() if hasattr(renderer._geometry_jit, "clear_cache") else None
     env = _env()
     before = renderer._geometry_jit._cache_size()
@@ -253,6 +252,7 @@ def test_a_large_render_runs_in_bands_equal_to_the_whole(monkeypatch, s):
     """Images above renderer.BAND_PIXELS render in bands of rows (issue 13: memory grew with the
     image: 8K took 5.7 GB); the band's first row is an argument, so every band of a size reuses
     one geometry program, and the image is bitwise the whole-image render's (last band cropped)."""
+    monkeypatch.setattr(renderer, "STAGED", True)  # bands are the staged path's (the CPU default)
     env = _env()
     scene = _scene(0.4, env).replace(camera=jp.Camera(position=(0.0, 0.0, 3.2), width=20, height=23, supersample=s))
     whole = np.asarray(jp.render(scene))
@@ -282,3 +282,20 @@ def test_render_with_separable_smith_uses_its_lut_and_shadows_more():
     assert np.all(sep <= cor + 1e-6) and np.max(cor - sep) > 1e-3
     with pytest.raises(ValueError, match="smith is defined for the gltf model only"):
         jp.RenderOptions(model="learnopengl", smith="separable")
+
+
+def test_a_large_render_under_jit_and_grad_runs_in_bands(monkeypatch):
+    """The staged path is also taken while tracing on the CPU: bands must join on the device (a
+    host buffer raised TracerArrayConversionError under jit for images above BAND_PIXELS)."""
+    monkeypatch.setattr(renderer, "STAGED", True)
+    env = jp.bake(_env(face=8))
+
+    def loss(r):
+        scene = _scene(r, env).replace(camera=jp.Camera(position=(0.0, 0.0, 3.2), width=12, height=13))
+        return jp.render(scene).mean()
+
+    whole = jax.jit(jax.value_and_grad(loss))(0.4)
+    monkeypatch.setattr(renderer, "BAND_PIXELS", 12 * 4)
+    banded = jax.jit(jax.value_and_grad(loss))(0.4)
+    np.testing.assert_allclose(np.asarray(banded), np.asarray(whole), rtol=1e-6)
+    assert np.isfinite(np.asarray(banded)).all()

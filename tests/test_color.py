@@ -421,3 +421,9 @@ def test_integer_and_python_inputs_promote_to_default_float():
     for name, fn in {**ELEMENTWISE, **RGB}.items():
         for arg in (jnp.arange(3), [1, 2, 3], 2) if name in ELEMENTWISE else (jnp.arange(3), [1, 2, 3]):
             assert jax.eval_shape(fn, arg).dtype == jnp.float64, (name, arg)  # x64 is enabled in this module
+
+
+def test_exposure_of_infinite_stops():
+    """ev = +-inf: inf and 0, as 2**ev (the exact ldexp split took ev - floor(ev) = NaN there)."""
+    out = np.asarray(color.exposure(jnp.ones(3), jnp.asarray([jnp.inf, -jnp.inf, 2.0])))
+    np.testing.assert_array_equal(out, [np.inf, 0.0, 4.0])

@@ -104,6 +104,27 @@ def test_asset_cache_on_disk_round_trip(disk_assets, monkeypatch):
     assert renderer.ASSETS.stats["prefilter"]["disk"] == 1 and renderer.ASSETS.stats["irradiance"]["disk"] == 1
 
 
+def test_asset_cache_disk_hit_inside_a_trace_stores_no_tracer(disk_assets, monkeypatch):
+    """A map loaded from disk while the caller traces (jit of a one-program render) is loaded on
+    another thread: device_put on the tracing thread returned a tracer, which the cache kept."""
+    import jax
+
+    env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16))
+
+    def traced_render(r):  # the environment is concrete (closed over); the material may be traced
+        sc = _scene(env)
+        return jp.render(sc.replace(objects=[o.replace(material=jp.Material(metallic=0.5, roughness=r)) for o in sc.objects]))
+
+    first = np.asarray(traced_render(1.0))  # r = 1: the whole chain, as a traced roughness needs
+    renderer.ASSETS.clear()
+    monkeypatch.setattr(renderer, "STAGED", False)
+    traced = np.asarray(jax.jit(traced_render)(1.0))
+    assert renderer.ASSETS.stats["prefilter"]["disk"] == 1
+    assert not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(list(renderer.ASSETS._store.values())))
+    np.testing.assert_allclose(traced, first, rtol=2e-5, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(traced_render(1.0)), first, rtol=2e-5, atol=2e-6)  # no leaked tracer
+
+
 def test_asset_cache_recomputes_an_unreadable_file_and_survives_an_unwritable_dir(disk_assets, tmp_path):
     env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16))
     first = np.asarray(jp.render(_scene(env)))

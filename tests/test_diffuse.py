@@ -774,3 +774,9 @@ def test_bad_arguments():
         irradiance(env, 8, source_size=0)
     with pytest.raises(ValueError, match="chunk must be a positive integer"):
         irradiance(env, 8, chunk=0)
+
+
+def test_no_normals_give_an_empty_result():
+    """map_row_chunks divided by zero rows (the old lax.map returned an empty result)."""
+    env = Cubemap(jnp.ones((6, 4, 4, 3)))
+    assert irradiance_at(env, np.zeros((0, 3))).shape == (0, 3)

@@ -402,6 +402,14 @@ def test_lookup_r0_against_closed_form(small_luts):
     for smith in SMITH_VARIANTS:
         got = np.asarray(lookup(small_luts[smith], mu, 0.0), np.float64)
         np.testing.assert_allclose(got, _closed_form_r0(mu), rtol=0, atol=1e-6)
+    # Inside the first half texel the table takes part: against the float64 reference at
+    # r = 0.25 / n_r (between the closed form and the first row), for NoV inside the centre range.
+    lut = small_luts["correlated"]
+    n_r, n_nov = lut.shape[:2]
+    m = np.linspace(0.5 / n_nov, 1.0 - 0.5 / n_nov, 9)
+    got = np.asarray(lookup(lut, m, 0.25 / n_r), np.float64)
+    # measured 6.8e-4 (the NoV interpolation over 24 columns); the old clamp to the first row: 1.35e-3
+    np.testing.assert_allclose(got, lut_reference(m, 0.25 / n_r), rtol=0, atol=1e-3)
 
 
 # --------------------------------------------------------------------------------------------

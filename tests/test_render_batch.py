@@ -167,15 +167,16 @@ def test_sharded_over_four_cpu_devices_equals_single_device():
     assert res["max_rel_staged"] <= 2e-5, res
 
 
-def test_staged_batch_equals_a_loop_of_renders():
-    """On XLA:CPU render_batch runs the stages as separate programs vmapped over each chunk: the
-    same programs' math as `render` per image (bitwise here; bounded by float32 rounding)."""
+def test_staged_batch_equals_a_loop_of_renders(monkeypatch):
+    """Staged (the XLA:CPU default) render_batch runs the stages as separate programs vmapped over
+    each chunk: the same programs' math as `render` per image (bitwise here; bounded by float32
+    rounding)."""
     from jaxpbr import renderer
 
+    monkeypatch.setattr(renderer, "STAGED", True)
     scene = base_scene()
     mats = batched_materials(5)
     imgs = np.asarray(jp.render_batch(scene, materials=mats, chunk=2))
-    assert renderer._staged()
     for i in range(5):
         m = jax.tree_util.tree_map(lambda x: x[i], mats)
         objs = [o.replace(material=m) for o in scene.objects]

@@ -9,7 +9,9 @@ compiler. Where the cache lives, in order:
 3. `$XDG_CACHE_HOME/jaxpbr/jax-compilation-cache` (default `~/.cache/...`; on Windows
    `%LOCALAPPDATA%\\jaxpbr\\...`).
 
-The directory is pruned to `MAX_BYTES` (oldest files first). The cache key is the program, the
+JAX's own size limit (`jax_compilation_cache_max_size`, least recently used first) keeps jaxpbr's
+directories (1 and 3) to `MAX_BYTES`; a directory the user gave JAX (2) is left to the user's
+settings (it may be shared with other projects). The cache key is the program, the
 compile options, the backend and the jax/jaxlib versions, so a stale entry is never used; a
 directory that cannot be created or written leaves the run uncached (JAX warns), never failing it.
 
@@ -108,7 +110,10 @@ def enable(path: Path | None = None) -> Path | None:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None  # unwritable location: run uncached
-    prune(path)
+    users = os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
+    if not (users and Path(users).expanduser() == path and os.environ.get(ENV) is None):
+        # jaxpbr's own directory: JAX evicts the least recently used entries beyond the limit.
+        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     jax.config.update("jax_compilation_cache_dir", str(path))
     # Every program: the CLI's are many small ones, and reading one back is far cheaper than
     # compiling it (JAX's default caches only those that took over a second).
