@@ -314,6 +314,10 @@ class Environment(Pytree):
     lut, lut_smith: optional split-sum LUT (n_r, n_nov, 2) and the Smith variant it was computed
         for (static; `brdf_terms.MODEL_REGISTRY[model].lut_smith`); a render with a model whose
         variant differs raises. `jaxpbr.bake(environment)` fills irradiance, prefiltered and lut.
+    lights: optional tuple of disc `DirectionalLight`s split out of the environment (`jaxpbr.extract`),
+        in the environment's frame and units (rotation and intensity apply to them too). Set by
+        `bake` (or a user who split the lights: `radiance` and the maps are then the residual);
+        when None and no map is given, `render` extracts them itself (`RenderOptions.extract_lights`).
     """
 
     radiance: Any = subtree(None)
@@ -324,6 +328,7 @@ class Environment(Pytree):
     prefiltered: Any = subtree(None)
     lut: Any = leaf(None, rank=3)
     lut_smith: str | None = static(None)
+    lights: Any = subtree(None)
 
     @property
     def baked(self) -> bool:

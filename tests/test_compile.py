@@ -49,7 +49,7 @@ def test_cli_caches_default_location_and_switches(tmp_path, monkeypatch):
     # As in a fresh process (the test session itself runs with a compilation cache configured).
     monkeypatch.setattr(_cache, "jax", SimpleNamespace(config=SimpleNamespace(jax_compilation_cache_dir=None)))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    assert _cache.cache_dir() == tmp_path / "jaxpbr" / "jax-compilation-cache"
+    assert _cache.cache_dir() == tmp_path / "jaxpbr" / "jax-compilation-cache-lru"
     assert _cache.asset_dir() == tmp_path / "jaxpbr" / "assets"
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "theirs"))  # the user's JAX setting wins
     assert _cache.cache_dir() == tmp_path / "theirs"

@@ -257,7 +257,7 @@ def test_gbuffer_scene_equals_direct_kernels():
     g = jp.GBuffer(hit=hit, position=p, normal=n, view=v, material=m)
     env = small_env()
     lights = [jp.PointLight(position=(2.0, 3.0, 4.0), intensity=30.0)]
-    img = np.asarray(jp.render(jp.Scene(gbuffer=g, lights=lights, environment=jp.Environment(radiance=env))))
+    img = np.asarray(jp.render(jp.Scene(gbuffer=g, lights=lights, environment=jp.Environment(radiance=env)), extract_lights=False))
     irr = jp.irradiance(env, 32)
     pre = jp.prefilter(env)
     lut = jp.brdf_lut(128)
@@ -409,3 +409,30 @@ def test_scene_errors_are_clear(build, message):
     with pytest.raises((ValueError, TypeError)) as e:
         build()
     assert message in str(e.value)
+
+
+def test_gbuffer_scene_with_extracted_sun_equals_kernels():
+    """By default the sun is split out: the render equals shade_direct over the scene's and the
+    extracted disc lights plus the split sum of the residual environment."""
+    from jaxpbr.extract import extract_lights
+
+    rng = np.random.default_rng(4)
+    Hh, Ww = 5, 4
+    n = rng.normal(size=(Hh, Ww, 3))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    v = n + 0.5 * rng.normal(size=(Hh, Ww, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    m = jp.Material(base_color=rng.uniform(size=(Hh, Ww, 3)), metallic=rng.uniform(size=(Hh, Ww)), roughness=rng.uniform(0.05, 1, size=(Hh, Ww)))
+    hit = np.ones((Hh, Ww), bool)
+    g = jp.GBuffer(hit=hit, position=np.zeros((Hh, Ww, 3)), normal=n, view=v, material=m)
+    env = jp.envs.sky_with_sun_cubemap(32)
+    scene = jp.Scene(gbuffer=g, environment=jp.Environment(radiance=env))
+    assert jp.renderer.plan(scene).env_lights == 1
+    img = np.asarray(jp.render(scene))
+    ex = extract_lights(env)
+    (sun,) = ex.lights
+    irr, pre, lut = jp.irradiance(ex.residual, 32), jp.prefilter(ex.residual), jp.brdf_lut(128)
+    want = jax.jit(lambda n, v, m: jp.shade_direct(np.zeros(3), n, v, m, sun) + jp.shade_ibl(n, v, m, irr, pre, lut))(n, v, m)
+    np.testing.assert_allclose(img, np.asarray(want), rtol=2e-5, atol=1e-6)
+    off = np.asarray(jp.render(scene, extract_lights=False))
+    assert np.abs(off - img).max() > 1e-3  # the split changes the image (the split sum's error)

@@ -6,7 +6,7 @@ compiler. Where the cache lives, in order:
 
 1. `JAXPBR_COMPILATION_CACHE`: a directory, or "0" / "off" / "" to switch the cache off;
 2. `JAX_COMPILATION_CACHE_DIR` (JAX's own setting), if the user set it;
-3. `$XDG_CACHE_HOME/jaxpbr/jax-compilation-cache` (default `~/.cache/...`; on Windows
+3. `$XDG_CACHE_HOME/jaxpbr/jax-compilation-cache-lru` (default `~/.cache/...`; on Windows
    `%LOCALAPPDATA%\\jaxpbr\\...`).
 
 JAX's own size limit (`jax_compilation_cache_max_size`, least recently used first) keeps jaxpbr's
@@ -44,7 +44,9 @@ def _base() -> Path:
 
 
 def default_dir() -> Path:
-    return _base() / "jax-compilation-cache"
+    # "-lru": entries written under JAX's size limit carry access-time files; a directory filled
+    # without the limit (older jaxpbr, or JAX without filelock) made every write under it warn.
+    return _base() / "jax-compilation-cache-lru"
 
 
 def asset_dir() -> Path | None:
@@ -113,7 +115,14 @@ def enable(path: Path | None = None) -> Path | None:
     users = os.environ.get("JAX_COMPILATION_CACHE_DIR") or jax.config.jax_compilation_cache_dir
     if not (users and Path(users).expanduser() == path and os.environ.get(ENV) is None):
         # jaxpbr's own directory: JAX evicts the least recently used entries beyond the limit.
-        jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
+        # JAX needs filelock for that (a dependency); without it a size limit made every cache
+        # read fail with a warning, so the limit is only set where filelock imports.
+        try:
+            import filelock  # noqa: F401
+        except ImportError:
+            pass
+        else:
+            jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     jax.config.update("jax_compilation_cache_dir", str(path))
     # Every program: the CLI's are many small ones, and reading one back is far cheaper than
     # compiling it (JAX's default caches only those that took over a second).
