@@ -306,3 +306,16 @@ def test_batched_light_leaves_broadcast():
     d = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
     ls = jp.pack_lights(jp.DirectionalLight(direction=d, intensity=2.0, angular_radius=0.01))
     assert ls.num_lights == 3 and ls.radiant.shape == (3, 3) and ls.sin_radius.shape == (3,)
+
+
+def test_cli_ibl_extract_lights_writes_lights_json(tmp_path):
+    from jaxpbr.cli import main
+
+    rc = main(["ibl", "procedural:sky", "--face-size", "16", "--extract-lights", "--out-dir", str(tmp_path), "--no-error", "--quiet"])
+    assert rc == 0
+    lights = json.loads((tmp_path / "lights.json").read_text())
+    index = json.loads((tmp_path / "ibl.json").read_text())
+    assert len(lights["lights"]) == 1 and index["lights"]["file"] == "lights.json"
+    khr = lights["KHR_lights_punctual"]["lights"][0]
+    towards = np.array(lights["lights"][0]["direction"])
+    assert towards @ SUN > 0.99 and khr["type"] == "directional"

@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import image
 from ..atomic import OutputSet, write_json
+from ..extract import extract_lights, lights_to_json
 from ..conventions import cube_conventions, library_versions
 from ..cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
 from ..diffuse import irradiance, sh9_project
@@ -86,6 +87,8 @@ def add_commands(sub) -> None:
     p.add_argument("--lut-size", type=positive_int_arg, default=128)
     p.add_argument("--smith", choices=_SMITH_CHOICES, default="correlated", help=_SMITH_HELP)
     p.add_argument("--out-dir", default=".", help="directory for irradiance.ktx2, prefiltered.ktx2, brdf_lut.exr and ibl.json (default: current)")
+    p.add_argument("--extract-lights", action="store_true", help="split dominant lights (suns) out of the environment first: the cubes hold the residual and lights.json the disc lights "
+                   "(jaxpbr's fields and a glTF KHR_lights_punctual list), for engines that shade the sun analytically")
     p.add_argument("--ktx-format", choices=("rgba16f", "rgba32f"), default="rgba16f")
     p.add_argument("--no-error", action="store_true")
     p.add_argument("--quiet", action="store_true")
@@ -329,22 +332,34 @@ def cmd_ibl(args) -> int:
             raise InputError(f"--out-dir {str(d)!r} does not exist; create it first")
         # A complete set already there is kept until the new one is complete: an interrupted
         # or failed re-bake puts the old files back (issue 13: it left a mix naming a missing file).
-        outs.protect(p for stem in ("irradiance", "prefiltered", "brdf_lut", "ibl") for p in d.glob(f"{stem}*"))
+        outs.protect(p for stem in ("irradiance", "prefiltered", "brdf_lut", "ibl", "lights") for p in d.glob(f"{stem}*"))
         # Every output checked before any work (issue 13: the LUT's was checked after the cubes).
         for name, suffixes in (("irradiance.ktx2", (".ktx2",)), ("prefiltered.ktx2", (".ktx2",)),
-                               ("brdf_lut.exr", (".exr",)), ("ibl.json", (".json",))):
+                               ("brdf_lut.exr", (".exr",)), ("ibl.json", (".json",))) + ((("lights.json", (".json",)),) if args.extract_lights else ()):
             _checked(outs, d / name, suffixes)
         n_r, n_nov = _lut_shape(args.lut_size)
         require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --lut-size")
         _check_prefilter_size(args, args.face_size)
         env = _load(args, "prefilter")
+        lights = None
+        if args.extract_lights:
+            ex = extract_lights(env)
+            env, lights = ex.residual, lights_to_json(ex)
+            if not args.quiet:
+                found = ", ".join(f"radius {x['angular_radius_deg']:.2f} deg, {100 * x['power_share']:.1f} % of the power" for x in ex.info["lights"])
+                print(f"extracted {len(ex.lights)} disc light(s)" + (f": {found}" if found else " (no dominant source)"), file=sys.stderr)
         _prefilter_checks(args, env, d / "prefiltered.ktx2")
         args.output = None
         irr = _irradiance(args, outs, env=env, out_path=d / "irradiance.ktx2", size=args.irradiance_size, method=args.irradiance_method)
         pre = _prefilter(args, outs, env=env, out_path=d / "prefiltered.ktx2")
         args.size, args.samples = args.lut_size, None
         lut = _lut(args, outs, out_path=d / "brdf_lut.exr")
-        write_json(d / "ibl.json", {"irradiance": irr, "prefiltered": pre, "brdf_lut": lut}, outputs=outs)
+        index = {"irradiance": irr, "prefiltered": pre, "brdf_lut": lut}
+        if lights is not None:
+            write_json(d / "lights.json", lights, outputs=outs)
+            index["lights"] = {"file": "lights.json", "count": len(lights["lights"]),
+                               "note": "the cubes hold the residual environment; shade these disc lights with it"}
+        write_json(d / "ibl.json", index, outputs=outs)
         return 0
 
     return _run(go)
