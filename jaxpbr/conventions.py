@@ -33,8 +33,9 @@ CONVENTIONS: dict[str, str] = {
     "levels[m][f,i,j] at s=(j+0.5)/S_m, t=(i+0.5)/S_m",
     "equirect": "u = 0.5 + atan2(d.z, d.x)/(2 pi), v_up = 0.5 + asin(d.y)/pi, row 0 = +Y",
     "irradiance": "stores Ebar = E/pi (cosine-weighted mean radiance); Lambert radiance = c_diff * Ebar",
-    "prefiltered": "level m stores LD(R, r_m) (n = v = R, Karis); r_m = m/(M-1) by default, lod = r (M-1), "
-    "trilinear; level 0 = source",
+    "prefiltered": "level m stores LD(R, r_m) (n = v = R, Karis); r_m = m/(M-1) by default, chain down to 16^2 "
+    "faces; lookup per the map's lod_blend: mean_cosine (default; between levels linear in the lobe's mean "
+    "cosine c(r)) or roughness (lod = r (M-1)); trilinear; level 0 = source",
     "brdf_lut": "(n_r, n_nov, 2) = (A, B), [j, i] at r = (j+0.5)/n_r, NoV = (i+0.5)/n_nov; "
     "int f_spec (n.l) dl = F0 A + F90 B; bilinear, clamp to edge",
 }

@@ -26,7 +26,7 @@ from ._validate import batch_shape
 from .cubemap import Cubemap
 from .lut import lut_lookup
 from .material import F0_DIELECTRIC, Material
-from .specular import roughness_to_lod
+from .specular import lookup_of, roughness_to_lod
 
 __all__ = ["IBL_MODELS", "MIN_N_DOT_V", "shade_ibl", "split_sum_weights"]
 
@@ -74,9 +74,10 @@ def shade_ibl(
         added (shade_direct adds it once).
     irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.diffuse`), or None to leave the diffuse
         term out (exact for metals, metallic = 1, without multiscatter; the scene layer does this).
-    pre: prefiltered Cubemap (`jaxpbr.specular`); lod = mapping(r) from its metadata. A map holding
-        only the first mips of an M-level chain (metadata "mapping_levels" = M) is looked up with
-        the M-level mapping, clamped to its last level.
+    pre: prefiltered Cubemap (`jaxpbr.specular`); lod from its metadata (`specular.lookup_of`:
+        "roughness_mapping", "lod_blend", absent in maps written before it: lod = r (M-1)). A map
+        holding only the first mips of an M-level chain (metadata "mapping_levels" = M) is looked
+        up with the M-level mapping, clamped to its last level.
     lut: (n_r, n_nov, 2) split-sum LUT (`jaxpbr.brdf_lut`; smith="correlated" for gltf,
         "schlick_ggx" for learnopengl: `brdf_terms.MODEL_REGISTRY[model].lut_smith`).
     model: "gltf" (F0 A + B) or "learnopengl" (fresnelSchlickRoughness, see module docstring).
@@ -101,9 +102,8 @@ def shade_ibl(
 
     ab = lut_lookup(lut, nov, r)
     a, b = ab[..., 0], ab[..., 1]
-    meta = pre.metadata
-    mapping = meta.get("roughness_mapping", "linear")
-    ld = pre.sample(R, roughness_to_lod(r, int(meta.get("mapping_levels", pre.num_levels)), mapping=mapping))
+    M, mapping, blend = lookup_of(pre)
+    ld = pre.sample(R, roughness_to_lod(r, M, mapping=mapping, lod_blend=blend))
     ebar = irr.sample(pack3(n3)) if irr is not None else None
     base = m.base_color
     metallic = m.metallic[..., None]

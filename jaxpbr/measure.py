@@ -15,7 +15,7 @@ from ._api import keyword_only
 from .cubemap import Cubemap, face_to_dir, texel_directions
 from .diffuse import irradiance_at
 from .lut import lut_reference, resolve_smith
-from .specular import level_roughness, prefilter_reference
+from .specular import level_roughness, lookup_of, prefilter_reference
 
 __all__ = ["irradiance_error", "lut_error", "prefilter_error", "texel_subset"]
 
@@ -58,8 +58,8 @@ def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, 
     """Per level m >= 1: mean and max relative error of `pre` against `prefilter_reference` at a
     texel subset. Level 0 is the (down-sampled) source itself and has no error by construction.
     progress: optional callable(done_levels, total_levels)."""
-    mapping = pre.metadata.get("roughness_mapping", "linear")
-    rough = level_roughness(pre.num_levels, mapping=mapping)
+    M, mapping, _ = lookup_of(pre)  # a partial chain: the M-level roughness
+    rough = level_roughness(M, mapping=mapping)
     sun = _brightest_direction(env)
     rows = []
     for m in range(1, pre.num_levels):

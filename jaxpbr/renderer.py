@@ -8,7 +8,8 @@ content-addressed cache, then runs one jitted program:
 * no environment -> no IBL lookups and no precompute at all;
 * only metals (metallic == 1 everywhere, no multiscatter) -> no irradiance map;
 * maximum roughness r_max -> the prefiltered chain is computed only up to the mip that
-  lod = r_max (M - 1) reaches (the lookup mapping still refers to the full chain of M levels);
+  lod(r_max) reaches (`specular.levels_for_roughness`; the lookup still refers to the full chain of
+  M levels);
 * no textures / normal maps / emissive -> none of their code.
 
 Values that are traced (inside `jax.grad`, `jax.vmap`) cannot be inspected; the plan then assumes
@@ -61,7 +62,7 @@ from ._validate import positive_int
 from ._version import __version__
 from .atomic import atomic_write
 from .brdf_terms import MODEL_REGISTRY, check_options
-from .cubemap import Cubemap, _mip_count
+from .cubemap import Cubemap
 from .ibl import shade_ibl
 from .lights import shade_direct
 from .material import Material
@@ -273,11 +274,10 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
             M = int(env.prefiltered.metadata.get("mapping_levels", env.prefiltered.num_levels))
             levels = env.prefiltered.num_levels
         else:
-            M = _mip_count(size)
-            r = min(max(r_max, 0.0), 1.0)
-            # roughness_to_lod in plain Python (this runs at trace time, possibly inside a jit).
-            lod = r * (M - 1) if opts.mapping == "linear" else r * (2.0 - r) * (M - 1)
-            levels = min(M, int(math.ceil(lod - 1e-9)) + 1)
+            M = specular.default_num_levels(size)
+            # The lookup of the map `_asset_prefiltered` makes (prefilter's default lod_blend), in
+            # NumPy: this runs at trace time, possibly inside a jit.
+            levels = specular.levels_for_roughness(r_max, M, mapping=opts.mapping)
         diffuse = opts.multiscatter or met_min < 1.0
         env_lights = _env_split(env, opts)[0]
         n_env_lights = 0 if env_lights is None else len(env_lights)
@@ -573,7 +573,7 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, **ov
         levels = environment.prefiltered.num_levels
         M = int(environment.prefiltered.metadata.get("mapping_levels", levels))
     else:
-        levels = M = _mip_count(size)
+        levels = M = specular.default_num_levels(size)
     lights = _env_split(environment, opts)[0]
     full = RenderPlan(
         direct=False, ibl=True, ibl_diffuse=True, env_background=environment.show_background, emissive=False,

@@ -84,6 +84,9 @@ DATA = {
     "jaxpbr.reference_render.min_reference_roughness": ("face_size",),
     "jaxpbr.specular.level_roughness": ("num_levels",),
     "jaxpbr.specular.roughness_to_lod": ("num_levels",),  # M of the map being looked up
+    "jaxpbr.specular.levels_for_roughness": ("num_levels",),  # as roughness_to_lod
+    "jaxpbr.specular.lookup_metadata": ("num_levels",),  # the chain it describes
+    "jaxpbr.specular.default_num_levels": ("size",),
     # demo scenes: the image shape / grid shape
     "jaxpbr.demo.demo_scene": ("width", "height"),
     "jaxpbr.demo.learnopengl_scene": ("width", "height"),

@@ -56,11 +56,12 @@ def test_prefilter_exr_faces_and_sh9_coefficients(tmp_path, pano):
     out = tmp_path / "pre.exr"
     assert main(["prefilter", str(pano), "--face-size", "16", "--samples", "16", "-o", str(out), "--quiet", "--no-error"]) == 0
     names = _files(tmp_path)
-    assert sum(n.startswith("pre_m") for n in names) == 6 * 5  # 16, 8, 4, 2, 1
+    assert sum(n.startswith("pre_m") for n in names) == 6 * 5  # the default chain: 16, 8, 4, 2, 1 (5 levels at least)
     img, meta = image.read_with_metadata(tmp_path / "pre_m0_px.exr")
     assert img.shape == (16, 16, 3)
     side = json.loads((tmp_path / "pre.exr.json").read_text())
-    assert side["roughness_mapping"] == "linear" and side["num_levels"] == 5
+    assert side["roughness_mapping"] == "linear" and side["num_levels"] == 5 and side["lod_blend"] == "mean_cosine"
+    assert side["chain_floor"] == "1" and side["lookup"].startswith("lod = m + (c_m - c(r))")
     out2 = tmp_path / "irr.ktx2"
     assert main(["irradiance", str(pano), "--face-size", "16", "--size", "4", "--method", "sh9", "-o", str(out2), "--quiet"]) == 0
     coeffs = np.array(json.loads((tmp_path / "irr.ktx2.json").read_text())["sh9_radiance_coefficients"]["values"])
@@ -84,7 +85,11 @@ def test_ibl_all_in_one_procedural(tmp_path):
     assert main(["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "8", "--out-dir", str(tmp_path), "--quiet", "--no-error"]) == 0
     assert {"irradiance.ktx2", "prefiltered.ktx2", "brdf_lut.exr", "ibl.json"} <= set(_files(tmp_path))
     levels, meta, info = read_ktx2(tmp_path / "prefiltered.ktx2")
-    assert len(levels) == 5 and meta["jaxpbr:roughness_mapping"] == "linear"
+    assert len(levels) == 5 and meta["jaxpbr:roughness_mapping"] == "linear" and meta["jaxpbr:mapping_levels"] == "5"
+    # The lookup travels in the KTX2 key/values: blend, floor, level mean cosines, the engines' lod table.
+    assert meta["jaxpbr:lod_blend"] == "mean_cosine" and meta["jaxpbr:chain_floor"] == "1"
+    assert meta["jaxpbr:level_mean_cosine"].startswith("1,0.976") and meta["jaxpbr:level_mean_cosine"].endswith(",0.666666667")
+    assert len(meta["jaxpbr:lod_table"].split(",")) == 33
     # rgba16f: the 3000-radiance sun is representable; values finite and non-negative
     assert all(np.isfinite(lv).all() and (lv >= 0).all() for lv in levels)
 

@@ -316,8 +316,9 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     scene = jp.Scene(camera=jp.Camera(width=8, height=6), objects=[jp.Sphere(center=(x, 0, 0), material=m) for x, m in zip((-2, 0, 2), mats)], environment=env)
     p = R.plan(scene)
     assert p.ibl and not p.ibl_diffuse
-    # 64^2 prefilter: M = 7 levels, lod(0.3) = 1.8 -> levels 0..2 are enough.
-    assert (p.mapping_levels, p.prefilter_levels) == (7, 3)
+    # 64^2 prefilter: M = 5 levels (64 .. 4 at r = m/4), the default (mean-cosine) lod(0.3) = 1.15
+    # -> levels 0..2 are enough.
+    assert (p.mapping_levels, p.prefilter_levels) == (5, 3)
     seen = {}
     real_pre = jp.specular.prefilter
 
@@ -331,9 +332,9 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     R.ASSETS.clear()
     img = np.asarray(jp.render(scene))
     assert seen["levels"] == 3 and np.isfinite(img).all()
-    # The truncated chain gives the same image as the full chain (lod <= 1.8 never reads beyond).
-    full = R._env_assets(env, R.dataclasses.replace(p, prefilter_levels=7), R.RenderOptions())
-    want = np.asarray(R._render_jit(scene, full, R.dataclasses.replace(p, prefilter_levels=7), R.RenderOptions()))
+    # The truncated chain gives the same image as the full chain (lod <= 1.15 never reads beyond).
+    full = R._env_assets(env, R.dataclasses.replace(p, prefilter_levels=5), R.RenderOptions())
+    want = np.asarray(R._render_jit(scene, full, R.dataclasses.replace(p, prefilter_levels=5), R.RenderOptions()))
     np.testing.assert_allclose(img, want, rtol=1e-6, atol=1e-7)
     # A dielectric brings the irradiance map back.
     p2 = R.plan(scene.replace(objects=scene.objects + (jp.Sphere(center=(0, 2, 0), material=jp.Material(metallic=0.5, roughness=0.3)),)))

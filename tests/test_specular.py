@@ -113,27 +113,33 @@ def test_level_roughness_and_lod_are_consistent(M):
     np.testing.assert_allclose(lin, x, rtol=0, atol=4 * EPS64)  # r_m = m/(M-1) (glTF viewer / LearnOpenGL)
     np.testing.assert_allclose(quad, 1 - np.sqrt(1 - x), rtol=0, atol=4 * EPS64)  # Filament
     assert lin[0] == 0.0 and quad[0] == 0.0 and lin[-1] == (1.0 if M > 1 else 0.0) and quad[-1] == lin[-1]
-    # lod(r_m) = m: linear lod = r (M-1); Filament's lod = (M-1) r (2 - r).
-    np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(lin), M, mapping="linear")), m, atol=16 * EPS64 * M)
-    np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(quad), M, mapping="quadratic")), m, atol=16 * EPS64 * M)
+    # lod(r_m) = m: linear lod = r (M-1); Filament's lod = (M-1) r (2 - r) (lod_blend "roughness");
+    # the default "mean_cosine" blend also returns m at r_m (tests/test_chain.py).
+    for blend in ("roughness", "mean_cosine"):
+        np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(lin), M, mapping="linear", lod_blend=blend)), m, atol=1e-9)
+        np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(quad), M, mapping="quadratic", lod_blend=blend)), m, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(roughness_to_lod(jnp.asarray(lin), M, mapping="linear", lod_blend="roughness")), m, atol=16 * EPS64 * M)
     r = np.linspace(0, 1, 11)
     np.testing.assert_allclose(
-        np.asarray(roughness_to_lod(jnp.asarray(r), M, mapping="quadratic")), (M - 1) * r * (2 - r), atol=1e-15 * M
+        np.asarray(roughness_to_lod(jnp.asarray(r), M, mapping="quadratic", lod_blend="roughness")), (M - 1) * r * (2 - r), atol=1e-15 * M
     )
 
 
 def test_roughness_to_lod_clamps_and_batches():
     r = jnp.asarray([[-0.5, 0.0, 0.3], [1.0, 1.7, 0.5]])
-    lod = np.asarray(roughness_to_lod(r, 6))
+    lod = np.asarray(roughness_to_lod(r, 6, lod_blend="roughness"))
     assert lod.shape == (2, 3)
     np.testing.assert_allclose(lod, [[0, 0, 1.5], [5, 5, 2.5]], atol=1e-15)
     np.testing.assert_allclose(
-        np.asarray(jax.jit(lambda x: roughness_to_lod(x, 6, mapping="quadratic"))(r)),
+        np.asarray(jax.jit(lambda x: roughness_to_lod(x, 6, mapping="quadratic", lod_blend="roughness"))(r)),
         5 * np.clip(r, 0, 1) * (2 - np.clip(r, 0, 1)),
         atol=1e-15,
     )
-    g = jax.grad(lambda x: roughness_to_lod(x, 6))(0.4)
+    g = jax.grad(lambda x: roughness_to_lod(x, 6, lod_blend="roughness"))(0.4)
     assert float(g) == 5.0
+    # The default blend clamps and batches the same way.
+    lod = np.asarray(roughness_to_lod(r, 6))
+    assert lod.shape == (2, 3) and lod[0, 0] == lod[0, 1] == 0 and lod[1, 0] == lod[1, 1] == 5
 
 
 def test_mapping_errors():
@@ -184,7 +190,7 @@ def test_fis_constant_environment(dtype, exact_texels, samples):
     S = 16
     c = 0.7
     env = Cubemap(jnp.full((6, S, S, 3), c, dtype))
-    out = prefilter(env, samples=samples_list(5, samples) if samples else None, exact_texels=exact_texels)
+    out = prefilter(env, num_levels=5, samples=samples_list(5, samples) if samples else None, exact_texels=exact_texels)
     assert out.metadata["exact_texels"] == "0"  # a constant has no texel 4x brighter than its mean
     counts = [int(x) for x in out.metadata["fis_samples"].split(",")]
     assert len(counts) == 5 and min(counts) >= (samples or DEFAULT_SAMPLES)  # default: a per-level budget
@@ -220,7 +226,7 @@ def rand_env(S, C=3, seed=0, dtype=np.float64):
 
 def test_level0_is_the_source():
     env = rand_env(16, dtype=np.float32)
-    out = prefilter(env, samples=samples_list(5, 64))
+    out = prefilter(env, num_levels=5, samples=samples_list(5, 64))
     np.testing.assert_array_equal(np.asarray(out.levels[0]), np.asarray(env.levels[0]))
     # size = S0/2, S0/4: level 0 is the solid-angle-weighted 2x2 (4x4) mean of the source (float32 sums
     # of 4 (16) products per pyramid step: <= 2 x 9 eps32).
@@ -238,7 +244,7 @@ def test_level0_is_the_source():
 
 def test_structure_and_metadata():
     env = rand_env(16)
-    out = prefilter(env, samples=samples_list(5, 64))
+    out = prefilter(env, num_levels=5, samples=samples_list(5, 64))
     assert out.num_levels == 5 and [lv.shape for lv in out.levels] == [(6, 16 >> m, 16 >> m, 3) for m in range(5)]
     assert all(lv.dtype == np.float64 for lv in out.levels)
     md = out.metadata
@@ -250,10 +256,10 @@ def test_structure_and_metadata():
     # Progress in chunks of work (30 rows in chunks of 8: 4 reports from inside the program), the
     # last one (total, total); the result is the same as without progress.
     calls = []
-    out = prefilter(env, 4, samples=samples_list(3, 64), chunk=8, progress=lambda done, total: calls.append((done, total)))
+    out = prefilter(env, 4, num_levels=3, samples=samples_list(3, 64), chunk=8, progress=lambda done, total: calls.append((done, total)))
     assert calls[-1] == (4, 4) and [d for d, _ in calls] == [1, 2, 3, 4], calls
     assert [lv.shape[1] for lv in out.levels] == [4, 2, 1]
-    quiet = prefilter(env, 4, samples=samples_list(3, 64), chunk=8)
+    quiet = prefilter(env, 4, num_levels=3, samples=samples_list(3, 64), chunk=8)
     for a, b in zip(out.levels, quiet.levels):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     out = prefilter(env, num_levels=2, samples=samples_list(2, 64))
@@ -308,7 +314,7 @@ def test_c_alpha_limits():
 
 def fis_linear_errors(n, S=32, M=6):
     """Max |FIS - (a + b c(alpha) R.d)| per level m = 1..M-1 for the exact linear env (32^2, r_m = m/5)."""
-    out = prefilter(linear_env(S), samples=samples_list(M, n), exact_texels=0)
+    out = prefilter(linear_env(S), num_levels=M, samples=samples_list(M, n), exact_texels=0)
     r = level_roughness(M)
     e = []
     for m in range(1, M):
@@ -351,7 +357,7 @@ def sky_sun(d):
 @pytest.fixture(scope="module")
 def sky():
     env = Cubemap.from_function(sky_sun, 32)  # float32, like a loaded panorama
-    ref = prefilter(env, method="reference")
+    ref = prefilter(env, num_levels=6, method="reference")  # the whole chain, down to 1x1
     return env, ref
 
 
@@ -365,8 +371,8 @@ def rel_errors(out, ref):
 def test_fis_vs_reference_sky_with_sun(sky):
     env, ref = sky
     M = ref.num_levels
-    plain = prefilter(env, samples=samples_list(M, 256), exact_texels=0)
-    exact = prefilter(env, samples=samples_list(M, 256), exact_texels=256)
+    plain = prefilter(env, num_levels=M, samples=samples_list(M, 256), exact_texels=0)
+    exact = prefilter(env, num_levels=M, samples=samples_list(M, 256), exact_texels=256)
     # The bright texels (luminance > max(4 x mean, the 257th largest), computed here) are the sun's.
     lum = np.asarray(env.levels[0], np.float64) @ np.array([0.2126, 0.7152, 0.0722])
     mean = np.sum(lum * ref_solid_angles(32)) / (4 * math.pi)
@@ -390,9 +396,9 @@ def test_single_bright_texel():
     lv = np.full((6, S, S, 3), 1.0)
     lv[2, 5, 7] = 1e4
     env = Cubemap(jnp.asarray(lv))
-    ref = prefilter(env, method="reference")
-    exact = prefilter(env, samples=samples_list(5, 64))
-    plain = prefilter(env, samples=samples_list(5, 64), exact_texels=0)
+    ref = prefilter(env, num_levels=5, method="reference")
+    exact = prefilter(env, num_levels=5, samples=samples_list(5, 64))
+    plain = prefilter(env, num_levels=5, samples=samples_list(5, 64), exact_texels=0)
     assert exact.metadata["exact_texels"] == "1"
     e_exact = max(e.max() for e in rel_errors(exact, ref))
     e_plain = max(e.max() for e in rel_errors(plain, ref))
@@ -426,7 +432,7 @@ def test_bright_far_field_matches_the_full_sum(monkeypatch):
 
     def levels(far):
         monkeypatch.setattr(specular, "BRIGHT_FAR", far)
-        pre = prefilter(env, samples=64)
+        pre = prefilter(env, num_levels=8, samples=64)  # the whole chain, down to 1x1
         assert int(pre.metadata["exact_texels"]) > 0
         return [np.asarray(lv, np.float64) for lv in pre.levels]
 
@@ -514,11 +520,11 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="num_levels must be a positive integer"):
         prefilter(env, num_levels=0)
     with pytest.raises(ValueError, match="samples has 3 entries; expected one per level \\(5\\)"):
-        prefilter(env, samples=[16, 16, 16])
+        prefilter(env, num_levels=5, samples=[16, 16, 16])
     with pytest.raises(ValueError, match="samples must be a positive integer"):
         prefilter(env, samples=0)
     with pytest.raises(ValueError, match="samples must be a positive integer"):
-        prefilter(env, samples=[16, 16, 0, 16, 16])
+        prefilter(env, num_levels=5, samples=[16, 16, 0, 16, 16])
     with pytest.raises(ValueError, match="exact_texels must be >= 0"):
         prefilter(env, exact_texels=-1)
     for r in (-0.1, 1.5):

@@ -24,7 +24,7 @@ from ..errors import Float16RangeError, InputError
 from ..lut import SMITH_ALIASES, SMITH_VARIANTS, _lut_shape
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..shipped_luts import brdf_lut
-from ..specular import DEFAULT_EXACT_TEXELS, DEFAULT_SAMPLES, prefilter
+from ..specular import DEFAULT_CHAIN_FLOOR, DEFAULT_EXACT_TEXELS, DEFAULT_LOD_BLEND, DEFAULT_SAMPLES, LOD_BLENDS, MAPPINGS, MIN_CHAIN_LEVELS, prefilter
 from ._common import Progress, positive_int_arg, raise_pending, require_memory
 
 __all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
@@ -98,8 +98,9 @@ def add_commands(sub) -> None:
 def _prefilter_args(p):
 
     p.add_argument("--size", type=positive_int_arg, default=None, help="face size of mip 0 (default: the environment's)")
-    p.add_argument("--levels", type=positive_int_arg, default=None, help="number of mips M (default: down to 1x1)")
-    p.add_argument("--mapping", choices=("linear", "quadratic"), default="linear", help="roughness->mip: r_m = m/(M-1) or Filament's (default: %(default)s)")
+    p.add_argument("--levels", type=positive_int_arg, default=None, help=f"number of mips M (default: down to {DEFAULT_CHAIN_FLOOR}x{DEFAULT_CHAIN_FLOOR}, at least {MIN_CHAIN_LEVELS})")
+    p.add_argument("--mapping", choices=MAPPINGS, default="linear", help="level roughness: r_m = m/(M-1) or Filament's (default: %(default)s)")
+    p.add_argument("--lod-blend", choices=LOD_BLENDS, default=DEFAULT_LOD_BLEND, help="lookup between two mips, recorded in the metadata: linear in the lobe's mean cosine (exact for a smooth environment) or plain lod = r*(M-1) (default: %(default)s)")
     p.add_argument("--method", choices=("fis", "reference"), default="fis", help="filtered importance sampling or the float64 brute-force reference (slow)")
     p.add_argument("--samples", type=positive_int_arg, default=DEFAULT_SAMPLES, help="FIS samples on the large levels (default: %(default)s; small levels get more)")
     p.add_argument("--exact-texels", type=int, default=None, help=f"brightest texels convolved exactly (default: {DEFAULT_EXACT_TEXELS} per 256^2 of face area, i.e. 4096 at 1024^2; 0 = off)")
@@ -290,6 +291,7 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
         args.size,
         num_levels=args.levels,
         mapping=args.mapping,
+        lod_blend=args.lod_blend,
         method=args.method,
         samples=args.samples,
         exact_texels=args.exact_texels,
@@ -305,7 +307,7 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
         "kind": "prefiltered_specular",
         "files": files,
         **meta,
-        "lookup": "lod = r*(M-1) (linear) or (M-1)*r*(2-r) (quadratic); trilinear",
+        "lookup": f"{meta['lod_formula']}; trilinear",
         "face_size": pre.face_size,
         "num_levels": pre.num_levels,
         "seconds": seconds,

@@ -25,6 +25,7 @@ from ..cubemap import Cubemap, _corner_mask, _pad_index
 from ..ibl import MIN_N_DOT_V
 from ..material import F0_DIELECTRIC
 from ..lut import lut_coordinates, lut_padded, lut_r0
+from ..specular import lookup_of, roughness_to_lod
 
 __all__ = [
     "GBUFFER_KEYS",
@@ -246,14 +247,19 @@ class NumpyIBL:
     pre: NumpyCube
     lut: np.ndarray  # (n_r, n_nov, 2) float32
     mapping: str = "linear"
+    lod_blend: str = "roughness"  # `specular.roughness_to_lod`; "roughness": lod = r (M-1)
+    mapping_levels: int | None = None  # M of the lookup (None: the map's level count)
 
     @classmethod
     def from_tables(cls, irr: Cubemap, pre: Cubemap, lut) -> NumpyIBL:
+        M, mapping, blend = lookup_of(pre)
         return cls(
             NumpyCube.from_cubemap(irr),
             NumpyCube.from_cubemap(pre),
             np.ascontiguousarray(np.asarray(lut, _F32)),
-            pre.metadata.get("roughness_mapping", "linear"),
+            mapping,
+            blend,
+            M,
         )
 
 
@@ -270,8 +276,8 @@ def shade_ibl_numpy(g: dict[str, np.ndarray], ibl: NumpyIBL) -> np.ndarray:
     nov = np.clip(nov_raw, MIN_N_DOT_V, 1.0)
     r = np.clip(g["roughness"].reshape(-1), 0.0, 1.0)
     ab = lut_lookup_numpy(ibl.lut, nov, r)
-    L = ibl.pre.num_levels - 1
-    lod = r * L if ibl.mapping == "linear" else r * (2.0 - r) * L
+    M = ibl.pre.num_levels if ibl.mapping_levels is None else ibl.mapping_levels
+    lod = roughness_to_lod(r, M, mapping=ibl.mapping, lod_blend=ibl.lod_blend, xp=np).astype(r.dtype)
     ld = ibl.pre.sample(k * nx - vx, k * ny - vy, k * nz - vz, lod)
     ebar = ibl.irr.sample(nx, ny, nz)
     base = g["base_color"].reshape(-1, 3)
