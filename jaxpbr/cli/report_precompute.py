@@ -5,12 +5,23 @@ counts / resolutions is timed (after a warm-up call, so JIT compilation is exclu
 apart) and compared with the float64 references of `jaxpbr.measure`. Environments: a procedural sky
 with a 3000-radiance sun generated in code, plus any HDR panoramas given. Output: a Markdown table
 and a PNG plot (the plot needs matplotlib: `pip install 'jaxpbr[report]'`).
+
+The chain sweep (issue 11; `--chain-only` runs just it) measures the prefiltered chain's size and
+lookup rather than its sampling: per source size, smallest face (floor), level mapping and lod blend,
+lookups at random directions and roughnesses (not texel centres) (a) of chains holding the closed
+form of an environment linear in direction, LD = a + b c(alpha) (R.d) (`specular.lobe_mean_cosine`),
+and (b) of the FIS chains of each environment against `prefilter_reference` at the same (R, r).
 """
 
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
 
 from .. import envs
 from ..atomic import OutputSet, atomic_write
@@ -19,7 +30,20 @@ from ..diffuse import irradiance
 from ..errors import InputError
 from ..lut import compute_brdf_lut
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
-from ..specular import prefilter
+from ..cubemap import Cubemap, texel_directions
+from ..specular import (
+    DEFAULT_CHAIN_FLOOR,
+    DEFAULT_LOD_BLEND,
+    LOD_BLENDS,
+    MAPPINGS,
+    MIN_CHAIN_LEVELS,
+    default_num_levels,
+    level_roughness,
+    lobe_mean_cosine,
+    prefilter,
+    prefilter_reference,
+    roughness_to_lod,
+)
 from ._common import have_matplotlib, positive_int_arg
 from .timing import time_calls, to_host
 
@@ -66,7 +90,118 @@ def prefilter_rows(env, env_name: str, samples=(64, 128, 256, 512), exact_texels
     return rows
 
 
+#: Chain floors (smallest face sizes) the chain sweep compares.
+CHAIN_FLOORS = (1, 2, 4, 8, 16, 32)
+#: The linear environment of the chain sweep, L(w) = a + b (w . d).
+_LIN_A, _LIN_B = 1.0, 0.8
+_LIN_DIR = np.array([0.2, 0.5, -0.7]) / np.linalg.norm([0.2, 0.5, -0.7])
+
+
+def _random_lookups(n: int, seed: int):
+    """n random unit directions and roughnesses, a tenth of them at r = 1 and a tenth at r = 0.85."""
+    rng = np.random.default_rng(seed)
+    R = rng.normal(size=(n, 3))
+    R /= np.linalg.norm(R, axis=1, keepdims=True)
+    rs = rng.uniform(0.0, 1.0, n)
+    rs[: n // 10], rs[n // 10 : n // 5] = 1.0, 0.85
+    return R, rs
+
+
+def _chain_row(env_name, S, floor, M, mapping, blend, err, rs, seconds=None) -> dict:
+    e = np.asarray(err)
+    at1 = e[rs == 1.0]
+    return dict(
+        what="chain", env=env_name, source=S, floor=S >> (M - 1), requested_floor=floor, levels=M, mapping=mapping,
+        blend=blend, lookups=int(e.size), mean=float(e.mean()), max=float(e.max()),
+        max_r1=float(at1.max()) if at1.size else float("nan"), seconds=seconds,
+    )
+
+
+def chain_rows(sizes=(64, 128, 256), floors=CHAIN_FLOORS, mappings=MAPPINGS, blends=LOD_BLENDS, lookups: int = 600, seed: int = 0, log=print) -> list[dict]:
+    """The chain sweep on the linear-environment oracle: for each source size S, floor, mapping and
+    blend, an M-level chain (S^2 down to the floor) holding a + b c(alpha(r_m)) (t.d)
+    at its texel centres t, looked up (`roughness_to_lod`, trilinear) at `lookups` random (R, r)
+    against a + b c(alpha(r)) (R.d); relative error. No sampling error: what is measured is the
+    chain itself (coarse faces between texel centres) and the blend between levels."""
+    R, rs = _random_lookups(lookups, seed)
+    truth = _LIN_A + _LIN_B * lobe_mean_cosine(rs * rs) * (R @ _LIN_DIR)
+    rows = []
+    with jax.enable_x64(True):
+        Rj, rj = jnp.asarray(R), jnp.asarray(rs)
+        for S in sizes:
+            seen = set()
+            for floor in floors:
+                M = default_num_levels(S, floor=floor, min_levels=1)
+                if floor > S or M in seen:
+                    continue
+                seen.add(M)
+                for mapping in mappings:
+                    rm = level_roughness(M, mapping=mapping)
+                    cube = Cubemap(
+                        [jnp.asarray((_LIN_A + _LIN_B * lobe_mean_cosine(rm[m] ** 2) * (texel_directions(S >> m) @ _LIN_DIR))[..., None]) for m in range(M)]
+                    )
+                    for blend in blends:
+                        got = np.asarray(cube.sample(Rj, roughness_to_lod(rj, M, mapping=mapping, lod_blend=blend)))[:, 0]
+                        rows.append(_chain_row("linear (closed form)", S, floor, M, mapping, blend, np.abs(got - truth) / truth, rs))
+                        r = rows[-1]
+                        log(f"  chain linear env {S}^2 to {r['floor']}^2 (M={M}) {mapping} {blend}: mean {100 * r['mean']:.2f} % max {100 * r['max']:.2f} % (r = 1: {100 * r['max_r1']:.2f} %)")
+    return rows
+
+
+def chain_env_rows(env, env_name: str, floors=CHAIN_FLOORS, mappings=MAPPINGS, blends=LOD_BLENDS, roughness=(0.07, 0.13, 0.2, 0.28, 0.37, 0.45, 0.55, 0.66, 0.78, 0.9, 1.0), directions: int = 48, seed: int = 1, log=print) -> list[dict]:
+    """The chain sweep on a real environment: the default FIS prefilter of `env` (face size S) for
+    each floor and mapping, looked up with each blend at `directions` random directions per
+    roughness, against `prefilter_reference` (float64, every texel) at the same (R, r); relative L1
+    error over the channels (as `jaxpbr.measure`). Includes the prefilters' sampling error."""
+    S = env.face_size
+    rng = np.random.default_rng(seed)
+    R = rng.normal(size=(len(roughness), directions, 3))
+    R /= np.linalg.norm(R, axis=-1, keepdims=True)
+    ref = np.stack([prefilter_reference(env, R[i], float(r)) for i, r in enumerate(roughness)])
+    rs = np.repeat(np.asarray(roughness, np.float64), directions)
+    rows, seen = [], set()
+    for floor in floors:
+        M = default_num_levels(S, floor=floor, min_levels=1)
+        if floor > S or M in seen:
+            continue
+        seen.add(M)
+        for mapping in mappings:
+            t0 = time.perf_counter()
+            pre = prefilter(env, num_levels=M, mapping=mapping)
+            jax.block_until_ready(pre.levels)
+            seconds = time.perf_counter() - t0
+            for blend in blends:
+                lod = roughness_to_lod(jnp.asarray(rs, jnp.float32), M, mapping=mapping, lod_blend=blend)
+                got = np.asarray(pre.sample(jnp.asarray(R.reshape(-1, 3), jnp.float32), lod), np.float64)
+                want = ref.reshape(-1, ref.shape[-1])
+                err = np.abs(got - want).sum(-1) / np.maximum(np.abs(want).sum(-1), 1e-300)
+                rows.append(_chain_row(env_name, S, floor, M, mapping, blend, err, rs, seconds))
+                r = rows[-1]
+                log(f"  chain {env_name} {S}^2 to {r['floor']}^2 (M={M}) {mapping} {blend}: mean {100 * r['mean']:.2f} % max {100 * r['max']:.1f} %")
+    return rows
+
+
+def chain_markdown(rows: list[dict]) -> str:
+    """The chain sweep as a Markdown table (the default chain in bold)."""
+    out = [
+        f"Chain sweep: lookups at random directions and roughnesses; default: floor {DEFAULT_CHAIN_FLOOR}^2 with at "
+        f"least {MIN_CHAIN_LEVELS} levels (bold), mapping linear, lod blend {DEFAULT_LOD_BLEND}.",
+        "",
+        "| environment | source | floor | levels | mapping | lod blend | lookups | mean error | max error | max at r = 1 |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        default = r["levels"] == default_num_levels(r["source"]) and r["mapping"] == "linear" and r["blend"] == DEFAULT_LOD_BLEND
+        b = "**" if default else ""
+        out.append(
+            f"| {r['env']} | {r['source']}^2 | {b}{r['floor']}^2{b} | {r['levels']} | {r['mapping']} | {b}{r['blend']}{b} | {r['lookups']} | "
+            f"{100 * r['mean']:.2f} % | {100 * r['max']:.2f} % | {100 * r['max_r1']:.2f} % |"
+        )
+    return "\n".join(out) + "\n"
+
+
 def markdown(rows: list[dict]) -> str:
+    rows = [r for r in rows if r["what"] != "chain"]
     out = [
         "| precompute | environment | variant | samples / size | run time (s) | compile (s) | mean error | max error |",
         "|---|---|---|---|---|---|---|---|",
@@ -122,11 +257,26 @@ def plot(rows: list[dict], path: Path) -> bool:
     return True
 
 
-def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size: int = 256, quick: bool = False, log=print) -> tuple[str, list[dict]]:
-    """Run the sweeps, write `<out_prefix>.md` and `<out_prefix>.png`; return (markdown, rows)."""
+def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size: int = 256, quick: bool = False, chain_only: bool = False, log=print) -> tuple[str, list[dict]]:
+    """Run the sweeps, write `<out_prefix>.md` and `<out_prefix>.png`; return (markdown, rows).
+    chain_only: only the chain sweep (no plot). The chain sweep's real-environment part runs at
+    `face_size`; `quick` leaves it out of the full report and shortens it with chain_only."""
     environments = [("procedural sky+sun", envs.sky_with_sun_cubemap(face_size))]
     for p in env_paths:
         environments.append((Path(p).name, load_environment([str(p)], face_size)))
+    log("prefiltered chain: floor x mapping x lod blend, linear environment (closed form)")
+    chain = chain_rows(sizes=(64, 128) if quick else (64, 128, 256), lookups=300 if quick else 600, log=log)
+    for name, env in environments:
+        if not quick or chain_only:
+            log(f"prefiltered chain: {name}")
+            chain += chain_env_rows(
+                env, name, floors=(1, 4, 8, 16) if quick else CHAIN_FLOORS, directions=16 if quick else 48, log=log
+            )
+    chain_md = "## Prefiltered chain: size and lookup\n\n" + chain_markdown(chain)
+    if chain_only:
+        md = "# jaxpbr prefiltered chain sweep\n\n" + chain_md
+        atomic_write(Path(f"{out_prefix}.md"), lambda tmp: Path(tmp).write_text(md))
+        return md, chain
     rows = []
     log("BRDF LUT")
     rows += lut_rows(sizes=(32, 64) if quick else (64, 128, 256), log=log)
@@ -137,7 +287,8 @@ def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size
         rows += irradiance_rows(env, name, source_sizes=(16, 32) if quick else (16, 32, 64), log=log)
         log(f"prefilter: {name}")
         rows += prefilter_rows(env, name, samples=(64, 128) if quick else (64, 128, 256, 512), texels_per_level=128 if quick else 512, log=log)
-    md = "# jaxpbr precompute error vs run time\n\n" + markdown(rows)
+    md = "# jaxpbr precompute error vs run time\n\n" + markdown(rows) + "\n" + chain_md
+    rows += chain
     md_path = Path(f"{out_prefix}.md")
 
     def w(tmp):
@@ -157,6 +308,11 @@ def add_command(rsub) -> None:
     p.add_argument("--out", default="precompute_report", help="output prefix: <out>.md and <out>.png (default: %(default)s)")
     p.add_argument("--face-size", type=positive_int_arg, default=256, help="environment face size (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="a smaller sweep (for a first look)")
+    p.add_argument(
+        "--chain-only", action="store_true",
+        help="only the prefiltered chain sweep: smallest face x level mapping x lod blend, lookups at random directions "
+        "on a linear environment (closed form) and on the environments (vs the float64 reference); writes <out>.md",
+    )
     p.set_defaults(func=cmd_report_precompute)
 
 
@@ -167,8 +323,14 @@ def cmd_report_precompute(args) -> int:
     # The outputs checked before the sweep (issue 13: a bad --out was found after 20-38 s of it).
     for suffix in (".md", ".png"):
         OutputSet().check(Path(f"{args.out}{suffix}"), (suffix,))
-    md, _ = precompute_report(args.env, out_prefix=args.out, face_size=args.face_size, quick=args.quick, log=lambda m: print(m, file=sys.stderr))
+    md, _ = precompute_report(
+        args.env, out_prefix=args.out, face_size=args.face_size, quick=args.quick, chain_only=args.chain_only,
+        log=lambda m: print(m, file=sys.stderr),
+    )
     print(md)
     png = Path(f"{args.out}.png")
+    if args.chain_only:
+        print(f"wrote {args.out}.md")
+        return 0
     print(f"wrote {args.out}.md" + (f" and {png}" if png.exists() else " (no plot: matplotlib is not installed)"))
     return 0
