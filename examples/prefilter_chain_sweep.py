@@ -12,6 +12,9 @@ Blends: "linear" (lod = r (M - 1), glTF viewer / Khronos sampler), "quadratic" (
 "blur": the same levels as "linear", the weight between two levels linear in c(alpha(r)) instead
 of r, which is exact for a linear environment between levels.
 
+"blur" is what became the default lookup (`lod_blend="mean_cosine"`); the product's version of this
+sweep is `jaxpbr report precompute --chain-only`.
+
 Run: python examples/prefilter_chain_sweep.py   (needs scipy: pip install 'jaxpbr[test]')
 """
 
@@ -90,7 +93,7 @@ def main():
                     m = np.clip(np.searchsorted(rm, rs, side="right") - 1, 0, M - 2)
                     lod = jnp.asarray(m + (cm[m] - cr) / (cm[m] - cm[m + 1]))
                 else:
-                    lod = roughness_to_lod(jnp.asarray(rs), M, mapping=mapping)
+                    lod = roughness_to_lod(jnp.asarray(rs), M, mapping=mapping, lod_blend="roughness")
                 show(mapping, S, floor, M, np.asarray(cube.sample(jnp.asarray(R), lod))[:, 0])
 
 
