@@ -73,12 +73,13 @@ NAMES = sorted(EXAMPLES)
 DOCUMENTED = {
     jp.Material: dict(base_color=(3,), metallic=(), roughness=(), occlusion=(), emissive=(3,)),
     jp.PointLight: dict(position=(3,), color=(3,), intensity=(), inv_range=()),
-    jp.DirectionalLight: dict(direction=(3,), color=(3,), intensity=()),
+    jp.DirectionalLight: dict(direction=(3,), color=(3,), intensity=(), angular_radius=()),
     jp.SpotLight: dict(
         position=(3,), direction=(3,), color=(3,), intensity=(), inner_cone_angle=(), outer_cone_angle=(), inv_range=()
     ),
     LightSet: dict(
-        position=(3,), direction=(3,), radiant=(3,), inv_range=(), cone_scale=(), cone_offset=(), directional=()
+        position=(3,), direction=(3,), radiant=(3,), inv_range=(), cone_scale=(), cone_offset=(), directional=(),
+        sin_radius=(),
     ),
     jp.Camera: dict(position=(3,), target=(3,), up=(3,), fov_y_deg=(), jitter=(2,)),
     jp.TexturedMaterial: dict(
@@ -106,7 +107,7 @@ SUBTREES = {
     jp.TexturedMaterial: {"factors"},
     jp.Sphere: {"material"},
     jp.Plane: {"material"},
-    jp.Environment: {"radiance", "irradiance", "prefiltered"},
+    jp.Environment: {"radiance", "irradiance", "prefiltered", "lights"},
     jp.GBuffer: {"material"},
     jp.Scene: {"camera", "objects", "lights", "environment", "gbuffer"},
 }
