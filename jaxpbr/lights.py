@@ -386,21 +386,9 @@ def shade_direct(
         c = vdot(n3, l3)
         lift = jnp.maximum(s - c, 0.0)
         g = geometry_soa(n3, v3, vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3))))
-        # ... with D replaced by its mean over the disc, in closed form: the disc maps to a disc
-        # of (area-equivalent) radius^2 sin^2 sigma / (4 v.h) in half-vector space and, in GGX's
-        # slope space scaled by alpha, the slope density 1/(pi (1 + |u|^2)^2) is the uniform
-        # density of the unit sphere under stereographic projection, which maps discs to caps:
-        # the lobe's mass over an off-centre disc is a cap's area, sin^2(beta / 2). Written in d =
-        # sin^2 + cos^2 alpha^2 (D = alpha^2 / (pi d^2)), the mean is 4 alpha^2 / (pi (den^2 +
-        # 4 w cos^2 alpha^2)) with w = sin^2 sigma / (4 v.h n.h), q = d - w and den = q +
-        # sqrt(q^2 + 4 w cos^2 alpha^2) (rationalised where q < 0); at sigma = 0, den = 2 d: D.
-        d0 = g.sin2_h + g.n_dot_h * g.n_dot_h * alpha2
-        w = s * s / (4.0 * g.v_dot_h * g.n_dot_h)
-        k = 4.0 * w * g.n_dot_h * g.n_dot_h * alpha2
-        q = d0 - w
-        hyp = jnp.sqrt(q * q + k)
-        den = jnp.where(q >= 0, hyp + q, k / jnp.where(q >= 0, 1.0, hyp - q))
-        ratio = 4.0 * d0 * d0 / (den * den + k)
+        # ... with D replaced by its mean over the disc (`disc_lobe_ratio`).
+        lc = vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3)))
+        ratio = disc_lobe_ratio(n3, v3, lc, s, alpha2, g)
         f = lobe(g, specular_weight=ratio)
         cap = cap_factor(c, s)
         return tuple(f[i] * e[i] * cap for i in range(3))
@@ -425,6 +413,94 @@ def shade_direct(
         out = tuple(out[i] + amb3[i] * base[i] * m.occlusion for i in range(3))
     emissive = unpack3(m.emissive)
     return pack3(tuple(out[i] + emissive[i] for i in range(3)))
+
+
+#: Quadrature points of `disc_lobe_ratio` (directions from the slope-space origin).
+DISC_LOBE_POINTS = 16
+
+
+def _frame(n: Vec3) -> tuple[Vec3, Vec3]:
+    """Two unit tangents completing unit n to an orthonormal frame, branch-free (Duff et al. 2017)."""
+    sign = jnp.where(n[2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[2])
+    b = n[0] * n[1] * a
+    return (1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]), (b, sign + n[1] * n[1] * a, -n[1])
+
+
+def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Array:
+    """Mean of the GGX D over a disc of directions (centre l, angular radius sigma), divided by D
+    at the centre's half vector: the factor `shade_direct` puts on the specular lobe of a disc
+    light. g: `Geometry` of (n, v, l); alpha2 = alpha^2 (floored, > 0).
+
+    Method. Over the disc, integral D dl = 4 (v.h) / (n.h) * P, with P the probability mass of
+    GGX's slope distribution over the disc's image in slope space. To first order in sigma that
+    image is an ellipse: the disc's tangent circle mapped by the Jacobian of
+    l -> h = normalize(v + l) -> slope (h_t / h_n), which stretches it by 1/(2 v.h) across the
+    plane of v and l and by 1/cos^2 theta_h (radially) and 1/cos theta_h (tangentially) around n.
+    In slope units of alpha, the density is 1/(pi (1 + |u|^2)^2), whose mass inside radius R from
+    the origin along a ray is R^2 / (2 pi (1 + R^2)) per radian; P is that integrated over the
+    rays from the origin that cross the ellipse, in closed form along each ray (entry and exit
+    radii from a quadratic) and by a DISC_LOBE_POINTS-point rule over the rays' angle (uniform
+    when the origin is inside the ellipse; when outside, over the ellipse's angular extent with a
+    sine substitution that absorbs the square-root ends). sigma -> 0 gives 1 (D itself);
+    alpha -> 0 gives the disc's mirror image. Finite values and gradients (double where).
+    """
+    # Double where: lanes the BRDF masks (viewer or light below the surface, v = -l) get the
+    # benign v = l = n, whose huge or 0/0 Jacobian would otherwise reach the value and gradient.
+    front = g.front
+    v = tuple(jnp.where(front, v[i], n[i]) for i in range(3))
+    l = tuple(jnp.where(front, l[i], n[i]) for i in range(3))
+    s = sin_sigma
+    h = vnormalize(tuple(v[i] + l[i] for i in range(3)))
+    t1, t2 = _frame(n)
+    e1, e2 = _frame(l)
+    hn = jnp.maximum(vdot(n, h), 1e-6)
+    vh = jnp.maximum(vdot(v, h), 1e-6)
+    alpha = jnp.sqrt(alpha2)
+    ht1, ht2 = vdot(t1, h), vdot(t2, h)
+
+    def slope_step(e):  # d(slope)/dl along e, in units of alpha, times sin sigma
+        he = vdot(h, e)
+        dh = tuple((e[i] - h[i] * he) / (2.0 * vh) for i in range(3))
+        dn = vdot(n, dh)
+        k = s / (alpha * hn * hn)
+        return ((vdot(t1, dh) * hn - ht1 * dn) * k, (vdot(t2, dh) * hn - ht2 * dn) * k)
+
+    (a11, a21), (a12, a22) = slope_step(e1), slope_step(e2)
+    c1, c2 = ht1 / (hn * alpha), ht2 / (hn * alpha)
+    det = a11 * a22 - a12 * a21
+    ok = (jnp.abs(det) > 1e-30) & (s > 0) & front
+    det_s = jnp.where(ok, det, 1.0)
+    # centre in the ellipse's unit-circle coordinates: c_B = A^-1 c
+    b1 = (a22 * c1 - a12 * c2) / det_s
+    b2 = (-a21 * c1 + a11 * c2) / det_s
+    d2 = b1 * b1 + b2 * b2
+    d = safe_sqrt(d2)
+    inside = d2 < 1.0
+    dn_ = jnp.where(d > 0, d, 1.0)
+    u1, u2 = jnp.where(d > 0, b1 / dn_, 1.0), jnp.where(d > 0, b2 / dn_, 0.0)
+    half = jnp.arcsin(jnp.clip(1.0 / jnp.where(inside, 2.0, dn_), 0.0, 1.0 - 1e-7))
+    K = DISC_LOBE_POINTS
+    total = 0.0
+    for j in range(K):
+        x = (j + 0.5) / K
+        theta = (x - 0.5) * jnp.pi
+        phi = jnp.where(inside, 2.0 * jnp.pi * x, half * jnp.sin(theta))
+        w_phi = jnp.where(inside, 2.0 * jnp.pi / K, half * jnp.cos(theta) * jnp.pi / K)
+        cp, sp = jnp.cos(phi), jnp.sin(phi)
+        y1, y2 = cp * u1 - sp * u2, sp * u1 + cp * u2  # the ray's direction, c_B's rotated by phi
+        p = d * cp
+        sq = safe_sqrt(1.0 - d2 * sp * sp)
+        t_out = p + sq
+        t_in = jnp.where(inside, 0.0, jnp.maximum(p - sq, 0.0))
+        w2 = (a11 * y1 + a12 * y2) ** 2 + (a21 * y1 + a22 * y2) ** 2  # |A y|^2
+        dt2 = jnp.where(inside, t_out * t_out, 4.0 * p * sq)  # t_out^2 - t_in^2
+        total = total + w_phi * dt2 / ((1.0 + t_out * t_out * w2) * (1.0 + t_in * t_in * w2))
+    mass = jnp.abs(det_s) * total / (2.0 * jnp.pi)
+    d0 = g.sin2_h + g.n_dot_h * g.n_dot_h * alpha2
+    s2 = jnp.where(ok, s * s, 1.0)
+    ratio = 4.0 * vh * mass * d0 * d0 / (hn * s2 * alpha2)
+    return jnp.where(ok, ratio, 1.0)
 
 
 def cap_factor(cos_theta, sin_sigma) -> jax.Array:

@@ -233,12 +233,12 @@ def test_disc_diffuse_is_the_cap_irradiance():
         assert np.all(_shade_disc(n, v, d, sigma, m) == 0.0)
 
 
-@pytest.mark.parametrize("r, tol", [(0.0, 0.1), (0.15, 0.03), (0.4, 2e-3), (1.0, 2e-3)])
+@pytest.mark.parametrize("r, tol", [(0.0, 5e-3), (0.15, 2e-3), (0.4, 2e-3), (1.0, 2e-3)])
 def test_disc_specular_against_quadrature(r, tol):
     """A metal facing a 2-degree sun 29 degrees off the normal: summed radiance over 13 view
     directions crossing the highlight, against quadrature over the disc. Measured relative
-    error: 7.6 % (r = 0, the disc's mirror image: its image in slope space is taken as a circle,
-    it is an ellipse), 1.8 % (0.15), 0.05 % (0.4), 0.05 % (1)."""
+    error: 0.20 % (r = 0, the disc's mirror image), 0.014 % (0.15), 0.06 % (0.4), 0.05 % (1).
+    (The equal-area-circle version of the lobe mass measured 7.6 % and 1.8 % at r = 0, 0.15.)"""
     with jax.enable_x64(True):
         m = jp.Material(base_color=(1.0, 1.0, 1.0), metallic=1.0, roughness=r)
         n = np.array([0.0, 0.0, 1.0])
@@ -250,6 +250,30 @@ def test_disc_specular_against_quadrature(r, tol):
             v = np.array([math.sin(a), 0.0, math.cos(a)])
             got += _shade_disc(n, v, d, sigma, m).sum()
             want += _disc_quadrature(n, v, d, sigma, m, n_rad=120).sum()
+        assert abs(got - want) / want < tol
+
+
+@pytest.mark.parametrize("r, tol", [(0.05, 5e-3), (0.15, 5e-3), (0.3, 2e-3)])
+def test_disc_specular_at_oblique_view_per_direction(r, tol):
+    """The stretched case: view 62 degrees off the normal, so the disc's image in half-vector
+    space is an ellipse of axis ratio ~2 (1 / v.h). Views on a 5 x 5 grid across the highlight
+    (in and out of the plane of incidence); error of the summed radiance against quadrature.
+    Measured: 0.13 % (r = 0.05), 0.10 % (0.15), 0.026 % (0.3). (With the ellipse taken as the
+    equal-area circle, the procedural sun's highlight on the report's sphere at r = 0.15, where
+    v.n ~ 0.46, was off by 26 % mean, 25-33 % at its brightest pixels.)"""
+    with jax.enable_x64(True):
+        m = jp.Material(base_color=(0.9, 0.6, 0.3), metallic=1.0, roughness=r)
+        n = np.array([0.0, 0.0, 1.0])
+        sigma = math.radians(2.0)
+        th = math.radians(62.0)
+        d = np.array([math.sin(th), 0.0, math.cos(th)])
+        got, want = 0.0, 0.0
+        for da in np.linspace(-3, 3, 5):
+            for db in np.linspace(-3, 3, 5):
+                a, b = -th + math.radians(da), math.radians(db)
+                v = np.array([math.sin(a) * math.cos(b), math.sin(b), math.cos(a) * math.cos(b)])
+                got += _shade_disc(n, v, d, sigma, m).sum()
+                want += _disc_quadrature(n, v, d, sigma, m, n_rad=120).sum()
         assert abs(got - want) / want < tol
 
 
