@@ -333,10 +333,9 @@ def shade_direct(
     are evaluated at the disc centre (lifted just above the horizon where the disc straddles it)
     and multiplied by the exact cosine-weighted solid angle of the cap, `E_perp
     cap_irradiance(n.l, sin sigma) / (pi sin^2 sigma)`: the diffuse lobe is then exact for a
-    Lambertian. In the specular lobe, D is replaced by its mean over the disc in closed form (the
-    GGX slope density is the stereographic image of the uniform sphere, so its mass over the
-    disc's image, taken as a circle of the same area, is a spherical cap's; see the code). That
-    gives D itself at sigma = 0 and the mirror image of the disc, F E_perp / (pi sin^2 sigma), as
+    Lambertian. In the specular lobe, D is replaced by its mean over the disc (`disc_lobe_ratio`:
+    the GGX slope distribution's mass over the disc's elliptical image in slope space). That gives
+    D itself at sigma = 0 and the mirror image of the disc, F E_perp / (pi sin^2 sigma), as
     r -> 0; V and F are taken at the centre. Its error against quadrature over the disc, per
     roughness and radius, is in the README (`examples/disc_light_error.py`).
     sigma = 0 reduces to the punctual light.
@@ -348,8 +347,10 @@ def shade_direct(
       model: "gltf" | "learnopengl" (see `brdf`).
       ambient: constant ambient radiance (scalar or (3,)), applied as LearnOpenGL's
         `ambient * albedo * ao` (not physically based; use IBL for that). Default 0.
-      disc_lights: trace the disc-light code (static): None (default) does so unless the lights'
-        angular radii are concrete and all 0; False treats every light as punctual.
+      disc_lights: which lights take the disc-light code (static): None (default) the
+        DirectionalLights (and a packed LightSet) whose angular radius is traced or > 0; True
+        every DirectionalLight / LightSet; False none (all punctual). Point and spot lights are
+        always punctual.
       min_roughness, **brdf_options: passed to `brdf` (smith, diffuse, shader_epsilon). An option
         the model does not use (`brdf_terms.MODEL_REGISTRY`) raises ValueError unless it has its
         default value.
@@ -358,21 +359,43 @@ def shade_direct(
     if unknown:
         raise TypeError(f"shade_direct got unknown option(s) {sorted(unknown)}.")
     check_options(model, min_roughness=min_roughness, **brdf_options)
-    ls = pack_lights(lights)
-    num = ls.num_lights
+    # Lights shaded as discs (static): DirectionalLights whose angular radius may be > 0 (traced,
+    # or concrete and > 0); every other light takes the punctual path, so a scene of punctual
+    # lights compiles no disc code even when its lights are traced. A packed LightSet is one group.
+    if isinstance(lights, LightSet) or isinstance(lights, (PointLight, SpotLight, DirectionalLight)):
+        items = [lights]
+    elif isinstance(lights, (list, tuple)):
+        items = list(lights)
+    else:
+        items = [lights]
+    if not items:
+        raise ValueError("lights is empty; pass at least one light (or skip direct lighting).")
+
+    def may_be_disc(x):
+        r = x.sin_radius if isinstance(x, LightSet) else getattr(x, "angular_radius", None)
+        if r is None:
+            return False
+        return not is_concrete(r) or bool(np.any(np.asarray(r) > 0))
+
+    if disc_lights is None:
+        disc_items = [x for x in items if may_be_disc(x)]
+    elif disc_lights:
+        disc_items = [x for x in items if isinstance(x, (DirectionalLight, LightSet))]
+    else:
+        disc_items = []
+    point_items = [x for x in items if not any(x is y for y in disc_items)]
+    groups = [(pack_lights(g), disc) for g, disc in ((point_items, False), (disc_items, True)) if g]
     batch_shape("shade_direct", ("p", p, 1), ("n", n, 1), ("v", v, 1), material=m)
     p3 = unpack3(p)
     n3 = vnormalize(unpack3(n))
     v3 = vnormalize(unpack3(v))
     base = unpack3(m.base_color)
 
-    if disc_lights is None:
-        disc_lights = not is_concrete(ls.sin_radius) or bool(np.any(np.asarray(ls.sin_radius) > 0))
-    if disc_lights:
+    if disc_items:
         alpha2 = floored_roughness(m.roughness, min_roughness) ** 4
     lobe = lambda g, **w: brdf_soa(g, base, m.metallic, m.roughness, model=model, min_roughness=min_roughness, **brdf_options, **w)  # noqa: E731
 
-    def one(light: LightSet) -> Vec3:
+    def one(light: LightSet, disc_lights: bool) -> Vec3:
         l3, e = light_incidence_soa(light, p3)
         if not disc_lights:
             g = geometry_soa(n3, v3, l3)
@@ -396,16 +419,20 @@ def shade_direct(
     def add(a: Vec3, b: Vec3) -> Vec3:
         return tuple(x + y for x, y in zip(a, b))
 
-    take = lambda i: jax.tree_util.tree_map(lambda x: x[i], ls)  # noqa: E731
-    out = one(take(0))
-    if num <= UNROLL_MAX_LIGHTS:
-        for i in range(1, num):
-            out = add(out, one(take(i)))
-    else:
-        shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in out))
-        out = tuple(jnp.broadcast_to(c, shape) for c in out)
-        rest = jax.tree_util.tree_map(lambda x: x[1:], ls)
-        out, _ = jax.lax.scan(lambda acc, light: (add(acc, one(light)), None), out, rest)
+    out = None
+    for ls, disc in groups:
+        take = lambda i, ls=ls: jax.tree_util.tree_map(lambda x: x[i], ls)  # noqa: E731
+        num = ls.num_lights
+        acc = one(take(0), disc)
+        if num <= UNROLL_MAX_LIGHTS:
+            for i in range(1, num):
+                acc = add(acc, one(take(i), disc))
+        else:
+            shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in acc))
+            acc = tuple(jnp.broadcast_to(c, shape) for c in acc)
+            rest = jax.tree_util.tree_map(lambda x: x[1:], ls)
+            acc, _ = jax.lax.scan(lambda a, light, disc=disc: (add(a, one(light, disc)), None), acc, rest)
+        out = acc if out is None else add(out, acc)
 
     if not (isinstance(ambient, (int, float)) and ambient == 0):  # static zero: no ambient code
         amb = as_float(ambient)
@@ -480,22 +507,24 @@ def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Arra
     dn_ = jnp.where(d > 0, d, 1.0)
     u1, u2 = jnp.where(d > 0, b1 / dn_, 1.0), jnp.where(d > 0, b2 / dn_, 0.0)
     half = jnp.arcsin(jnp.clip(1.0 / jnp.where(inside, 2.0, dn_), 0.0, 1.0 - 1e-7))
+    # The rule's points along a trailing axis (one fused loop, not K unrolled copies).
     K = DISC_LOBE_POINTS
-    total = 0.0
-    for j in range(K):
-        x = (j + 0.5) / K
-        theta = (x - 0.5) * jnp.pi
-        phi = jnp.where(inside, 2.0 * jnp.pi * x, half * jnp.sin(theta))
-        w_phi = jnp.where(inside, 2.0 * jnp.pi / K, half * jnp.cos(theta) * jnp.pi / K)
-        cp, sp = jnp.cos(phi), jnp.sin(phi)
-        y1, y2 = cp * u1 - sp * u2, sp * u1 + cp * u2  # the ray's direction, c_B's rotated by phi
-        p = d * cp
-        sq = safe_sqrt(1.0 - d2 * sp * sp)
-        t_out = p + sq
-        t_in = jnp.where(inside, 0.0, jnp.maximum(p - sq, 0.0))
-        w2 = (a11 * y1 + a12 * y2) ** 2 + (a21 * y1 + a22 * y2) ** 2  # |A y|^2
-        dt2 = jnp.where(inside, t_out * t_out, 4.0 * p * sq)  # t_out^2 - t_in^2
-        total = total + w_phi * dt2 / ((1.0 + t_out * t_out * w2) * (1.0 + t_in * t_in * w2))
+    x = (jnp.arange(K, dtype=jnp.result_type(d)) + 0.5) / K
+    ex = lambda a: jnp.asarray(a)[..., None]  # noqa: E731
+    theta = (x - 0.5) * jnp.pi
+    ins = ex(inside)
+    phi = jnp.where(ins, 2.0 * jnp.pi * x, ex(half) * jnp.sin(theta))
+    w_phi = jnp.where(ins, 2.0 * jnp.pi / K, ex(half) * jnp.cos(theta) * (jnp.pi / K))
+    cp, sp = jnp.cos(phi), jnp.sin(phi)
+    y1, y2 = cp * ex(u1) - sp * ex(u2), sp * ex(u1) + cp * ex(u2)  # the ray's direction: c_B's rotated by phi
+    dd = ex(d)
+    p = dd * cp
+    sq = safe_sqrt(1.0 - dd * dd * sp * sp)
+    t_out = p + sq
+    t_in = jnp.where(ins, 0.0, jnp.maximum(p - sq, 0.0))
+    w2 = (ex(a11) * y1 + ex(a12) * y2) ** 2 + (ex(a21) * y1 + ex(a22) * y2) ** 2  # |A y|^2
+    dt2 = jnp.where(ins, t_out * t_out, 4.0 * p * sq)  # t_out^2 - t_in^2
+    total = jnp.sum(w_phi * dt2 / ((1.0 + t_out * t_out * w2) * (1.0 + t_in * t_in * w2)), axis=-1)
     mass = jnp.abs(det_s) * total / (2.0 * jnp.pi)
     d0 = g.sin2_h + g.n_dot_h * g.n_dot_h * alpha2
     s2 = jnp.where(ok, s * s, 1.0)

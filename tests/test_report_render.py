@@ -74,3 +74,21 @@ def test_default_report_runs(tmp_path):
     assert len(res["materials"]) == 12
     rough_dielectric = [r for r in res["materials"] if r["metallic"] == 0.0 and r["roughness"] >= 0.5]
     assert all(r["mean_rel_error"] < 0.15 for r in rough_dielectric)
+
+
+@pytest.mark.slow
+def test_report_with_the_sun_extracted_meets_the_issue_targets():
+    """Issue 11's targets, reproduced from `report render` (sky + 3000-radiance sun, face 64,
+    48^2 px): with the sun split out, metals <= 10 % and dielectrics <= 3 % mean relative error
+    for r >= 0.3; the split sum alone is far off on the same materials (the check can fail).
+    (r <= 0.15 is left out: there the sun's mirror image is sub-pixel and one sample per pixel
+    decides the number for the reference and the render alike; see the README.)"""
+    kw = dict(roughness=(0.3, 0.5, 1.0), log=lambda m: None)
+    on = render_report(**kw)
+    off = render_report(extract_lights=False, **kw)
+    for a, b in zip(on["materials"], off["materials"]):
+        target = 0.10 if a["metallic"] == 1.0 else 0.03
+        assert a["mean_rel_error"] <= target, a
+        if a["metallic"] == 1.0:
+            assert b["mean_rel_error"] > 2 * target, b
+    assert len(on["config"]["extracted_lights"]) == 1
