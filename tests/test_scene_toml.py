@@ -88,6 +88,7 @@ prefilter_samples = 64
 lut_size = 128
 mapping = "quadratic"
 dtype = "float32"
+extract_lights = false
 
 [output]
 exposure = 1.5
@@ -192,6 +193,7 @@ def test_round_trip(tmp_path):
     assert sf.options == {
         "model": "gltf", "multiscatter": True, "irradiance_size": 16, "irradiance_method": "sh9",
         "prefilter_size": 4, "prefilter_samples": 64, "lut_size": 128, "mapping": "quadratic", "dtype": "float32",
+        "extract_lights": False,
     }
     jp.RenderOptions(**sf.options)  # valid keywords
     assert sf.output == {"exposure": 1.5, "tonemap": "reinhard", "encoding": "linear"}
@@ -309,6 +311,7 @@ ERRORS = {
     ),
     "wrong_type_width": ("[camera]\nwidth = 64.0\n" + SPHERE, ["camera.width: expected an integer, got a float (64.0); write 64"]),
     "wrong_type_bool": ("[render]\nmultiscatter = 1\n" + SPHERE, ["render.multiscatter: expected true or false, got an integer"]),
+    "wrong_type_extract": ('[render]\nextract_lights = "no"\n' + SPHERE, ["render.extract_lights: expected true or false"]),
     "wrong_type_table": ("[objects]\ntype = 'sphere'\n", ["objects: expected an array of tables", "[[objects]]"]),
     "wrong_type_material_table": ("[materials]\nroughness = 0.5\n" + SPHERE, ["materials.roughness: expected a table", "[materials.NAME]"]),
     "vector_length": ("[camera]\nposition = [0, 1]\n" + SPHERE, ["camera.position: expected an array of 3 numbers, got 2"]),

@@ -43,6 +43,7 @@ def add_command(sub) -> None:
     r.add_argument("--supersample", type=positive_int_arg, default=None, help="s x s samples per pixel (default: 1, or the scene's)")
     r.add_argument("--model", choices=MODELS, default=None, help="BRDF model (default: gltf, or the scene's)")
     r.add_argument("--smith", choices=("correlated", "separable"), default=None, help="gltf model: height-correlated (default, the glTF spec) or separable Smith-GGX G2, in the direct lighting and the IBL LUT alike")
+    r.add_argument("--no-extract-lights", dest="extract_lights", action="store_false", default=None, help="shade the whole environment with the split sum (no sun extraction; default: suns are split out and shaded as disc lights)")
     r.add_argument("--exposure", type=_finite_float_arg, default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
@@ -139,6 +140,8 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         if args.smith != "correlated" and options.get("model", "gltf") != "gltf":
             raise CLIError(f"--smith {args.smith} is a gltf-model option; the {options['model']} model has its own G (use --model gltf)")
         options["smith"] = args.smith
+    if args.extract_lights is not None:
+        options["extract_lights"] = args.extract_lights
     opts = RenderOptions(**options)
     if opts.dtype == "float64":
         # A float64 render needs JAX's 64-bit mode (off by default): without it every float64

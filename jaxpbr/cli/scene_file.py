@@ -58,6 +58,7 @@ _RENDER = (
     "lut_size",
     "mapping",
     "dtype",
+    "extract_lights",
 )
 _OUTPUT = ("exposure", "tonemap", "encoding")
 _CAMERA = ("position", "target", "up", "fov_y_deg", "width", "height", "supersample")
@@ -371,7 +372,7 @@ class _Loader:
             p = _join("render", key)
             if key == "model":
                 out[key] = self.choice(x, p, MODELS)
-            elif key == "multiscatter":
+            elif key in ("multiscatter", "extract_lights"):
                 out[key] = self.boolean(x, p)
             elif key == "smith":
                 out[key] = self.choice(x, p, OPTION_CHOICES["smith"])
