@@ -524,7 +524,12 @@ def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Arra
     t_in = jnp.where(ins, 0.0, jnp.maximum(p - sq, 0.0))
     w2 = (ex(a11) * y1 + ex(a12) * y2) ** 2 + (ex(a21) * y1 + ex(a22) * y2) ** 2  # |A y|^2
     dt2 = jnp.where(ins, t_out * t_out, 4.0 * p * sq)  # t_out^2 - t_in^2
-    total = jnp.sum(w_phi * dt2 / ((1.0 + t_out * t_out * w2) * (1.0 + t_in * t_in * w2)), axis=-1)
+    terms = w_phi * dt2 / ((1.0 + t_out * t_out * w2) * (1.0 + t_in * t_in * w2))
+    # Summed in a fixed order (XLA's reduction order depends on the array's shape, which made a
+    # render in bands differ from the whole image in the last bit).
+    total = terms[..., 0]
+    for j in range(1, K):
+        total = total + terms[..., j]
     mass = jnp.abs(det_s) * total / (2.0 * jnp.pi)
     d0 = g.sin2_h + g.n_dot_h * g.n_dot_h * alpha2
     s2 = jnp.where(ok, s * s, 1.0)
