@@ -175,6 +175,8 @@ class RenderPlan:
             if self.ibl
             else "no IBL",
         ]
+        if self.env_lights:
+            parts.append(f"{self.env_lights} sun(s) split out of the environment as disc light(s)")
         if self.textured:
             parts.append(f"{len(self.textured)} textured object(s)" + (" with normal maps" if self.normal_maps else ""))
         return "; ".join(parts)

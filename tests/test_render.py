@@ -429,6 +429,8 @@ def test_gbuffer_scene_with_extracted_sun_equals_kernels():
     env = jp.envs.sky_with_sun_cubemap(32)
     scene = jp.Scene(gbuffer=g, environment=jp.Environment(radiance=env))
     assert jp.renderer.plan(scene).env_lights == 1
+    assert "1 sun(s) split out" in jp.renderer.plan(scene).describe()
+    assert jp.renderer.plan(scene, extract_lights=False).env_lights == 0
     img = np.asarray(jp.render(scene))
     ex = extract_lights(env)
     (sun,) = ex.lights
