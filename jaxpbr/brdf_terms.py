@@ -395,32 +395,19 @@ def check_options(model: str, *, what: str = "model", **options) -> ModelSpec:
     return spec
 
 
-def _lobe(x, weight):
-    """x * weight; a static Python 0 drops the lobe (None), 1 keeps it as is."""
-    if isinstance(weight, (int, float)):
-        return None if weight == 0 else (x if weight == 1 else x * weight)
-    return x * weight
-
-
-def _plus(a, b):
-    return b if a is None else (a if b is None else a + b)
-
-
-def _gltf(g: Geometry, base: Vec3, metallic, r, *, smith: str, diffuse: str, diffuse_weight=1.0, specular_weight=1.0) -> Vec3:
+def _gltf(g: Geometry, base: Vec3, metallic, r, *, smith: str, diffuse: str, specular_weight=1.0) -> Vec3:
     """glTF 2.0 App. B: mix(fresnel_mix(diffuse, specular), conductor_fresnel(base, specular), metallic).
-    diffuse_weight / specular_weight scale the two lobes (see `brdf_soa`)."""
+    specular_weight scales the D V lobe (see `brdf_soa`)."""
     alpha = alpha_from_roughness(r)
     d = d_ggx(g.n_dot_h, alpha, g.sin2_h)
     if smith == "correlated":
         vis = v_smith_correlated(g.n_dot_v, g.n_dot_l, alpha)
     else:
         vis = v_smith_separable(g.n_dot_v, g.n_dot_l, alpha)
-    specular = _lobe(d * vis, specular_weight)
+    specular = d * vis if isinstance(specular_weight, (int, float)) and specular_weight == 1 else d * vis * specular_weight
     w = schlick_weight(g.v_dot_h)
     f_diel = F0_DIELECTRIC + (1.0 - F0_DIELECTRIC) * w  # fresnel_mix weight, ior 1.5
-    if diffuse_weight is not None and isinstance(diffuse_weight, (int, float)) and diffuse_weight == 0:
-        diffuse_scale = None
-    elif diffuse == "lambert":
+    if diffuse == "lambert":
         diffuse_scale = _INV_PI
     else:  # Burley, with perceptual r (Disney)
         fd90 = 0.5 + 2.0 * r * g.v_dot_h * g.v_dot_h
@@ -429,19 +416,17 @@ def _gltf(g: Geometry, base: Vec3, metallic, r, *, smith: str, diffuse: str, dif
             * (1.0 + (fd90 - 1.0) * schlick_weight(g.n_dot_v))
             * _INV_PI
         )
-    if diffuse_scale is not None:
-        diffuse_scale = _lobe(diffuse_scale, diffuse_weight)
     out = []
     for c in base:
-        dielectric = _plus(None if diffuse_scale is None else c * diffuse_scale * (1.0 - f_diel), None if specular is None else specular * f_diel)
-        metal = 0.0 if specular is None else specular * (c + (1.0 - c) * w)
+        dielectric = c * diffuse_scale * (1.0 - f_diel) + specular * f_diel
+        metal = specular * (c + (1.0 - c) * w)
         out.append(dielectric * (1.0 - metallic) + metal * metallic)
     return tuple(out)
 
 
-def _learnopengl(g: Geometry, base: Vec3, metallic, r, *, shader_epsilon: float, diffuse_weight=1.0, specular_weight=1.0) -> Vec3:
+def _learnopengl(g: Geometry, base: Vec3, metallic, r, *, shader_epsilon: float, specular_weight=1.0) -> Vec3:
     """LearnOpenGL pbr.fs: kD * albedo / pi + D G F / (4 NoV NoL + eps), kD = (1 - F)(1 - metallic).
-    diffuse_weight / specular_weight scale the two lobes (see `brdf_soa`)."""
+    specular_weight scales the D V lobe (see `brdf_soa`)."""
     alpha = alpha_from_roughness(r)
     d = d_ggx(g.n_dot_h, alpha, g.sin2_h)
     vis = v_schlick_ggx(g.n_dot_v, g.n_dot_l, k_direct(r))  # = G / (4 NoV NoL), division-free
@@ -450,15 +435,14 @@ def _learnopengl(g: Geometry, base: Vec3, metallic, r, *, shader_epsilon: float,
         # Written this way the value is finite without relying on eps (q + eps >= eps > 0).
         q = 4.0 * g.n_dot_v * g.n_dot_l
         vis = vis * (q / (q + shader_epsilon))
-    specular = _lobe(d * vis, specular_weight)
+    specular = d * vis if isinstance(specular_weight, (int, float)) and specular_weight == 1 else d * vis * specular_weight
     w = schlick_weight(g.v_dot_h)
     out = []
     for c in base:
         f0 = F0_DIELECTRIC * (1.0 - metallic) + c * metallic
         f = f0 + (1.0 - f0) * w
         k_d = (1.0 - f) * (1.0 - metallic)
-        dif = _lobe(k_d * c * _INV_PI, diffuse_weight)
-        out.append(_plus(dif, None if specular is None else f * specular))
+        out.append(k_d * c * _INV_PI + f * specular)
     return tuple(out)
 
 
@@ -473,23 +457,20 @@ def brdf_soa(
     smith: str = "correlated",
     diffuse: str = "lambert",
     shader_epsilon: float = 1e-4,
-    diffuse_weight=1.0,
     specular_weight=1.0,
 ) -> Vec3:
     """Per-channel BRDF planes, masked by `g.front` (options already validated).
 
     metallic is clamped to [0, 1] like roughness to its range: a concrete Material is validated,
     but a traced value is not, and metallic -1 made the BRDF negative (issue 13).
-    diffuse_weight, specular_weight: factors on the diffuse and the specular (D V) lobe (arrays
-    broadcasting with the planes, or Python numbers; a static 0 leaves the lobe's code out), so a
-    disc light can evaluate the two lobes at different directions (`lights.shade_direct`)."""
+    specular_weight: a factor on the specular (D V) lobe, broadcasting with the planes: a disc light
+    replaces D by its mean over the disc (`lights.disc_lobe_ratio`); the Python 1 adds no code."""
     r = floored_roughness(roughness, min_roughness)
     metallic = jnp.clip(metallic, 0.0, 1.0)
-    lobes = dict(diffuse_weight=diffuse_weight, specular_weight=specular_weight)
     if model == "gltf":
-        f = _gltf(g, base, metallic, r, smith=smith, diffuse=diffuse, **lobes)
+        f = _gltf(g, base, metallic, r, smith=smith, diffuse=diffuse, specular_weight=specular_weight)
     else:
-        f = _learnopengl(g, base, metallic, r, shader_epsilon=float(shader_epsilon), **lobes)
+        f = _learnopengl(g, base, metallic, r, shader_epsilon=float(shader_epsilon), specular_weight=specular_weight)
     return tuple(jnp.where(g.front, c, 0.0) for c in f)
 
 

@@ -40,8 +40,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ._numerics import is_concrete
-from .cubemap import Cubemap, dir_to_face, face_to_dir, texel_solid_angles
-from .diffuse import _texel_moments
+from .cubemap import _FACE_TABLE, Cubemap, dir_to_face, face_to_dir, texel_solid_angles
+from .diffuse import _face_moments
 from .lights import MAX_ANGULAR_RADIUS, DirectionalLight
 
 __all__ = [
@@ -103,7 +103,7 @@ def _components(bright_flat: np.ndarray, S: int):
     """Connected components of the bright texels: (labels (n,) in 0..k-1, neighbours (n, 8))."""
     n = len(bright_flat)
     nb = _neighbours(bright_flat, S)
-    pos = np.full(6 * S * S, -1, np.int64)
+    pos = np.full(6 * S * S, -1, np.int32)
     pos[bright_flat] = np.arange(n)
     nb_pos = pos[nb]  # -1: not bright
     a = np.repeat(np.arange(n), 8)
@@ -121,6 +121,13 @@ def _components(bright_flat: np.ndarray, S: int):
         label = new
     _, label = np.unique(label, return_inverse=True)
     return label, nb
+
+
+def _moments(flat: np.ndarray, S: int) -> np.ndarray:
+    """Exact first moments int_texel w dw of the texels `flat` ((f*S + i)*S + j), float64 (n, 3)."""
+    f, rem = np.divmod(flat, S * S)
+    i, j = np.divmod(rem, S)
+    return np.einsum("nab,nb->na", _FACE_TABLE[f], _face_moments(S)[i, j])
 
 
 def _weighted_median(x: np.ndarray, w: np.ndarray) -> float:
@@ -170,9 +177,12 @@ def extract_lights(
     if level.shape[-1] < 3:
         raise ValueError(f"extract_lights needs RGB texels, got {level.shape[-1]} channel(s)")
     S = env.face_size
-    L = level[..., :3].astype(np.float64).reshape(-1, 3)
+    # Whole-map arrays stay in the map's dtype (a float64 copy is 600 MB at 2048^2); the texels of
+    # a region and its border are read in float64.
+    flat = level.reshape(-1, level.shape[-1])
+    L = lambda idx: flat[idx, :3].astype(np.float64)  # noqa: E731
     omega = texel_solid_angles(S).reshape(-1)
-    Y = L @ _LUMA
+    Y = (flat[:, :3] @ _LUMA.astype(flat.dtype)).astype(np.float64)
     total = float((Y * omega).sum())
     y_med = _weighted_median(Y, omega)
     info = dict(config, median_luminance=y_med, lights=[])
@@ -183,7 +193,6 @@ def extract_lights(
     label, nb = _components(bright, S)
     is_bright = np.zeros(len(Y), bool)
     is_bright[bright] = True
-    moments = _texel_moments(S).reshape(-1, 3)
     found = []
     for k in range(int(label.max()) + 1):
         sel = label == k
@@ -191,14 +200,14 @@ def extract_lights(
         ring = np.unique(nb[sel].reshape(-1))
         ring = ring[~is_bright[ring]]
         if len(ring):
-            back = (L[ring] * omega[ring, None]).sum(0) / omega[ring].sum()
+            back = (L(ring) * omega[ring, None]).sum(0) / omega[ring].sum()
         else:
             back = np.zeros(3)
-        kept = np.minimum(L[tex], back)
-        excess = L[tex] - kept
+        kept = np.minimum(L(tex), back)
+        excess = L(tex) - kept
         ey = excess @ _LUMA
         m0 = float((ey * omega[tex]).sum())
-        m1 = (ey[:, None] * moments[tex]).sum(0)
+        m1 = (ey[:, None] * _moments(tex, S)).sum(0)
         norm1 = float(np.linalg.norm(m1))
         if m0 <= 0 or norm1 <= 0:
             continue
@@ -207,15 +216,15 @@ def extract_lights(
         share = m0 / total
         found.append((m0, tex, kept, excess, m1 / norm1, sigma, cos_sigma, share, back))
     found.sort(key=lambda x: -x[0])
-    lights, residual = [], None
+    lights, out = [], None
     for m0, tex, kept, excess, d, sigma, cos_sigma, share, back in found:
         if len(lights) == max_lights:
             break
         if sigma > max_angular_radius or share < min_power_share or sigma <= 0:
             continue
-        if residual is None:
-            residual = L.copy()
-        residual[tex] = kept
+        if out is None:
+            out = flat.copy()
+        out[tex, :3] = kept
         radiance = (excess * omega[tex, None]).sum(0) / (2.0 * math.pi * (1.0 - cos_sigma))
         peak = float(radiance.max())
         e_perp = math.pi * math.sin(sigma) ** 2 * peak  # lux: irradiance on a facing plane
@@ -240,9 +249,7 @@ def extract_lights(
         )
     if not lights:
         return ExtractedLights((), env, info)
-    out = level.copy()
-    out_rgb = residual.reshape(level.shape[:-1] + (3,)).astype(level.dtype)
-    out[..., :3] = out_rgb
+    out = out.reshape(level.shape)
     meta = dict(env.metadata)
     meta["extracted_lights"] = str(len(lights))
     return ExtractedLights(tuple(lights), Cubemap((out,), meta), info)
