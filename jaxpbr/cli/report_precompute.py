@@ -107,6 +107,17 @@ def _random_lookups(n: int, seed: int):
     return R, rs
 
 
+def _chain_floors(S: int, floors):
+    """(floor, M) for each requested floor that gives a new level count for an S^2 source."""
+    seen = set()
+    for floor in floors:
+        M = default_num_levels(S, floor=floor, min_levels=1)
+        if floor > S or M in seen:
+            continue
+        seen.add(M)
+        yield floor, M
+
+
 def _chain_row(env_name, S, floor, M, mapping, blend, err, rs, seconds=None) -> dict:
     e = np.asarray(err)
     at1 = e[rs == 1.0]
@@ -129,12 +140,7 @@ def chain_rows(sizes=(64, 128, 256), floors=CHAIN_FLOORS, mappings=MAPPINGS, ble
     with jax.enable_x64(True):
         Rj, rj = jnp.asarray(R), jnp.asarray(rs)
         for S in sizes:
-            seen = set()
-            for floor in floors:
-                M = default_num_levels(S, floor=floor, min_levels=1)
-                if floor > S or M in seen:
-                    continue
-                seen.add(M)
+            for floor, M in _chain_floors(S, floors):
                 for mapping in mappings:
                     rm = level_roughness(M, mapping=mapping)
                     cube = Cubemap(
@@ -159,12 +165,8 @@ def chain_env_rows(env, env_name: str, floors=CHAIN_FLOORS, mappings=MAPPINGS, b
     R /= np.linalg.norm(R, axis=-1, keepdims=True)
     ref = np.stack([prefilter_reference(env, R[i], float(r)) for i, r in enumerate(roughness)])
     rs = np.repeat(np.asarray(roughness, np.float64), directions)
-    rows, seen = [], set()
-    for floor in floors:
-        M = default_num_levels(S, floor=floor, min_levels=1)
-        if floor > S or M in seen:
-            continue
-        seen.add(M)
+    rows = []
+    for floor, M in _chain_floors(S, floors):
         for mapping in mappings:
             t0 = time.perf_counter()
             pre = prefilter(env, num_levels=M, mapping=mapping)
