@@ -66,6 +66,12 @@ def shade_ibl(
     *,
     model: str = "gltf",
     multiscatter: bool = False,
+    tangent=None,
+    coat_normal=None,
+    sheen_lut=None,
+    charlie=None,
+    volume_distance=None,
+    transmit_direction=None,
 ) -> jax.Array:
     """Image-based lighting radiance (..., 3) by the split sum.
 
@@ -83,6 +89,12 @@ def shade_ibl(
     model: "gltf" (F0 A + B) or "learnopengl" (fresnelSchlickRoughness, see module docstring).
     multiscatter: Fdez-Aguera energy compensation (gltf model only: True with learnopengl raises
         ValueError, False is allowed).
+    tangent, coat_normal, sheen_lut, charlie, volume_distance, transmit_direction: inputs of the
+        glTF material extensions (`jaxpbr.layered_ibl`): (..., 3) tangent (anisotropy), (..., 3)
+        coat normal (default n), the sheen albedo table and the Charlie-prefiltered environment
+        (sheen), (...) path length in the medium and (..., 3) direction the transmitted light
+        comes from (volume; defaults: thickness and the refracted -v). A Material without
+        extension fields takes the core split sum above, unchanged.
     """
     check_options(model, what="IBL model", multiscatter=multiscatter)
     if irr is None and multiscatter:
@@ -100,6 +112,19 @@ def shade_ibl(
     # mixes below alike (as `brdf_soa` does).
     m = m.replace(metallic=jnp.clip(m.metallic, 0.0, 1.0))
 
+    if m.extensions:
+        if model != "gltf" or multiscatter:
+            raise ValueError(
+                f"the glTF material extensions {m.extensions} are shaded with model='gltf' and "
+                "multiscatter=False only; drop multiscatter (or the extension fields)."
+            )
+        from .layered_ibl import shade_ibl_layered
+
+        out = shade_ibl_layered(
+            n3, v3, R, nov, r, m, irr, pre, lut, tangent=tangent, coat_normal=coat_normal, sheen_lut=sheen_lut,
+            charlie=charlie, volume_distance=volume_distance, transmit_direction=transmit_direction,
+        )
+        return out * m.occlusion[..., None]
     ab = lut_lookup(lut, nov, r)
     a, b = ab[..., 0], ab[..., 1]
     M, mapping, blend = lookup_of(pre)

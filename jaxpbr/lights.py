@@ -36,6 +36,7 @@ from ._numerics import (
 from ._pytree import Pytree, fields_of, leaf
 from ._validate import batch_shape, check_values, vector
 from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, floored_roughness, geometry_soa
+from .layered import LayerInputs, emission_soa, layered_soa, needs_sheen_lut
 from .material import Material
 
 __all__ = [
@@ -324,6 +325,10 @@ def shade_direct(
     ambient: Any = 0.0,
     min_roughness: float = MIN_ROUGHNESS,
     disc_lights: bool | None = None,
+    tangent=None,
+    coat_normal=None,
+    volume_distance=None,
+    sheen_lut=None,
     **brdf_options,
 ) -> jax.Array:
     """Outgoing radiance from punctual and disc lights: `sum_i f_r(v, l_i) E_i max(n.l_i, 0)
@@ -354,6 +359,12 @@ def shade_direct(
       min_roughness, **brdf_options: passed to `brdf` (smith, diffuse, shader_epsilon). An option
         the model does not use (`brdf_terms.MODEL_REGISTRY`) raises ValueError unless it has its
         default value.
+      tangent, coat_normal, volume_distance, sheen_lut: what the glTF material extensions need
+        (`jaxpbr.layered`): (..., 3) surface tangent (anisotropy), (..., 3) clear-coat normal
+        (default n), (...) path length in the medium (volume; default the thickness), the sheen
+        albedo table (default the shipped 128^2 one, `jaxpbr.sheen_lut()`). A Material with
+        extensions is shaded by the layered BSDF (model "gltf" only); one without by the core
+        model, bit for bit as before.
     """
     unknown = set(brdf_options) - {"smith", "diffuse", "shader_epsilon"}
     if unknown:
@@ -394,9 +405,32 @@ def shade_direct(
     if disc_items:
         alpha2 = floored_roughness(m.roughness, min_roughness) ** 4
     lobe = lambda g, **w: brdf_soa(g, base, m.metallic, m.roughness, model=model, min_roughness=min_roughness, **brdf_options, **w)  # noqa: E731
+    layers = _layer_setup(m, model, n3, tangent, coat_normal, volume_distance, sheen_lut)
+    if layers is not None:
+        extra, sheen_lut = layers
+        opts = {k: brdf_options[k] for k in ("smith", "diffuse") if k in brdf_options}
+        layered = lambda l3, **w: layered_soa(n3, v3, l3, m, min_roughness=min_roughness, sheen_lut=sheen_lut, extra=extra, **opts, **w)  # noqa: E731
+        transmits = "transmission" in m.extensions
 
     def one(light: LightSet, disc_lights: bool) -> Vec3:
         l3, e = light_incidence_soa(light, p3)
+        if layers is not None:
+            if not disc_lights:
+                fc = layered(l3)
+                return tuple(fc[i] * e[i] for i in range(3))
+            s = light.sin_radius
+            c = vdot(n3, l3)
+            lift = jnp.maximum(s - c, 0.0)
+            if transmits:  # a disc below the horizon is shaded at its centre (transmission)
+                lift = jnp.where(c < 0, 0.0, lift)
+            lc = vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3)))
+            g = geometry_soa(n3, v3, lc)
+            ratio = disc_lobe_ratio(n3, v3, lc, s, alpha2, g)
+            fc = layered(lc, specular_weight=ratio)
+            # f cos at the lifted centre -> f times the cap's cosine-weighted solid angle.
+            cl = vdot(n3, lc)
+            k = jnp.where(cl > 0, cap_factor(c, s) / jnp.where(cl > 0, cl, 1.0), 1.0)
+            return tuple(fc[i] * e[i] * k for i in range(3))
         if not disc_lights:
             g = geometry_soa(n3, v3, l3)
             f = lobe(g)
@@ -438,8 +472,31 @@ def shade_direct(
         amb = as_float(ambient)
         amb3 = unpack3(jnp.broadcast_to(amb, amb.shape[:-1] + (3,)) if amb.ndim else jnp.broadcast_to(amb, (3,)))
         out = tuple(out[i] + amb3[i] * base[i] * m.occlusion for i in range(3))
-    emissive = unpack3(m.emissive)
+    if layers is None:
+        emissive = unpack3(m.emissive)
+    else:
+        emissive = unpack3(emission_soa(m, n3, v3, layers[0].coat_normal))
     return pack3(tuple(out[i] + emissive[i] for i in range(3)))
+
+
+def _layer_setup(m, model, n3, tangent, coat_normal, volume_distance, sheen_lut):
+    """None for a Material without extensions (the core path, unchanged); else the layered
+    inputs (LayerInputs, sheen table) after checking the model and the needed arguments."""
+    if not m.extensions:
+        return None
+    if model != "gltf":
+        raise ValueError(
+            f"the glTF material extensions {m.extensions} are defined on the glTF model only, not "
+            f"model={model!r}; use model='gltf' or a Material without extension fields."
+        )
+    t3 = None if tangent is None else unpack3(as_float(tangent))
+    nc3 = None if coat_normal is None else unpack3(as_float(coat_normal))
+    dist = None if volume_distance is None else as_float(volume_distance)
+    if needs_sheen_lut(m) and sheen_lut is None:
+        from .shipped_luts import sheen_lut as _sheen_lut
+
+        sheen_lut = _sheen_lut()
+    return LayerInputs(tangent=t3, coat_normal=nc3, volume_distance=dist), sheen_lut
 
 
 #: Quadrature points of `disc_lobe_ratio` (directions from the slope-space origin).
