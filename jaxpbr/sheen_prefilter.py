@@ -1,0 +1,494 @@
+"""Charlie-prefiltered environment mips for the KHR_materials_sheen IBL term.
+
+Level m of `prefilter_charlie`'s result stores (the Khronos glTF-IBL-Sampler's Charlie filter, with
+its n = v = R assumption)
+
+    LD_c(R, r_m) = int L(l) w(l) dl / int w(l) dl,   w(l) = D_c(h) (R.l)+,   h = (R + l)/|R + l|,
+
+at the texel centres of a (S >> m)^2 cube, r_m = m/(M-1) (sheen roughness, "linear" mapping),
+alpha_m = max(r_m, min_roughness)^2 (level 0 is r = 0 evaluated at the floor, 0.045 =
+`brdf_terms.MIN_ROUGHNESS`). With c = R.l, sin^2(theta_h) = (1 - c)/2, so (constants dropped)
+
+    w(c) = c ((1 - c)/2)^K,   K = 1/(2 alpha),   0 < c <= 1.
+
+For small alpha the weight is a thin ring near the horizon R.l -> 0 (its peak is at c = 1/(K+1),
+about 2 alpha rad above it, and about as wide): at the floor the ring is 0.23 deg wide, far
+narrower than a texel of any source that can be summed in full, and w/w_peak ~ exp(-0.35/alpha)
+away from it underflows float32.
+
+Mean cosine: the measure on the sphere is dc dphi, so int w c^p dl are Beta functions and the
+weight's mean cosine is closed form, k(alpha) = int w c dl / int w dl = 2/(K + 3) =
+4 alpha/(1 + 6 alpha) (`charlie_mean_cosine`; 0.0080 at the floor, 4/7 at alpha = 1). An
+environment linear in direction, L = a + g.l, gives LD_c = a + k(alpha) g.R.
+
+Fast path (`prefilter_charlie`): brute force over every texel of one area-correct pyramid level of
+the environment (`source_size`^2 faces), output texels in chunks (`map_row_chunks`), one compiled
+program for the whole chain. Because the ring is thinner than a source texel at low roughness, the
+kernel is not point-sampled at the texel centre (that aliases: a texel counts or not depending on
+where the ring crosses it) but *box-filtered in c*: texel j with centre cosine c_j, solid angle
+Omega_j and angular size s_j = sqrt(Omega_j) gets
+
+    W_j = Omega_j (F(c_j + h_j) - F(c_j - h_j)) / (2 h_j),   h_j = s_j sqrt(1 - c_j^2) / 2,
+
+F the antiderivative of w (clamped to c in [0, 1]), i.e. the mean of w over a box in c with the same
+variance as the distribution of c over the texel's footprint (a square of side s crossed by the
+gradient of c, of norm sin(theta), at any angle: variance s^2 sin^2 / 12). F is closed form,
+F(c) = -2^-K G(c), G(c) = (1 - c)^(K+1) (1 + (K+1) c) / ((K+1)(K+2)); the box keeps the kernel's
+mass and its mean cosine (dc is the sphere's measure), so constants and linear environments come
+out right at every roughness. Everything is in the log domain,
+log(G(lo) - G(hi)) = log G(lo) + log(-expm1(log G(hi) - log G(lo))), and each output's largest log
+weight is subtracted before exponentiating: every output's weights have max 1 and sum >= 1 (never
+0/0, finite in float32 at every roughness, any radiance that is itself finite).
+
+Reference (`charlie_reference`): float64 brute force over every texel of the environment's level 0,
+each split into q x q sub-texels with their exact solid-angle shares (q so that a sub-texel is at
+most a quarter of the ring's width 2 alpha, capped at `REFERENCE_MAX_Q`), the kernel
+`sheen.d_charlie(sqrt((1+c)/2), alpha, (1-c)/2) (R.l)+` point-sampled: independent of the fast
+path's source level and of its box filter.
+
+Lookup (`charlie_lookup`, `charlie_roughness_to_lod`): trilinear in the chain at
+lod_blend "mean_cosine" (default): lod linear in k(alpha) between the bracketing levels (exact for
+a linear environment, lod = 0 below the floor), or "roughness": lod = r (M - 1) (the glTF sample
+viewer's lookup of its Charlie map).
+
+Measured (`examples/charlie_prefilter_error.py`; relative error |fast - ref|/ref per channel,
+mean / max over 48 random directions at each of 10 random sheen roughnesses in [0, 1] and at the
+levels' roughnesses; reference at the environment's full 256^2 resolution; 2-core CPU):
+
+Procedural sky, 256^2, 2-degree 3000-radiance sun (the only environment measured so far; the
+HDRs of ../shared/data are read by the example but were not yet run). Columns: lookups at the 10
+random roughnesses ("mean_cosine" blend: all / r < 0.2), the same with lod = r (M-1), at r = 0
+only, at r = 0, .25, .5, .75, 1; time of the warm run / GGX `specular.prefilter` (1.3-1.7 s) in
+the same process (the machine was shared: times are rough):
+
+    size src  M | random r: all / low r   | lod=r(M-1)    | r = 0         | r_m           | x GGX
+      16   32 3 | 25.9/2325 / 66.0/2325   | 28.2/2250     | 84.8/1804     | 32.2/1804     | 0.4x
+      32   32 3 | 15.3/1719 / 29.2/1054   | 18.7/1573     | 51.1/1138     | 19.2/1138     | 1.6x
+      32   64 3 | 12.2/1591 / 15.8/ 829   | 15.8/1455     | 28.8/ 906     | 14.7/ 906     | 7.4x
+      32   64 4 | 11.0/ 829 / 15.8/ 829   | 14.3/ 800     | 28.8/ 906     | 14.9/ 906     | 11x
+      64   64 4 |  6.4/ 806 /  6.9/ 357   | 10.3/ 622     |  8.4/ 255     |  8.2/ 255     | 26x
+      64   64 5 |  5.7/ 357 /  6.9/ 357   |  9.7/ 369     |  8.4/ 255     |  4.2/ 255     | 26x
+
+(mean / max, %). What dominates: (1) at low sheen roughness the ring is thin, so LD_c(R) of a
+compact sun is a band of directions R (those perpendicular to the sun, as wide as the sun) ~50x
+brighter than the rest, which a 16^2-64^2 face cannot hold (the max errors are its edges); (2) the
+faces halve with the level, so the rough levels of a short chain are 2^2-8^2 faces (on a soft sky,
+16^2 / 3 levels: 20 % max at r = 1 on a 4^2 face); (3) few levels: between levels the lobe's
+shape changes (the "mean_cosine" blend, exact for a linear environment, beats lod = r (M-1)
+everywhere measured). Without a compact sun (tests: a 15-degree 20-radiance sun, 32^2 source,
+16^2 / 3 levels) level 0 is within 5.4 % max / 0.44 % mean; on a linear environment the fast
+levels are within 1.6e-3 (level 0, 32^2 source) of the closed form, the kernel's box/parallelogram
+footprint filter being what makes level 0 work at all (a box of sqrt(Omega) sin(theta): 2.4e-2;
+texel-centre point sampling: worse). The defaults (64 / 64 / 5) are the best measured row; they are
+not cheap (26x the GGX prefilter).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._numerics import HIGHEST, map_row_chunks
+from ._validate import positive_int
+from .brdf_terms import MIN_ROUGHNESS
+from .cubemap import Cubemap, _mip_count, _subtexel_coords, face_to_dir, texel_directions, texel_solid_angles
+from .sheen import d_charlie
+
+__all__ = [
+    "CHARLIE_LOD_BLENDS",
+    "DEFAULT_CHARLIE_LOD_BLEND",
+    "DEFAULT_CHARLIE_LEVELS",
+    "DEFAULT_CHARLIE_SIZE",
+    "DEFAULT_CHARLIE_SOURCE_SIZE",
+    "charlie_level_roughness",
+    "charlie_lookup",
+    "charlie_lookup_metadata",
+    "charlie_mean_cosine",
+    "charlie_reference",
+    "charlie_roughness_to_lod",
+    "prefilter_charlie",
+]
+
+#: Default face size of level 0 (measured: see the module docstring's table).
+DEFAULT_CHARLIE_SIZE = 64
+#: Default number of levels M (r_m = m/(M-1)).
+DEFAULT_CHARLIE_LEVELS = 5
+#: Default face size of the environment's pyramid level that is summed in full.
+DEFAULT_CHARLIE_SOURCE_SIZE = 64
+#: Lookups between levels: "mean_cosine" (lod linear in k(alpha) between bracketing levels) or
+#: "roughness" (lod = r (M-1), the glTF sample viewer's).
+CHARLIE_LOD_BLENDS = ("mean_cosine", "roughness")
+DEFAULT_CHARLIE_LOD_BLEND = "mean_cosine"
+#: Output directions per chunk of the fast path (a (chunk, 6 source^2) weight block).
+CHUNK = 64
+#: Largest sub-texel split of the reference.
+REFERENCE_MAX_Q = 8
+#: Entries per level interval of the metadata's "lod_table".
+LOD_TABLE_STEPS = 8
+
+
+# ------------------------------------------------------------------------------------------
+# roughness <-> lod
+# ------------------------------------------------------------------------------------------
+
+
+def charlie_mean_cosine(alpha, xp=np):
+    """k(alpha) = int w (R.l) dl / int w dl = 4 alpha / (1 + 6 alpha) for the Charlie weight
+    w = D_c(h) (R.l)+ (n = v = R); xp = np or jnp (traceable, smooth in alpha >= 0)."""
+    alpha = xp.asarray(alpha)
+    return 4.0 * alpha / (1.0 + 6.0 * alpha)
+
+
+def charlie_level_roughness(num_levels: int) -> np.ndarray:
+    """Sheen roughness r_m = m/(M-1) of each level (float64; level 0 is evaluated at the floor)."""
+    M = positive_int("num_levels", num_levels)
+    return np.arange(M) / max(M - 1, 1)
+
+
+def _alpha(r, min_roughness, xp):
+    r = xp.clip(r, min_roughness, 1.0)
+    return r * r
+
+
+def _check_blend(lod_blend):
+    if lod_blend not in CHARLIE_LOD_BLENDS:
+        raise ValueError(f"unknown lod_blend {lod_blend!r}; choose one of {CHARLIE_LOD_BLENDS}")
+
+
+def charlie_roughness_to_lod(r, num_levels: int, *, lod_blend: str = DEFAULT_CHARLIE_LOD_BLEND,
+                             min_roughness: float = MIN_ROUGHNESS, xp=jnp):
+    """Fractional level of a Charlie chain for sheen roughness r (clamped to [0, 1]).
+
+    "mean_cosine": between the bracketing levels, linear in k(alpha) (`charlie_mean_cosine`,
+    alpha = max(r, min_roughness)^2): lod = m exactly at r = r_m, 0 for r <= min_roughness
+    (d lod / dr = 0 there), M - 1 at r = 1. "roughness": lod = r (M - 1).
+    xp: jnp (jit / vmap / grad: finite gradients on [0, 1]) or np."""
+    _check_blend(lod_blend)
+    M = positive_int("num_levels", num_levels)
+    r = xp.clip(r, 0.0, 1.0)
+    if lod_blend == "roughness" or M == 1:
+        return r * (M - 1)
+    k_levels = charlie_mean_cosine(_alpha(charlie_level_roughness(M), min_roughness, np))
+    k = charlie_mean_cosine(_alpha(r, min_roughness, xp), xp)
+    if xp is np:
+        return np.interp(k, k_levels, np.arange(M, dtype=np.float64))
+    dt = jnp.result_type(k, float)
+    return jnp.interp(k, jnp.asarray(k_levels, dt), jnp.arange(M, dtype=dt))
+
+
+def charlie_lookup_metadata(num_levels: int, *, lod_blend: str, face_size: int,
+                            min_roughness: float = MIN_ROUGHNESS) -> dict:
+    """The metadata keys that reproduce a Charlie chain's lookup (mirroring
+    `specular.lookup_metadata`): blend and formula, smallest face, each level's alpha and mean
+    cosine k_m, and "lod_table": lod at r = k/K, K = LOD_TABLE_STEPS (M - 1) (its nodes fall on
+    the levels; linear interpolation of it in r is what an engine can do)."""
+    M = positive_int("num_levels", num_levels)
+    _check_blend(lod_blend)
+    alphas = _alpha(charlie_level_roughness(M), min_roughness, np)
+    K = LOD_TABLE_STEPS * max(M - 1, 1)
+    u = np.linspace(0.0, 1.0, K + 1)
+    table = charlie_roughness_to_lod(u, M, lod_blend=lod_blend, min_roughness=min_roughness, xp=np)
+    return {
+        "lod_blend": lod_blend,
+        "lod_formula": "lod = r*(M-1)" if lod_blend == "roughness" else (
+            "lod = m + (k(r) - k_m) / (k_{m+1} - k_m) between the levels m, m+1 whose mean cosines bracket k(r); "
+            "k(r) = 4 alpha / (1 + 6 alpha), alpha = max(r, min_roughness)^2 (the Charlie weight's mean cosine); "
+            "k_m = level_mean_cosine; lod = 0 below min_roughness"
+        ),
+        "chain_floor": str(max(1, positive_int("face_size", face_size) >> (M - 1))),
+        "level_alpha": ",".join(f"{x:.9g}" for x in alphas),
+        "level_mean_cosine": ",".join(f"{x:.9g}" for x in charlie_mean_cosine(alphas)),
+        "lod_table": ",".join(f"{x:.6g}" for x in np.asarray(table)),
+        "lod_table_abscissa": f"u = k/{K}, k = 0..{K}, u = r; linear interpolation in u",
+    }
+
+
+def _lookup_of(pre: Cubemap):
+    meta = pre.metadata
+    if meta.get("distribution", "charlie") != "charlie":
+        raise ValueError(f"expected a Charlie-prefiltered map (metadata distribution 'charlie'), got {meta.get('distribution')!r}")
+    return (int(meta.get("mapping_levels", pre.num_levels)), meta.get("lod_blend", DEFAULT_CHARLIE_LOD_BLEND),
+            float(meta.get("min_roughness", MIN_ROUGHNESS)))
+
+
+def charlie_lookup(pre: Cubemap, dirs, sheen_roughness, *, lod_blend: str | None = None):
+    """LD_c at directions dirs (..., 3) and sheen roughness (scalar or (...)) from a
+    `prefilter_charlie` chain -> (..., C): trilinear `Cubemap.sample` at
+    `charlie_roughness_to_lod` (blend from the map's metadata unless given). Traceable (jit,
+    vmap, grad): finite gradients in roughness (0 below the floor) and in dirs."""
+    M, blend, floor = _lookup_of(pre)
+    blend = blend if lod_blend is None else lod_blend
+    dirs = jnp.asarray(dirs, pre.dtype)
+    r = jnp.asarray(sheen_roughness, pre.dtype)
+    lod = charlie_roughness_to_lod(r, M, lod_blend=blend, min_roughness=floor)
+    return pre.sample(dirs, jnp.broadcast_to(lod, dirs.shape[:-1]))
+
+
+# ------------------------------------------------------------------------------------------
+# fast path
+# ------------------------------------------------------------------------------------------
+
+
+#: A (output, source texel) pair whose footprint is at least this many ring widths across in both
+#: directions (K min(a, b) > TRAPEZOID_MIN) is weighted with the exact mean of w over the texel's
+#: parallelogram (the distribution of c is a trapezoid); below it, with the mean over a box in c of
+#: the same variance (the two differ at 4th order in the footprint / kernel scale, and the
+#: trapezoid's second difference would cancel in float32 where the kernel is smooth).
+TRAPEZOID_MIN = 0.25
+
+
+def _charlie_chunk(Rc, Kc, D, EA, EB, logom, Lw, *, trapezoid: bool):
+    """sum_j W_j (L_j, 1) / max_j W_j for output directions Rc (chunk, 3) with exponents K (chunk,)
+    over source texels: centres D (P, 3), edge vectors EA, EB (P, 3) (the texel's sides, tangent,
+    of angular length), log Omega_j (P,), [L, 1] (P, C+1). W_j = Omega_j x the mean of
+    w(c) = c ((1-c)/2)^K over the texel, c linear across it (gradient R on the tangent plane):
+    c = c_j + a u + b v, u, v uniform in [-1/2, 1/2], a = |R.A_j|, b = |R.B_j|. Per-row constant
+    factors (2^-K / ((K+1)(K+2))) are dropped: they cancel in the ratio. trapezoid (static): whether
+    any pair of the chunk's level can need the parallelogram mean (`TRAPEZOID_MIN`)."""
+    dt = Rc.dtype
+    one = 1.0 - jnp.finfo(dt).eps
+    hp = functools.partial(jnp.matmul, precision=HIGHEST)
+    c = jnp.clip(hp(Rc, D.T), -1.0, 1.0)  # (chunk, P)
+    a0 = jnp.abs(hp(Rc, EA.T))
+    b0 = jnp.abs(hp(Rc, EB.T))
+    a = jnp.maximum(a0, b0)
+    b = jnp.minimum(a0, b0)
+    K = Kc[:, None]
+    k1 = K + 1.0
+
+    # Box in c of the footprint's variance: mean = (G(lo) - G(hi)) / width (/ (K+1)(K+2)),
+    # G(x) = (1 - x)^(K+1) (1 + (K+1) x), decreasing on [0, 1].
+    half = 0.5 * jnp.sqrt(a * a + b * b)
+    lo = jnp.clip(c - half, 0.0, one)
+    hi = jnp.clip(c + half, 0.0, one)
+    ok = hi > lo
+    lo_s = jnp.where(ok, lo, 0.0)
+    hi_s = jnp.where(ok, hi, 0.5)
+    gl = k1 * jnp.log1p(-lo_s) + jnp.log1p(k1 * lo_s)
+    gh = k1 * jnp.log1p(-hi_s) + jnp.log1p(k1 * hi_s)
+    base = gl
+    ratio = -jnp.expm1(jnp.minimum(gh - gl, 0.0)) / jnp.where(ok, 2.0 * half, 1.0)
+    live = ok
+    if trapezoid:
+        # Parallelogram: mean = (h(x1) - h(x2) - h(x3) + h(x4)) / (a b (K+3)) (/ (K+1)(K+2)) at
+        # x = c +- (a+b)/2, c +- (a-b)/2, h the second antiderivative (up to constants):
+        # h(x) = (1 - x)^(K+2) (2 + (K+1) x) on [0, 1], 2 - (K+3) x below 0 (w = 0 there), 0 at 1.
+        def logh(x):
+            xs = jnp.clip(x, 0.0, one)
+            return (K + 2.0) * jnp.log1p(-xs) + jnp.log(jnp.where(x < 0, 2.0 - (K + 3.0) * x, 2.0 + k1 * xs))
+
+        p, m = 0.5 * (a + b), 0.5 * (a - b)
+        l1, l2, l3, l4 = logh(c + p), logh(c + m), logh(c - m), logh(c - p)  # l4 the largest
+        sec = jnp.exp(l1 - l4) - jnp.exp(l2 - l4) - jnp.exp(l3 - l4) + 1.0
+        need = K * b > TRAPEZOID_MIN
+        use = need & (c + p > 0) & (sec > 0)
+        base = jnp.where(need, l4, base)
+        ratio = jnp.where(need, sec / jnp.where(use, a * b * (K + 3.0), 1.0), ratio)
+        live = jnp.where(need, use, live)
+    live = live & (ratio > 0)
+    logw = jnp.where(live, base + jnp.log(jnp.where(live, ratio, 1.0)) + logom[None, :], -jnp.inf)
+    mx = jax.lax.stop_gradient(jnp.max(logw, axis=1, keepdims=True))
+    w = jnp.exp(logw - mx)
+    return hp(w, Lw)
+
+
+@functools.partial(jax.jit, static_argnames=("plan", "chunk"))
+def _charlie_rows(R, K, D, EA, EB, logom, L, *, plan, chunk):
+    """LD_c (N, C) at directions R (N, 3) with per-row exponents K = 1/(2 alpha) (N,); plan: per
+    level (rows, trapezoid) (static), the levels' rows consecutive."""
+    Lw = jnp.concatenate([L, jnp.ones(L.shape[:1] + (1,), L.dtype)], -1)
+    out, row = [], 0
+    for n, trap in plan:
+        fn = functools.partial(_charlie_chunk, D=D, EA=EA, EB=EB, logom=logom, Lw=Lw, trapezoid=trap)
+        out.append(map_row_chunks(fn, chunk, R[row : row + n], K[row : row + n]))
+        row += n
+    acc = jnp.concatenate(out)
+    C = L.shape[-1]
+    return acc[:, :C] / acc[:, C:]
+
+
+@functools.lru_cache(maxsize=8)
+def _texel_edges(S: int):
+    """Edge vectors (6 S^2, 3) of every texel along s and along t: the chord between the
+    directions of the midpoints of its two opposite sides (float64, tangent to second order)."""
+    c = (np.arange(S) + 0.5) / S
+    s = np.broadcast_to(c[None, None, :], (6, S, S))
+    t = np.broadcast_to(c[None, :, None], (6, S, S))
+    f = np.broadcast_to(np.arange(6)[:, None, None], (6, S, S))
+    unit = lambda d: d / np.linalg.norm(d, axis=-1, keepdims=True)  # noqa: E731
+    h = 0.5 / S
+    EA = unit(face_to_dir(f, s + h, t, xp=np)) - unit(face_to_dir(f, s - h, t, xp=np))
+    EB = unit(face_to_dir(f, s, t + h, xp=np)) - unit(face_to_dir(f, s, t - h, xp=np))
+    return EA.reshape(-1, 3), EB.reshape(-1, 3)
+
+
+def _source_level(env: Cubemap, source_size: int):
+    """The area-correct pyramid level of env with the largest face <= source_size (level 0 when
+    env is no larger, or when its size cannot be halved further)."""
+    S0 = env.face_size
+    steps, S = 0, S0
+    while S > source_size and S % 2 == 0:
+        S //= 2
+        steps += 1
+    if steps == 0:
+        return env.levels[0]
+    if env.num_levels > steps and env.levels[steps].shape[1] == S:
+        return env.levels[steps]  # assume the stored chain is the area-correct pyramid
+    return env.level_cube(0).with_mips(steps + 1).levels[-1]
+
+
+def prefilter_charlie(
+    env: Cubemap,
+    *,
+    size: int | None = None,
+    num_levels: int | None = None,
+    dtype=None,
+    source_size: int | None = None,
+    lod_blend: str = DEFAULT_CHARLIE_LOD_BLEND,
+    min_roughness: float = MIN_ROUGHNESS,
+    chunk: int = CHUNK,
+) -> Cubemap:
+    """Charlie-prefiltered chain: level m holds LD_c(R, r_m) at (S >> m)^2 texel centres,
+    r_m = m/(M-1), alpha_m = max(r_m, min_roughness)^2 (module docstring).
+
+    size: S (default DEFAULT_CHARLIE_SIZE); num_levels: M (default min(DEFAULT_CHARLIE_LEVELS,
+    levels S allows)); dtype: of the computation and the result (default env.dtype; float32 is
+    finite at every roughness); source_size: face size of the environment's pyramid level summed
+    in full (default DEFAULT_CHARLIE_SOURCE_SIZE; the env's own level 0 when it is smaller);
+    lod_blend: the lookup recorded in the metadata (`charlie_roughness_to_lod`).
+    Linear (differentiable) in env's texel values.
+    """
+    _check_blend(lod_blend)
+    S = DEFAULT_CHARLIE_SIZE if size is None else positive_int("size", size)
+    most = _mip_count(S)
+    M = min(DEFAULT_CHARLIE_LEVELS, most) if num_levels is None else positive_int("num_levels", num_levels)
+    if M > most:
+        raise ValueError(f"a {S}^2 Charlie chain supports at most {most} levels (each halves the face); asked for {M}")
+    floor = float(min_roughness)
+    if not 0.0 < floor <= 1.0:
+        raise ValueError(f"min_roughness must be in (0, 1], got {min_roughness}")
+    src_target = DEFAULT_CHARLIE_SOURCE_SIZE if source_size is None else positive_int("source_size", source_size)
+    dt = np.dtype(env.dtype if dtype is None else dtype)
+    src = _source_level(env, src_target)
+    Ss, C = src.shape[1], src.shape[-1]
+    D = texel_directions(Ss).reshape(-1, 3)
+    om = texel_solid_angles(Ss).reshape(-1)
+    rough = charlie_level_roughness(M)
+    alphas = _alpha(rough, floor, np)
+    R_all, K_all, sizes = [], [], []
+    for m in range(M):
+        Sm = max(1, S >> m)
+        dirs = texel_directions(Sm).reshape(-1, 3)
+        R_all.append(dirs)
+        K_all.append(np.full(len(dirs), 0.5 / alphas[m]))
+        sizes.append(Sm)
+    EA, EB = _texel_edges(Ss)
+    longest = float(np.max(np.minimum(np.linalg.norm(EA, axis=1), np.linalg.norm(EB, axis=1))))
+    plan = tuple((len(Rm), bool(0.5 / am * longest > TRAPEZOID_MIN)) for Rm, am in zip(R_all, alphas))
+    dev = lambda x: jax.device_put(np.asarray(x, dt))  # noqa: E731
+    out = _charlie_rows(
+        dev(np.concatenate(R_all)), dev(np.concatenate(K_all)), dev(D), dev(EA), dev(EB), dev(np.log(om)),
+        jnp.asarray(src, dt).reshape(-1, C), plan=plan, chunk=positive_int("chunk", chunk),
+    )
+    levels, row = [], 0
+    for Sm in sizes:
+        n = 6 * Sm * Sm
+        levels.append(out[row : row + n].reshape(6, Sm, Sm, C))
+        row += n
+    info = {
+        "quantity": "LD_c(R, r_m) = int L D_charlie(h) (R.l)+ dl / int D_charlie(h) (R.l)+ dl, n = v = R "
+                    "(KHR_materials_sheen IBL, Khronos glTF-IBL-Sampler's Charlie filter)",
+        "distribution": "charlie",
+        "roughness_mapping": "linear",
+        "mapping_levels": str(M),
+        "level_roughness": ",".join(f"{x:.9g}" for x in rough),
+        "min_roughness": f"{floor:g}",
+        "alpha": "max(sheen_roughness, min_roughness)^2",
+        **charlie_lookup_metadata(M, lod_blend=lod_blend, face_size=S, min_roughness=floor),
+        "prefilter_method": "charlie_box",
+        "source_face_size": str(Ss),
+        "source_filter": "every texel of the environment's area-correct pyramid level source_face_size^2; "
+                         "kernel box-filtered in c = R.l over each texel (mean of w over c +- sqrt(Omega) sin(theta)/2)",
+    }
+    return Cubemap(levels, info)
+
+
+# ------------------------------------------------------------------------------------------
+# float64 reference
+# ------------------------------------------------------------------------------------------
+
+
+def _reference_supersample(alpha: float, S0: int, max_q: int = REFERENCE_MAX_Q) -> int:
+    """Sub-texels per source-texel side so that a sub-texel is <= a quarter of the ring's width
+    2 alpha (capped at max_q)."""
+    texel = 2.0 * math.atan(1.0 / S0)
+    return int(min(max_q, max(1, math.ceil(texel / (0.5 * alpha)))))
+
+
+def charlie_reference(env: Cubemap, dirs, roughness: float, *, supersample: int | None = None,
+                      min_roughness: float = MIN_ROUGHNESS, chunk: int = 32) -> np.ndarray:
+    """float64 LD_c(R, r) at unit directions dirs (..., 3) by brute force over every texel of env
+    level 0 (q x q sub-texels each, q from `_reference_supersample` unless given), kernel
+    `sheen.d_charlie(n.h, alpha, (1 - c)/2) (R.l)+`, alpha = max(r, min_roughness)^2
+    -> (..., C) float64 NumPy."""
+    r = float(roughness)
+    if not 0.0 <= r <= 1.0:
+        raise ValueError(f"roughness must be in [0, 1], got {r}")
+    alpha = max(r, float(min_roughness)) ** 2
+    dirs = np.asarray(dirs, np.float64)
+    shape = dirs.shape[:-1]
+    S0 = env.face_size
+    q = _reference_supersample(alpha, S0) if supersample is None else positive_int("supersample", supersample)
+    chunk = positive_int("chunk", chunk)
+    with jax.enable_x64(True):
+        B = max(1, min(S0, (1 << 21) // (chunk * S0 * q * q)))
+        nb = -(-S0 // B)
+        coords = _subtexel_coords(S0, q)
+        pad = nb * B - S0
+        om = np.concatenate([texel_solid_angles(S0)[0], np.zeros((pad, S0))])
+        t = np.concatenate([coords, np.repeat(coords[-1:], pad, 0)])
+        L = env.levels[0]
+        L = jnp.concatenate([L, jnp.zeros((6, pad) + L.shape[2:], L.dtype)], 1) if pad else L
+        out = np.asarray(_reference_sum(
+            jnp.asarray(dirs.reshape(-1, 3)), L, jax.device_put(t), jax.device_put(coords), jax.device_put(om),
+            jnp.float64(alpha), q=q, rows=B, chunk=chunk,
+        ))
+    C = env.channels
+    return (out[:, :C] / out[:, C:]).reshape(shape + (C,))
+
+
+@functools.partial(jax.jit, static_argnames=("q", "rows", "chunk"))
+def _reference_sum(R, L, t, s, om, alpha, *, q, rows, chunk):
+    """sum over every sub-texel of D_c(h) (R.l)+ (L Omega, Omega) -> (N, C + 1) float64 (the
+    structure of `specular._reference_sum`: sources generated block by block on the device)."""
+    S, C = s.shape[0], L.shape[-1]
+    f64 = jnp.float64
+    ss = jnp.broadcast_to(s[None, :, None, :], (rows, S, q, q)).reshape(rows, S, q * q)
+
+    def block(face, Rc, acc, start):
+        ct = jax.lax.dynamic_slice_in_dim(t, start, rows)
+        tt = jnp.broadcast_to(ct[:, None, :, None], (rows, S, q, q)).reshape(rows, S, q * q)
+        d = face_to_dir(face, ss, tt, xp=jnp)
+        r2 = jnp.sum(d * d, -1)
+        w = r2**-1.5
+        w = w / jnp.sum(w, -1, keepdims=True)
+        d = (d / jnp.sqrt(r2)[..., None]).reshape(-1, 3)
+        omq = jax.lax.dynamic_slice_in_dim(om, start, rows)[..., None] * w
+        Lb = jax.lax.dynamic_slice_in_dim(L[face], start, rows).astype(f64)
+        Lw = jnp.concatenate([Lb[:, :, None, :] * omq[..., None], omq[..., None]], -1).reshape(-1, C + 1)
+        c = jnp.clip(jnp.matmul(Rc, d.T, precision=HIGHEST), -1.0, 1.0)
+        k = d_charlie(jnp.sqrt(0.5 * (1.0 + c)), alpha, 0.5 * (1.0 - c)) * jnp.maximum(c, 0.0)
+        return acc + jnp.matmul(k, Lw, precision=HIGHEST)
+
+    def one(Rc):
+        acc = jnp.zeros((Rc.shape[0], C + 1), f64)
+        starts = jnp.arange(0, L.shape[1], rows)
+        for face in range(6):
+            acc, _ = jax.lax.scan(lambda a, st, f=face: (block(f, Rc, a, st), None), acc, starts)
+        return acc
+
+    return map_row_chunks(one, chunk, R.astype(f64))
