@@ -24,7 +24,12 @@ import numpy as np
 
 from jaxpbr import envs, specular
 from jaxpbr.cubeio import load_environment
-from jaxpbr.sheen_prefilter import charlie_level_roughness, charlie_lookup, charlie_reference, prefilter_charlie
+from jaxpbr.sheen_prefilter import (
+    charlie_level_roughness,
+    charlie_lookup,
+    charlie_reference,
+    prefilter_charlie,
+)
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CONFIGS = [  # (output size, source size, levels)
@@ -82,11 +87,11 @@ def main():
             if args.refs:
                 np.savez(args.refs, **store)
         ref = store[key]
-        t_ggx = timed(lambda: specular.prefilter(env).levels)[0]
+        t_ggx = timed(lambda e=env: specular.prefilter(e).levels)[0]
         print(f"\n[{name}] {env.face_size}^2, GGX specular.prefilter warm: {t_ggx:.2f} s")
         print("  size src  M | random r, mean_cosine: all / low r | random r, lod=r(M-1) | at r = 0 | at r_m (5 levels) | time, x GGX")
         for S, src, M in configs:
-            t, pre = timed(lambda: prefilter_charlie(env, size=S, source_size=src, num_levels=M))
+            t, pre = timed(lambda e=env, S=S, src=src, M=M: prefilter_charlie(e, size=S, source_size=src, num_levels=M))
             e_mc, e_rl = [], []
             for i, r in enumerate(rs):
                 for blend, acc in (("mean_cosine", e_mc), ("roughness", e_rl)):
@@ -95,7 +100,7 @@ def main():
             e_mc, e_rl = np.stack(e_mc), np.stack(e_rl)
             nr = len(rand_r)
             low = rand_r < 0.2
-            f = lambda e: f"{e.mean():5.2f}/{e.max():6.2f}"  # noqa: E731
+            f = lambda e: f"{e.mean():5.2f}/{e.max():6.2f}"
             row = (f"  {S:4d} {src:4d} {M:2d} | {f(e_mc[:nr])} / {f(e_mc[:nr][low])} | {f(e_rl[:nr])} | "
                    f"{f(e_mc[nr])} | {f(e_mc[nr:])} | {t:5.2f} s, {t / t_ggx:4.2f}x")
             print(row)

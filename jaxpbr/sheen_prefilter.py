@@ -95,13 +95,20 @@ import numpy as np
 from ._numerics import HIGHEST, map_row_chunks
 from ._validate import positive_int
 from .brdf_terms import MIN_ROUGHNESS
-from .cubemap import Cubemap, _mip_count, _subtexel_coords, face_to_dir, texel_directions, texel_solid_angles
+from .cubemap import (
+    Cubemap,
+    _mip_count,
+    _subtexel_coords,
+    face_to_dir,
+    texel_directions,
+    texel_solid_angles,
+)
 from .sheen import d_charlie
 
 __all__ = [
     "CHARLIE_LOD_BLENDS",
-    "DEFAULT_CHARLIE_LOD_BLEND",
     "DEFAULT_CHARLIE_LEVELS",
+    "DEFAULT_CHARLIE_LOD_BLEND",
     "DEFAULT_CHARLIE_SIZE",
     "DEFAULT_CHARLIE_SOURCE_SIZE",
     "charlie_level_roughness",
@@ -319,7 +326,7 @@ def _texel_edges(S: int):
     s = np.broadcast_to(c[None, None, :], (6, S, S))
     t = np.broadcast_to(c[None, :, None], (6, S, S))
     f = np.broadcast_to(np.arange(6)[:, None, None], (6, S, S))
-    unit = lambda d: d / np.linalg.norm(d, axis=-1, keepdims=True)  # noqa: E731
+    unit = lambda d: d / np.linalg.norm(d, axis=-1, keepdims=True)
     h = 0.5 / S
     EA = unit(face_to_dir(f, s + h, t, xp=np)) - unit(face_to_dir(f, s - h, t, xp=np))
     EB = unit(face_to_dir(f, s, t + h, xp=np)) - unit(face_to_dir(f, s, t - h, xp=np))
@@ -389,7 +396,7 @@ def prefilter_charlie(
     EA, EB = _texel_edges(Ss)
     longest = float(np.max(np.minimum(np.linalg.norm(EA, axis=1), np.linalg.norm(EB, axis=1))))
     plan = tuple((len(Rm), bool(0.5 / am * longest > TRAPEZOID_MIN)) for Rm, am in zip(R_all, alphas))
-    dev = lambda x: jax.device_put(np.asarray(x, dt))  # noqa: E731
+    dev = lambda x: jax.device_put(np.asarray(x, dt))
     out = _charlie_rows(
         dev(np.concatenate(R_all)), dev(np.concatenate(K_all)), dev(D), dev(EA), dev(EB), dev(np.log(om)),
         jnp.asarray(src, dt).reshape(-1, C), plan=plan, chunk=positive_int("chunk", chunk),

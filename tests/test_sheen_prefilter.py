@@ -31,9 +31,9 @@ G = np.array([0.3, -0.5, 0.4])
 def quad_mean_cosine(alpha: float) -> float:
     """k(alpha) = int w c dl / int w dl with w = D_charlie(h) (R.l)+ by 1-D float64 quadrature over
     c = R.l (dl = dc dphi), D written from its definition: sin^2(theta_h) = (1 - c)/2."""
-    d = lambda c: (2.0 + 1.0 / alpha) * ((1.0 - c) / 2.0) ** (0.5 / alpha) / (2.0 * math.pi)  # noqa: E731
+    d = lambda c: (2.0 + 1.0 / alpha) * ((1.0 - c) / 2.0) ** (0.5 / alpha) / (2.0 * math.pi)
     pts = [p for p in (alpha, 2 * alpha, 4 * alpha, 8 * alpha, 16 * alpha) if p < 1.0]
-    m = lambda p: integrate.quad(lambda c: d(c) * c**p, 0.0, 1.0, points=pts, epsabs=0, epsrel=1e-12, limit=500)[0]  # noqa: E731
+    m = lambda p: integrate.quad(lambda c: d(c) * c**p, 0.0, 1.0, points=pts, epsabs=0, epsrel=1e-12, limit=500)[0]
     return m(2) / m(1)
 
 
