@@ -405,3 +405,244 @@ def test_error_texture_channels_and_range(tmp_path):
 def test_error_scene_file_missing(tmp_path):
     with pytest.raises(InputError, match=r"scene file .*nope\.toml' does not exist"):
         load_scene(tmp_path / "nope.toml")
+
+
+# ------------------------------------------------------------------------------------------
+# glTF material extensions (KHR_materials_*): factors, textures, errors, the example
+# ------------------------------------------------------------------------------------------
+
+# key = TOML value -> (Material field, expected value)
+EXT_KEYS = {
+    "clearcoat": ("0.8", "clearcoat", 0.8),
+    "clearcoat_roughness": ("0.3", "clearcoat_roughness", 0.3),
+    "sheen_color": ("[0.9, 0.2, 0.2]", "sheen_color", (0.9, 0.2, 0.2)),
+    "sheen_roughness": ("0.45", "sheen_roughness", 0.45),
+    "specular": ("0.6", "specular", 0.6),
+    "specular_color": ("[1.5, 1.0, 0.25]", "specular_color", (1.5, 1.0, 0.25)),  # > 1 allowed (spec)
+    "ior": ("1.33", "ior", 1.33),
+    "anisotropy_strength": ("0.7", "anisotropy_strength", 0.7),
+    "anisotropy_rotation_deg": ("90", "anisotropy_rotation", math.pi / 2),  # degrees -> radians
+    "transmission": ("1.0", "transmission", 1.0),
+    "thickness": ("2.5", "thickness", 2.5),
+    "attenuation_distance": ("inf", "attenuation_distance", math.inf),
+    "attenuation_color": ('"#ff8000"', "attenuation_color", (1.0, _srgb_to_linear(128 / 255), 0.0)),
+}
+
+
+@pytest.mark.parametrize("key", sorted(EXT_KEYS))
+def test_extension_key_sets_its_material_field(key):
+    value, field, expect = EXT_KEYS[key]
+    sf = loads_scene(f"[materials.m]\n{key} = {value}\n" + SPHERE + 'material = "m"\n', ".")
+    m = sf.materials["m"]
+    assert isinstance(m, Material)
+    np.testing.assert_allclose(_np(getattr(m, field)), expect, rtol=1e-6)
+    # Only that extension is present; the others are absent (None: no code compiled for them).
+    from jaxpbr.material import EXTENSION_FIELDS
+
+    group = next(g for g, fs in EXTENSION_FIELDS.items() if field in fs)
+    assert m.extensions == (group,)
+    assert sum(getattr(m, f) is not None for fs in EXTENSION_FIELDS.values() for f in fs) == 1
+    assert sf.scene.objects[0].material is m
+
+
+def test_material_without_extension_keys_has_none():
+    m = loads_scene(GOLD + SPHERE, ".").materials["gold"]
+    assert m.extensions == ()
+
+
+def test_emissive_strength_multiplies_the_emission():
+    """KHR_materials_emissive_strength is folded into the (unbounded) emissive factor: the same
+    emission, and no extension group, so the material keeps the core path (every model,
+    multiscatter)."""
+    sf = loads_scene('[materials.m]\nemissive = [0.1, 0.2, 0.0]\nemissive_strength = 20.0\n' + SPHERE, ".")
+    m = sf.materials["m"]
+    np.testing.assert_allclose(_np(m.emission()), [2.0, 4.0, 0.0], rtol=1e-6)
+    assert m.extensions == ()
+    # Without an emissive factor or texture (black) the strength changes nothing.
+    sf = loads_scene('[materials.m]\nemissive_strength = 3.0\n' + SPHERE, ".")
+    np.testing.assert_allclose(_np(sf.materials["m"].emission()), [0.0, 0.0, 0.0])
+
+
+def _toml_value(x, field):
+    """A Material field's value as TOML (the writer side of the round trip)."""
+    a = np.asarray(x, np.float64)
+    if field == "anisotropy_rotation":
+        return repr(math.degrees(float(a)))
+    if a.ndim:
+        return "[" + ", ".join(repr(float(c)) for c in a) + "]"
+    return "inf" if np.isinf(a) else repr(float(a))
+
+
+def _material_toml(m: Material) -> str:
+    lines = []
+    for f in jp.Material.__dataclass_fields__:
+        x = getattr(m, f)
+        if x is not None:
+            key = "anisotropy_rotation_deg" if f == "anisotropy_rotation" else f
+            lines.append(f"{key} = {_toml_value(x, f)}")
+    return "\n".join(lines) + "\n"
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_every_material_field_round_trips(seed):
+    """Every Material field, written as its TOML key and read back, is the same (no field is
+    inexpressible; degrees <-> radians and inf survive)."""
+    rng = np.random.default_rng(seed)
+    u = lambda: float(rng.uniform(0, 1))  # noqa: E731
+    rgb = lambda: tuple(float(c) for c in rng.uniform(0, 1, 3))  # noqa: E731
+    m = Material(
+        base_color=rgb(), metallic=u(), roughness=u(), occlusion=u(), emissive=rgb(), clearcoat=u(),
+        clearcoat_roughness=u(), sheen_color=rgb(), sheen_roughness=u(), specular=u(),
+        specular_color=tuple(2 * c for c in rgb()), ior=1 + 2 * u(), anisotropy_strength=u(),
+        anisotropy_rotation=float(rng.uniform(-3, 3)), emissive_strength=10 * u(), transmission=u(),
+        thickness=5 * u(), attenuation_distance=math.inf if seed == 0 else 0.1 + u(), attenuation_color=rgb(),
+    )
+    back = loads_scene("[materials.m]\n" + _material_toml(m) + SPHERE, ".").materials["m"]
+    # emissive_strength comes back folded into emissive (the same emission).
+    assert back.extensions == tuple(g for g in m.extensions if g != "emissive_strength")
+    np.testing.assert_allclose(_np(back.emission()), _np(m.emission()), rtol=1e-6)
+    for f in jp.Material.__dataclass_fields__:
+        if f not in ("emissive", "emissive_strength"):
+            np.testing.assert_allclose(_np(getattr(back, f)), _np(getattr(m, f)), rtol=1e-6, err_msg=f)
+
+
+def _write_ext_textures(d: Path):
+    """RGBA PNG codes (so each channel differs), a 3-channel PNG, and an RGBA EXR."""
+    codes = np.array([[[0, 60, 128, 255], [200, 255, 64, 30]], [[1, 2, 3, 4], [250, 40, 90, 170]]], np.float64) / 255.0
+    image.write(d / "rgba.png", codes, encoding="linear")
+    image.write(d / "rgb.png", codes[..., :3], encoding="linear")
+    image.write(d / "flat_n.png", np.full((2, 2, 3), [0.5, 0.5, 1.0]), encoding="linear")
+    image.write(d / "rgba.exr", codes.astype(np.float32))
+    return codes
+
+
+EXT_TEXTURE_TOML = """
+[materials.t]
+clearcoat = 1.0
+clearcoat_roughness = 0.5
+clearcoat_texture = "rgba.png"
+clearcoat_roughness_texture = "rgba.png"
+clearcoat_normal_texture = "flat_n.png"
+clearcoat_normal_scale = 0.7
+sheen_color = [1.0, 1.0, 1.0]
+sheen_roughness = 1.0
+sheen_color_texture = "rgba.png"
+sheen_roughness_texture = "rgba.png"
+specular_texture = "rgba.png"
+specular_color_texture = "rgb.png"
+anisotropy_strength = 1.0
+anisotropy_rotation_deg = 30
+anisotropy_texture = "rgb.png"
+transmission = 1.0
+transmission_texture = "rgba.exr"
+thickness = 2.0
+thickness_texture = "rgb.png"
+"""
+
+
+def test_extension_textures_parse(tmp_path):
+    codes = _write_ext_textures(tmp_path)
+    sf = loads_scene(EXT_TEXTURE_TOML + SPHERE + 'material = "t"\n', tmp_path)
+    tm = sf.materials["t"]
+    assert isinstance(tm, TexturedMaterial) and sf.scene.objects[0].material is tm
+    srgb = np.vectorize(_srgb_to_linear)
+    # Colour textures (sheen colour, specular colour) are sRGB-decoded PNGs, RGB only.
+    np.testing.assert_allclose(_np(tm.sheen_color_texture), srgb(codes[..., :3]), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(_np(tm.specular_color_texture), srgb(codes[..., :3]), rtol=1e-5, atol=1e-7)
+    # Data textures are linear, all their channels kept (the alpha of the A-channel ones).
+    for name in ("clearcoat_texture", "clearcoat_roughness_texture", "sheen_roughness_texture", "specular_texture",
+                 "transmission_texture"):
+        np.testing.assert_allclose(_np(getattr(tm, name)), codes, atol=1e-6, err_msg=name)
+    for name in ("anisotropy_texture", "thickness_texture"):
+        np.testing.assert_allclose(_np(getattr(tm, name)), codes[..., :3], atol=1e-6, err_msg=name)
+    np.testing.assert_allclose(_np(tm.clearcoat_normal_texture)[0, 0], [128 / 255, 128 / 255, 1.0], atol=1e-6)
+    assert float(tm.clearcoat_normal_scale) == pytest.approx(0.7)
+    assert float(tm.normal_scale) == 1.0 and tm.normal_texture is None
+    f = tm.factors
+    # specular / specular_color were not given: their textures make the extension present with the
+    # glTF default factors (1, [1, 1, 1]).
+    assert float(f.specular) == 1.0 and tuple(_np(f.specular_color)) == (1.0, 1.0, 1.0)
+    assert float(f.anisotropy_rotation) == pytest.approx(math.radians(30))
+    assert set(f.extensions) == {"clearcoat", "sheen", "specular", "anisotropy", "transmission", "volume"}
+    assert f.attenuation_distance is None  # volume present; its unset fields take neutral values later
+
+
+EXT_ERRORS = {
+    "range_clearcoat": ("clearcoat = 1.5\n", "materials.gold.clearcoat: must be <= 1, got 1.5"),
+    "range_clearcoat_roughness": ("clearcoat_roughness = -0.1\n", "materials.gold.clearcoat_roughness: must be >= 0, got -0.1"),
+    "range_sheen_color": ("sheen_color = [1.2, 0, 0]\n", "materials.gold.sheen_color[0]: must be <= 1, got 1.2"),
+    "range_sheen_roughness": ("sheen_roughness = 2\n", "materials.gold.sheen_roughness: must be <= 1, got 2"),
+    "range_specular": ("specular = 1.01\n", "materials.gold.specular: must be <= 1"),
+    "range_specular_color": ("specular_color = [1, -1, 1]\n", "materials.gold.specular_color[1]: must be >= 0, got -1"),
+    "range_ior": ("ior = 0.5\n", "materials.gold.ior: must be >= 1 (an index of refraction"),
+    "range_anisotropy": ("anisotropy_strength = -1\n", "materials.gold.anisotropy_strength: must be >= 0"),
+    "range_emissive_strength": ("emissive_strength = -2\n", "materials.gold.emissive_strength: must be >= 0, got -2"),
+    "range_transmission": ("transmission = 3\n", "materials.gold.transmission: must be <= 1, got 3"),
+    "range_thickness": ("thickness = -0.5\n", "materials.gold.thickness: must be >= 0, got -0.5"),
+    "range_attenuation_distance": ("attenuation_distance = 0\n", "materials.gold.attenuation_distance: must be > 0, got 0"),
+    "neg_inf_attenuation_distance": ("attenuation_distance = -inf\n", "materials.gold.attenuation_distance: must be > 0"),
+    "inf_thickness": ("thickness = inf\n", "materials.gold.thickness: expected a finite number, got inf"),
+    "range_attenuation_color": ("attenuation_color = [0.5, 0.5, 2]\n", "materials.gold.attenuation_color[2]: must be <= 1, got 2"),
+    "type_clearcoat": ('clearcoat = "1"\n', "materials.gold.clearcoat: expected a number, got a string ('1')"),
+    "type_sheen_color": ("sheen_color = 0.5\n", 'materials.gold.sheen_color: expected [r, g, b] (linear) or an sRGB hex'),
+    "type_rotation": ("anisotropy_rotation_deg = true\n", "materials.gold.anisotropy_rotation_deg: expected a number, got a boolean"),
+    "radians_name": ("anisotropy_rotation = 1.57\n", "materials.gold.anisotropy_rotation: unknown key: angles are in degrees in scene files; write anisotropy_rotation_deg"),
+    "misspelt": ("clearcoat_roughnes = 0.2\n", "materials.gold.clearcoat_roughnes: unknown key (not a key of a material); did you mean 'clearcoat_roughness'?"),
+    "misspelt_texture": ('sheen_colour_texture = "a.png"\n', "did you mean 'sheen_color_texture'?"),
+    "texture_without_factor": ('clearcoat_texture = "rgba.png"\n', "materials.gold.clearcoat_texture: has no effect without clearcoat, which defaults to 0 (KHR_materials_clearcoat; the texture multiplies it); add clearcoat = 1.0"),
+    "texture_without_colour_factor": ('sheen_color_texture = "rgba.png"\n', "materials.gold.sheen_color_texture: has no effect without sheen_color", ),
+    "colour_factor_hint": ('sheen_color_texture = "rgba.png"\n', "add sheen_color = [1.0, 1.0, 1.0]"),
+    "coat_normal_without_coat": ('clearcoat_normal_texture = "flat_n.png"\n', "materials.gold.clearcoat_normal_texture: has no effect without clearcoat"),
+    "thickness_texture_without_thickness": ('transmission = 1.0\nthickness_texture = "rgb.png"\n', "materials.gold.thickness_texture: has no effect without thickness, which defaults to 0 (KHR_materials_volume"),
+    "coat_scale_alone": ("clearcoat = 1.0\nclearcoat_normal_scale = 2.0\n", "materials.gold.clearcoat_normal_scale: has no effect without clearcoat_normal_texture"),
+    "alpha_channel_missing": ('specular_texture = "rgb.png"\n', "materials.gold.specular_texture: '{dir}/rgb.png' has 3 channel(s); it must hold A = specular in an RGBA image"),
+    "alpha_channel_missing_sheen": ('sheen_roughness = 1.0\nsheen_roughness_texture = "rgb.png"\n', "it must hold A = sheen roughness in an RGBA image"),
+    "texture_range_exr": ('transmission = 1.0\ntransmission_texture = "hot.exr"\n', "materials.gold.transmission_texture: transmission_texture must hold linear values in [0.0, 1.0]"),
+    "missing_texture_file": ('clearcoat = 1.0\nclearcoat_texture = "nope.png"\n', "materials.gold.clearcoat_texture: file '{dir}/nope.png' does not exist"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(EXT_ERRORS))
+def test_extension_error_messages(tmp_path, case):
+    _write_ext_textures(tmp_path)
+    image.write(tmp_path / "hot.exr", np.full((2, 2, 3), 2.0, np.float32))
+    keys, expected = EXT_ERRORS[case]
+    f = tmp_path / "bad.toml"
+    f.write_text(GOLD + keys + SPHERE)
+    with pytest.raises(InputError) as info:
+        load_scene(f)
+    msg = str(info.value)
+    assert "\n" not in msg and msg.startswith(f"{f}: "), msg
+    assert expected.format(dir=tmp_path.resolve()) in msg, msg
+
+
+def test_inline_material_extension_errors_name_the_object():
+    with pytest.raises(InputError, match=r"objects\[0\]\.material\.anisotropy_rotation: unknown key: angles are in degrees"):
+        loads_scene(SPHERE + "material = { anisotropy_rotation = 1.0 }\n", ".", name="s.toml")
+    with pytest.raises(InputError, match=r"objects\[0\]\.material\.ior: must be >= 1"):
+        loads_scene(SPHERE + "material = { ior = 0.9 }\n", ".", name="s.toml")
+    # ior = 0 is glTF's specular-glossiness mode (F = 1): allowed.
+    m = loads_scene(SPHERE + "material = { ior = 0.0 }\n", ".").scene.objects[0].material
+    assert float(m.ior) == 0.0
+
+
+def test_extensions_example_parses():
+    """examples/scenes/extensions.toml: a 5 x 8 grid, one row per extension, under the sky."""
+    sf = load_scene(EXAMPLES / "extensions.toml")
+    objs = sf.scene.objects
+    assert len(objs) == 40 and all(isinstance(o, jp.Sphere) for o in objs)
+    rows = [objs[5 * r : 5 * r + 5] for r in range(8)]
+    expect = ["clearcoat", "sheen", "specular", "ior", "anisotropy", "transmission", "volume", "emissive_strength"]
+    for name, row in zip(expect, rows):
+        groups = {o.material.extensions for o in row}
+        if name == "emissive_strength":  # folded into emissive: emission beyond 1
+            assert groups == {()} and max(float(np.max(_np(o.material.emission()))) for o in row) > 1
+        else:
+            assert len(groups) == 1 and name in groups.pop(), name
+        ys = {float(o.center[1]) for o in row}
+        assert len(ys) == 1  # a row
+        # the main parameter varies across the row
+        assert len({repr(o.material) for o in row}) == 5, name
+    assert sf.options["model"] == "gltf" and sf.scene.environment is not None
+    cam = sf.scene.camera
+    assert cam.width * cam.height <= 480 * 768

@@ -8,8 +8,11 @@ The format is documented in docs/scene_format.md. Tables: [render] (RenderOption
 [output] (exposure / tone map / encoding), [camera], [scene] (background, ambient), [environment],
 [[lights]], [materials.NAME], [[objects]]. Paths are relative to the TOML file's folder. Colours are
 linear [r, g, b] lists or sRGB hex strings "#rrggbb" (decoded to linear with the IEC 61966-2-1
-EOTF). Angles are in degrees and named `*_deg`. 8-bit/16-bit PNG base-colour and emissive textures
-are sRGB-decoded to linear; metallic-roughness, occlusion and normal textures are linear data.
+EOTF). Angles are in degrees and named `*_deg`. 8-bit/16-bit PNG colour textures (base colour,
+emissive, sheen colour, specular colour) are sRGB-decoded to linear; the data textures
+(metallic-roughness, occlusion, normal maps and the other extension textures) are linear. The glTF
+material extensions (KHR_materials_clearcoat, _sheen, _specular, _ior, _anisotropy,
+_emissive_strength, _transmission, _volume) are material keys named after the `Material` fields.
 
 Every problem raises `jaxpbr.errors.InputError` (a ValueError) with one line:
 "<file>: <key path>: <problem>; <fix>", e.g. "scene.toml: objects[2].radius: expected a number, got
@@ -38,9 +41,9 @@ from ..cubeio import load_environment
 from ..diffuse import IRRADIANCE_METHODS
 from ..errors import InputError
 from ..lights import DirectionalLight, PointLight, SpotLight
-from ..material import Material
+from ..material import EXTENSION_FIELDS, Material
 from ..renderer import RenderOptions
-from ..scene import Camera, Environment, Plane, Scene, Sphere, TexturedMaterial
+from ..scene import EXTENSION_TEXTURES, Camera, Environment, Plane, Scene, Sphere, TexturedMaterial
 from ..specular import MAPPINGS
 
 __all__ = ["SceneFile", "hex_to_linear", "load_scene", "loads_scene"]
@@ -69,28 +72,40 @@ _LIGHTS = {
     "directional": ("type", "direction", "color", "intensity"),
     "spot": ("type", "position", "direction", "color", "intensity", "inner_cone_deg", "outer_cone_deg", "range"),
 }
-_MATERIAL = (
-    "base_color",
-    "metallic",
-    "roughness",
-    "occlusion",
-    "emissive",
-    "emissive_strength",
-    "base_color_texture",
-    "metallic_roughness_texture",
-    "occlusion_texture",
-    "normal_texture",
-    "normal_scale",
-    "emissive_texture",
+# The glTF material extensions' factors (KHR_materials_<group>): key -> Material field. Angles
+# are in degrees in the file (anisotropy_rotation_deg -> Material.anisotropy_rotation, radians).
+_EXT_FACTORS = {f: f for fs in EXTENSION_FIELDS.values() for f in fs}
+_EXT_FACTORS["anisotropy_rotation_deg"] = _EXT_FACTORS.pop("anisotropy_rotation")
+_UNIT_KEYS = (
+    "metallic", "roughness", "occlusion", "clearcoat", "clearcoat_roughness", "sheen_roughness", "specular",
+    "anisotropy_strength", "transmission",
 )
 _TEXTURES = {
     # key: (decode sRGB for PNG, minimum channels, what it holds)
     "base_color_texture": (True, 3, "RGB base colour"),
-    "metallic_roughness_texture": (False, 3, "glTF packing G = roughness, B = metallic"),
+    "metallic_roughness_texture": (False, 3, "glTF packing G = roughness, B = metallic in an RGB image"),
     "occlusion_texture": (False, 1, "R = ambient occlusion"),
-    "normal_texture": (False, 3, "a tangent-space normal map (n + 1)/2"),
+    "normal_texture": (False, 3, "a tangent-space normal map (n + 1)/2 in an RGB image"),
     "emissive_texture": (True, 3, "RGB emission"),
+    # The extensions' textures (KHR specs: sheen and specular colour are sRGB-encoded colour, the
+    # rest linear data).
+    "clearcoat_texture": (False, 1, "R = clear coat"),
+    "clearcoat_roughness_texture": (False, 2, "G = clear coat roughness in an RGB image"),
+    "clearcoat_normal_texture": (False, 3, "a tangent-space normal map (n + 1)/2 in an RGB image"),
+    "sheen_color_texture": (True, 3, "RGB sheen colour"),
+    "sheen_roughness_texture": (False, 4, "A = sheen roughness in an RGBA image"),
+    "specular_texture": (False, 4, "A = specular in an RGBA image"),
+    "specular_color_texture": (True, 3, "RGB specular colour"),
+    "anisotropy_texture": (False, 3, "RG = direction (d + 1)/2, B = strength in an RGB image"),
+    "transmission_texture": (False, 1, "R = transmission"),
+    "thickness_texture": (False, 2, "G = thickness in an RGB image"),
 }
+_MATERIAL = (
+    ("base_color", "metallic", "roughness", "occlusion", "emissive")
+    + tuple(_EXT_FACTORS)
+    + tuple(_TEXTURES)
+    + ("normal_scale", "clearcoat_normal_scale")
+)
 _OBJECTS = {
     "sphere": ("type", "center", "radius", "material"),
     "plane": ("type", "point", "normal", "tangent", "uv_scale", "material"),
@@ -512,28 +527,84 @@ class _Loader:
         return {name: self.material(self.table(m, f"materials.{name}", what), f"materials.{name}") for name, m in t.items()}
 
     def material(self, t: dict, path: str):
+        if "anisotropy_rotation" in t:
+            self.fail(
+                f"{path}.anisotropy_rotation",
+                "unknown key: angles are in degrees in scene files; write anisotropy_rotation_deg = <degrees>",
+            )
         self.check_keys(t, _MATERIAL, path, "a material")
         kw: dict = {}
         if "base_color" in t:
             kw["base_color"] = self.colour(t["base_color"], f"{path}.base_color", hi=1.0)
-        for key in ("metallic", "roughness", "occlusion"):
+        for key in _UNIT_KEYS:
             if key in t:
                 kw[key] = self.number(t[key], f"{path}.{key}", lo=0.0, hi=1.0)
-        strength = self.number(t.get("emissive_strength", 1.0), f"{path}.emissive_strength", lo=0.0)
+        for key in ("sheen_color", "attenuation_color"):
+            if key in t:
+                kw[key] = self.colour(t[key], f"{path}.{key}", hi=1.0)
+        if "specular_color" in t:
+            kw["specular_color"] = self.colour(t["specular_color"], f"{path}.specular_color")
+        for key in ("emissive_strength", "thickness"):
+            if key in t:
+                kw[key] = self.number(t[key], f"{path}.{key}", lo=0.0)
+        if "ior" in t:
+            ior = self.number(t["ior"], f"{path}.ior")
+            if ior != 0.0 and ior < 1.0:
+                self.fail(
+                    f"{path}.ior",
+                    f"must be >= 1 (an index of refraction; 1.5 is glass and plastic), or 0 for glTF's "
+                    f"specular-glossiness mode, got {ior:g}",
+                )
+            kw["ior"] = ior
+        if "anisotropy_rotation_deg" in t:
+            deg = self.number(t["anisotropy_rotation_deg"], f"{path}.anisotropy_rotation_deg")
+            kw["anisotropy_rotation"] = math.radians(deg)
+        if "attenuation_distance" in t:
+            kw["attenuation_distance"] = self.number(
+                t["attenuation_distance"], f"{path}.attenuation_distance", lo=0.0, open_lo=True, allow_inf=True
+            )
+        # KHR_materials_emissive_strength is folded into the emissive factor (which has no upper
+        # bound): the same emission, Material.emission(), but no extension group, so the material
+        # keeps the core shading path (every model, multiscatter). To keep it as the field instead:
+        # drop this pop (kw already holds "emissive_strength") and emit `emissive` unscaled.
+        strength = kw.pop("emissive_strength", 1.0)
         if "emissive" in t:
-            e = self.colour(t["emissive"], f"{path}.emissive")
-            kw["emissive"] = tuple(c * strength for c in e)
+            kw["emissive"] = tuple(c * strength for c in self.colour(t["emissive"], f"{path}.emissive"))
         elif "emissive_texture" in t:
             kw["emissive"] = (strength,) * 3  # a texture alone emits its own colour (factor 1)
+        self.extension_texture_factors(t, path, kw)
         factors = self.build(path, Material, **kw)
         tex = {key: self.texture(t[key], f"{path}.{key}", key) for key in _TEXTURES if key in t}
-        if "normal_scale" in t:
-            if "normal_texture" not in t:
-                self.fail(f"{path}.normal_scale", "has no effect without normal_texture; add one or remove it")
-            tex["normal_scale"] = self.number(t["normal_scale"], f"{path}.normal_scale")
+        for scale, needs in (("normal_scale", "normal_texture"), ("clearcoat_normal_scale", "clearcoat_normal_texture")):
+            if scale in t:
+                if needs not in t:
+                    self.fail(f"{path}.{scale}", f"has no effect without {needs}; add one or remove it")
+                tex[scale] = self.number(t[scale], f"{path}.{scale}")
         if not tex:
             return factors
         return self.build(path, TexturedMaterial, factors=factors, **tex)
+
+    def extension_texture_factors(self, t: dict, path: str, kw: dict):
+        """An extension texture multiplies its factor (glTF). A factor whose default is 0 must be
+        given (the texture would have no effect); one whose default is not (specular = 1,
+        specular_color = [1, 1, 1]) takes it, which makes the extension present."""
+        for key, (group, _c, targets, _h) in EXTENSION_TEXTURES.items():
+            if key not in t:
+                continue
+            fields = [f for f, _ in targets] or [next(iter(EXTENSION_FIELDS[group]))]  # the coat normal: clearcoat
+            for field in fields:
+                if field in t:
+                    continue
+                neutral = EXTENSION_FIELDS[group][field]
+                if not np.any(neutral):
+                    one = "[1.0, 1.0, 1.0]" if isinstance(neutral, tuple) else "1.0"
+                    what = "the texture multiplies it" if targets else "it scales the coat"
+                    self.fail(
+                        f"{path}.{key}",
+                        f"has no effect without {field}, which defaults to 0 (KHR_materials_{group}; {what}); "
+                        f"add {field} = {one} or remove the texture",
+                    )
+                kw[field] = neutral
 
     def texture(self, x, path: str, key: str):
         srgb, min_c, holds = _TEXTURES[key]
@@ -542,7 +613,7 @@ class _Loader:
         if ext not in image.SUPPORTED_EXTENSIONS:
             self.fail(path, f"{str(p)!r} has an unsupported extension; use one of {', '.join(image.SUPPORTED_EXTENSIONS)}")
         decode = srgb and ext == ".png"
-        cache_key = (p, decode, key == "base_color_texture" or key == "emissive_texture")
+        cache_key = (p, decode, srgb)
         if cache_key in self._images:
             return self._images[cache_key]
         try:
@@ -555,7 +626,7 @@ class _Loader:
         if min_c == 3 and srgb:
             img = img[..., :3] if C >= 3 else np.repeat(img[..., :1], 3, axis=-1)  # drop alpha / grey -> RGB
         elif C < min_c:
-            self.fail(path, f"{str(p)!r} has {C} channel(s); it must hold {holds} in an RGB image")
+            self.fail(path, f"{str(p)!r} has {C} channel(s); it must hold {holds}")
         if not np.all(np.isfinite(img)):
             self.fail(path, f"{str(p)!r} contains NaN or Inf; fix the image")
         if decode:
