@@ -521,7 +521,7 @@ def brdf(
     # Named shape checks (always) and finiteness (concrete values): a NaN direction gave 0.
     n, v, l = (check_values(name, vector(name, x)) for name, x in (("n", n), ("v", v), ("l", l)))
     batch_shape("brdf", ("n", n, 1), ("v", v, 1), ("l", l, 1), material=m)
-    if m.extensions:
+    if m.layered:
         from .layered import layered_soa
         from .lights import _layer_setup
 

@@ -112,7 +112,7 @@ def shade_ibl(
     # mixes below alike (as `brdf_soa` does).
     m = m.replace(metallic=jnp.clip(m.metallic, 0.0, 1.0))
 
-    if m.extensions:
+    if m.layered:
         if model != "gltf" or multiscatter:
             raise ValueError(
                 f"the glTF material extensions {m.extensions} are shaded with model='gltf' and "

@@ -473,7 +473,7 @@ def shade_direct(
         amb3 = unpack3(jnp.broadcast_to(amb, amb.shape[:-1] + (3,)) if amb.ndim else jnp.broadcast_to(amb, (3,)))
         out = tuple(out[i] + amb3[i] * base[i] * m.occlusion for i in range(3))
     if layers is None:
-        emissive = unpack3(m.emissive)
+        emissive = unpack3(m.emission())
     else:
         emissive = unpack3(emission_soa(m, n3, v3, layers[0].coat_normal))
     return pack3(tuple(out[i] + emissive[i] for i in range(3)))
@@ -482,7 +482,7 @@ def shade_direct(
 def _layer_setup(m, model, n3, tangent, coat_normal, volume_distance, sheen_lut):
     """None for a Material without extensions (the core path, unchanged); else the layered
     inputs (LayerInputs, sheen table) after checking the model and the needed arguments."""
-    if not m.extensions:
+    if not m.layered:
         return None
     if model != "gltf":
         raise ValueError(

@@ -105,6 +105,12 @@ class Material(Pytree):
         is part of the pytree structure, so it is known inside jit."""
         return tuple(g for g, fs in EXTENSION_FIELDS.items() if any(getattr(self, f) is not None for f in fs))
 
+    @property
+    def layered(self) -> bool:
+        """Whether shading needs the layered BSDF (`jaxpbr.layered`): some extension other than
+        emissive_strength, which only scales the emission, is present."""
+        return any(g != "emissive_strength" for g in self.extensions)
+
     def complete(self, groups=None) -> "Material":
         """A copy whose groups `groups` (default: the present ones) have every field set, unset
         ones to their neutral values (unchecked: safe inside transformations)."""

@@ -64,8 +64,9 @@ from .atomic import atomic_write
 from .brdf_terms import MODEL_REGISTRY, check_options
 from .cubemap import Cubemap
 from .ibl import shade_ibl
+from .layered import emission_soa
 from .lights import shade_direct
-from .material import Material
+from .material import EXTENSIONS, Material
 from .scene import (
     Environment,
     Plane,
@@ -74,6 +75,7 @@ from .scene import (
     TexturedMaterial,
     intersect_plane,
     intersect_sphere,
+    apply_extension_textures,
     primary_rays,
     sample_texture,
 )
@@ -164,6 +166,8 @@ class RenderPlan:
     mapping_levels: int  # M of the roughness -> lod mapping
     band_rows: int = 0  # the stages render bands of this many rows (0: the whole image)
     env_lights: int = 0  # disc lights split out of the environment (shaded analytically)
+    extensions: tuple[str, ...] = ()  # glTF material extensions some material uses (traced code)
+    charlie_size: int = 0  # face size of the Charlie-prefiltered cube (sheen under IBL), 0: none
 
     def describe(self) -> str:
         parts = [
@@ -177,6 +181,10 @@ class RenderPlan:
         ]
         if self.env_lights:
             parts.append(f"{self.env_lights} sun(s) split out of the environment as disc light(s)")
+        if self.extensions:
+            parts.append("material extensions: " + ", ".join(self.extensions))
+        if self.charlie_size:
+            parts.append(f"Charlie-prefiltered cube {self.charlie_size}^2 (sheen)")
         if self.textured:
             parts.append(f"{len(self.textured)} textured object(s)" + (" with normal maps" if self.normal_maps else ""))
         return "; ".join(parts)
@@ -240,6 +248,23 @@ def _material_ranges(m) -> tuple[float, float, bool]:
     )
 
 
+def _material_extensions(m) -> tuple[tuple[str, ...], float]:
+    """(extension groups present, max clear-coat roughness or 0) of a Material or TexturedMaterial."""
+    f = m.factors if isinstance(m, TexturedMaterial) else m
+    groups = f.extensions
+    rc = 0.0
+    if "clearcoat" in groups:
+        rc = _bound(f.clearcoat_roughness, "max", 1.0) if f.clearcoat_roughness is not None else 0.0
+    return groups, rc
+
+
+def _union_extensions(mats) -> tuple[str, ...]:
+    present = set()
+    for m in mats:
+        present.update(_material_extensions(m)[0])
+    return tuple(g for g in EXTENSIONS if g in present)
+
+
 def _prefilter_size(env: Environment, opts: RenderOptions) -> int:
     if env.prefiltered is not None:
         return env.prefiltered.face_size
@@ -261,7 +286,9 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
     else:
         mats = [ob.material for ob in scene.objects]
     ranges = [_material_ranges(m) for m in mats]
-    r_max = max(r for r, _, _ in ranges)
+    extensions = _union_extensions(mats)
+    # The clear coat reads the prefiltered map at its own roughness.
+    r_max = max([r for r, _, _ in ranges] + [_material_extensions(m)[1] for m in mats])
     met_min = min(mt for _, mt, _ in ranges)
     emissive = any(e for _, _, e in ranges)
     textured = tuple(
@@ -283,8 +310,9 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
         diffuse = opts.multiscatter or met_min < 1.0
         env_lights = _env_split(env, opts)[0]
         n_env_lights = 0 if env_lights is None else len(env_lights)
+        charlie_size = _charlie_size(env) if "sheen" in extensions else 0
     else:
-        size, M, levels, diffuse, n_env_lights = 0, 0, 0, False, 0
+        size, M, levels, diffuse, n_env_lights, charlie_size = 0, 0, 0, False, 0, 0
     return RenderPlan(
         direct=len(scene.lights) > 0,
         ibl=ibl,
@@ -298,7 +326,18 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
         prefilter_levels=levels,
         mapping_levels=M,
         env_lights=n_env_lights,
+        extensions=extensions,
+        charlie_size=charlie_size,
     )
+
+
+def _charlie_size(env: Environment) -> int:
+    """Face size of the Charlie cube the plan reads: the environment's own, or the default."""
+    if env.charlie is not None:
+        return env.charlie.face_size
+    from . import sheen_prefilter
+
+    return min(sheen_prefilter.DEFAULT_CHARLIE_SIZE, env.radiance.face_size)
 
 
 # ------------------------------------------------------------------------------------------
@@ -470,7 +509,31 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
     a traced environment (differentiating wrt its texels) inside the trace, never cached."""
     lights, env = _env_split(env, opts) if p.env_lights else (None, env)
     key = _env_key(env, p)
-    return _asset_irradiance(env, p, opts, key), _asset_prefiltered(env, p, opts, key), _asset_lut(env, opts), lights
+    return (
+        _asset_irradiance(env, p, opts, key), _asset_prefiltered(env, p, opts, key), _asset_lut(env, opts), lights,
+        _asset_sheen(env, p, opts),
+    )
+
+
+def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions):
+    """(sheen albedo table, Charlie-prefiltered cube) when the plan shades sheen under IBL, else None."""
+    if not p.charlie_size:
+        return None
+    dtype = jnp.dtype(opts.dtype)
+    table = env.sheen_lut
+    if table is None:
+        table = ASSETS.get("sheen_lut", (opts.lut_size, dtype.name), lambda: shipped_luts.sheen_lut(opts.lut_size))
+    charlie = env.charlie
+    if charlie is None:
+        from . import sheen_prefilter
+
+        src = env.radiance
+        compute = lambda: sheen_prefilter.prefilter_charlie(src, size=p.charlie_size)  # noqa: E731
+        if all(is_concrete(lv) for lv in src.levels):
+            charlie = ASSETS.get("charlie", (content_key(src), p.charlie_size), compute)
+        else:
+            charlie = compute()
+    return jnp.asarray(table, dtype), _in_dtype(charlie, opts)
 
 
 def _env_key(env: Environment, p: RenderPlan):
@@ -582,8 +645,12 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, **ov
         textured=(), normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels,
         mapping_levels=M, env_lights=0 if lights is None else len(lights),
     )
-    irr, pre, lut, lights = _env_assets(environment, full, opts)
-    return environment.replace(irradiance=irr, prefiltered=pre, lut=lut, lut_smith=_lut_smith(opts), lights=lights)
+    full = dataclasses.replace(full, extensions=("sheen",), charlie_size=_charlie_size(environment))
+    irr, pre, lut, lights, (table, charlie) = _env_assets(environment, full, opts)
+    return environment.replace(
+        irradiance=irr, prefiltered=pre, lut=lut, lut_smith=_lut_smith(opts), lights=lights, charlie=charlie,
+        sheen_lut=table,
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -591,18 +658,23 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, **ov
 # ------------------------------------------------------------------------------------------
 
 
-def _stack_materials(objects, dtype):
-    """Per-object constant materials (textured objects contribute their factors), leaves (K, ...)."""
+def _stack_materials(objects, dtype, extensions=()):
+    """Per-object constant materials (textured objects contribute their factors), leaves (K, ...).
+    The extension groups in `extensions` are completed with their neutral values on every object
+    (one material structure for all pixels); other extension fields are left out (None)."""
     mats = [ob.material.factors if isinstance(ob.material, TexturedMaterial) else ob.material for ob in objects]
+    mats = [m.complete(extensions) for m in mats]
     out = {}
     for f in fields_of(Material):
+        if getattr(mats[0], f.name) is None:
+            continue
         tail = (3,) * f.rank  # RGB
         out[f.name] = jnp.stack([jnp.broadcast_to(jnp.asarray(getattr(m, f.name), dtype), tail) for m in mats])
     return out
 
 
 def _gather_material(stack, idx) -> Material:
-    return unchecked(Material, **{f: x[idx] for f, x in stack.items()})
+    return unchecked(Material, **{f.name: (stack[f.name][idx] if f.name in stack else None) for f in fields_of(Material)})
 
 
 def _cast(objects, o, d, dtype):
@@ -689,8 +761,10 @@ def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
     return p, n, (u, v), tangent
 
 
-def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype):
-    """Override the gathered constant material (and normal) on the pixels of textured object k."""
+def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None):
+    """Override the gathered constant material (and normal) on the pixels of textured object k;
+    with the extension textures (`scene.apply_extension_textures`) also the clear-coat normal and
+    the anisotropy direction. Returns (material, normal, coat normal | None, tangent)."""
     u, v = uv
     base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
     if True:
@@ -710,6 +784,15 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype):
         if tm.emissive_texture is not None:
             tex = sample_texture(jnp.asarray(tm.emissive_texture, dtype)[..., :3], u, v)
             emis = jnp.where(sel[..., None], jnp.asarray(f.emissive, dtype) * tex, emis)
+        if tm.extension_textures:
+            m = evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis)
+            m, cn, tan_k = apply_extension_textures(tm, m, u, v, sel, n, tangent, dtype)
+            base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
+            if cn is not None:
+                prev = n if coat_n is None else coat_n
+                coat_n = tuple(jnp.where(sel, cn[i], prev[i]) for i in range(3))
+            if tan_k is not None:
+                tangent = tan_k
         if tm.normal_texture is not None:
             tex = sample_texture(jnp.asarray(tm.normal_texture, dtype)[..., :3], u, v)
             s = jnp.asarray(tm.normal_scale, dtype)
@@ -720,7 +803,7 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype):
             B = vcross(n, T)
             pert = vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
             n = tuple(jnp.where(sel, pert[i], n[i]) for i in range(3))
-    return unchecked(Material, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n
+    return evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n, coat_n, tangent
 
 
 def _cast_floats(tree, dtype):
@@ -742,13 +825,30 @@ def _shade_direct(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g):
     pos, n, view, m = g["pos"], g["n"], g["view"], g["m"]
     if p_plan.direct:
         lights = _cast_floats(list(scene.lights), dtype)
-        return shade_direct(pack3(pos), pack3(n), pack3(view), m, lights, model=opts.model, ambient=scene.ambient, smith=opts.smith)
+        kw = _layer_kwargs(g, m, dtype) if p_plan.extensions else {}
+        kw.pop("transmit_direction", None)
+        return shade_direct(pack3(pos), pack3(n), pack3(view), m, lights, model=opts.model, ambient=scene.ambient, smith=opts.smith, **kw)
     out = None
     if scene.ambient:
         out = scene.ambient * m.base_color * m.occlusion[..., None]
     if p_plan.emissive:
-        out = m.emissive if out is None else out + m.emissive
+        e = emission_soa(m, g["n"], g["view"], g.get("coat_n"))
+        out = e if out is None else out + e
     return out
+
+
+def _layer_kwargs(g, m: Material, dtype) -> dict:
+    """The per-pixel inputs of the material extensions (world space) from the G-buffer."""
+    kw = {}
+    if "anisotropy" in m.extensions and g.get("tangent") is not None:
+        kw["tangent"] = pack3(g["tangent"])
+    if "clearcoat" in m.extensions and g.get("coat_n") is not None:
+        kw["coat_normal"] = pack3(g["coat_n"])
+    dist, d_t = _volume_inputs(g, m, dtype)
+    if dist is not None:
+        kw["volume_distance"] = dist
+        kw["transmit_direction"] = d_t
+    return kw
 
 
 def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, direct):
@@ -759,18 +859,26 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     out = direct
     env = scene.environment
     if p_plan.ibl:
-        irr, pre, lut, env_lights = assets
+        irr, pre, lut, env_lights, sheen = assets
         rot = -jnp.asarray(env.rotation, dtype)
         n_e = pack3(_rotate_y(n, rot))
         v_e = pack3(_rotate_y(view, rot))
-        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.multiscatter)
+        kw = {}
+        if p_plan.extensions:
+            # Vector inputs of the extensions in the environment's frame.
+            kw = {k: (pack3(_rotate_y(unpack3(x), rot)) if k in ("tangent", "coat_normal", "transmit_direction") else x)
+                  for k, x in _layer_kwargs(g, m, dtype).items()}
+        sheen_kw = {} if sheen is None else {"sheen_lut": sheen[0], "charlie": sheen[1]}
+        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.multiscatter, **kw, **sheen_kw)
         if p_plan.env_lights:
             # The suns split out of the environment, as disc lights in its frame (emission is
             # added once, by the direct stage).
             ls = _cast_floats(list(env_lights), dtype)
-            dark = m.replace(emissive=jnp.zeros_like(m.emissive))
+            dark = evolve(m, emissive=jnp.zeros_like(m.emissive))
             zero = jnp.zeros_like(n_e)
-            ibl = ibl + shade_direct(zero, n_e, v_e, dark, ls, model=opts.model, smith=opts.smith, disc_lights=True)
+            kw.pop("transmit_direction", None)
+            sheen_kw.pop("charlie", None)
+            ibl = ibl + shade_direct(zero, n_e, v_e, dark, ls, model=opts.model, smith=opts.smith, disc_lights=True, **kw, **sheen_kw)
         ibl = jnp.asarray(env.intensity, dtype) * ibl
         out = ibl if out is None else out + ibl
     if out is None:
@@ -801,18 +909,59 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
     o, d = unpack3(o), unpack3(d)
     objects = scene.objects
     t, idx, hit = _cast(objects, o, d, dtype)
-    need_uv = bool(p_plan.textured)
+    ext = p_plan.extensions
+    need_uv = bool(p_plan.textured) or "anisotropy" in ext
     pos, n, uv, tangent = _surface(objects, o, d, t, idx, dtype, need_uv)
-    m = _gather_material(_stack_materials(objects, dtype), idx)
+    m = _gather_material(_stack_materials(objects, dtype, ext), idx)
     g = dict(pos=pos, n=n, view=tuple(-c for c in d), m=m, hit=hit, ray=d)
     if need_uv:
         g.update(idx=idx, uv=uv, tangent=tangent)
+    if "volume" in ext:
+        # Sphere radius per pixel (0 on planes): the volume's path is the sphere's chord.
+        radii = jnp.asarray([float(0.0) if isinstance(ob, Plane) else 1.0 for ob in objects], dtype)
+        rad = jnp.stack([jnp.asarray(ob.radius if isinstance(ob, Sphere) else 0.0, dtype) for ob in objects]) * radii
+        g["radius"] = rad[idx] if len(objects) > 1 else jnp.broadcast_to(rad[0], idx.shape)
     return g
 
 
+def _volume_inputs(g, m: Material, dtype):
+    """(path length in the medium, direction the transmitted environment light comes from) per
+    pixel for the volume extension, in world space; (None, None) without it.
+
+    Spheres: the refracted ray t = refract(-v, n, 1/ior) crosses the chord 2 R cos(theta_t) and
+    leaves through the far side, where it refracts back with the same angle (no total internal
+    reflection on a sphere): the exact exit direction is refract(t, -n', ior) with
+    n' = n + 2 cos(theta_t) t. Planes (R = 0): a slab of the material's thickness, whose exit
+    direction is -v."""
+    if "radius" not in g or "volume" not in m.extensions:
+        return None, None
+    from .layered_ibl import refract
+
+    mc = m.complete(("ior", "volume"))
+    n = pack3(g["n"])
+    v = pack3(g["view"])
+    R = g["radius"]
+    ior = jnp.maximum(mc.ior, 1.0)
+    t_in = refract(-v, n, 1.0 / ior)
+    cos_t = -jnp.sum(t_in * n, -1)
+    chord = 2.0 * R * cos_t
+    n_far = n + (2.0 * cos_t)[..., None] * t_in
+    n_far = n_far / jnp.maximum(jnp.linalg.norm(n_far, axis=-1, keepdims=True), small_sq(dtype))
+    d_out = refract(t_in, -n_far, ior)
+    sphere = R > 0
+    dist = jnp.where(sphere, chord, mc.thickness)
+    d_t = jnp.where(sphere[..., None], d_out, -v)
+    return dist, d_t
+
+
 def _texture(scene: Scene, k: int, opts: RenderOptions, g):
-    m, n = _apply_texture(scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype))
-    return {**g, "m": m, "n": n}
+    m, n, coat_n, tangent = _apply_texture(
+        scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype), g.get("coat_n")
+    )
+    out = {**g, "m": m, "n": n, "tangent": tangent}
+    if coat_n is not None:
+        out["coat_n"] = coat_n
+    return out
 
 
 def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool = False):
@@ -912,9 +1061,10 @@ def render(scene: Scene, *, options: RenderOptions | None = None, progress=None,
         try:
             pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key)))
             irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key)))
+            sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts)))
             lut = _asset_lut(env, opts)
             return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(
-                sc, lambda: (irr.result(), pre.result(), lut, env_lights), pb, opts, off, staged=True), progress)
+                sc, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()), pb, opts, off, staged=True), progress)
         finally:
             # On success both maps were used; on an error or an interrupt do not wait for a
             # precompute still running (`with` would join it).
@@ -1031,6 +1181,7 @@ def _batched(name: str, obj):
     if not fields or not all(f.is_array for f in fields):
         raise TypeError(f"{name}: unsupported batched object {type(obj).__name__}")
     sizes = {}
+    fields = [f for f in fields if getattr(obj, f.name) is not None]  # absent optional fields stay None
     for f in fields:
         x = getattr(obj, f.name)
         if np.ndim(x) == f.rank + 1:

@@ -475,6 +475,9 @@ class Environment(Pytree):
         in the environment's frame and units (rotation and intensity apply to them too). Set by
         `bake` (or a user who split the lights: `radiance` and the maps are then the residual);
         when None and no map is given, `render` extracts them itself (`RenderOptions.extract_lights`).
+    charlie, sheen_lut: optional Charlie-prefiltered Cubemap (`jaxpbr.sheen_prefilter`) and sheen
+        albedo table (n_r, n_nov) (`jaxpbr.sheen_lut`), read by materials with KHR_materials_sheen;
+        `bake` fills them, `render` computes them only for a scene that has sheen.
     """
 
     radiance: Any = subtree(None)
@@ -486,6 +489,8 @@ class Environment(Pytree):
     lut: Any = leaf(None, rank=3)
     lut_smith: str | None = static(None)
     lights: Any = subtree(None)
+    charlie: Any = subtree(None)
+    sheen_lut: Any = leaf(None, rank=2)
 
     @property
     def baked(self) -> bool:
@@ -498,11 +503,16 @@ class Environment(Pytree):
             raise TypeError(
                 "Environment.radiance must be a jaxpbr.Cubemap (e.g. Cubemap.from_equirect(img, face_size=128))"
             )
-        for name in ("irradiance", "prefiltered"):
+        for name in ("irradiance", "prefiltered", "charlie"):
             x = getattr(self, name)
             if x is not None and not isinstance(x, Cubemap):
                 raise TypeError(f"Environment.{name} must be a Cubemap or None")
-        for name in ("radiance", "irradiance", "prefiltered"):
+        if self.sheen_lut is not None:
+            t = jnp.asarray(self.sheen_lut)
+            if t.ndim != 2:
+                raise ValueError(f"Environment.sheen_lut must be an (n_r, n_nov) sheen albedo table, got shape {t.shape}")
+            self._set(sheen_lut=t)
+        for name in ("radiance", "irradiance", "prefiltered", "charlie"):
             cube = getattr(self, name)
             if cube is not None:
                 for m, lv in enumerate(cube.levels):

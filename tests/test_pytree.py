@@ -43,6 +43,12 @@ def _camera():
 # name -> factory of one (unbatched) example of every data type
 EXAMPLES = {
     "Material": lambda: jp.Material((0.9, 0.6, 0.2), metallic=1.0, roughness=0.4),
+    "LayeredMaterial": lambda: jp.Material(
+        (0.9, 0.6, 0.2), roughness=0.4, clearcoat=1.0, clearcoat_roughness=0.1, sheen_color=(0.5, 0.5, 0.5),
+        sheen_roughness=0.3, specular=0.8, specular_color=(1.0, 0.9, 0.9), ior=1.4, anisotropy_strength=0.5,
+        anisotropy_rotation=0.3, emissive_strength=2.0, transmission=0.5, thickness=0.1, attenuation_distance=2.0,
+        attenuation_color=(0.9, 0.8, 0.7),
+    ),
     "PointLight": lambda: jp.PointLight((1.0, 2.0, 3.0), (1.0, 0.9, 0.8), 5.0, range=10.0),
     "DirectionalLight": lambda: jp.DirectionalLight((0.0, -1.0, 0.0), intensity=3.0),
     "SpotLight": lambda: jp.SpotLight((0.0, 2.0, 0.0), (0.0, -1.0, 0.0), inner_cone_angle=0.2, outer_cone_angle=0.5),
@@ -71,7 +77,12 @@ NAMES = sorted(EXAMPLES)
 # The shapes the docstrings document for the array fields of one unbatched object, core axes only
 # (-1: any size). LightSet's documented (N, ...) shapes carry the light axis N as a batch axis.
 DOCUMENTED = {
-    jp.Material: dict(base_color=(3,), metallic=(), roughness=(), occlusion=(), emissive=(3,)),
+    jp.Material: dict(
+        base_color=(3,), metallic=(), roughness=(), occlusion=(), emissive=(3,), clearcoat=(), clearcoat_roughness=(),
+        sheen_color=(3,), sheen_roughness=(), specular=(), specular_color=(3,), ior=(), anisotropy_strength=(),
+        anisotropy_rotation=(), emissive_strength=(), transmission=(), thickness=(), attenuation_distance=(),
+        attenuation_color=(3,),
+    ),
     jp.PointLight: dict(position=(3,), color=(3,), intensity=(), inv_range=()),
     jp.DirectionalLight: dict(direction=(3,), color=(3,), intensity=(), angular_radius=()),
     jp.SpotLight: dict(
@@ -89,10 +100,14 @@ DOCUMENTED = {
         normal_texture=(-1, -1, 3),
         emissive_texture=(-1, -1, 3),
         normal_scale=(),
+        clearcoat_texture=(-1, -1, -1), clearcoat_roughness_texture=(-1, -1, -1), clearcoat_normal_texture=(-1, -1, 3),
+        clearcoat_normal_scale=(), sheen_color_texture=(-1, -1, -1), sheen_roughness_texture=(-1, -1, -1),
+        specular_texture=(-1, -1, -1), specular_color_texture=(-1, -1, -1), anisotropy_texture=(-1, -1, -1),
+        transmission_texture=(-1, -1, -1), thickness_texture=(-1, -1, -1),
     ),
     jp.Sphere: dict(center=(3,), radius=()),
     jp.Plane: dict(point=(3,), normal=(3,), tangent=(3,), uv_scale=()),
-    jp.Environment: dict(intensity=(), rotation=(), lut=(-1, -1, 2)),
+    jp.Environment: dict(intensity=(), rotation=(), lut=(-1, -1, 2), sheen_lut=(-1, -1)),
     jp.GBuffer: dict(hit=(-1, -1), position=(-1, -1, 3), normal=(-1, -1, 3), view=(-1, -1, 3)),
     jp.Scene: dict(background=(3,)),
     jp.Cubemap: dict(levels=(6, -1, -1, -1)),
@@ -107,7 +122,7 @@ SUBTREES = {
     jp.TexturedMaterial: {"factors"},
     jp.Sphere: {"material"},
     jp.Plane: {"material"},
-    jp.Environment: {"radiance", "irradiance", "prefiltered", "lights"},
+    jp.Environment: {"radiance", "irradiance", "prefiltered", "lights", "charlie"},
     jp.GBuffer: {"material"},
     jp.Scene: {"camera", "objects", "lights", "environment", "gbuffer"},
 }
@@ -402,7 +417,8 @@ def test_constructors_are_unchanged():
 
 
 def test_unchecked_builds_without_validation_and_needs_every_field():
-    m = unchecked(jp.Material, base_color=1, metallic=2, roughness=3, occlusion=4, emissive=None)
+    ext = {f: None for fs in jp.material.EXTENSION_FIELDS.values() for f in fs}
+    m = unchecked(jp.Material, base_color=1, metallic=2, roughness=3, occlusion=4, emissive=None, **ext)
     assert m.roughness == 3 and m.emissive is None
     with pytest.raises(TypeError, match="missing"):
         unchecked(jp.Material, roughness=0.5)

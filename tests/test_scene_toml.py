@@ -226,7 +226,7 @@ def test_round_trip(tmp_path):
     np.testing.assert_allclose(
         [_np(gold.metallic), _np(gold.roughness), _np(gold.occlusion)], [1.0, 0.3, 0.9], rtol=1e-6
     )
-    np.testing.assert_allclose(_np(gold.emissive), [0.2, 0.4, 0.0], rtol=1e-6)  # emissive * strength
+    np.testing.assert_allclose(_np(gold.emission()), [0.2, 0.4, 0.0], rtol=1e-6)  # emissive * strength
     np.testing.assert_allclose(_np(s.objects[0].center), [1, 0, -1])
     assert float(s.objects[0].radius) == 0.5
 
@@ -451,13 +451,12 @@ def test_material_without_extension_keys_has_none():
 
 
 def test_emissive_strength_multiplies_the_emission():
-    """KHR_materials_emissive_strength is folded into the (unbounded) emissive factor: the same
-    emission, and no extension group, so the material keeps the core path (every model,
-    multiscatter)."""
+    """KHR_materials_emissive_strength is its own field; alone it keeps the core shading path
+    (Material.layered is False: every model, multiscatter)."""
     sf = loads_scene('[materials.m]\nemissive = [0.1, 0.2, 0.0]\nemissive_strength = 20.0\n' + SPHERE, ".")
     m = sf.materials["m"]
     np.testing.assert_allclose(_np(m.emission()), [2.0, 4.0, 0.0], rtol=1e-6)
-    assert m.extensions == ()
+    assert m.extensions == ("emissive_strength",) and not m.layered
     # Without an emissive factor or texture (black) the strength changes nothing.
     sf = loads_scene('[materials.m]\nemissive_strength = 3.0\n' + SPHERE, ".")
     np.testing.assert_allclose(_np(sf.materials["m"].emission()), [0.0, 0.0, 0.0])
@@ -498,11 +497,10 @@ def test_every_material_field_round_trips(seed):
         thickness=5 * u(), attenuation_distance=math.inf if seed == 0 else 0.1 + u(), attenuation_color=rgb(),
     )
     back = loads_scene("[materials.m]\n" + _material_toml(m) + SPHERE, ".").materials["m"]
-    # emissive_strength comes back folded into emissive (the same emission).
-    assert back.extensions == tuple(g for g in m.extensions if g != "emissive_strength")
+    assert back.extensions == m.extensions
     np.testing.assert_allclose(_np(back.emission()), _np(m.emission()), rtol=1e-6)
     for f in jp.Material.__dataclass_fields__:
-        if f not in ("emissive", "emissive_strength"):
+        if True:
             np.testing.assert_allclose(_np(getattr(back, f)), _np(getattr(m, f)), rtol=1e-6, err_msg=f)
 
 
@@ -635,8 +633,8 @@ def test_extensions_example_parses():
     expect = ["clearcoat", "sheen", "specular", "ior", "anisotropy", "transmission", "volume", "emissive_strength"]
     for name, row in zip(expect, rows):
         groups = {o.material.extensions for o in row}
-        if name == "emissive_strength":  # folded into emissive: emission beyond 1
-            assert groups == {()} and max(float(np.max(_np(o.material.emission()))) for o in row) > 1
+        if name == "emissive_strength":  # emission beyond 1, on the core shading path
+            assert groups == {("emissive_strength",)} and max(float(np.max(_np(o.material.emission()))) for o in row) > 1
         else:
             assert len(groups) == 1 and name in groups.pop(), name
         ys = {float(o.center[1]) for o in row}

@@ -563,15 +563,13 @@ class _Loader:
             kw["attenuation_distance"] = self.number(
                 t["attenuation_distance"], f"{path}.attenuation_distance", lo=0.0, open_lo=True, allow_inf=True
             )
-        # KHR_materials_emissive_strength is folded into the emissive factor (which has no upper
-        # bound): the same emission, Material.emission(), but no extension group, so the material
-        # keeps the core shading path (every model, multiscatter). To keep it as the field instead:
-        # drop this pop (kw already holds "emissive_strength") and emit `emissive` unscaled.
-        strength = kw.pop("emissive_strength", 1.0)
+        # KHR_materials_emissive_strength stays its own field (Material.emission() = emissive x
+        # strength); alone it keeps the core shading path (Material.layered is False), so every
+        # model and multiscatter shade it.
         if "emissive" in t:
-            kw["emissive"] = tuple(c * strength for c in self.colour(t["emissive"], f"{path}.emissive"))
+            kw["emissive"] = self.colour(t["emissive"], f"{path}.emissive")
         elif "emissive_texture" in t:
-            kw["emissive"] = (strength,) * 3  # a texture alone emits its own colour (factor 1)
+            kw["emissive"] = (1.0,) * 3  # a texture alone emits its own colour (factor 1)
         self.extension_texture_factors(t, path, kw)
         factors = self.build(path, Material, **kw)
         tex = {key: self.texture(t[key], f"{path}.{key}", key) for key in _TEXTURES if key in t}

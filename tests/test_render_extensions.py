@@ -1,0 +1,125 @@
+"""The scene layer with the glTF material extensions: the plan traces and bakes only what the
+materials use; neutral values render the core image; sphere volumes; gradients."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxpbr as jp
+from jaxpbr import renderer, sheen_prefilter
+from jaxpbr.material import EXTENSION_FIELDS
+
+
+def _env():
+    return jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16))
+
+
+def _scene(mats, *, env=True, lights=True, w=24, h=12, floor=0.8):
+    objs = [jp.Sphere(center=(2.2 * (i - (len(mats) - 1) / 2), 1.0, 0.0), radius=1.0, material=m) for i, m in enumerate(mats)]
+    objs.append(jp.Plane(point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), material=jp.Material((0.5, 0.5, 0.5), metallic=0.0, roughness=floor)))
+    cam = jp.Camera(position=(0.0, 2.0, 9.0), target=(0.0, 1.0, 0.0), width=w, height=h, fov_y_deg=45.0)
+    return jp.Scene(
+        camera=cam, objects=objs, lights=[jp.PointLight(position=(0.0, 5.0, 5.0), intensity=30.0)] if lights else [],
+        environment=_env() if env else None,
+    )
+
+
+BASE = dict(base_color=(0.8, 0.4, 0.2), metallic=0.0, roughness=0.5)
+
+
+def test_plan_lists_the_extensions_the_materials_use():
+    p = renderer.plan(_scene([jp.Material(**BASE)]))
+    assert p.extensions == () and p.charlie_size == 0
+    p = renderer.plan(_scene([jp.Material(**BASE, clearcoat=1.0), jp.Material(**BASE, transmission=0.5, thickness=0.1)]))
+    assert p.extensions == ("clearcoat", "transmission", "volume") and p.charlie_size == 0
+    assert "material extensions: clearcoat, transmission, volume" in p.describe()
+    p = renderer.plan(_scene([jp.Material(**BASE, sheen_color=(1.0, 1.0, 1.0))]))
+    assert p.extensions == ("sheen",) and p.charlie_size > 0
+    p = renderer.plan(_scene([jp.Material(**BASE, sheen_color=(1.0, 1.0, 1.0))], env=False))
+    assert p.extensions == ("sheen",) and p.charlie_size == 0  # no IBL: no Charlie cube
+
+
+def test_plan_reads_the_prefiltered_chain_up_to_the_coat_roughness():
+    p0 = renderer.plan(_scene([jp.Material(base_color=(1.0, 1.0, 1.0), metallic=1.0, roughness=0.1)], floor=0.1))
+    p1 = renderer.plan(_scene([jp.Material(base_color=(1.0, 1.0, 1.0), metallic=1.0, roughness=0.1, clearcoat=1.0,
+                                           clearcoat_roughness=0.9)], floor=0.1))
+    assert p1.prefilter_levels > p0.prefilter_levels
+
+
+def test_the_charlie_cube_is_baked_only_for_sheen(monkeypatch):
+    calls = []
+    real = sheen_prefilter.prefilter_charlie
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(sheen_prefilter, "prefilter_charlie", counting)
+    renderer.ASSETS.clear()
+    jp.render(_scene([jp.Material(**BASE, clearcoat=1.0)]))
+    assert calls == []
+    img = jp.render(_scene([jp.Material(**BASE, sheen_color=(0.9, 0.9, 0.9), sheen_roughness=0.5)]))
+    assert len(calls) == 1 and np.isfinite(np.asarray(img)).all()
+    jp.render(_scene([jp.Material(**BASE, sheen_color=(0.5, 0.9, 0.9), sheen_roughness=0.3)]))
+    assert len(calls) == 1  # cached per environment content
+
+
+@pytest.mark.parametrize("group", list(EXTENSION_FIELDS))
+def test_neutral_extensions_render_the_core_image(group):
+    core = jp.render(_scene([jp.Material(**BASE), jp.Material(base_color=(0.9, 0.9, 0.9), metallic=1.0, roughness=0.3)]))
+    ext = jp.render(_scene([jp.Material(**BASE, **EXTENSION_FIELDS[group]),
+                            jp.Material(base_color=(0.9, 0.9, 0.9), metallic=1.0, roughness=0.3)]))
+    np.testing.assert_allclose(np.asarray(ext), np.asarray(core), rtol=2e-5, atol=2e-6)
+
+
+def test_every_extension_renders_finite_and_changes_the_image():
+    core = np.asarray(jp.render(_scene([jp.Material(**BASE)])))
+    for kw in (dict(clearcoat=1.0, clearcoat_roughness=0.1), dict(sheen_color=(1.0, 1.0, 1.0), sheen_roughness=0.4),
+               dict(specular=0.2), dict(ior=2.5), dict(anisotropy_strength=0.9, anisotropy_rotation=0.5),
+               dict(emissive=(1.0, 1.0, 1.0), emissive_strength=5.0), dict(transmission=1.0),
+               dict(transmission=1.0, thickness=0.5, attenuation_distance=0.5, attenuation_color=(0.9, 0.3, 0.1))):
+        img = np.asarray(jp.render(_scene([jp.Material(**BASE, **kw)])))
+        assert np.isfinite(img).all(), kw
+        assert np.abs(img - core).max() > 1e-3, kw
+
+
+def test_sphere_volume_path_and_exit_direction():
+    """ior 1: no refraction, the exit direction is -v and the chord 2 R n.v; normal incidence at
+    any ior: straight through, chord 2 R; otherwise the exit direction is -v rotated away from
+    the normal's side by the deviation 2 (theta_i - theta_t)."""
+    n = np.array([[0.0, 0.0, 1.0]] * 3)
+    mu = np.array([1.0, 0.6, 0.2])
+    v = np.stack([np.sqrt(1 - mu * mu), np.zeros(3), mu], -1)
+    g = dict(n=jp._numerics.unpack3(jnp.asarray(n)), view=jp._numerics.unpack3(jnp.asarray(v)), radius=jnp.full(3, 2.0))
+    m = jp.Material(thickness=jnp.full(3, 0.1), ior=jnp.full(3, 1.0))
+    dist, d = renderer._volume_inputs(g, m, jnp.float64)
+    np.testing.assert_allclose(np.asarray(dist), 4.0 * mu, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(d), -v, atol=1e-12)
+    m = m.replace(ior=jnp.full(3, 1.5))
+    dist, d = renderer._volume_inputs(g, m, jnp.float64)
+    ti = np.arccos(mu)
+    tt = np.arcsin(np.sin(ti) / 1.5)
+    np.testing.assert_allclose(np.asarray(dist), 4.0 * np.cos(tt), rtol=1e-12)
+    dev = 2 * (ti - tt)  # total deviation of a ray through a sphere (no internal reflection)
+    cos_dev = np.sum(np.asarray(d) * -v, -1)
+    np.testing.assert_allclose(cos_dev, np.cos(dev), atol=1e-12)
+
+
+def test_render_is_differentiable_in_the_extension_parameters():
+    def loss(cc, sheen, tr):
+        m = jp.Material(**BASE, clearcoat=cc, clearcoat_roughness=0.2, sheen_color=jnp.stack([sheen] * 3), sheen_roughness=0.5,
+                        transmission=tr)
+        return jnp.mean(jp.render(_scene([m], w=12, h=6)))
+
+    args = (jnp.float32(0.5), jnp.float32(0.3), jnp.float32(0.4))
+    grads = jax.grad(loss, argnums=(0, 1, 2))(*args)
+    for i, gr in enumerate(grads):
+        assert np.isfinite(float(gr))
+        h = 1e-2
+        hi = list(args)
+        lo = list(args)
+        hi[i] = hi[i] + h
+        lo[i] = lo[i] - h
+        fd = (float(loss(*hi)) - float(loss(*lo))) / (2 * h)
+        assert abs(float(gr) - fd) <= 2e-2 * abs(fd) + 1e-4, (i, float(gr), fd)
