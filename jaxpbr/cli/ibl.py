@@ -63,6 +63,7 @@ def add_commands(sub) -> None:
     p.add_argument("-o", "--output", default="brdf_lut.exr", help="output .exr (default: %(default)s)")
     p.add_argument("--full-check", action="store_true", help="measure the error at every texel (slower) instead of the edges + 1024 random texels")
     p.add_argument("--no-error", action="store_true", help="skip measuring the error")
+    p.add_argument("--sheen", action="store_true", help="the sheen albedo table E of KHR_materials_sheen instead (R = E, G = B = 0; --smith is ignored)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_lut)
 
@@ -198,6 +199,8 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
     out = _checked(outs, Path(out_path or args.output), (".exr",))
     n_r, n_nov = _lut_shape(args.size)
     require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --size")
+    if getattr(args, "sheen", False):
+        return _sheen_lut(args, outs, out)
     t0 = time.perf_counter()
     smith = SMITH_ALIASES.get(args.smith, args.smith)
     if smith != args.smith:
@@ -229,6 +232,32 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
     if not args.quiet:
         e = f"; max |error| {err['max']:.2e} over {err['texels']} texels" if err else ""
         print(f"wrote {out} ({lut.shape[0]}x{lut.shape[1]}, smith {smith}, {seconds:.2f} s{e})")
+    return side
+
+
+def _sheen_lut(args, outs: OutputSet, out: Path) -> dict:
+    """`jaxpbr lut --sheen`: the sheen albedo table (jaxpbr.sheen_lut), as `_lut` writes the LUT."""
+    from ..sheen_lut import sheen_lut_error
+    from ..shipped_luts import sheen_lut
+
+    t0 = time.perf_counter()
+    lut = np.asarray(sheen_lut(args.size, samples=args.samples, use_shipped=False, progress=Progress("lut", args.quiet)))
+    seconds = time.perf_counter() - t0
+    err = None if args.no_error else sheen_lut_error(lut, texels=None if getattr(args, "full_check", False) else 1024)
+    meta = {
+        "quantity": "sheen albedo E = int D_charlie V_charlie (n.l) dl (KHR_materials_sheen); R = E, G = B = 0",
+        "layout": f"row j: r = max((j+0.5)/{lut.shape[0]}, 0.045) (row 0 at the top), column i: NoV = (i+0.5)/{lut.shape[1]}; bilinear, clamp to edge",
+        "alpha": "alpha = max(r, 0.045)^2 (r perceptual sheen roughness)",
+    }
+    rgb = np.stack([lut, np.zeros_like(lut), np.zeros_like(lut)], -1)
+    outs.add(out)
+    image.write(out, rgb, metadata={f"jaxpbr:{k}": v for k, v in meta.items()} | {"jaxpbr:max_abs_error": err["max"] if err else -1.0})
+    side = {"kind": "sheen_lut", "file": out.name, **meta, "size": list(lut.shape), "samples": args.samples, "seconds": seconds,
+            "error_vs_float64_reference": err, "conventions": cube_conventions(), "versions": library_versions()}
+    write_json(out.with_name(out.name + ".json"), side, outputs=outs)
+    if not args.quiet:
+        e = f"; max |error| {err['max']:.2e} over {err['texels']} texels" if err else ""
+        print(f"wrote {out} ({lut.shape[0]}x{lut.shape[1]} sheen albedo, {seconds:.2f} s{e})")
     return side
 
 
