@@ -2,6 +2,7 @@
 every bad input of the issue (one line on stderr, non-zero exit, no files left behind)."""
 
 import json
+import os
 
 import numpy as np
 import OpenEXR
@@ -92,6 +93,102 @@ def test_ibl_all_in_one_procedural(tmp_path):
     assert len(meta["jaxpbr:lod_table"].split(",")) == 33
     # rgba16f: the 3000-radiance sun is representable; values finite and non-negative
     assert all(np.isfinite(lv).all() and (lv >= 0).all() for lv in levels)
+    # The Charlie cube (sheen) is baked by default, at the renderer's default size (64, or the
+    # environment's face size if smaller) and the module's default levels.
+    charlie, cmeta, _ = read_ktx2(tmp_path / "charlie.ktx2")
+    assert len(charlie) == 5 and charlie[0].shape == (6, 16, 16, 4) and cmeta["jaxpbr:distribution"] == "charlie"
+    assert all(np.isfinite(lv).all() and (lv >= 0).all() for lv in charlie)
+
+
+_SIDECAR_CHARLIE_KEYS = {"files", "face_size", "num_levels", "level_roughness", "level_alpha", "level_mean_cosine", "lod_blend",
+                         "lod_formula", "lod_table", "lod_table_abscissa", "distribution", "min_roughness", "source_face_size",
+                         "environment_face_size", "seconds", "lookup", "conventions", "versions"}
+
+
+def test_ibl_bakes_the_charlie_cube_and_the_sheen_channel_of_the_lut(tmp_path):
+    """One bake: GGX and Charlie cubes, a 3-channel LUT (R, G = the GGX split sum, B = the shipped
+    sheen albedo table), and an ibl.json recording all of it and how an engine looks it up."""
+    from jaxpbr.cubeio import load_environment
+    from jaxpbr.sheen_prefilter import prefilter_charlie
+    from jaxpbr.shipped_luts import brdf_lut, sheen_lut, shipped_manifest
+
+    argv = ["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "128", "--charlie-size", "8",
+            "--charlie-levels", "3", "--ktx-format", "rgba32f", "--out-dir", str(tmp_path), "--quiet", "--no-error"]
+    assert main(argv) == 0
+    assert {"irradiance.ktx2", "prefiltered.ktx2", "charlie.ktx2", "charlie.ktx2.json", "brdf_lut.exr", "ibl.json"} <= set(_files(tmp_path))
+
+    # The Charlie cube read back is prefilter_charlie of the same environment (float32 file).
+    levels, meta, info = read_ktx2(tmp_path / "charlie.ktx2")
+    expect = prefilter_charlie(load_environment(["procedural:sky"], 16), size=8, num_levels=3)
+    assert info["face_count"] == 6 and len(levels) == 3
+    for got, want in zip(levels, expect.levels):
+        np.testing.assert_allclose(got[..., :3], np.asarray(want), rtol=1e-6, atol=0)
+    for k in ("distribution", "lod_blend", "lod_table", "level_roughness", "min_roughness", "source_face_size"):
+        assert meta[f"jaxpbr:{k}"] == expect.metadata[k]
+
+    # LUT: R, G = the GGX split sum, B = the sheen albedo table, same layout.
+    img, hdr = image.read_with_metadata(tmp_path / "brdf_lut.exr")
+    assert img.shape == (128, 128, 3)
+    np.testing.assert_allclose(img[..., :2], np.asarray(brdf_lut(128)), atol=1e-6)
+    np.testing.assert_array_equal(img[..., 2], np.asarray(sheen_lut()))
+    assert "B = E_sheen" in hdr["jaxpbr:channels"]
+
+    index = json.loads((tmp_path / "ibl.json").read_text())
+    assert index["sheen"] is True
+    ch = index["charlie"]
+    assert _SIDECAR_CHARLIE_KEYS <= set(ch), _SIDECAR_CHARLIE_KEYS - set(ch)
+    assert ch["kind"] == "prefiltered_charlie" and ch["distribution"] == "charlie" and ch["files"] == [str(tmp_path / "charlie.ktx2")]
+    assert (ch["face_size"], ch["num_levels"], ch["level_roughness"], ch["min_roughness"], ch["source_face_size"]) == (8, 3, "0,0.5,1", "0.045", "16")
+    assert ch == json.loads((tmp_path / "charlie.ktx2.json").read_text())
+    lut = index["brdf_lut"]
+    assert lut["channels"] == {"R": "A (GGX split sum, F0 weight)", "G": "B (F90 weight)", "B": "E_sheen: Charlie sheen albedo / sheen IBL weight"}
+    shipped = next(e for e in shipped_manifest()["sheen_luts"] if e["size"] == [128, 128])
+    assert lut["sheen_albedo"]["source"] == "shipped" and lut["sheen_albedo"]["shipped_file"] == f"luts/{shipped['file']}"
+    assert lut["sheen_albedo"]["max_abs_error"] == shipped["max_abs_error"]
+    assert set(index["lookup"]) >= {"irradiance", "prefiltered", "charlie", "brdf_lut"}
+    assert "lod_formula" in index["lookup"]["charlie"] and "NoV" in index["lookup"]["brdf_lut"]
+
+
+def test_ibl_no_sheen_writes_no_charlie_cube_and_a_zero_b_channel(tmp_path, capsys):
+    argv = ["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "8", "--out-dir", str(tmp_path), "--quiet", "--no-error"]
+    _bad(argv + ["--no-sheen", "--charlie-size", "8"], tmp_path, capsys, "--no-sheen")
+    _bad(argv + ["--charlie-size", "8", "--charlie-levels", "5"], tmp_path, capsys, "--charlie-levels 5")
+    assert main(argv + ["--no-sheen"]) == 0
+    assert not any(n.startswith("charlie") for n in _files(tmp_path))
+    img = image.read(tmp_path / "brdf_lut.exr")
+    assert img.shape == (8, 8, 3) and np.all(img[..., 2] == 0) and np.all(img[..., 0] > 0)
+    index = json.loads((tmp_path / "ibl.json").read_text())
+    assert index["sheen"] is False and "charlie" not in index and "charlie" not in index["lookup"]
+    assert index["brdf_lut"]["channels"]["B"] == "0 (unused)" and "sheen_albedo" not in index["brdf_lut"]
+
+
+def test_ibl_failure_while_writing_the_charlie_cube_restores_the_folder(tmp_path, capsys, monkeypatch):
+    """The disk fills up while charlie.ktx2 is being written (after the irradiance and GGX cubes
+    are in place, and a partial charlie.ktx2 landed): no new file is left, and the previous
+    set's files, charlie.ktx2 included, are back byte for byte."""
+    from jaxpbr import cubeio
+
+    old = {"irradiance.ktx2": b"old irr", "prefiltered.ktx2": b"old pre", "charlie.ktx2": b"old charlie",
+           "charlie.ktx2.json": b"{}", "brdf_lut.exr": b"old lut", "ibl.json": b"{}"}
+    for name, data in old.items():
+        (tmp_path / name).write_bytes(data)
+    real, calls = cubeio.write_ktx2, []
+
+    def flaky(path, levels, **kw):
+        calls.append(path.name)
+        if path.name == "charlie.ktx2":  # a partial file renamed into place, then the failure
+            part = path.with_name("partial.tmp")
+            part.write_bytes(b"half a cube")
+            os.replace(part, path)
+            raise OSError("No space left on device")
+        real(path, levels, **kw)
+
+    monkeypatch.setattr(cubeio, "write_ktx2", flaky)
+    argv = ["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "8", "--charlie-size", "8",
+            "--charlie-levels", "2", "--out-dir", str(tmp_path), "--quiet", "--no-error"]
+    _bad(argv, tmp_path, capsys, "No space left")
+    assert calls == ["irradiance.ktx2", "prefiltered.ktx2", "charlie.ktx2"]
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == old
 
 
 def _bad(argv, tmp_path, capsys, match):

@@ -4,6 +4,12 @@ Every output gets a JSON sidecar (`<output>.json`) with the conventions, paramet
 versions, run time and the measured error against the float64 reference. Inputs are validated
 before any work starts; outputs are written atomically, and a command that fails removes the
 files it already wrote, so there are never partial results.
+
+`jaxpbr ibl` bakes the whole set into one folder: irradiance.ktx2, prefiltered.ktx2 (GGX),
+charlie.ktx2 (the Charlie-prefiltered cube of KHR_materials_sheen's IBL term, `--no-sheen` leaves
+it out), brdf_lut.exr (R = A, G = B: the GGX split sum; B = E_sheen, the Charlie sheen albedo, 0
+with `--no-sheen`), optionally lights.json, and the index ibl.json (every output's sidecar plus
+how an engine looks each one up).
 """
 
 from __future__ import annotations
@@ -16,15 +22,40 @@ import numpy as np
 
 from .. import image
 from ..atomic import OutputSet, write_json
-from ..extract import extract_lights, lights_to_json
 from ..conventions import cube_conventions, library_versions
 from ..cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
+from ..cubemap import _mip_count, texel_directions
 from ..diffuse import irradiance, sh9_project
 from ..errors import Float16RangeError, InputError
+from ..extract import extract_lights, lights_to_json
 from ..lut import SMITH_ALIASES, SMITH_VARIANTS, _lut_shape
-from ..measure import irradiance_error, lut_error, prefilter_error, summarize
+from ..measure import (
+    _brightest_direction,
+    _rel,
+    irradiance_error,
+    lut_error,
+    prefilter_error,
+    summarize,
+    texel_subset,
+)
+from ..sheen_prefilter import (
+    DEFAULT_CHARLIE_LEVELS,
+    DEFAULT_CHARLIE_SIZE,
+    charlie_level_roughness,
+    charlie_reference,
+    prefilter_charlie,
+)
 from ..shipped_luts import brdf_lut
-from ..specular import DEFAULT_CHAIN_FLOOR, DEFAULT_EXACT_TEXELS, DEFAULT_LOD_BLEND, DEFAULT_SAMPLES, LOD_BLENDS, MAPPINGS, MIN_CHAIN_LEVELS, prefilter
+from ..specular import (
+    DEFAULT_CHAIN_FLOOR,
+    DEFAULT_EXACT_TEXELS,
+    DEFAULT_LOD_BLEND,
+    DEFAULT_SAMPLES,
+    LOD_BLENDS,
+    MAPPINGS,
+    MIN_CHAIN_LEVELS,
+    prefilter,
+)
 from ._common import Progress, positive_int_arg, raise_pending, require_memory
 
 __all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
@@ -87,7 +118,12 @@ def add_commands(sub) -> None:
     p.add_argument("--irradiance-method", choices=("exact", "sh9"), default="exact")
     p.add_argument("--lut-size", type=positive_int_arg, default=128)
     p.add_argument("--smith", choices=_SMITH_CHOICES, default="correlated", help=_SMITH_HELP)
-    p.add_argument("--out-dir", default=".", help="directory for irradiance.ktx2, prefiltered.ktx2, brdf_lut.exr and ibl.json (default: current)")
+    p.add_argument("--out-dir", default=".", help="directory for irradiance.ktx2, prefiltered.ktx2, charlie.ktx2, brdf_lut.exr and ibl.json (default: current)")
+    p.add_argument("--no-sheen", action="store_true", help="leave the sheen assets out (for engines without KHR_materials_sheen): no charlie.ktx2, and the LUT's B channel stays 0")
+    p.add_argument("--charlie-size", type=positive_int_arg, default=None,
+                   help=f"face size of the Charlie cube's level 0 (default: {DEFAULT_CHARLIE_SIZE}, or the environment's face size if smaller, as jaxpbr render)")
+    p.add_argument("--charlie-levels", type=positive_int_arg, default=None,
+                   help=f"levels M of the Charlie cube, sheen roughness r_m = m/(M-1) (default: {DEFAULT_CHARLIE_LEVELS}, fewer if the face size allows fewer)")
     p.add_argument("--extract-lights", action="store_true", help="split dominant lights (suns) out of the environment first: the cubes hold the residual and lights.json the disc lights "
                    "(jaxpbr's fields and a glTF KHR_lights_punctual list), for engines that shade the sun analytically")
     p.add_argument("--ktx-format", choices=("rgba16f", "rgba32f"), default="rgba16f")
@@ -195,7 +231,14 @@ def cmd_lut(args) -> int:
     return _run(lambda outs: _lut(args, outs) and 0)
 
 
-def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
+#: The LUT file's channels (sidecar "channels"; the bake's B holds the sheen albedo).
+LUT_CHANNELS = {"R": "A (GGX split sum, F0 weight)", "G": "B (F90 weight)", "B": "0 (unused)"}
+SHEEN_CHANNEL = "E_sheen: Charlie sheen albedo / sheen IBL weight"
+
+
+def _lut(args, outs: OutputSet, out_path: Path | None = None, sheen: dict | None = None) -> dict:
+    """The split-sum LUT file; with `sheen` (from `_sheen_table`: the bake), its B channel holds the
+    sheen albedo table and the sidecar records where that table came from."""
     out = _checked(outs, Path(out_path or args.output), (".exr",))
     n_r, n_nov = _lut_shape(args.size)
     require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --size")
@@ -214,13 +257,27 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None) -> dict:
         "smith": smith,
         "alpha": "alpha = r^2 (r perceptual roughness)",
     }
-    rgb = np.concatenate([lut, np.zeros(lut.shape[:2] + (1,), lut.dtype)], -1)
+    channels = dict(LUT_CHANNELS)
+    third = np.zeros(lut.shape[:2], lut.dtype)
+    if sheen is not None:
+        table = np.asarray(sheen["table"], np.float32)
+        if table.shape != lut.shape[:2]:  # both follow --lut-size; a mismatch is a bug
+            raise RuntimeError(f"sheen table {table.shape} does not match the LUT {lut.shape[:2]}")
+        third = table.astype(lut.dtype)
+        channels["B"] = SHEEN_CHANNEL
+        meta["quantity"] = ("split-sum BRDF LUT: int f_spec (n.l) dl = F0*A + F90*B; R = A, G = B; "
+                            "B = E_sheen = int D_charlie V_charlie (n.l) dl (KHR_materials_sheen albedo scaling and sheen IBL weight)")
+        meta["sheen_alpha"] = "B: alpha = max(r, 0.045)^2 (r perceptual sheen roughness; rows below r = 0.045 hold E at 0.045)"
+    rgb = np.concatenate([lut, third[..., None]], -1)
     outs.add(out)  # registered before the write (see cubeio.write_cubemap)
-    image.write(out, rgb, metadata={f"jaxpbr:{k}": v for k, v in meta.items()} | {"jaxpbr:max_abs_error": err["max"] if err else -1.0})
+    header = {f"jaxpbr:{k}": v for k, v in meta.items()} | {"jaxpbr:channels": "; ".join(f"{c} = {v}" for c, v in channels.items())}
+    image.write(out, rgb, metadata=header | {"jaxpbr:max_abs_error": err["max"] if err else -1.0})
     side = {
         "kind": "brdf_lut",
         "file": out.name,
         **meta,
+        "channels": channels,
+        **({"sheen_albedo": {k: v for k, v in sheen.items() if k != "table"}} if sheen is not None else {}),
         "size": list(lut.shape[:2]),
         "samples": args.samples,
         "seconds": seconds,
@@ -354,6 +411,126 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
     return side
 
 
+def _sheen_table(args) -> dict:
+    """The sheen albedo table E for the LUT's B channel (size --lut-size) and its provenance: the
+    shipped file with its MANIFEST error when one matches, otherwise computed (and its error
+    measured against the float64 reference unless --no-error)."""
+    from ..sheen_lut import DEFAULT_SAMPLES, sheen_lut_error
+    from ..shipped_luts import sheen_lut, shipped_manifest
+
+    n_r, n_nov = _lut_shape(args.lut_size)
+    entry = next((e for e in shipped_manifest().get("sheen_luts", []) if e["size"] == [n_r, n_nov] and e["samples"] == DEFAULT_SAMPLES), None)
+    t0 = time.perf_counter()
+    table = np.asarray(sheen_lut(args.lut_size, progress=None if entry else Progress("sheen lut", args.quiet)), np.float32)
+    info = {
+        "channel": "B",
+        "quantity": "E_sheen(NoV, r) = int D_charlie V_charlie (n.l) dl (KHR_materials_sheen): the albedo scaling "
+                    "1 - max3(sheen_color) E_sheen and the sheen IBL weight sheen_color LD_charlie E_sheen",
+        "layout": f"as R, G: row j: r = (j+0.5)/{n_r}, column i: NoV = (i+0.5)/{n_nov}; rows below r = 0.045 hold E at 0.045",
+        "samples": DEFAULT_SAMPLES,
+        "seconds": time.perf_counter() - t0,
+    }
+    if entry is not None:
+        info |= {"source": "shipped", "shipped_file": f"luts/{entry['file']}",
+                 **{k: entry[k] for k in ("max_abs_error", "mean_abs_error", "error_texels", "error_reference", "generated_by") if k in entry}}
+    else:
+        err = None if args.no_error else sheen_lut_error(table, texels=1024)
+        info |= {"source": "computed (jaxpbr.sheen_lut.compute_sheen_lut)", "error_vs_float64_reference": err}
+    return info | {"table": table}
+
+
+def _charlie_geometry(args, env) -> tuple[int, int]:
+    """(size, levels) of the Charlie cube: --charlie-size / --charlie-levels or the defaults (the
+    renderer's: DEFAULT_CHARLIE_SIZE, no larger than the environment), refused with the flags
+    named before any work."""
+    S = args.charlie_size or min(DEFAULT_CHARLIE_SIZE, env.face_size)
+    most = _mip_count(S)
+    M = args.charlie_levels or min(DEFAULT_CHARLIE_LEVELS, most)
+    if M > most:
+        raise InputError(f"--charlie-levels {M}: a {S}^2 Charlie cube has at most {most} levels (each halves the face); "
+                         f"lower --charlie-levels or raise --charlie-size")
+    return S, M
+
+
+#: Texels per level of the Charlie cube's error check, and on level 0: its float64 reference sums
+#: every environment texel in 8x8 sub-texels there (the ring is 0.23 deg wide), 64x the cost of
+#: the other levels (measured on the 256^2 sky, 2-core CPU: 36 texels of level 0 took 23 s, the
+#: four other levels 4.5 s together).
+CHARLIE_ERROR_TEXELS = 32
+CHARLIE_ERROR_TEXELS_LEVEL0 = 8
+
+
+def _charlie_error(env, ch, *, texels_per_level: int = CHARLIE_ERROR_TEXELS, texels_level0: int = CHARLIE_ERROR_TEXELS_LEVEL0,
+                   progress=None) -> list[dict]:
+    """Per level (level 0 included: it is filtered at the roughness floor, not the source): mean
+    and max relative error of the Charlie cube against `charlie_reference` (float64, every texel
+    of the environment's level 0) at a seeded texel subset that includes the texels nearest the
+    brightest source direction."""
+    rough = charlie_level_roughness(ch.num_levels)
+    sun = _brightest_direction(env)
+    rows = []
+    for m in range(ch.num_levels):
+        Sm = ch.levels[m].shape[1]
+        sel = texel_subset(Sm, count=texels_level0 if m == 0 else texels_per_level, toward=sun, seed=m)
+        d = texel_directions(Sm).reshape(-1, 3)[sel]
+        ref = charlie_reference(env, d, float(rough[m]))
+        e = _rel(np.asarray(ch.levels[m], np.float64).reshape(-1, ch.channels)[sel], ref)
+        rows.append({"level": m, "roughness": float(rough[m]), "face_size": Sm, "texels": len(sel), "mean": float(e.mean()), "max": float(e.max())})
+        if progress is not None:
+            progress(m + 1, ch.num_levels)
+    return rows
+
+
+def _charlie(args, outs: OutputSet, env, out: Path, size: int, levels: int) -> dict:
+    """The Charlie-prefiltered cube (`jaxpbr.sheen_prefilter.prefilter_charlie`) and its sidecar,
+    written like the GGX cube (same container, metadata keys, rollback)."""
+    out = _checked(outs, out, (".ktx2", ".exr"))
+    t0 = time.perf_counter()
+    ch = prefilter_charlie(env, size=size, num_levels=levels)
+    [np.asarray(lv) for lv in ch.levels]
+    seconds = time.perf_counter() - t0
+    rows = None if args.no_error else _charlie_error(env, ch, progress=Progress("charlie error check (float64 reference)", args.quiet))
+    meta = dict(ch.metadata)
+    files = _write_cube(out, ch, args, meta, outs)
+    side = {
+        "kind": "prefiltered_charlie",
+        "files": files,
+        **meta,
+        "lookup": f"{meta['lod_formula']}; trilinear; sample at the normal n (the filter assumes n = v = R)",
+        "face_size": ch.face_size,
+        "num_levels": ch.num_levels,
+        "environment_face_size": env.face_size,
+        "seconds": seconds,
+        "error_vs_float64_reference": {"per_level": rows, "worst": summarize(rows)} if rows else None,
+        "conventions": cube_conventions(),
+        "versions": library_versions(),
+    }
+    write_json(out.with_name(out.name + ".json"), side, outputs=outs)
+    if not args.quiet:
+        e = ""
+        if rows:
+            w = summarize(rows)
+            e = f"; error vs reference (sampled texels): worst level mean {100 * w['mean']:.2f} %, worst texel {100 * w['max']:.2f} %"
+        print(f"wrote {out} ({ch.face_size}^2, {ch.num_levels} mips, Charlie from a {meta['source_face_size']}^2 source, {seconds:.2f} s{e})")
+    return side
+
+
+def _engine_lookup(sheen: bool) -> dict:
+    """How an engine reads each output (ibl.json "lookup")."""
+    d = {
+        "irradiance": "diffuse = c_diff * irradiance(n) (bilinear; the map stores E/pi)",
+        "prefiltered": "specular = LD(R, lod) * (F0 * A + F90 * B), R = reflect(-v, n); lod from the roughness r: prefiltered.lod_formula "
+                       "(or linear interpolation of prefiltered.lod_table), trilinear",
+        "brdf_lut": ("(A, B, E_sheen) = (R, G, B)" if sheen else "(A, B) = (R, G)") + " bilinear at x = NoV, y = r (the sheen "
+                    "roughness for B) with texel centres at (i+0.5)/n (y = 0 at the first, top, row of the EXR), clamp to edge",
+    }
+    if sheen:
+        d["charlie"] = ("sheen = sheen_color * LD_charlie(n, lod_c) * E_sheen; lod_c from the sheen roughness: charlie.lod_formula "
+                        "(or linear interpolation of charlie.lod_table), trilinear, sampled at the normal n")
+        d["sheen_layering"] = "the layer below the sheen is scaled by 1 - max3(sheen_color) * E_sheen(NoV, sheen_roughness)"
+    return d
+
+
 def cmd_ibl(args) -> int:
     def go(outs):
         d = Path(args.out_dir)
@@ -363,9 +540,12 @@ def cmd_ibl(args) -> int:
             raise InputError(f"--out-dir {str(d)!r} does not exist; create it first")
         # A complete set already there is kept until the new one is complete: an interrupted
         # or failed re-bake puts the old files back (issue 13: it left a mix naming a missing file).
-        outs.protect(p for stem in ("irradiance", "prefiltered", "brdf_lut", "ibl", "lights") for p in d.glob(f"{stem}*"))
+        outs.protect(p for stem in ("irradiance", "prefiltered", "charlie", "brdf_lut", "ibl", "lights") for p in d.glob(f"{stem}*"))
+        sheen = not args.no_sheen
+        if not sheen and (args.charlie_size or args.charlie_levels):
+            raise InputError("--charlie-size / --charlie-levels set the Charlie cube, which --no-sheen leaves out; drop one or the other")
         # Every output checked before any work (issue 13: the LUT's was checked after the cubes).
-        for name, suffixes in (("irradiance.ktx2", (".ktx2",)), ("prefiltered.ktx2", (".ktx2",)),
+        for name, suffixes in (("irradiance.ktx2", (".ktx2",)), ("prefiltered.ktx2", (".ktx2",))) + ((("charlie.ktx2", (".ktx2",)),) if sheen else ()) + (
                                ("brdf_lut.exr", (".exr",)), ("ibl.json", (".json",))) + ((("lights.json", (".json",)),) if args.extract_lights else ()):
             _checked(outs, d / name, suffixes)
         n_r, n_nov = _lut_shape(args.lut_size)
@@ -380,12 +560,18 @@ def cmd_ibl(args) -> int:
                 found = ", ".join(f"radius {x['angular_radius_deg']:.2f} deg, {100 * x['power_share']:.1f} % of the power" for x in ex.info["lights"])
                 print(f"extracted {len(ex.lights)} disc light(s)" + (f": {found}" if found else " (no dominant source)"), file=sys.stderr)
         _prefilter_checks(args, env, d / "prefiltered.ktx2")
+        charlie_shape = _charlie_geometry(args, env) if sheen else None
         args.output = None
         irr = _irradiance(args, outs, env=env, out_path=d / "irradiance.ktx2", size=args.irradiance_size, method=args.irradiance_method)
         pre = _prefilter(args, outs, env=env, out_path=d / "prefiltered.ktx2")
+        charlie = _charlie(args, outs, env, d / "charlie.ktx2", *charlie_shape) if sheen else None
+        table = _sheen_table(args) if sheen else None
         args.size, args.samples = args.lut_size, None
-        lut = _lut(args, outs, out_path=d / "brdf_lut.exr")
-        index = {"irradiance": irr, "prefiltered": pre, "brdf_lut": lut}
+        lut = _lut(args, outs, out_path=d / "brdf_lut.exr", sheen=table)
+        index = {"sheen": sheen, "irradiance": irr, "prefiltered": pre}
+        if charlie is not None:
+            index["charlie"] = charlie
+        index |= {"brdf_lut": lut, "lookup": _engine_lookup(sheen)}
         if lights is not None:
             write_json(d / "lights.json", lights, outputs=outs)
             index["lights"] = {"file": "lights.json", "count": len(lights["lights"]),
