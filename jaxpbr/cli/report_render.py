@@ -43,17 +43,39 @@ from ..reference_render import (
     min_reference_roughness,
     reference_ibl_from_terms,
     reference_ibl_terms,
+    reference_layered,
 )
 from ..shipped_luts import brdf_lut
 from ..specular import prefilter
 from ._common import have_matplotlib, positive_int_arg
 from .timing import time_calls
 
-__all__ = ["DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "add_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
+__all__ = ["DEFAULT_EXTENSION_ROUGHNESS", "DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "EXTENSION_ROWS", "add_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
 
 DEFAULT_ROUGHNESS = (0.05, 0.15, 0.3, 0.5, 0.75, 1.0)
 DEFAULT_METALLIC = (0.0, 1.0)
 DEFAULT_BASE_COLOR = (0.9, 0.6, 0.3)
+DEFAULT_EXTENSION_ROUGHNESS = (0.15, 0.5, 1.0)
+
+#: One row group per glTF material extension: (Material fields besides base_color, the field that
+#: takes the row's roughness). The base colour is the report's; the tangent (anisotropy) is the
+#: sphere's latitude direction, the coat normal the shading normal.
+EXTENSION_ROWS = {
+    "clearcoat": (dict(metallic=0.0, roughness=0.5, clearcoat=1.0), "clearcoat_roughness"),
+    "sheen": (dict(metallic=0.0, roughness=0.5, sheen_color=(1.0, 1.0, 1.0)), "sheen_roughness"),
+    "specular": (dict(metallic=0.0, specular=0.7, specular_color=(1.5, 1.0, 0.5)), "roughness"),
+    "ior": (dict(metallic=0.0, ior=2.0), "roughness"),
+    "anisotropy": (dict(metallic=1.0, anisotropy_strength=0.7), "roughness"),
+    "thin transmission": (dict(metallic=0.0, transmission=1.0), "roughness"),
+    "volume": (dict(metallic=0.0, transmission=1.0, thickness=0.5, ior=1.5, attenuation_color=(0.9, 0.7, 0.5), attenuation_distance=1.0), "roughness"),
+}
+
+
+def sphere_tangent(n):
+    """The sphere's latitude direction (z, 0, -x)/|.| at normals n (N, 3) with n_z > 0 (the
+    anisotropy tangent of the extension rows)."""
+    t = np.stack([n[:, 2], np.zeros(len(n)), -n[:, 0]], -1)
+    return t / np.linalg.norm(t, axis=-1, keepdims=True)
 
 
 def sphere_gbuffer(pixels: int):
@@ -106,6 +128,8 @@ def render_report(
     lut_size: int = 128,
     repeats: int = 5,
     extract_lights: bool = True,
+    extensions=(),
+    extension_roughness=DEFAULT_EXTENSION_ROUGHNESS,
     log=print,
 ) -> dict:
     """Render the material grid both ways and measure the split-sum error.
@@ -116,6 +140,12 @@ def render_report(
     lights: punctual lights (default `default_lights()`).
     extract_lights: split dominant lights out of the environment first (`jaxpbr.extract`, as
         `render` does by default): the split sum then shades the residual and the disc lights.
+    extensions: names of `EXTENSION_ROWS` (or "all") to add rows for, one per value of
+        `extension_roughness` (the extension's own roughness where it has one): the layered split
+        sum (`shade_ibl` with the extension; `shade_direct` for the lights) against
+        `reference_layered` + float64 `shade_direct`, on the same sphere. The sheen row needs the
+        sheen albedo table and the Charlie-prefiltered environment (computed here; reported as
+        unavailable when their modules are missing). Result key "extensions".
     Returns a dict: "config", "precompute_s", "materials" (one dict of numbers per material),
     "images" (per-material per-pixel relative error (P, P), NaN off the disc; not JSON).
     """
@@ -147,6 +177,16 @@ def render_report(
         lights, lights_desc = default_lights()
     else:
         lights_desc = f"{len(lights) if isinstance(lights, (list, tuple)) else 1} user light(s)"
+
+    if extensions == "all" or (isinstance(extensions, (list, tuple)) and "all" in extensions):
+        extensions = tuple(EXTENSION_ROWS)
+    extensions = tuple(extensions or ())
+    unknown = [e for e in extensions if e not in EXTENSION_ROWS]
+    if unknown:
+        raise ValueError(f"unknown extension rows {unknown}; choose from {list(EXTENSION_ROWS)} or 'all'")
+    extension_roughness = [float(r) for r in extension_roughness]
+    if extensions and (not extension_roughness or min(extension_roughness) < r_floor or max(extension_roughness) > 1.0):
+        raise ValueError(f"extension roughness values must lie in [{r_floor:.3f}, 1] (the reference resolves roughness >= {r_floor:.3f} here), got {extension_roughness}")
 
     mask, n, v, p = sphere_gbuffer(int(pixels))
     log(f"render report: {len(roughness)} x {len(metallic)} materials, {pixels}^2 px ({len(n)} on the sphere), {env_name} at {env.face_size}^2")
@@ -232,6 +272,10 @@ def render_report(
                 f"  r={r:g} metallic={m:g}: mean {100 * mean:.2f} %, max pixel {100 * mx:.1f} %, IBL mean {100 * ibl_mean:.2f} %; "
                 f"split sum {1e3 * ss_s:.2f} ms, reference {ref_s:.1f} s"
             )
+    ext_rows = _extension_rows(
+        extensions, extension_roughness, base_color=base_color, env=env, ss_env=ss_env, n=n, v=v, p=p, mask=mask,
+        lights=lights, lights32=lights32, discs32=discs32, irr=irr, pre=pre, lut=lut, repeats=repeats, log=log,
+    ) if extensions else ([], {})
     config = dict(
         environment=env_name,
         environment_face_size=env.face_size,
@@ -248,7 +292,91 @@ def render_report(
         timing=f"split sum: best of {repeats} jitted calls after a warm-up; reference: one call incl. compilation (its three environment sums are shared by the metallic values of one roughness)",
         device=str(jax.devices()[0].platform),
     )
-    return dict(config=config, precompute_s=precompute_s, materials=rows, images=images, mask=mask)
+    if extensions:
+        config["extension_roughness"] = extension_roughness
+        config["extension_rows"] = {e: dict(EXTENSION_ROWS[e][0], roughness_field=EXTENSION_ROWS[e][1]) for e in extensions}
+        config["extension_reference"] = "float64 shade_direct + reference_layered (the layered BSDF over the whole sphere of directions, tiered sub-texel supersampling around each lobe)"
+    return dict(config=config, precompute_s=precompute_s, materials=rows, images=images, mask=mask, extensions=ext_rows[0], extension_images=ext_rows[1])
+
+
+def _extension_rows(names, roughness, *, base_color, env, ss_env, n, v, p, mask, lights, lights32, discs32, irr, pre, lut, repeats, log):
+    """The per-extension rows of `render_report` -> (rows, images)."""
+    f32 = jnp.float32
+    slut = charlie = None
+    sheen_missing = None
+    if "sheen" in names:
+        try:
+            from ..sheen_prefilter import prefilter_charlie
+            from ..shipped_luts import sheen_lut
+
+            t0 = time.perf_counter()
+            slut = sheen_lut()
+            charlie = prefilter_charlie(ss_env)
+            jax.block_until_ready((slut, charlie.levels))
+            log(f"  sheen assets (sheen albedo table {slut.shape[0]}^2, Charlie cube {charlie.face_size}^2 x {charlie.num_levels}): {time.perf_counter() - t0:.2f} s")
+        except ImportError as e:  # the modules are not there (yet)
+            sheen_missing = f"sheen assets unavailable ({e})"
+    t = sphere_tangent(n)
+    n32, v32, p32, t32 = (jnp.asarray(a, f32) for a in (n, v, p, t))
+
+    @jax.jit
+    def split_sum(p_, n_, v_, t_, m_, irr_, pre_, lut_, slut_, charlie_, lights_, discs_):
+        ibl = shade_ibl(n_, v_, m_, irr_, pre_, lut_, tangent=t_, sheen_lut=slut_, charlie=charlie_)
+        if discs_ is not None:
+            dark = m_.replace(emissive=jnp.zeros_like(m_.emissive))
+            ibl = ibl + _lights.shade_direct(p_, n_, v_, dark, discs_, disc_lights=True, tangent=t_, sheen_lut=slut_)
+        return _lights.shade_direct(p_, n_, v_, m_, lights_, tangent=t_, sheen_lut=slut_) + ibl, ibl
+
+    with jax.enable_x64(True):
+        lights64 = _lights_as(lights, jnp.float64)
+        n64, v64, p64, t64 = (jnp.asarray(a, jnp.float64) for a in (n, v, p, t))
+        direct64 = jax.jit(lambda m_, slut_: _lights.shade_direct(p64, n64, v64, m_, lights64, tangent=t64, sheen_lut=slut_))
+
+    rows, images = [], {}
+    for name in names:
+        fields, rfield = EXTENSION_ROWS[name]
+        if name == "sheen" and sheen_missing:
+            rows.append(dict(extension=name, unavailable=sheen_missing))
+            log(f"  {name}: {sheen_missing}")
+            continue
+        for r in roughness:
+            kw = dict(dict(roughness=0.5), **fields, **{rfield: r})
+
+            def material(dtype, kw=kw):
+                return Material(base_color=jnp.asarray(base_color, dtype), **{k: jnp.asarray(x, dtype) for k, x in kw.items()})
+
+            m32 = material(f32)
+            (tot, ibl), timing = time_calls(lambda: split_sum(p32, n32, v32, t32, m32, irr, pre, lut, slut, charlie, lights32, discs32), rounds=repeats)
+            tot, ibl = np.asarray(tot, np.float64), np.asarray(ibl, np.float64)
+            t0 = time.perf_counter()
+            with jax.enable_x64(True):
+                m64 = material(jnp.float64)
+                ref_direct = np.asarray(direct64(m64, slut))
+            ref_ibl = reference_layered(n, v, m64, env, tangent=t, sheen_lut=slut)
+            ref = ref_direct + ref_ibl
+            ref_s = time.perf_counter() - t0
+            mean, mx, per_pixel = _errors(tot, ref)
+            ibl_mean, ibl_max, _ = _errors(ibl, ref_ibl)
+            img = np.full(mask.shape, np.nan)
+            img[mask] = per_pixel
+            images[(name, r)] = img
+            rows.append(
+                dict(
+                    extension=name,
+                    roughness_field=rfield,
+                    roughness=r,
+                    metallic=float(kw.get("metallic", 1.0)),
+                    mean_rel_error=mean,
+                    max_pixel_rel_error=mx,
+                    ibl_mean_rel_error=ibl_mean,
+                    ibl_max_pixel_rel_error=ibl_max,
+                    ibl_share_of_radiance=float(np.abs(ref_ibl).sum() / np.abs(ref).sum()),
+                    split_sum_s=timing.best,
+                    reference_s=ref_s,
+                )
+            )
+            log(f"  {name} {rfield}={r:g}: mean {100 * mean:.2f} %, max pixel {100 * mx:.1f} %, IBL mean {100 * ibl_mean:.2f} %; split sum {1e3 * timing.best:.2f} ms, reference {ref_s:.1f} s")
+    return rows, images
 
 
 # ------------------------------------------------------------------------------------------
@@ -276,12 +404,33 @@ def markdown(result: dict) -> str:
             f"{100 * r['ibl_mean_rel_error']:.2f} % | {100 * r['ibl_max_pixel_rel_error']:.1f} % | {100 * r['ibl_share_of_radiance']:.0f} % | "
             f"{1e3 * r['split_sum_s']:.2f} | {r['reference_s']:.2f} |"
         )
+    ext = result.get("extensions") or []
+    if ext:
+        out += [
+            "",
+            "## glTF material extensions",
+            "",
+            f"Layered split sum (`shade_ibl` / `shade_direct` with the extension) against {c.get('extension_reference', 'reference_layered')}; "
+            "roughness is the extension's own (clearcoat_roughness, sheen_roughness) or the base roughness.",
+            "",
+            "| extension | roughness | metallic | mean rel. error | max pixel rel. error | IBL mean rel. error | IBL max pixel | IBL share | split sum (ms) | reference (s) |",
+            "|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in ext:
+            if "unavailable" in r:
+                out.append(f"| {r['extension']} | - | - | {r['unavailable']} | | | | | | |")
+                continue
+            out.append(
+                f"| {r['extension']} | {r['roughness_field']} {r['roughness']:g} | {r['metallic']:g} | {100 * r['mean_rel_error']:.2f} % | {100 * r['max_pixel_rel_error']:.1f} % | "
+                f"{100 * r['ibl_mean_rel_error']:.2f} % | {100 * r['ibl_max_pixel_rel_error']:.1f} % | {100 * r['ibl_share_of_radiance']:.0f} % | "
+                f"{1e3 * r['split_sum_s']:.2f} | {r['reference_s']:.2f} |"
+            )
     return "\n".join(out) + "\n"
 
 
 def to_json(result: dict) -> str:
     """The numbers of the result (no images) as JSON text."""
-    data = {k: v for k, v in result.items() if k not in ("images", "mask")}
+    data = {k: v for k, v in result.items() if k not in ("images", "mask", "extension_images")}
     return json.dumps(data, indent=2) + "\n"
 
 
@@ -356,6 +505,16 @@ def _float_list(text: str) -> list[float]:
     return vals
 
 
+def _name_list(text: str):
+    if text.strip() == "all":
+        return "all"
+    names = [x.strip().replace("_", " ") for x in text.split(",") if x.strip()]
+    bad = [x for x in names if x not in EXTENSION_ROWS]
+    if not names or bad:
+        raise argparse.ArgumentTypeError(f"unknown extension(s) {bad or text!r}; choose from " + ", ".join(n.replace(" ", "_") for n in EXTENSION_ROWS) + " or all")
+    return names
+
+
 def add_command(report_subparsers):
     """Register `render` under the `jaxpbr report` sub-command group (the `add_subparsers()`
     object of `report`). Returns the new sub-parser."""
@@ -376,6 +535,13 @@ def add_command(report_subparsers):
     p.add_argument("--irradiance-size", type=positive_int_arg, default=32)
     p.add_argument("--lut-size", type=positive_int_arg, default=128)
     p.add_argument("--no-extract-lights", dest="extract_lights", action="store_false", help="shade the whole environment with the split sum (no dominant-light extraction; the pre-issue-11 baseline)")
+    p.add_argument(
+        "--extensions", nargs="?", const="all", default=None, type=_name_list, metavar="NAMES",
+        help="add rows per glTF material extension (comma-separated from " + ", ".join(n.replace(" ", "_") for n in EXTENSION_ROWS) + "; default all): "
+        "the layered split sum against reference_layered (off by default: ~1 min per row at the default size, anisotropy several)",
+    )
+    p.add_argument("--no-extensions", dest="extensions", action="store_const", const=None, help="no extension rows (the default)")
+    p.add_argument("--extension-roughness", type=_float_list, default=list(DEFAULT_EXTENSION_ROUGHNESS), help="roughness values of the extension rows (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_report_render)
     return p
@@ -400,6 +566,8 @@ def cmd_report_render(args) -> int:
         irradiance_size=args.irradiance_size,
         lut_size=args.lut_size,
         extract_lights=args.extract_lights,
+        extensions=args.extensions or (),
+        extension_roughness=args.extension_roughness,
         log=log,
     )
     written = write_report(result, out_dir, log=log)
