@@ -50,7 +50,9 @@ def refract(d, n, eta):
     c = -jnp.sum(d * n, -1)
     k = 1.0 - eta * eta * (1.0 - c * c)
     ok = k >= 0
-    t = eta[..., None] * d + (eta * c - jnp.sqrt(jnp.where(ok, k, 1.0)))[..., None] * n
+    pos = k > 0  # sqrt'(0) = inf: the grazing limit k = 0 takes the value 0 with gradient 0
+    root = jnp.where(pos, jnp.sqrt(jnp.where(pos, k, 1.0)), 0.0)
+    t = eta[..., None] * d + (eta * c - root)[..., None] * n
     return jnp.where(ok[..., None], t, 0.0)
 
 
@@ -132,7 +134,7 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, tangent=None, coat
     out = diel + (metal - diel) * metallic
 
     if "sheen" in ext:
-        from .sheen import floored_sheen_roughness, max3
+        from .sheen import floored_sheen_roughness, sheen_albedo_scaling
         from .sheen_lut import sheen_lut_lookup
         from .brdf_terms import MIN_ROUGHNESS
 
@@ -144,7 +146,7 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, tangent=None, coat
         rs = floored_sheen_roughness(m.sheen_roughness, MIN_ROUGHNESS)
         e_s = sheen_lut_lookup(sheen_lut, nov, rs)[..., None]
         ld_c = _charlie_sample(charlie, pack3(n3), rs)
-        out = m.sheen_color * ld_c * e_s + out * (1.0 - max3(m.sheen_color)[..., None] * e_s)
+        out = m.sheen_color * ld_c * e_s + out * sheen_albedo_scaling(m.sheen_color, e_s[..., 0])[..., None]
 
     if "clearcoat" in ext:
         nc = n3 if coat_normal is None else vnormalize(unpack3(coat_normal))

@@ -19,8 +19,13 @@ Stiff cases. alpha -> 0 makes D a delta at theta_h = 90 deg (`pow(sin^2, 1/(2 al
 `min_roughness`, Filament's MIN_PERCEPTUAL_ROUGHNESS), and D is evaluated in the log domain,
 `exp(log(sin^2) / (2 alpha))`, with sin^2 floored at the smallest normal so that its gradient is
 finite where sin = 0 (n.h = 1: D = 0 to float precision for every alpha < 1, and d/d alpha = 0).
-`x^c` in L has an infinite derivative at x = 0 (mu = 0 or mu = 1); x is floored at 1e-6, which
-changes L by < 1e-6 relative (c ~ 0.17-0.2 so x^c <= 0.07 there) and keeps the gradient finite.
+`x^c` in L has an infinite derivative at x = 0 (mu = 0 or mu = 1, c ~ 0.17-0.2): it is evaluated
+as exp(c log x) on x > 0 and set to its value 0 at x = 0 by a double where, so the value is exact
+and the gradient there is 0 instead of inf * 0 = NaN. (Flooring x would not do: x^c is 0.08 at
+x = 1e-6, so L would move by ~6.)
+E (the sheen albedo) exceeds 1 at grazing views for small sheen roughness (up to 4.4 at r = 0.045,
+n.v = 1/512: the fitted visibility is not energy conserving there, `jaxpbr.sheen_lut`), so
+`sheen_albedo_scaling` is clamped at 0: the base layer is never subtracted.
 """
 
 from __future__ import annotations
@@ -51,7 +56,6 @@ SHEEN_FIT = {
     "e": (-4.32054, -4.85967),
 }
 
-_X_FLOOR = 1e-6
 _INV_2PI = 1.0 / (2.0 * math.pi)
 
 
@@ -76,8 +80,9 @@ def d_charlie(n_dot_h, alpha, sin2_h=None):
 def _l_fit(x, alpha):
     t = (1.0 - alpha) ** 2
     a, b, c, d, e = (p0 + (p1 - p0) * t for p0, p1 in SHEEN_FIT.values())
-    x = jnp.maximum(x, _X_FLOOR)
-    return a / (1.0 + b * jnp.exp(c * jnp.log(x))) + d * x + e
+    pos = x > 0
+    xc = jnp.where(pos, jnp.exp(c * jnp.log(jnp.where(pos, x, 1.0))), 0.0)
+    return a / (1.0 + b * xc) + d * x + e
 
 
 def lambda_sheen(mu, alpha):
@@ -106,7 +111,10 @@ def max3(c: jax.Array) -> jax.Array:
 
 def sheen_albedo_scaling(sheen_color, e_v, e_l=None):
     """`min(1 - max3(sheen_color) E(n.v), 1 - max3(sheen_color) E(n.l))` (KHR_materials_sheen);
-    with `e_l` None, the view-only form `1 - max3(sheen_color) E(n.v)` used for the IBL term."""
+    with `e_l` None, the view-only form `1 - max3(sheen_color) E(n.v)` used for the IBL term.
+    Clamped at 0 (E > 1 at grazing views for small roughness, see the module docstring)."""
     m = max3(sheen_color)
     s = 1.0 - m * e_v
-    return s if e_l is None else jnp.minimum(s, 1.0 - m * e_l)
+    if e_l is not None:
+        s = jnp.minimum(s, 1.0 - m * e_l)
+    return jnp.maximum(s, 0.0)

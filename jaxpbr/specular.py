@@ -255,6 +255,12 @@ def lookup_of(pre: Cubemap) -> tuple[int, str, str]:
     "lod_blend" (default "roughness": maps written before the key existed keep the lookup they were
     made for)."""
     meta = pre.metadata
+    dist = meta.get("distribution", "ggx")
+    if dist != "ggx":
+        raise ValueError(
+            f"this map is {dist}-prefiltered (metadata 'distribution'), not a GGX-prefiltered map; pass "
+            "the GGX map (jaxpbr.prefilter) as `pre` (a Charlie map is read by sheen_prefilter.charlie_lookup)."
+        )
     M = int(meta.get("mapping_levels", pre.num_levels))
     return M, meta.get("roughness_mapping", "linear"), meta.get("lod_blend", LEGACY_LOD_BLEND)
 

@@ -1,7 +1,7 @@
 """The glTF material extensions (jaxpbr.layered, jaxpbr.layered_ibl): closed forms, an independent
 float64 transcription of the extension texts, neutral values, energy, stiff inputs, the plan."""
 
-import itertools
+import functools
 import math
 
 import jax
@@ -284,7 +284,7 @@ FURNACE_CASES = {
 }
 
 
-def _albedo(m, nv, table=None, n_t=900, n_phi=720):
+def _albedo(m, nv, table=None, n_t=400, n_phi=360):
     """int over the whole sphere of f |n.l| dl at n.v = nv (white light), float64.
 
     Quadrature in the half vector of the reflection, graded towards n (theta_h = pi/2 t^2): the
@@ -313,12 +313,15 @@ def _albedo(m, nv, table=None, n_t=900, n_phi=720):
     return total
 
 
+@functools.lru_cache(maxsize=None)
 def _quadrature_error(rough):
-    """The quadrature's error on a closed form at this roughness: a white metal's albedo is the
-    LUT reference's A + B."""
+    """The quadrature's error on two closed forms at this roughness: a white metal's albedo is the
+    LUT reference's A + B, a white Lambertian's (specular 0) is 1."""
     metal = jp.Material(base_color=jnp.ones(3), metallic=jnp.float64(1.0), roughness=jnp.float64(rough), ior=jnp.float64(1.5))
+    lamb = jp.Material(base_color=jnp.ones(3), metallic=jnp.float64(0.0), roughness=jnp.float64(rough), specular=jnp.float64(0.0))
     err = max(abs(_albedo(metal, nv)[0] - float(np.sum(jp.lut_reference(np.array([nv]), np.array([max(rough, 0.045)])))))
               for nv in (1.0, 0.5, 0.1))
+    err = max([err] + [abs(_albedo(lamb, nv)[0] - 1.0) for nv in (1.0, 0.5, 0.1)])
     assert err < 1e-4, err
     return err
 
@@ -389,58 +392,89 @@ STIFF_PARAMS = [
 ]
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
-@pytest.mark.parametrize("which", range(len(STIFF_PARAMS)))
-def test_stiff_grid_with_every_extension_finite_values_and_gradients(which, dtype):
-    from test_stiff import RADIANCE, stiff_grid
+def _stiff_rows():
+    """The stiff grid (test_stiff) repeated once per parameter set of STIFF_PARAMS: geometry
+    arrays (K, ...) and, per extension field, its values (K, ...)."""
+    from test_stiff import stiff_grid
 
     n, v, l, r, labels = stiff_grid()
     k = len(labels)
-    params = STIFF_PARAMS[which]
-    names = sorted(params)
-    if True:  # x64 is on in the tests (conftest)
-        geo = tuple(jnp.asarray(x, dtype) for x in (n, v, l, r))
-        vals = tuple(jnp.asarray(np.broadcast_to(np.asarray(params[nm], np.float64), (k,) + np.shape(params[nm])), dtype) for nm in names)
-        tang = jnp.asarray(np.tile([1.0, 0.0, 0.0], (k, 1)), dtype)
-        table = jnp.asarray(jp.shipped_luts.sheen_lut(), dtype)
+    names = sorted(STIFF_PARAMS[0])
+    geo = tuple(np.concatenate([x] * len(STIFF_PARAMS)) for x in (n, v, l, r))
+    ext = {nm: np.concatenate([np.broadcast_to(np.asarray(p[nm], np.float64), (k,) + np.shape(p[nm])) for p in STIFF_PARAMS])
+           for nm in names}
+    labels = [f"set {i}: {lab}" for i in range(len(STIFF_PARAMS)) for lab in labels]
+    return geo, ext, labels
 
-        def radiance(n, v, l, rough, tangent, *ext):
-            m = jp.Material(base_color=jnp.full((k, 3), 0.7, dtype), metallic=jnp.full(k, 0.5, dtype), roughness=rough,
-                            emissive=jnp.full((k, 3), 0.1, dtype), **dict(zip(names, ext)))
-            lights = [jp.DirectionalLight(direction=(0.3, 0.2, -1.0), intensity=RADIANCE)]
-            direct = jp.shade_direct(jnp.zeros_like(n), n, v, m, lights, tangent=tangent, coat_normal=n, sheen_lut=table)
-            f = jp.brdf(n, v, l, m, tangent=tangent, sheen_lut=table)
-            return f * RADIANCE + direct
 
-        value = np.asarray(jax.jit(radiance)(*geo, tang, *vals))
-        bad = ~np.isfinite(value).all(-1)
-        assert not bad.any(), [labels[i] for i in np.flatnonzero(bad)][:5]
-        grads = jax.jit(jax.grad(lambda *a: jnp.sum(radiance(*a)), argnums=tuple(range(5 + len(names)))))(*geo, tang, *vals)
-        for name, g in zip(("n", "v", "l", "roughness", "tangent") + tuple(names), grads):
-            g = np.asarray(g).reshape(k, -1)
-            bad = ~np.isfinite(g).all(-1)
-            assert not bad.any(), (name, [labels[i] for i in np.flatnonzero(bad)][:5])
+def _stiff_check(dtype, *, lights: bool, grads: bool):
+    from test_stiff import RADIANCE
+
+    (n, v, l, r), ext, labels = _stiff_rows()
+    k = len(labels)
+    names = sorted(ext)
+    geo = tuple(jnp.asarray(x, dtype) for x in (n, v, l, r))
+    vals = tuple(jnp.asarray(ext[nm], dtype) for nm in names)
+    tang = jnp.asarray(np.tile([1.0, 0.0, 0.0], (k, 1)), dtype)
+    table = jnp.asarray(jp.shipped_luts.sheen_lut(), dtype)
+
+    def radiance(n, v, l, rough, tangent, *e):
+        m = jp.Material(base_color=jnp.full((k, 3), 0.7, dtype), metallic=jnp.full(k, 0.5, dtype), roughness=rough,
+                        emissive=jnp.full((k, 3), 0.1, dtype), **dict(zip(names, e)))
+        out = jp.brdf(n, v, l, m, tangent=tangent, sheen_lut=table) * RADIANCE
+        if lights:
+            ls = [jp.DirectionalLight(direction=(0.3, 0.2, -1.0), intensity=RADIANCE),
+                  jp.DirectionalLight(direction=(-0.3, 0.1, 1.0), intensity=RADIANCE, angular_radius=0.05)]
+            out = out + jp.shade_direct(jnp.zeros_like(n), n, v, m, ls, tangent=tangent, coat_normal=n, sheen_lut=table)
+        return out
+
+    value = np.asarray(jax.jit(radiance)(*geo, tang, *vals))
+    bad = ~np.isfinite(value).all(-1)
+    assert not bad.any(), [labels[i] for i in np.flatnonzero(bad)][:5]
+    if not grads:
+        return
+    gs = jax.jit(jax.grad(lambda *a: jnp.sum(radiance(*a)), argnums=tuple(range(5 + len(names)))))(*geo, tang, *vals)
+    for name, g in zip(("n", "v", "l", "roughness", "tangent") + tuple(names), gs):
+        g = np.asarray(g).reshape(k, -1)
+        bad = ~np.isfinite(g).all(-1)
+        assert not bad.any(), (name, [labels[i] for i in np.flatnonzero(bad)][:5])
+
+
+def test_stiff_grid_with_every_extension_finite_values_and_gradients():
+    """Every stiff configuration of test_stiff crossed with three sets of extreme values of every
+    extension parameter, through the layered BSDF (`brdf`): finite values and gradients wrt every
+    input, float32. The same with shade_direct's punctual and disc lights, and in float64, is
+    `test_stiff_grid_with_every_extension_slow` (XLA:CPU takes minutes to compile those gradients);
+    the values of shade_direct are checked here."""
+    _stiff_check(jnp.float32, lights=False, grads=True)
+    _stiff_check(jnp.float32, lights=True, grads=False)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_stiff_grid_with_every_extension_slow(dtype):
+    _stiff_check(dtype, lights=True, grads=True)
 
 
 def test_stiff_split_sum_with_every_extension_finite(small_ibl):
     irr, pre, lut, table, charlie = small_ibl
-    from test_stiff import stiff_grid
-
-    n, v, _, r, labels = stiff_grid()
+    (n, v, _, r), ext, labels = _stiff_rows()
     k = len(labels)
-    for params in STIFF_PARAMS:
-        names = sorted(params)
-        vals = tuple(jnp.asarray(np.broadcast_to(np.asarray(params[nm], np.float32), (k,) + np.shape(params[nm]))) for nm in names)
+    names = sorted(ext)
+    vals = tuple(jnp.asarray(ext[nm], jnp.float32) for nm in names)
 
-        def f(n, v, rough, *ext):
-            m = jp.Material(base_color=jnp.full((k, 3), 0.7), metallic=jnp.full(k, 0.5), roughness=rough, **dict(zip(names, ext)))
-            return jp.shade_ibl(n, v, m, irr, pre, lut, tangent=jnp.tile(jnp.asarray([1.0, 0.0, 0.0]), (k, 1)), sheen_lut=table, charlie=charlie)
+    def f(n, v, rough, *e):
+        m = jp.Material(base_color=jnp.full((k, 3), 0.7), metallic=jnp.full(k, 0.5), roughness=rough, **dict(zip(names, e)))
+        return jp.shade_ibl(n, v, m, irr, pre, lut, tangent=jnp.tile(jnp.asarray([1.0, 0.0, 0.0]), (k, 1)), sheen_lut=table,
+                            charlie=charlie)
 
-        args = (jnp.asarray(n, jnp.float32), jnp.asarray(v, jnp.float32), jnp.asarray(r, jnp.float32)) + vals
-        assert np.isfinite(np.asarray(jax.jit(f)(*args))).all()
-        grads = jax.jit(jax.grad(lambda *a: jnp.sum(f(*a)), argnums=tuple(range(len(args)))))(*args)
-        for g in grads:
-            assert np.isfinite(np.asarray(g)).all()
+    args = (jnp.asarray(n, jnp.float32), jnp.asarray(v, jnp.float32), jnp.asarray(r, jnp.float32)) + vals
+    assert np.isfinite(np.asarray(jax.jit(f)(*args))).all()
+    grads = jax.jit(jax.grad(lambda *a: jnp.sum(f(*a)), argnums=tuple(range(len(args)))))(*args)
+    for name, g in zip(("n", "v", "roughness") + tuple(names), grads):
+        g = np.asarray(g).reshape(k, -1)
+        bad = ~np.isfinite(g).all(-1)
+        assert not bad.any(), (name, [labels[i] for i in np.flatnonzero(bad)][:5])
 
 
 # ------------------------------------------------------------------------------------------------
@@ -474,3 +508,29 @@ def test_extensions_with_the_learnopengl_model_are_an_error():
 def test_material_extension_values_are_validated(kw, match):
     with pytest.raises(ValueError, match=match):
         jp.Material(**kw)
+
+
+def test_a_charlie_map_is_refused_as_the_ggx_prefiltered_map(small_ibl):
+    irr, pre, lut, table, charlie = small_ibl
+    n, v, _ = _configs(4)
+    with pytest.raises(ValueError, match="charlie-prefiltered"):
+        jp.shade_ibl(n, v, jp.Material(**BASE), irr, charlie, lut)
+
+
+def test_refract_is_snells_law():
+    from jaxpbr.layered_ibl import refract
+
+    rng = np.random.default_rng(5)
+    n = np.tile([0.0, 0.0, 1.0], (50, 1))
+    d = _unit(rng.normal(size=(50, 3)) * [1, 1, 0.3] - [0, 0, 1.0])
+    for eta in (1 / 1.5, 1.0, 1.5):
+        t = np.asarray(refract(jnp.asarray(d), jnp.asarray(n), jnp.full(50, eta)))
+        sin_i = np.linalg.norm(np.cross(d, n), axis=-1)
+        ok = eta * sin_i < 1
+        sin_t = np.linalg.norm(np.cross(t, n), axis=-1)
+        np.testing.assert_allclose(sin_t[ok], eta * sin_i[ok], atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm(t[ok], axis=-1), 1.0, atol=1e-12)
+        assert (t[ok, 2] < 0).all()  # it goes on through the surface
+        # the refracted ray stays in the plane of incidence
+        np.testing.assert_allclose(np.sum(np.cross(d, n) * t, -1)[ok], 0.0, atol=1e-12)
+        np.testing.assert_array_equal(t[~ok], 0.0)  # total internal reflection
