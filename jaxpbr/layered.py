@@ -187,13 +187,15 @@ def layered_soa(
     sheen_lut=None,
     extra: LayerInputs = LayerInputs(),
     specular_weight=1.0,
+    coat_weight=1.0,
 ) -> Vec3:
     """f |cos|: the layered BSDF times the cosine of each lobe (|n.l| for the base, sheen and
     transmission, n_c.l for the coat), three per-channel planes; 0 where the light does not reach
     the viewer. `m` is a Material with extensions (completed here); n, v, l unit Vec3.
 
     Reflection where n.v > 0 and n.l > 0; transmission where n.v > 0 > n.l and the material
-    has the transmission extension. specular_weight scales the base GGX lobe (disc lights).
+    has the transmission extension. specular_weight and coat_weight scale the base and the coat
+    GGX lobes (a disc light's lobe ratios, `lights.disc_lobe_ratio`).
     """
     ext = m.extensions
     m = m.complete()
@@ -314,7 +316,7 @@ def layered_soa(
         rc = floored_roughness(m.clearcoat_roughness, min_roughness)
         ac = alpha_from_roughness(rc)
         vis_c = (v_smith_correlated if smith == "correlated" else v_smith_separable)(gc.n_dot_v, gc.n_dot_l, ac)
-        coat = jnp.where(gc.front, d_ggx(gc.n_dot_h, ac, gc.sin2_h) * vis_c, 0.0)
+        coat = jnp.where(gc.front, d_ggx(gc.n_dot_h, ac, gc.sin2_h) * vis_c * coat_weight, 0.0)
         cc = jnp.clip(m.clearcoat, 0.0, 1.0) * coat_fresnel(vdot(nc, v))
         fcos = [fcos[i] * (1.0 - cc) + cc * coat * gc.n_dot_l for i in range(3)]
     return tuple(fcos)

@@ -426,7 +426,12 @@ def shade_direct(
             lc = vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3)))
             g = geometry_soa(n3, v3, lc)
             ratio = disc_lobe_ratio(n3, v3, lc, s, alpha2, g)
-            fc = layered(lc, specular_weight=ratio)
+            w = {}
+            if "clearcoat" in m.extensions:  # the coat's own lobe ratio, about its normal
+                nc3 = n3 if extra.coat_normal is None else vnormalize(extra.coat_normal)
+                ac2 = floored_roughness(m.complete(("clearcoat",)).clearcoat_roughness, min_roughness) ** 4
+                w["coat_weight"] = disc_lobe_ratio(nc3, v3, lc, s, ac2, geometry_soa(nc3, v3, lc))
+            fc = layered(lc, specular_weight=ratio, **w)
             # f cos at the lifted centre -> f times the cap's cosine-weighted solid angle.
             cl = vdot(n3, lc)
             k = jnp.where(cl > 0, cap_factor(c, s) / jnp.where(cl > 0, cl, 1.0), 1.0)
