@@ -28,7 +28,10 @@ Choices, each measured against the brute-force layered reference (`jaxpbr.refere
   4.1 % / 4.1 %; the geometric mean 22 / 6.7 %, the mean 9.1 / 3.8 %, alpha_t 14 / 15 %. Taps spread
   along T (the extension's suggestion) changed nothing measurable (29.3 %).
 * Sheen: LD_c looked up at the normal n (the Charlie filter assumes n = v = R; the lobe is a ring
-  about n), and albedo scaling with the view-only form (the spec's IBL form).
+  about n), and albedo scaling with the view-only form (the spec's IBL form). Measured against
+  `reference_layered` (white sheen over a dark base, sky residual at 64^2, IBL term, mean relative
+  error at sheen roughness 0.15 / 0.5 / 1): at n 6.2 / 4.8 / 3.2 %, at R (glTF-Sample-Viewer)
+  6.5 / 9.7 / 9.6 %, halfway 6.4 / 7.8 / 6.4 %.
 * Thin transmission: the thin BTDF's lobe is the reflection lobe mirrored through the tangent plane,
   so it is centred on d_t = -v at the base roughness; its energy (1 - F) uses the GGX LUT.
 * Volume: d_t is the refracted (or, for the scene layer's spheres, the exit) direction; the
