@@ -36,7 +36,7 @@ from ._numerics import (
 from ._pytree import Pytree, fields_of, leaf
 from ._validate import batch_shape, check_values, vector
 from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, floored_roughness, geometry_soa
-from .layered import LayerInputs, emission_soa, layered_soa, needs_sheen_lut
+from .layered import LayerInputs, anisotropic_alphas, anisotropy_frame, emission_soa, layered_soa, needs_sheen_lut
 from .material import Material
 
 __all__ = [
@@ -411,6 +411,14 @@ def shade_direct(
         opts = {k: brdf_options[k] for k in ("smith", "diffuse") if k in brdf_options}
         layered = lambda l3, **w: layered_soa(n3, v3, l3, m, min_roughness=min_roughness, sheen_lut=sheen_lut, extra=extra, **opts, **w)  # noqa: E731
         transmits = "transmission" in m.extensions
+        aniso = None
+        if disc_items and "anisotropy" in m.extensions and extra.tangent is not None:
+            # The disc's lobe ratio over the stretched slope distribution (`disc_lobe_ratio`).
+            mc = m.complete(("anisotropy",))
+            T, B = anisotropy_frame(n3, vnormalize(extra.tangent), mc.anisotropy_rotation)
+            at, ab = anisotropic_alphas(floored_roughness(m.roughness, min_roughness) ** 2,
+                                        jnp.clip(mc.anisotropy_strength, 0.0, 1.0))
+            aniso = (T, B, at, ab)
 
     def one(light: LightSet, disc_lights: bool) -> Vec3:
         l3, e = light_incidence_soa(light, p3)
@@ -425,7 +433,7 @@ def shade_direct(
                 lift = jnp.where(c < 0, 0.0, lift)
             lc = vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3)))
             g = geometry_soa(n3, v3, lc)
-            ratio = disc_lobe_ratio(n3, v3, lc, s, alpha2, g)
+            ratio = disc_lobe_ratio(n3, v3, lc, s, alpha2, g, aniso=aniso)
             w = {}
             if "clearcoat" in m.extensions:  # the coat's own lobe ratio, about its normal
                 nc3 = n3 if extra.coat_normal is None else vnormalize(extra.coat_normal)
@@ -516,7 +524,7 @@ def _frame(n: Vec3) -> tuple[Vec3, Vec3]:
     return (1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]), (b, sign + n[1] * n[1] * a, -n[1])
 
 
-def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Array:
+def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g, aniso=None) -> jax.Array:
     """Mean of the GGX D over a disc of directions (centre l, angular radius sigma), divided by D
     at the centre's half vector: the factor `shade_direct` puts on the specular lobe of a disc
     light. g: `Geometry` of (n, v, l); alpha2 = alpha^2 (floored, > 0).
@@ -533,6 +541,10 @@ def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Arra
     when the origin is inside the ellipse; when outside, over the ellipse's angular extent with a
     sine substitution that absorbs the square-root ends). sigma -> 0 gives 1 (D itself);
     alpha -> 0 gives the disc's mirror image. Finite values and gradients (double where).
+
+    aniso: (T, B, alpha_t, alpha_b) for an anisotropic lobe (KHR_materials_anisotropy): the slope
+    axes are T and B, scaled by alpha_t and alpha_b (the anisotropic slope distribution is the
+    isotropic one stretched along them), and D at the centre is the anisotropic D.
     """
     # Double where: lanes the BRDF masks (viewer or light below the surface, v = -l) get the
     # benign v = l = n, whose huge or 0/0 Jacobian would otherwise reach the value and gradient.
@@ -541,7 +553,7 @@ def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Arra
     l = tuple(jnp.where(front, l[i], n[i]) for i in range(3))
     s = sin_sigma
     h = vnormalize(tuple(v[i] + l[i] for i in range(3)))
-    t1, t2 = _frame(n)
+    t1, t2 = _frame(n) if aniso is None else aniso[:2]
     e1, e2 = _frame(l)
     hn = jnp.maximum(vdot(n, h), 1e-6)
     vh = jnp.maximum(vdot(v, h), 1e-6)
@@ -552,11 +564,17 @@ def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Arra
         he = vdot(h, e)
         dh = tuple((e[i] - h[i] * he) / (2.0 * vh) for i in range(3))
         dn = vdot(n, dh)
-        k = s / (alpha * hn * hn)
-        return ((vdot(t1, dh) * hn - ht1 * dn) * k, (vdot(t2, dh) * hn - ht2 * dn) * k)
+        if aniso is None:
+            k = s / (alpha * hn * hn)
+            return ((vdot(t1, dh) * hn - ht1 * dn) * k, (vdot(t2, dh) * hn - ht2 * dn) * k)
+        k = s / (hn * hn)
+        return ((vdot(t1, dh) * hn - ht1 * dn) * k / aniso[2], (vdot(t2, dh) * hn - ht2 * dn) * k / aniso[3])
 
     (a11, a21), (a12, a22) = slope_step(e1), slope_step(e2)
-    c1, c2 = ht1 / (hn * alpha), ht2 / (hn * alpha)
+    if aniso is None:
+        c1, c2 = ht1 / (hn * alpha), ht2 / (hn * alpha)
+    else:
+        c1, c2 = ht1 / (hn * aniso[2]), ht2 / (hn * aniso[3])
     det = a11 * a22 - a12 * a21
     ok = (jnp.abs(det) > 1e-30) & (s > 0) & front
     det_s = jnp.where(ok, det, 1.0)
@@ -593,9 +611,15 @@ def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g) -> jax.Arra
     for j in range(1, K):
         total = total + terms[..., j]
     mass = jnp.abs(det_s) * total / (2.0 * jnp.pi)
-    d0 = g.sin2_h + g.n_dot_h * g.n_dot_h * alpha2
     s2 = jnp.where(ok, s * s, 1.0)
-    ratio = 4.0 * vh * mass * d0 * d0 / (hn * s2 * alpha2)
+    if aniso is None:
+        d0 = g.sin2_h + g.n_dot_h * g.n_dot_h * alpha2
+        ratio = 4.0 * vh * mass * d0 * d0 / (hn * s2 * alpha2)
+    else:
+        from .layered import d_ggx_anisotropic
+
+        dc = d_ggx_anisotropic(hn, ht1, ht2, aniso[2], aniso[3])
+        ratio = 4.0 * vh * mass / (hn * s2 * jnp.pi * jnp.where(ok, dc, 1.0))
     return jnp.where(ok, ratio, 1.0)
 
 
