@@ -97,12 +97,15 @@ from ._validate import positive_int
 from .brdf_terms import MIN_ROUGHNESS
 from .cubemap import (
     Cubemap,
+    _mip_chain,
     _mip_count,
+    _Pyramid,
     _subtexel_coords,
     face_to_dir,
     texel_directions,
     texel_solid_angles,
 )
+from .sampling import tangent_frame
 from .sheen import d_charlie
 
 __all__ = [
@@ -124,8 +127,10 @@ __all__ = [
 DEFAULT_CHARLIE_SIZE = 64
 #: Default number of levels M (r_m = m/(M-1)).
 DEFAULT_CHARLIE_LEVELS = 5
-#: Default face size of the environment's pyramid level that is summed in full.
+#: Default face size of the environment's pyramid level that is summed in full (method "box").
 DEFAULT_CHARLIE_SOURCE_SIZE = 64
+#: Default finest pyramid level the zonal method reads (face size; the env's level 0 when smaller).
+DEFAULT_CHARLIE_ZONAL_SOURCE_SIZE = 256
 #: Lookups between levels: "mean_cosine" (lod linear in k(alpha) between bracketing levels) or
 #: "roughness" (lod = r (M-1), the glTF sample viewer's).
 CHARLIE_LOD_BLENDS = ("mean_cosine", "roughness")
@@ -136,6 +141,22 @@ CHUNK = 64
 REFERENCE_MAX_Q = 8
 #: Entries per level interval of the metadata's "lod_table".
 LOD_TABLE_STEPS = 8
+#: Prefilter methods: "zonal" (rings in c, pyramid lookups matched to each sample's footprint)
+#: and "box" (every texel of one source level, the kernel box-filtered over each texel).
+CHARLIE_METHODS = ("zonal", "box")
+DEFAULT_CHARLIE_METHOD = "zonal"
+#: Most rings (equal-mass bands of the weight in c) per level.
+DEFAULT_CHARLIE_RINGS = 4
+#: Samples per texel width along a ring (1: spacing = the texel of the level read).
+DEFAULT_CHARLIE_PHI_DENSITY = 1.0
+#: Added to each ring's source level (log2 of footprint / texel).
+DEFAULT_CHARLIE_LOD_BIAS = -2.0
+#: Levels (from level 0) computed by the zonal method with method "zonal"; the others by "box".
+DEFAULT_CHARLIE_ZONAL_LEVELS = 1
+#: Most samples along one ring.
+MAX_PHI = 2048
+#: Output directions per chunk of the zonal path.
+ZONAL_CHUNK = 32
 
 
 # ------------------------------------------------------------------------------------------
@@ -357,7 +378,13 @@ def prefilter_charlie(
     source_size: int | None = None,
     lod_blend: str = DEFAULT_CHARLIE_LOD_BLEND,
     min_roughness: float = MIN_ROUGHNESS,
-    chunk: int = CHUNK,
+    chunk: int | None = None,
+    method: str = DEFAULT_CHARLIE_METHOD,
+    rings: int = DEFAULT_CHARLIE_RINGS,
+    phi_density: float = DEFAULT_CHARLIE_PHI_DENSITY,
+    lod_bias: float = DEFAULT_CHARLIE_LOD_BIAS,
+    zonal_levels: int = DEFAULT_CHARLIE_ZONAL_LEVELS,
+    zonal_source_size: int | None = None,
 ) -> Cubemap:
     """Charlie-prefiltered chain: level m holds LD_c(R, r_m) at (S >> m)^2 texel centres,
     r_m = m/(M-1), alpha_m = max(r_m, min_roughness)^2 (module docstring).
@@ -378,29 +405,69 @@ def prefilter_charlie(
     floor = float(min_roughness)
     if not 0.0 < floor <= 1.0:
         raise ValueError(f"min_roughness must be in (0, 1], got {min_roughness}")
-    src_target = DEFAULT_CHARLIE_SOURCE_SIZE if source_size is None else positive_int("source_size", source_size)
+    if method not in CHARLIE_METHODS:
+        raise ValueError(f"unknown method {method!r}; choose one of {CHARLIE_METHODS}")
     dt = np.dtype(env.dtype if dtype is None else dtype)
-    src = _source_level(env, src_target)
-    Ss, C = src.shape[1], src.shape[-1]
-    D = texel_directions(Ss).reshape(-1, 3)
-    om = texel_solid_angles(Ss).reshape(-1)
     rough = charlie_level_roughness(M)
     alphas = _alpha(rough, floor, np)
-    R_all, K_all, sizes = [], [], []
+    R_all, sizes = [], []
     for m in range(M):
         Sm = max(1, S >> m)
-        dirs = texel_directions(Sm).reshape(-1, 3)
-        R_all.append(dirs)
-        K_all.append(np.full(len(dirs), 0.5 / alphas[m]))
+        R_all.append(texel_directions(Sm).reshape(-1, 3))
         sizes.append(Sm)
-    EA, EB = _texel_edges(Ss)
-    longest = float(np.max(np.minimum(np.linalg.norm(EA, axis=1), np.linalg.norm(EB, axis=1))))
-    plan = tuple((len(Rm), bool(0.5 / am * longest > TRAPEZOID_MIN)) for Rm, am in zip(R_all, alphas))
-    dev = lambda x: jax.device_put(np.asarray(x, dt))
-    out = _charlie_rows(
-        dev(np.concatenate(R_all)), dev(np.concatenate(K_all)), dev(D), dev(EA), dev(EB), dev(np.log(om)),
-        jnp.asarray(src, dt).reshape(-1, C), plan=plan, chunk=positive_int("chunk", chunk),
-    )
+    dev = lambda x: jax.device_put(np.asarray(x, dt))  # noqa: E731
+    C = env.channels
+    Z = 0 if method == "box" else min(M, positive_int("zonal_levels", zonal_levels) if zonal_levels else 0)
+    outs, method_info = [], {"prefilter_method": "charlie_box" if Z == 0 else ("charlie_zonal" if Z == M else "charlie_zonal+box")}
+    if Z < M:  # the box method for levels Z..M-1
+        src_target = DEFAULT_CHARLIE_SOURCE_SIZE if source_size is None else positive_int("source_size", source_size)
+        src = _source_level(env, src_target)
+        Ss = src.shape[1]
+        D = texel_directions(Ss).reshape(-1, 3)
+        om = texel_solid_angles(Ss).reshape(-1)
+        K_all = [np.full(len(Rm), 0.5 / am) for Rm, am in zip(R_all[Z:], alphas[Z:])]
+        EA, EB = _texel_edges(Ss)
+        longest = float(np.max(np.minimum(np.linalg.norm(EA, axis=1), np.linalg.norm(EB, axis=1))))
+        plan = tuple((len(Rm), bool(0.5 / am * longest > TRAPEZOID_MIN)) for Rm, am in zip(R_all[Z:], alphas[Z:]))
+        outs.append(_charlie_rows(
+            dev(np.concatenate(R_all[Z:])), dev(np.concatenate(K_all)), dev(D), dev(EA), dev(EB), dev(np.log(om)),
+            jnp.asarray(src, dt).reshape(-1, C), plan=plan, chunk=positive_int("chunk", CHUNK if chunk is None else chunk),
+        ))
+        method_info.update({
+            "source_face_size": str(Ss),
+            "source_filter": "every texel of the environment's area-correct pyramid level source_face_size^2; "
+                             "kernel box-filtered in c = R.l over each texel (mean of w over c +- sqrt(Omega) sin(theta)/2)",
+        })
+    if Z > 0:  # the zonal method for levels 0..Z-1
+        S0 = env.face_size
+        src_z = DEFAULT_CHARLIE_ZONAL_SOURCE_SIZE if zonal_source_size is None else positive_int("zonal_source_size", zonal_source_size)
+        pyr_sizes = tuple(S0 >> i for i in range(_mip_count(S0)))
+        finest = _finest_level(S0, src_z)
+        rings = positive_int("rings", rings)
+        if not phi_density > 0:
+            raise ValueError(f"phi_density must be > 0, got {phi_density}")
+        tables, plan, counts = [], [], []
+        for Rm, am in zip(R_all[:Z], alphas[:Z]):
+            local, w, lod = _zonal_samples(float(am), pyr_sizes, finest, rings, float(phi_density), float(lod_bias))
+            tables.append((dev(local), dev(w), jax.device_put(lod)))
+            plan.append(len(Rm))
+            counts.append(len(w))
+        outs.insert(0, _zonal_rows(
+            jnp.asarray(env.levels[0], dt), dev(np.concatenate(R_all[:Z])), tuple(tables), plan=tuple(plan),
+            sizes=pyr_sizes, chunk=positive_int("chunk", ZONAL_CHUNK if chunk is None else chunk),
+        ))
+        method_info.update({
+            "zonal_levels": str(Z),
+            "zonal_source_face_size": str(pyr_sizes[finest]),
+            "zonal_filter": "levels < zonal_levels: rings of equal weight in c = R.l at their conditional mean cosine, "
+                            "each sampled along its azimuth with bilinear lookups in the environment's area-correct "
+                            "pyramid at the level whose texel matches the ring's width (no finer than "
+                            "zonal_source_face_size^2)",
+            "charlie_samples": ",".join(str(n) for n in counts),
+        })
+        if Z == M:
+            method_info["source_face_size"] = str(pyr_sizes[finest])
+    out = jnp.concatenate(outs) if len(outs) > 1 else outs[0]
     levels, row = [], 0
     for Sm in sizes:
         n = 6 * Sm * Sm
@@ -416,12 +483,102 @@ def prefilter_charlie(
         "min_roughness": f"{floor:g}",
         "alpha": "max(sheen_roughness, min_roughness)^2",
         **charlie_lookup_metadata(M, lod_blend=lod_blend, face_size=S, min_roughness=floor),
-        "prefilter_method": "charlie_box",
-        "source_face_size": str(Ss),
-        "source_filter": "every texel of the environment's area-correct pyramid level source_face_size^2; "
-                         "kernel box-filtered in c = R.l over each texel (mean of w over c +- sqrt(Omega) sin(theta)/2)",
+        **method_info,
     }
     return Cubemap(levels, info)
+
+
+# ------------------------------------------------------------------------------------------
+# zonal path: rings in c = R.l, filtered samples along each ring
+# ------------------------------------------------------------------------------------------
+
+def _mean_texel(S: int) -> float:
+    """Mean angular size of a texel of an S^2 cube face (sqrt of the mean solid angle)."""
+    return math.sqrt(4.0 * math.pi / 6.0) / S
+
+
+@functools.lru_cache(maxsize=128)
+def _zonal_samples(alpha: float, sizes: tuple, finest: int, rings: int, density: float, lod_bias: float):
+    """Local-frame samples (k, 3) (R = +z), weights (k,) (sum 1, float64), integer source levels
+    (k,) for the Charlie weight w(c) = c (1 - c)^K (K = 1/(2 alpha), dc dphi measure: c is
+    Beta(2, K+1)).
+
+    The weight is cut into n equal-mass bands in c (n: the bands' typical angular width about the
+    finest level's texel, at most `rings`); band i is a ring at its conditional mean cosine c_i
+    (so the mass and the mean cosine are exact: constant and linear environments are reproduced
+    up to the pyramid's filtering), of angular width dtheta_i = (b - a) / sin(theta_i). The ring
+    reads the pyramid level whose texel matches dtheta_i (+ lod_bias, at least `finest`), at
+    n_phi = 2 pi sin(theta_i) / texel * density equally spaced azimuths (offsets staggered
+    between rings), each of weight 1/(n n_phi)."""
+    from scipy.special import betainc, betaincinv
+
+    K = 0.5 / alpha
+    a, b = 2.0, K + 1.0
+    L = len(sizes)
+    t0 = _mean_texel(sizes[0])
+    mean = a / (a + b)
+    sd = math.sqrt(a * b / ((a + b) ** 2 * (a + b + 1)))
+    width = math.sqrt(12.0) * sd / math.sqrt(max(1.0 - mean * mean, 1e-12))
+    n = int(min(rings, max(1, math.ceil(width / _mean_texel(sizes[finest])))))
+    q = np.concatenate([[0.0], betaincinv(a, b, np.arange(1, n) / n), [1.0]])
+    # Conditional mean: E[c; band] = mean (I_3(hi) - I_3(lo)) with I_3 the Beta(3, K+1) cdf.
+    m3 = betainc(a + 1, b, q)
+    c = n * mean * np.diff(m3)
+    c2 = n * mean * (a + 1.0) / (a + b + 1.0) * np.diff(betainc(a + 2.0, b, q))
+    sin = np.sqrt(np.maximum(1.0 - c * c, 0.0))
+    # The band's width: that of a box in c with its conditional variance, in angle about theta_i.
+    dth = np.sqrt(12.0 * np.maximum(c2 - c * c, 0.0)) / np.maximum(sin, 1e-6)
+    local, wts, lods = [], [], []
+    golden = 0.5 * (math.sqrt(5.0) - 1.0)
+    for i in range(n):
+        lod = math.log2(max(dth[i], 1e-12) / t0) + lod_bias
+        lv = int(min(L - 1, max(finest, math.ceil(lod - 1e-9))))
+        nphi = int(min(MAX_PHI, max(3, math.ceil(2.0 * math.pi * sin[i] / _mean_texel(sizes[lv]) * density))))
+        while nphi == MAX_PHI and lv < L - 1 and 2.0 * math.pi * sin[i] / _mean_texel(sizes[lv]) * density > MAX_PHI:
+            lv += 1
+            nphi = int(min(MAX_PHI, max(3, math.ceil(2.0 * math.pi * sin[i] / _mean_texel(sizes[lv]) * density))))
+        phi = 2.0 * math.pi * (np.arange(nphi) + (i * golden) % 1.0) / nphi
+        local.append(np.stack([sin[i] * np.cos(phi), sin[i] * np.sin(phi), np.full(nphi, c[i])], -1))
+        wts.append(np.full(nphi, 1.0 / (n * nphi)))
+        lods.append(np.full(nphi, lv, np.int32))
+    return np.concatenate(local), np.concatenate(wts), np.concatenate(lods)
+
+
+def _zonal_chunk(Rc, flat, local, w, lod, *, sizes):
+    """sum_k w_k L(l_k) for output directions Rc (chunk, 3): l_k = local_k in the frame of R,
+    bilinear in the pyramid level lod_k."""
+    pyr = _Pyramid(None, flat=flat, sizes=list(sizes))
+    t, b = tangent_frame(Rc)
+    l = t[:, None, :] * local[None, :, 0:1] + b[:, None, :] * local[None, :, 1:2] + Rc[:, None, :] * local[None, :, 2:3]
+    from .cubemap import dir_to_face
+
+    face, s, tt = dir_to_face(l)
+    rad = pyr.bilinear(face, s, tt, jnp.broadcast_to(lod, s.shape))
+    return jnp.einsum("ckz,k->cz", rad, w, precision=HIGHEST) / jnp.sum(w)
+
+
+@functools.partial(jax.jit, static_argnames=("plan", "sizes", "chunk"))
+def _zonal_rows(level0, R, tables, *, plan, sizes, chunk):
+    """LD_c rows of every level: R (N, 3) the levels' directions consecutive, plan the rows per
+    level (static), tables per level (local, w, lod)."""
+    levels = _mip_chain(level0, len(sizes)) if len(sizes) > 1 else (level0,)
+    from .cubemap import _pad_level
+
+    flat = jnp.concatenate([_pad_level(lv).reshape(-1, lv.shape[-1]) for lv in levels], 0)
+    out, row = [], 0
+    for n, (local, w, lod) in zip(plan, tables):
+        fn = jax.checkpoint(functools.partial(_zonal_chunk, flat=flat, local=local, w=w, lod=lod, sizes=sizes))
+        out.append(map_row_chunks(fn, chunk, R[row : row + n]))
+        row += n
+    return jnp.concatenate(out)
+
+
+def _finest_level(S0: int, source_size: int) -> int:
+    steps, S = 0, S0
+    while S > source_size and S % 2 == 0:
+        S //= 2
+        steps += 1
+    return steps
 
 
 # ------------------------------------------------------------------------------------------
