@@ -9,7 +9,8 @@ Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` a
 
 from . import atomic, brdf_terms, color, demo, envs, image, ktx2, renderer, scene
 from ._version import __version__
-from .brdf_terms import MIN_ROUGHNESS, MODELS, brdf
+from .brdf_terms import MIN_ROUGHNESS, MODELS
+from .layered import brdf
 from .conventions import CONVENTIONS
 from .cubemap import Cubemap
 from .diffuse import irradiance, sh9_irradiance, sh9_project

@@ -485,10 +485,6 @@ def brdf(
     smith: str = "correlated",
     diffuse: str = "lambert",
     shader_epsilon: float = 1e-4,
-    tangent=None,
-    coat_normal=None,
-    volume_distance=None,
-    sheen_lut=None,
 ) -> jax.Array:
     """The full BRDF f_r(v, l) in 1/sr (no cosine factor), shape broadcast(...) + (3,).
 
@@ -511,25 +507,18 @@ def brdf(
 
     Returns 0 where NoV <= 0 or NoL <= 0 (the light or the viewer is below the surface).
 
-    A Material with glTF extension fields (clearcoat, sheen, ...) is evaluated by the layered BSDF
-    of `jaxpbr.layered` (model "gltf" only), which also transmits light from below the surface
-    (n.l < 0) when it has `transmission`; tangent (anisotropy), coat_normal, volume_distance and
-    sheen_lut are its extra inputs (see `shade_direct`). Its value is the sum of the lobes times
-    their own cosines divided by |n.l| (the coat's cosine is about coat_normal).
+    The core model only: a Material with glTF extension fields raises ValueError; `jaxpbr.brdf`
+    (`jaxpbr.layered.brdf`) shades both.
     """
     check_options(model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon)
     # Named shape checks (always) and finiteness (concrete values): a NaN direction gave 0.
     n, v, l = (check_values(name, vector(name, x)) for name, x in (("n", n), ("v", v), ("l", l)))
     batch_shape("brdf", ("n", n, 1), ("v", v, 1), ("l", l, 1), material=m)
     if m.layered:
-        from .layered import layered_soa
-        from .lights import _layer_setup
-
-        n3, v3, l3 = (vnormalize(unpack3(x)) for x in (n, v, l))
-        extra, table = _layer_setup(m, model, n3, tangent, coat_normal, volume_distance, sheen_lut)
-        fc = layered_soa(n3, v3, l3, m, min_roughness=min_roughness, smith=smith, diffuse=diffuse, sheen_lut=table, extra=extra)
-        c = jnp.abs(vdot(n3, l3))
-        return pack3(tuple(jnp.where(c > 0, x / jnp.where(c > 0, c, 1.0), 0.0) for x in fc))
+        raise ValueError(
+            f"brdf_terms.brdf shades the core model; this material has the glTF extensions {m.extensions}: "
+            "call jaxpbr.brdf (jaxpbr.layered.brdf), which shades both."
+        )
     g = geometry(n, v, l)
     f = brdf_soa(
         g,

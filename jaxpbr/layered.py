@@ -55,9 +55,12 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ._numerics import Vec3, saturate, vcross, vdot, vnormalize
+from . import brdf_terms
+from ._numerics import Vec3, as_float, pack3, saturate, unpack3, vcross, vdot, vnormalize
+from ._validate import batch_shape, check_values, vector
 from .brdf_terms import (
     F0_DIELECTRIC,
+    MIN_ROUGHNESS,
     alpha_from_roughness,
     d_ggx,
     f0_from_ior,
@@ -71,6 +74,8 @@ from .sheen import d_charlie, floored_sheen_roughness, sheen_albedo_scaling, v_c
 
 __all__ = [
     "COAT_F0",
+    "brdf",
+    "layer_setup",
     "LayerInputs",
     "anisotropic_alphas",
     "anisotropy_frame",
@@ -320,6 +325,65 @@ def layered_soa(
         cc = jnp.clip(m.clearcoat, 0.0, 1.0) * coat_fresnel(vdot(nc, v))
         fcos = [fcos[i] * (1.0 - cc) + cc * coat * gc.n_dot_l for i in range(3)]
     return tuple(fcos)
+
+
+def layer_setup(m, model, tangent, coat_normal, volume_distance, sheen_lut):
+    """None for a Material without extensions (the core path, unchanged); else the layered
+    inputs (LayerInputs, sheen table) after checking the model and the needed arguments."""
+    if not m.layered:
+        return None
+    if model != "gltf":
+        raise ValueError(
+            f"the glTF material extensions {m.extensions} are defined on the glTF model only, not "
+            f"model={model!r}; use model='gltf' or a Material without extension fields."
+        )
+    t3 = None if tangent is None else unpack3(as_float(tangent))
+    nc3 = None if coat_normal is None else unpack3(as_float(coat_normal))
+    dist = None if volume_distance is None else as_float(volume_distance)
+    if needs_sheen_lut(m) and sheen_lut is None:
+        from .shipped_luts import sheen_lut as _sheen_lut
+
+        sheen_lut = _sheen_lut()
+    return LayerInputs(tangent=t3, coat_normal=nc3, volume_distance=dist), sheen_lut
+
+
+def brdf(
+    n,
+    v,
+    l,
+    m,
+    *,
+    model: str = "gltf",
+    min_roughness: float = MIN_ROUGHNESS,
+    smith: str = "correlated",
+    diffuse: str = "lambert",
+    shader_epsilon: float = 1e-4,
+    tangent=None,
+    coat_normal=None,
+    volume_distance=None,
+    sheen_lut=None,
+) -> jax.Array:
+    """`jaxpbr.brdf`: the BRDF f_r(v, l) in 1/sr (no cosine), (..., 3), of a Material with or without
+    the glTF extensions. Without them: `brdf_terms.brdf` (every model and option, unchanged).
+    With them (model "gltf" only): the layered BSDF of this module, which also transmits light
+    from below the surface (n.l < 0) when the material has `transmission`; its value is the sum of
+    the lobes times their own cosines divided by |n.l| (the coat's cosine is about coat_normal).
+    tangent (..., 3): the surface tangent (anisotropy); coat_normal (..., 3): the clear coat's
+    normal (default n); volume_distance (...): path length in the medium (default thickness);
+    sheen_lut: the sheen albedo table (default the shipped 128^2 one).
+    """
+    if not m.layered:
+        return brdf_terms.brdf(
+            n, v, l, m, model=model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon
+        )
+    brdf_terms.check_options(model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon)
+    n, v, l = (check_values(name, vector(name, x)) for name, x in (("n", n), ("v", v), ("l", l)))
+    batch_shape("brdf", ("n", n, 1), ("v", v, 1), ("l", l, 1), material=m)
+    n3, v3, l3 = (vnormalize(unpack3(x)) for x in (n, v, l))
+    extra, table = layer_setup(m, model, tangent, coat_normal, volume_distance, sheen_lut)
+    fc = layered_soa(n3, v3, l3, m, min_roughness=min_roughness, smith=smith, diffuse=diffuse, sheen_lut=table, extra=extra)
+    c = jnp.abs(vdot(n3, l3))
+    return pack3(tuple(jnp.where(c > 0, x / jnp.where(c > 0, c, 1.0), 0.0) for x in fc))
 
 
 def emission_soa(m, n: Vec3, v: Vec3, coat_normal: Vec3 | None = None) -> jax.Array:

@@ -36,7 +36,7 @@ from ._numerics import (
 from ._pytree import Pytree, fields_of, leaf
 from ._validate import batch_shape, check_values, vector
 from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, floored_roughness, geometry_soa
-from .layered import LayerInputs, anisotropic_alphas, anisotropy_frame, emission_soa, layered_soa, needs_sheen_lut
+from .layered import anisotropic_alphas, anisotropy_frame, emission_soa, layer_setup, layered_soa
 from .material import Material
 
 __all__ = [
@@ -405,7 +405,7 @@ def shade_direct(
     if disc_items:
         alpha2 = floored_roughness(m.roughness, min_roughness) ** 4
     lobe = lambda g, **w: brdf_soa(g, base, m.metallic, m.roughness, model=model, min_roughness=min_roughness, **brdf_options, **w)  # noqa: E731
-    layers = _layer_setup(m, model, n3, tangent, coat_normal, volume_distance, sheen_lut)
+    layers = layer_setup(m, model, tangent, coat_normal, volume_distance, sheen_lut)
     if layers is not None:
         extra, sheen_lut = layers
         opts = {k: brdf_options[k] for k in ("smith", "diffuse") if k in brdf_options}
@@ -491,25 +491,6 @@ def shade_direct(
         emissive = unpack3(emission_soa(m, n3, v3, layers[0].coat_normal))
     return pack3(tuple(out[i] + emissive[i] for i in range(3)))
 
-
-def _layer_setup(m, model, n3, tangent, coat_normal, volume_distance, sheen_lut):
-    """None for a Material without extensions (the core path, unchanged); else the layered
-    inputs (LayerInputs, sheen table) after checking the model and the needed arguments."""
-    if not m.layered:
-        return None
-    if model != "gltf":
-        raise ValueError(
-            f"the glTF material extensions {m.extensions} are defined on the glTF model only, not "
-            f"model={model!r}; use model='gltf' or a Material without extension fields."
-        )
-    t3 = None if tangent is None else unpack3(as_float(tangent))
-    nc3 = None if coat_normal is None else unpack3(as_float(coat_normal))
-    dist = None if volume_distance is None else as_float(volume_distance)
-    if needs_sheen_lut(m) and sheen_lut is None:
-        from .shipped_luts import sheen_lut as _sheen_lut
-
-        sheen_lut = _sheen_lut()
-    return LayerInputs(tangent=t3, coat_normal=nc3, volume_distance=dist), sheen_lut
 
 
 #: Quadrature points of `disc_lobe_ratio` (directions from the slope-space origin).

@@ -786,7 +786,7 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=N
             emis = jnp.where(sel[..., None], jnp.asarray(f.emissive, dtype) * tex, emis)
         if tm.extension_textures:
             m = evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis)
-            m, cn, tan_k = apply_extension_textures(tm, m, u, v, sel, n, tangent, dtype)
+            m, cn, tan_k = apply_extension_textures(tm, m, u, v, sel, n, tangent, dtype=dtype)
             base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
             if cn is not None:
                 prev = n if coat_n is None else coat_n

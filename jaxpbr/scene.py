@@ -305,7 +305,7 @@ def _normal_from_map(tex, scale, T, B, n):
     return vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
 
 
-def apply_extension_textures(tm: TexturedMaterial, m: Material, u, v, sel, n, tangent, dtype):
+def apply_extension_textures(tm: TexturedMaterial, m: Material, u, v, sel, n, tangent, *, dtype):
     """The extension textures of `tm` (KHR_materials_*) evaluated on the pixels `sel`.
 
     tm: the object's TexturedMaterial. m: the gathered per-pixel Material ((H, W[, 3]) leaves,

@@ -70,6 +70,7 @@ DATA = {
     "jaxpbr.color.encode": ("transfer",),
     # the one leading size (README / examples pass it positionally)
     "jaxpbr.shipped_luts.brdf_lut": ("size",),
+    "jaxpbr.shipped_luts.sheen_lut": ("size",),  # the table's resolution, as brdf_lut(128)
     "jaxpbr.lut.compute_brdf_lut": ("size",),
     "jaxpbr.diffuse.irradiance": ("size",),
     "jaxpbr.specular.prefilter": ("size",),

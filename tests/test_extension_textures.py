@@ -80,7 +80,7 @@ def test_constant_textures_give_factor_times_channel():
     tm = jp.TexturedMaterial(factors=ALL_FACTORS, **textures)
     u, v, sel, n, t = _frame()
     m = _per_pixel(ALL_FACTORS)
-    out, coat, tan = apply_extension_textures(tm, m, u, v, sel, n, t, DT)
+    out, coat, tan = apply_extension_textures(tm, m, u, v, sel, n, t, dtype=DT)
     assert coat is None  # no clear-coat normal map, no base normal map
     assert tan is not None  # the anisotropy texture gives a direction
     s = np.asarray(sel)
@@ -113,7 +113,7 @@ def test_textures_are_sampled_at_uv():
     f = jp.Material(specular=0.5, specular_color=(1.0, 1.0, 1.0))
     tm = jp.TexturedMaterial(factors=f, specular_texture=img, specular_color_texture=img)
     u, v, sel, n, t = _frame()
-    out, _, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    out, _, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     ref = np.asarray(jp.scene.sample_texture(jnp.asarray(img), u, v))
     s = np.asarray(sel)
     np.testing.assert_allclose(_np(out.specular)[s], 0.5 * ref[..., 3][s], rtol=1e-6)
@@ -128,7 +128,7 @@ def test_unset_factor_of_a_present_group_takes_its_neutral_value():
         factors=f, clearcoat_roughness_texture=_const(3), specular_color_texture=_const(3)
     )
     u, v, sel, n, t = _frame()
-    out, _, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    out, _, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     s = np.asarray(sel)
     np.testing.assert_array_equal(_np(out.clearcoat_roughness)[s], 0.0)
     np.testing.assert_allclose(_np(out.specular_color)[s], np.broadcast_to(CHANNELS[:3], (s.sum(), 3)), rtol=1e-6)
@@ -138,7 +138,7 @@ def test_group_missing_from_the_gathered_material_is_neutral_elsewhere():
     f = jp.Material(transmission=1.0)
     tm = jp.TexturedMaterial(factors=f, transmission_texture=_const(1))
     u, v, sel, n, t = _frame()
-    out, _, _ = apply_extension_textures(tm, _per_pixel(jp.Material()), u, v, sel, n, t, DT)
+    out, _, _ = apply_extension_textures(tm, _per_pixel(jp.Material()), u, v, sel, n, t, dtype=DT)
     s = np.asarray(sel)
     np.testing.assert_allclose(_np(out.transmission)[s], CHANNELS[0], rtol=1e-6)
     np.testing.assert_array_equal(_np(out.transmission)[~s], 0.0)
@@ -149,7 +149,7 @@ def test_no_extension_textures_changes_nothing():
     tm = jp.TexturedMaterial(factors=f, base_color_texture=_const(3))
     u, v, sel, n, t = _frame()
     m = _per_pixel(f)
-    out, coat, tan = apply_extension_textures(tm, m, u, v, sel, n, t, DT)
+    out, coat, tan = apply_extension_textures(tm, m, u, v, sel, n, t, dtype=DT)
     assert out is m and coat is None and tan is None
 
 
@@ -162,7 +162,7 @@ def test_flat_coat_normal_map_gives_the_normal():
     f = jp.Material(clearcoat=1.0)
     tm = jp.TexturedMaterial(factors=f, clearcoat_normal_texture=np.full((4, 4, 3), [0.5, 0.5, 1.0]))
     u, v, sel, n, t = _frame()
-    _, coat, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    _, coat, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     assert tan is None
     np.testing.assert_allclose(np.stack([_np(c) for c in coat], -1), np.stack([_np(c) for c in n], -1), atol=1e-6)
 
@@ -177,7 +177,7 @@ def test_tilted_coat_normal_map(scale):
         factors=f, clearcoat_normal_texture=np.full((4, 4, 3), texel), clearcoat_normal_scale=scale
     )
     u, v, sel, n, t = _frame()
-    _, coat, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    _, coat, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     N, T, B = _frame_np(n, t)
     x, y, z = 2 * texel - 1
     e = T * x * scale + B * y * scale + N * z
@@ -194,11 +194,11 @@ def test_coat_ignores_the_base_normal_map():
     f = jp.Material(clearcoat=1.0)
     tm = jp.TexturedMaterial(factors=f, normal_texture=np.full((4, 4, 3), [0.9, 0.5, 0.6]))
     u, v, sel, n, t = _frame()
-    _, coat, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    _, coat, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     np.testing.assert_array_equal(np.stack(coat, -1), np.stack(n, -1))
     # No clear coat: no coat normal at all.
     tm = jp.TexturedMaterial(factors=jp.Material(sheen_color=(1, 1, 1)), normal_texture=np.full((4, 4, 3), 0.5))
-    assert apply_extension_textures(tm, _per_pixel(tm.factors), u, v, sel, n, t, DT)[1] is None
+    assert apply_extension_textures(tm, _per_pixel(tm.factors), u, v, sel, n, t, dtype=DT)[1] is None
 
 
 # ------------------------------------------------------------------------------------------
@@ -213,7 +213,7 @@ def test_direction_texture_rotates_the_tangent(phi):
     f = jp.Material(anisotropy_strength=0.5)
     tm = jp.TexturedMaterial(factors=f, anisotropy_texture=np.full((4, 4, 3), texel))
     u, v, sel, n, t = _frame()
-    out, coat, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    out, coat, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     assert coat is None
     N, T, B = _frame_np(n, t)
     s = np.asarray(sel)
@@ -233,7 +233,7 @@ def test_rotation_on_top_of_the_texture_is_the_spec_sample_code(rotation):
     f = jp.Material(anisotropy_strength=1.0, anisotropy_rotation=rotation)
     tm = jp.TexturedMaterial(factors=f, anisotropy_texture=np.full((2, 2, 3), texel))
     u, v, sel, n, t = _frame()
-    _, _, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    _, _, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     N, T, B = _frame_np(n, t)
     c, s_ = math.cos(rotation), math.sin(rotation)
     dn = d / np.linalg.norm(d)
@@ -249,7 +249,7 @@ def test_zero_direction_falls_back_to_the_tangent():
     f = jp.Material(anisotropy_strength=1.0)
     tm = jp.TexturedMaterial(factors=f, anisotropy_texture=np.full((2, 2, 3), [0.5, 0.5, 1.0]))
     u, v, sel, n, t = _frame()
-    _, _, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, DT)
+    _, _, tan = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
     _, T, _ = _frame_np(n, t)
     s = np.asarray(sel)
     np.testing.assert_allclose(np.stack([_np(c) for c in tan], -1)[s], T[s], atol=1e-6)
@@ -301,8 +301,8 @@ def test_jit_matches_eager():
     tm = jp.TexturedMaterial(factors=ALL_FACTORS, **_all_textures())
     u, v, sel, n, t = _frame()
     m = _per_pixel(ALL_FACTORS)
-    eager = apply_extension_textures(tm, m, u, v, sel, n, t, DT)
-    jitted = jax.jit(lambda tm, m, u, v, sel, n, t: apply_extension_textures(tm, m, u, v, sel, n, t, DT))(
+    eager = apply_extension_textures(tm, m, u, v, sel, n, t, dtype=DT)
+    jitted = jax.jit(lambda tm, m, u, v, sel, n, t: apply_extension_textures(tm, m, u, v, sel, n, t, dtype=DT))(
         tm, m, u, v, sel, n, t
     )
     for a, b in zip(jax.tree_util.tree_leaves(eager), jax.tree_util.tree_leaves(jitted)):
@@ -315,7 +315,7 @@ def test_gradients_are_finite_and_right():
     m = _per_pixel(ALL_FACTORS)
 
     def loss(tm):
-        out, coat, tan = apply_extension_textures(tm, m, u, v, sel, n, t, DT)
+        out, coat, tan = apply_extension_textures(tm, m, u, v, sel, n, t, dtype=DT)
         total = sum(jnp.sum(getattr(out, f) ** 2) for f in (
             "clearcoat", "clearcoat_roughness", "sheen_color", "sheen_roughness", "specular", "specular_color",
             "anisotropy_strength", "transmission", "thickness"))
@@ -344,7 +344,7 @@ def test_gradient_matches_finite_differences():
 
     def loss(spec, aniso):
         tm = evolve(tm0, factors=evolve(f, specular=spec), anisotropy_texture=aniso)
-        out, _, tan = apply_extension_textures(tm, m, u, v, sel, n, t, DT)
+        out, _, tan = apply_extension_textures(tm, m, u, v, sel, n, t, dtype=DT)
         return jnp.sum(out.specular ** 2) + jnp.sum(jnp.stack(tan, -1) * jnp.arange(1.0, 4.0))
 
     a0 = jnp.asarray(tex["anisotropy_texture"])
