@@ -21,7 +21,7 @@ weight's mean cosine is closed form, k(alpha) = int w c dl / int w dl = 2/(K + 3
 4 alpha/(1 + 6 alpha) (`charlie_mean_cosine`; 0.0080 at the floor, 4/7 at alpha = 1). An
 environment linear in direction, L = a + g.l, gives LD_c = a + k(alpha) g.R.
 
-Fast path (`prefilter_charlie`): brute force over every texel of one area-correct pyramid level of
+Box path (method "box", and the default for levels >= 1): brute force over every texel of one area-correct pyramid level of
 the environment (`source_size`^2 faces), output texels in chunks (`map_row_chunks`), one compiled
 program for the whole chain. Because the ring is thinner than a source texel at low roughness, the
 kernel is not point-sampled at the texel centre (that aliases: a texel counts or not depending on
@@ -51,36 +51,36 @@ lod_blend "mean_cosine" (default): lod linear in k(alpha) between the bracketing
 a linear environment, lod = 0 below the floor), or "roughness": lod = r (M - 1) (the glTF sample
 viewer's lookup of its Charlie map).
 
-Measured (`examples/charlie_prefilter_error.py`; relative error |fast - ref|/ref per channel,
-mean / max over 48 random directions at each of 10 random sheen roughnesses in [0, 1] and at the
-levels' roughnesses; reference at the environment's full 256^2 resolution; 2-core CPU):
+Zonal path (default for level 0, `zonal_levels` levels from the bottom; method="zonal"): the
+weight depends on c = R.l only and the measure is dc dphi, so c is Beta(2, K+1). It is cut into n
+equal-mass bands (n ~ the kernel's angular width / the finest texel read, at most `rings`); band i
+is a ring at its conditional mean cosine (mass and mean cosine exact: constant and linear
+environments reproduced), of width sqrt(12 var_i)/sin(theta_i); the ring is read along its
+azimuth by bilinear lookups in the environment's area-correct pyramid at the level whose texel
+matches that width (+ lod_bias, no finer than `zonal_source_size`), one sample per texel
+(`phi_density`), weights 1/(n n_phi) (constants, normalised in float64: finite in float32 for any
+finite radiance). At the floor this reads the great circle at the source's own resolution
+(4 rings x ~1000 azimuths from a 256^2 environment's 128^2 level) instead of box-filtering a 64^2
+source. One program (jit, chunked, `jax.checkpoint` per chunk).
 
-Procedural sky, 256^2, 2-degree 3000-radiance sun (the only environment measured so far; the
-HDRs of ../shared/data are read by the example but were not yet run). Columns: lookups at the 10
-random roughnesses ("mean_cosine" blend: all / r < 0.2), the same with lod = r (M-1), at r = 0
-only, at r = 0, .25, .5, .75, 1; time of the warm run / GGX `specular.prefilter` (1.3-1.7 s) in
-the same process (the machine was shared: times are rough):
+Measured (`examples/charlie_prefilter_error.py`, 2-core shared CPU: times rough; relative error
+|fast - ref|/ref per channel in %, mean / max over 48 random directions at each of 10 random sheen
+roughnesses ("random r") and at the levels' r = 0 .. 1; reference at the full 256^2; 64^2 chain,
+5 levels, box levels from the 64^2 source). Sky with its 2-degree 3000 sun, GGX prefilter
+0.7-1.7 s:
 
-    size src  M | random r: all / low r   | lod=r(M-1)    | r = 0         | r_m           | x GGX
-      16   32 3 | 25.9/2325 / 66.0/2325   | 28.2/2250     | 84.8/1804     | 32.2/1804     | 0.4x
-      32   32 3 | 15.3/1719 / 29.2/1054   | 18.7/1573     | 51.1/1138     | 19.2/1138     | 1.6x
-      32   64 3 | 12.2/1591 / 15.8/ 829   | 15.8/1455     | 28.8/ 906     | 14.7/ 906     | 7.4x
-      32   64 4 | 11.0/ 829 / 15.8/ 829   | 14.3/ 800     | 28.8/ 906     | 14.9/ 906     | 11x
-      64   64 4 |  6.4/ 806 /  6.9/ 357   | 10.3/ 622     |  8.4/ 255     |  8.2/ 255     | 26x
-      64   64 5 |  5.7/ 357 /  6.9/ 357   |  9.7/ 369     |  8.4/ 255     |  4.2/ 255     | 26x
+    config                     | random r      | r=0          | r=.25      | r=.5        | r=.75       | r=1         | x GGX | x box
+    box (before)               | 5.71/356.5    | 8.38/255.0   | 0.27/2.48  | 0.79/13.24  | 4.74/62.98  | 6.82/48.31  | 15.8  | 1
+    zonal L0, src 256          | 5.24/262.3    | 0.77/ 27.5   | same as box for levels >= 1                          | 11.5* | 0.73*
+    zonal L0, src 128 (default)| 5.33/277.1    | 2.16/ 63.0   | same as box for levels >= 1                          | 5.2   | 0.33
+    zonal L0-1 (16 rings)      | 5.24/262.3    | 0.77/ 27.5   | 5.03/83.73 | (box)                                   | 16.6  | 1.05
 
-(mean / max, %). What dominates: (1) at low sheen roughness the ring is thin, so LD_c(R) of a
-compact sun is a band of directions R (those perpendicular to the sun, as wide as the sun) ~50x
-brighter than the rest, which a 16^2-64^2 face cannot hold (the max errors are its edges); (2) the
-faces halve with the level, so the rough levels of a short chain are 2^2-8^2 faces (on a soft sky,
-16^2 / 3 levels: 20 % max at r = 1 on a 4^2 face); (3) few levels: between levels the lobe's
-shape changes (the "mean_cosine" blend, exact for a linear environment, beats lod = r (M-1)
-everywhere measured). Without a compact sun (tests: a 15-degree 20-radiance sun, 32^2 source,
-16^2 / 3 levels) level 0 is within 5.4 % max / 0.44 % mean; on a linear environment the fast
-levels are within 1.6e-3 (level 0, 32^2 source) of the closed form, the kernel's box/parallelogram
-footprint filter being what makes level 0 work at all (a box of sqrt(Omega) sin(theta): 2.4e-2;
-texel-centre point sampling: worse). The defaults (64 / 64 / 5) are the best measured row; they are
-not cheap (26x the GGX prefilter).
+(* measured while another job shared the CPU.) The zonal method is far better at level 0 and
+worse at the rough levels (with the sun: coarse pyramid lookups of a 3000-radiance 2-degree disc;
+up to 30k samples per direction did not reach the box method's 0.27 % at r = .25), so the default
+keeps the better one per level: zonal for level 0, box for levels >= 1 (which now dominate the
+cost). With all levels zonal (zonal_levels=M, rings=16) a linear environment is within 4.2e-4 of
+the closed form at every level. The residual/soft-sky rows: run the example.
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ DEFAULT_CHARLIE_LEVELS = 5
 #: Default face size of the environment's pyramid level that is summed in full (method "box").
 DEFAULT_CHARLIE_SOURCE_SIZE = 64
 #: Default finest pyramid level the zonal method reads (face size; the env's level 0 when smaller).
-DEFAULT_CHARLIE_ZONAL_SOURCE_SIZE = 256
+DEFAULT_CHARLIE_ZONAL_SOURCE_SIZE = 128
 #: Lookups between levels: "mean_cosine" (lod linear in k(alpha) between bracketing levels) or
 #: "roughness" (lod = r (M-1), the glTF sample viewer's).
 CHARLIE_LOD_BLENDS = ("mean_cosine", "roughness")
@@ -394,6 +394,10 @@ def prefilter_charlie(
     finite at every roughness); source_size: face size of the environment's pyramid level summed
     in full (default DEFAULT_CHARLIE_SOURCE_SIZE; the env's own level 0 when it is smaller);
     lod_blend: the lookup recorded in the metadata (`charlie_roughness_to_lod`).
+    method: "zonal" (levels < zonal_levels by the zonal path, the rest by the box path) or "box"
+    (every level by the box path); rings, phi_density, lod_bias, zonal_source_size: the zonal
+    path's ring count cap, samples per texel along a ring, source-level bias, finest pyramid
+    level read (default DEFAULT_CHARLIE_ZONAL_SOURCE_SIZE). source_size is the box path's.
     Linear (differentiable) in env's texel values.
     """
     _check_blend(lod_blend)
