@@ -33,10 +33,10 @@ def _np(x):
 
 @pytest.fixture(scope="module")
 def examples():
-    return {name: load_scene(EXAMPLES / f"{name}.toml") for name in ("spheres", "textured")}
+    return {name: load_scene(EXAMPLES / f"{name}.toml") for name in ("spheres", "textured", "extensions")}
 
 
-@pytest.mark.parametrize("name", ["spheres", "textured"])
+@pytest.mark.parametrize("name", ["spheres", "textured", "extensions"])
 def test_example_loads_and_renders(examples, name):
     sf = examples[name]
     assert isinstance(sf, SceneFile) and sf.path == EXAMPLES / f"{name}.toml"
