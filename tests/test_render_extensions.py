@@ -138,3 +138,26 @@ def test_render_is_differentiable_in_the_extension_parameters():
         lo[i] = lo[i] - h
         fd = (float(loss(*hi)) - float(loss(*lo))) / (2 * h)
         assert abs(float(gr) - fd) <= 2e-2 * abs(fd) + 1e-4, (i, float(gr), fd)
+
+
+def test_render_batch_over_an_extension_parameter_equals_single_renders():
+    base = dict(BASE, sheen_color=(0.5, 0.5, 0.5))
+    sc = _scene([jp.Material(**base, clearcoat=0.0)], w=12, h=6)
+    out = np.asarray(jp.render_batch(sc, materials=jp.Material(**base, clearcoat=jnp.array([0.0, 0.5, 1.0]))))
+    assert out.shape == (3, 6, 12, 3)
+    for i, c in enumerate((0.0, 0.5, 1.0)):
+        one = np.asarray(jp.render(_scene([jp.Material(**base, clearcoat=c)], w=12, h=6)))
+        np.testing.assert_allclose(out[i], one, rtol=1e-5, atol=1e-6)
+
+
+def test_a_gbuffer_with_extension_materials_renders():
+    H, W = 4, 5
+    gb = jp.GBuffer(
+        hit=jnp.ones((H, W), bool), position=jnp.zeros((H, W, 3)), normal=jnp.tile(jnp.array([0.0, 0.0, 1.0]), (H, W, 1)),
+        view=jnp.tile(jnp.array([0.0, 0.6, 0.8]), (H, W, 1)),
+        material=jp.Material(base_color=jnp.full((H, W, 3), 0.5), metallic=jnp.zeros((H, W)), roughness=jnp.full((H, W), 0.5),
+                             clearcoat=jnp.linspace(0.0, 1.0, H * W).reshape(H, W)),
+    )
+    img = np.asarray(jp.render(jp.Scene(gbuffer=gb, lights=[jp.DirectionalLight((0.0, 0.0, -1.0))], environment=_env())))
+    assert np.isfinite(img).all()
+    assert img[0, 0].sum() != img[-1, -1].sum()  # the coat weight changes the shading
