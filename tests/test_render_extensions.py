@@ -143,7 +143,7 @@ def test_render_is_differentiable_in_the_extension_parameters():
 def test_render_batch_over_an_extension_parameter_equals_single_renders():
     base = dict(BASE, sheen_color=(0.5, 0.5, 0.5))
     sc = _scene([jp.Material(**base, clearcoat=0.0)], w=12, h=6)
-    out = np.asarray(jp.render_batch(sc, materials=jp.Material(**base, clearcoat=jnp.array([0.0, 0.5, 1.0]))))
+    out = np.asarray(jp.render_batch(sc, materials=jp.Material(**base, clearcoat=jnp.array([0.0, 0.5, 1.0])), objects=[0]))
     assert out.shape == (3, 6, 12, 3)
     for i, c in enumerate((0.0, 0.5, 1.0)):
         one = np.asarray(jp.render(_scene([jp.Material(**base, clearcoat=c)], w=12, h=6)))
