@@ -28,6 +28,7 @@ __all__ = [
     "eps",
     "is_concrete",
     "map_row_chunks",
+    "orthonormal_frame",
     "progress_token",
     "outside_traces",
     "remember_per_array",
@@ -168,6 +169,14 @@ def vnormalize(a: Vec3) -> Vec3:
     ok = sq > eps(jnp.result_type(*a)) ** 2
     inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, sq, 1.0)), 0.0)
     return (a[0] * inv, a[1] * inv, a[2] * inv)
+
+
+def orthonormal_frame(n: Vec3) -> tuple[Vec3, Vec3]:
+    """Two unit tangents completing unit n to an orthonormal frame, branch-free (Duff et al. 2017)."""
+    sign = jnp.where(n[2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[2])
+    b = n[0] * n[1] * a
+    return (1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]), (b, sign + n[1] * n[1] * a, -n[1])
 
 
 def dot(a: jax.Array, b: jax.Array) -> jax.Array:

@@ -56,7 +56,7 @@ import jax
 import jax.numpy as jnp
 
 from . import brdf_terms
-from ._numerics import Vec3, as_float, pack3, saturate, unpack3, vcross, vdot, vnormalize
+from ._numerics import Vec3, as_float, orthonormal_frame, pack3, unpack3, vcross, vdot, vnormalize
 from ._validate import batch_shape, check_values, vector
 from .brdf_terms import (
     F0_DIELECTRIC,
@@ -112,16 +112,41 @@ def needs_sheen_lut(m) -> bool:
 
 
 def dielectric_fresnel(m):
-    """(f0 as 3 planes, f90) of the dielectric layer (KHR_materials_ior + _specular):
-    f0 = min(((ior - 1)/(ior + 1))^2 specular_color, 1) specular, f90 = specular. Absent
-    extensions give 0.04 and 1 exactly. ior = 0 (specular-glossiness mode) gives f0 = specular: F = 1
-    at specular = 1."""
+    """(f0, f90), each 3 planes (or scalars), of the dielectric layer (KHR_materials_ior +
+    _specular): f0 = min(((ior - 1)/(ior + 1))^2 specular_color, 1) specular, f90 = specular.
+    Absent extensions give 0.04 and 1 exactly. ior = 0 is glTF's specular-glossiness mode: the
+    Fresnel term is 1 at every angle, scaled by the specular factors, so f90 = f0 =
+    min(specular_color, 1) specular there (a Schlick mix of equal ends is that constant).
+    Traced specular and specular_color are clamped to [0, 1] and >= 0."""
     f0 = F0_DIELECTRIC if m.ior is None else f0_from_ior(m.ior)
     if m.specular is None and m.specular_color is None:
-        return (f0, f0, f0), 1.0
-    sc = m.specular_color if m.specular_color is not None else jnp.ones(3)
-    s = m.specular if m.specular is not None else 1.0
-    return tuple(jnp.minimum(f0 * sc[..., i], 1.0) * s for i in range(3)), s
+        f0s = (f0, f0, f0)
+        f90 = 1.0
+    else:
+        sc = jnp.maximum(m.specular_color, 0.0) if m.specular_color is not None else jnp.ones(3)
+        s = jnp.clip(m.specular, 0.0, 1.0) if m.specular is not None else 1.0
+        f0s = tuple(jnp.minimum(f0 * sc[..., i], 1.0) * s for i in range(3))
+        f90 = s
+    if m.ior is None:
+        return f0s, (f90, f90, f90)
+    glossy = m.ior == 0
+    return f0s, tuple(jnp.where(glossy, f0s[i], f90) for i in range(3))
+
+
+def _max3(c):
+    return jnp.maximum(jnp.maximum(c[0], c[1]), c[2])
+
+
+#: The index of refraction standing for glTF's ior = 0 ("+infinity", specular-glossiness mode) in
+#: refraction: the refracted ray then runs along -n.
+IOR_INFINITY = 1e4
+
+
+def refractive_index(m):
+    """The ior refraction uses: max(ior, 1) (1.5 when absent), IOR_INFINITY for ior = 0."""
+    if m.ior is None:
+        return 1.5
+    return jnp.where(m.ior == 0, IOR_INFINITY, jnp.maximum(m.ior, 1.0))
 
 
 def coat_fresnel(n_c_dot_v):
@@ -136,9 +161,14 @@ def anisotropic_alphas(alpha, strength):
 
 def anisotropy_frame(n: Vec3, tangent: Vec3, rotation) -> tuple[Vec3, Vec3]:
     """(T, B): the anisotropy direction (the tangent, orthonormalised against n, rotated by
-    `rotation` radians counter-clockwise towards the bitangent n x t) and B = n x T."""
+    `rotation` radians counter-clockwise towards the bitangent n x t) and B = n x T. A tangent
+    that is zero or parallel to n has no direction in the surface: there the frame is
+    `orthonormal_frame(n)`'s first tangent (a zero T would leave D and V unnormalised)."""
     tn = vdot(tangent, n)
-    t = vnormalize(tuple(tangent[i] - tn * n[i] for i in range(3)))
+    tp = tuple(tangent[i] - tn * n[i] for i in range(3))
+    ok = vdot(tp, tp) > 1e-12 * jnp.maximum(vdot(tangent, tangent), 1e-30)
+    fb = orthonormal_frame(n)[0]
+    t = vnormalize(tuple(jnp.where(ok, tp[i], fb[i]) for i in range(3)))
     b = vcross(n, t)
     c, s = jnp.cos(rotation), jnp.sin(rotation)
     T = tuple(c * t[i] + s * b[i] for i in range(3))
@@ -234,7 +264,7 @@ def layered_soa(
     spec = d * vis * specular_weight
     w = schlick_weight(g.v_dot_h)
     f0, f90 = dielectric_fresnel(m)
-    F = tuple(f0[i] + (f90 - f0[i]) * w for i in range(3))
+    F = tuple(f0[i] + (f90[i] - f0[i]) * w for i in range(3))
     fmax = jnp.maximum(jnp.maximum(F[0], F[1]), F[2])
     if diffuse == "lambert":
         diffuse_scale = _INV_PI
@@ -258,12 +288,11 @@ def layered_soa(
         gt = geometry_soa(n, v, lm)  # front on exactly the `back` lanes
         btdf_thin = d_ggx(gt.n_dot_h, alpha, gt.sin2_h) * v_smith_separable(gt.n_dot_v, gt.n_dot_l, alpha)
         wt = schlick_weight(gt.v_dot_h)
-        fmax_t = jnp.maximum(jnp.maximum(f0[0], f0[1]), f0[2])
-        fmax_t = fmax_t + (f90 - fmax_t) * wt  # max3 of a Schlick mix = the Schlick mix of max3(f0)
+        fmax_t = _max3(tuple(f0[i] + (f90[i] - f0[i]) * wt for i in range(3)))
         trans = [(1.0 - fmax_t) * btdf_thin for _ in range(3)]
         if "volume" in ext:
             thick = m.thickness > 0
-            eta = jnp.maximum(m.ior, 1.0) if m.ior is not None else 1.5
+            eta = refractive_index(m)
             # Walter et al. 2007 / KHR_materials_volume: h = -normalize(v + eta l), on n's side.
             hr = vnormalize(tuple(v[i] + eta * l[i] for i in range(3)))
             flip = jnp.where(vdot(hr, n) < 0, -1.0, 1.0)
@@ -286,8 +315,8 @@ def layered_soa(
                 jnp.abs(hl_s) * hv_s / (nl_s * nv_s) * eta * eta * g2 * d_ggx(noh_s, alpha) / denom2
             )
             btdf_vol = jnp.where(ok, btdf_vol, 0.0)
-            fmax_v = jnp.maximum(jnp.maximum(f0[0], f0[1]), f0[2])
-            fmax_v = fmax_v + (f90 - fmax_v) * schlick_weight(jnp.abs(hv_s))
+            wv = schlick_weight(jnp.abs(hv_s))
+            fmax_v = _max3(tuple(f0[i] + (f90[i] - f0[i]) * wv for i in range(3)))
             dist = extra.volume_distance if extra.volume_distance is not None else m.thickness
             att = transmittance(m, dist)
             trans = [jnp.where(thick, (1.0 - fmax_v) * btdf_vol * att[..., i], trans[i]) for i in range(3)]
@@ -309,10 +338,12 @@ def layered_soa(
         rs = floored_sheen_roughness(m.sheen_roughness, min_roughness)
         a_s = rs * rs
         lobe = jnp.where(g.front, d_charlie(g.n_dot_h, a_s, g.sin2_h) * v_charlie(g.n_dot_v, g.n_dot_l, a_s) * g.n_dot_l, 0.0)
-        nv_c = jnp.where(lit, nv_raw, 1.0)
+        # E(n.v) depends on the view only (the same expression for every light: one lookup).
+        nv_c = jnp.where(nv_raw > 0, nv_raw, 1.0)
         nl_c = jnp.where(lit, jnp.abs(nl_raw), 1.0)
-        scale = sheen_albedo_scaling(m.sheen_color, sheen_lut_lookup(sheen_lut, nv_c, rs), sheen_lut_lookup(sheen_lut, nl_c, rs))
-        fcos = [m.sheen_color[..., i] * lobe + fcos[i] * scale for i in range(3)]
+        sc = jnp.clip(m.sheen_color, 0.0, 1.0)  # traced values are not validated
+        scale = sheen_albedo_scaling(sc, sheen_lut_lookup(sheen_lut, nv_c, rs), sheen_lut_lookup(sheen_lut, nl_c, rs))
+        fcos = [sc[..., i] * lobe + fcos[i] * scale for i in range(3)]
 
     # --- clear coat (on top of everything, emission included) -----------------------------------
     if "clearcoat" in ext:
@@ -393,5 +424,5 @@ def emission_soa(m, n: Vec3, v: Vec3, coat_normal: Vec3 | None = None) -> jax.Ar
         return e
     mc = m.complete(("clearcoat",))
     nc = n if coat_normal is None else vnormalize(coat_normal)
-    k = 1.0 - jnp.clip(mc.clearcoat, 0.0, 1.0) * coat_fresnel(saturate(vdot(nc, v)))
+    k = 1.0 - jnp.clip(mc.clearcoat, 0.0, 1.0) * coat_fresnel(vdot(nc, v))  # |n_c.v| inside
     return e * k[..., None]

@@ -23,6 +23,7 @@ import numpy as np
 
 from ._numerics import (
     Vec3,
+    orthonormal_frame,
     as_float,
     is_concrete,
     pack3,
@@ -497,14 +498,6 @@ def shade_direct(
 DISC_LOBE_POINTS = 16
 
 
-def _frame(n: Vec3) -> tuple[Vec3, Vec3]:
-    """Two unit tangents completing unit n to an orthonormal frame, branch-free (Duff et al. 2017)."""
-    sign = jnp.where(n[2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[2])
-    b = n[0] * n[1] * a
-    return (1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]), (b, sign + n[1] * n[1] * a, -n[1])
-
-
 def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g, aniso=None) -> jax.Array:
     """Mean of the GGX D over a disc of directions (centre l, angular radius sigma), divided by D
     at the centre's half vector: the factor `shade_direct` puts on the specular lobe of a disc
@@ -534,8 +527,8 @@ def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g, aniso=None)
     l = tuple(jnp.where(front, l[i], n[i]) for i in range(3))
     s = sin_sigma
     h = vnormalize(tuple(v[i] + l[i] for i in range(3)))
-    t1, t2 = _frame(n) if aniso is None else aniso[:2]
-    e1, e2 = _frame(l)
+    t1, t2 = orthonormal_frame(n) if aniso is None else aniso[:2]
+    e1, e2 = orthonormal_frame(l)
     hn = jnp.maximum(vdot(n, h), 1e-6)
     vh = jnp.maximum(vdot(v, h), 1e-6)
     alpha = jnp.sqrt(alpha2)

@@ -612,7 +612,7 @@ def _asset_prefiltered(env: Environment, p: RenderPlan, opts: RenderOptions, key
 
 
 @keyword_only("options")
-def bake(environment: Environment, *, options: RenderOptions | None = None, **overrides) -> Environment:
+def bake(environment: Environment, *, options: RenderOptions | None = None, sheen: bool = False, **overrides) -> Environment:
     """The environment with every IBL asset a render can need precomputed: the irradiance map, the
     whole prefiltered chain (all roughnesses) and the split-sum LUT of the model's Smith variant.
 
@@ -629,6 +629,11 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, **ov
     For a concrete environment the assets come from (and go into) the content-addressed cache
     `ASSETS`: baking the same texels twice computes once. A traced environment (differentiating
     with respect to its texels) is baked inside the trace, differentiably, and not cached.
+
+    sheen: also bake what KHR_materials_sheen reads under IBL, the Charlie-prefiltered cube and the
+    sheen albedo table (`Environment.charlie`, `.sheen_lut`). Off by default: the cube costs ~5x the
+    GGX prefilter, and a render of a sheen material on an environment without it computes (and
+    caches) it then.
     """
     if not isinstance(environment, Environment):
         raise TypeError(f"bake expects a jaxpbr.Environment, got {type(environment).__name__}")
@@ -645,8 +650,10 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, **ov
         textured=(), normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels,
         mapping_levels=M, env_lights=0 if lights is None else len(lights),
     )
-    full = dataclasses.replace(full, extensions=("sheen",), charlie_size=_charlie_size(environment))
-    irr, pre, lut, lights, (table, charlie) = _env_assets(environment, full, opts)
+    if sheen:
+        full = dataclasses.replace(full, extensions=("sheen",), charlie_size=_charlie_size(environment))
+    irr, pre, lut, lights, sheen_assets = _env_assets(environment, full, opts)
+    table, charlie = sheen_assets if sheen_assets is not None else (environment.sheen_lut, environment.charlie)
     return environment.replace(
         irradiance=irr, prefiltered=pre, lut=lut, lut_smith=_lut_smith(opts), lights=lights, charlie=charlie,
         sheen_lut=table,
@@ -761,10 +768,11 @@ def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
     return p, n, (u, v), tangent
 
 
-def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None):
+def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None, aniso_t=None):
     """Override the gathered constant material (and normal) on the pixels of textured object k;
     with the extension textures (`scene.apply_extension_textures`) also the clear-coat normal and
-    the anisotropy direction. Returns (material, normal, coat normal | None, tangent)."""
+    the anisotropy direction. Returns (material, normal, coat normal | None, anisotropy direction
+    | None); the surface tangent itself is left as it is (normal maps are in its frame)."""
     u, v = uv
     base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
     if True:
@@ -791,8 +799,9 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=N
             if cn is not None:
                 prev = n if coat_n is None else coat_n
                 coat_n = tuple(jnp.where(sel, cn[i], prev[i]) for i in range(3))
-            if tan_k is not None:
-                tangent = tan_k
+            if tan_k is not None:  # the anisotropy direction (the normal map keeps the surface frame)
+                prev = tangent if aniso_t is None else aniso_t
+                aniso_t = tuple(jnp.where(sel, tan_k[i], prev[i]) for i in range(3))
         if tm.normal_texture is not None:
             tex = sample_texture(jnp.asarray(tm.normal_texture, dtype)[..., :3], u, v)
             s = jnp.asarray(tm.normal_scale, dtype)
@@ -803,7 +812,7 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=N
             B = vcross(n, T)
             pert = vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
             n = tuple(jnp.where(sel, pert[i], n[i]) for i in range(3))
-    return evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n, coat_n, tangent
+    return evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n, coat_n, aniso_t
 
 
 def _cast_floats(tree, dtype):
@@ -841,7 +850,7 @@ def _layer_kwargs(g, m: Material, dtype) -> dict:
     """The per-pixel inputs of the material extensions (world space) from the G-buffer."""
     kw = {}
     if "anisotropy" in m.extensions and g.get("tangent") is not None:
-        kw["tangent"] = pack3(g["tangent"])
+        kw["tangent"] = pack3(g.get("aniso_t", g["tangent"]))
     if "clearcoat" in m.extensions and g.get("coat_n") is not None:
         kw["coat_normal"] = pack3(g["coat_n"])
     dist, d_t = _volume_inputs(g, m, dtype)
@@ -955,12 +964,15 @@ def _volume_inputs(g, m: Material, dtype):
 
 
 def _texture(scene: Scene, k: int, opts: RenderOptions, g):
-    m, n, coat_n, tangent = _apply_texture(
-        scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype), g.get("coat_n")
+    m, n, coat_n, aniso_t = _apply_texture(
+        scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype), g.get("coat_n"),
+        g.get("aniso_t"),
     )
-    out = {**g, "m": m, "n": n, "tangent": tangent}
+    out = {**g, "m": m, "n": n}
     if coat_n is not None:
         out["coat_n"] = coat_n
+    if aniso_t is not None:
+        out["aniso_t"] = aniso_t
     return out
 
 

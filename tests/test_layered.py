@@ -93,14 +93,18 @@ def test_absent_extensions_are_not_in_the_pytree_and_trace_no_code():
 def test_ior_1_5_gives_f0_0_04_and_ior_sets_f0():
     if True:  # x64 is on in the tests (conftest)
         f0, f90 = layered.dielectric_fresnel(jp.Material(ior=jnp.float64(1.5)).complete())
-        assert abs(float(f0[0]) - 0.04) < 1e-15 and float(f90) == 1.0
+        assert abs(float(f0[0]) - 0.04) < 1e-15 and float(f90[0]) == 1.0
         f0, _ = layered.dielectric_fresnel(jp.Material(ior=jnp.float64(2.0)).complete())
         assert abs(float(f0[1]) - 1.0 / 9.0) < 1e-15
         # specular scales f0 and f90; specular_color scales f0, the product clamped to 1
         m = jp.Material(ior=jnp.float64(3.0), specular=jnp.float64(0.5), specular_color=jnp.array([1.0, 2.0, 4.0]))
         f0, f90 = layered.dielectric_fresnel(m)
         np.testing.assert_allclose([float(x) for x in f0], [0.25 * 0.5, 0.5 * 0.5, 1.0 * 0.5], rtol=1e-14)
-        assert float(f90) == 0.5
+        assert [float(x) for x in f90] == [0.5, 0.5, 0.5]
+        # ior 0, glTF's specular-glossiness mode: F = 1 at every angle, scaled by the specular factors
+        f0, f90 = layered.dielectric_fresnel(m.replace(ior=jnp.float64(0.0)))
+        np.testing.assert_allclose([float(x) for x in f0], [0.5, 0.5, 0.5], rtol=1e-14)
+        np.testing.assert_allclose([float(x) for x in f90], [0.5, 0.5, 0.5], rtol=1e-14)
 
 
 def _quad_hemisphere(fn, n_theta=400, n_phi=400):
@@ -179,7 +183,7 @@ def _spec_bsdf_cos(n, v, l, p, t=None, table=None):
     spec_f = p.get("specular", 1.0)
     spec_c = np.asarray(p.get("specular_color", (1, 1, 1)), float)
     f0 = np.minimum(((ior - 1) / (ior + 1)) ** 2 * spec_c, 1.0) * spec_f
-    f90 = spec_f
+    f90 = f0 if ior == 0 else spec_f  # ior 0: F = 1 x the specular factors at every angle
     tr = p.get("transmission", 0.0)
     out = np.zeros(3)
     if nv <= 0:
@@ -230,6 +234,7 @@ SPEC_CASES = {
     "ior": dict(ior=2.4),
     "anisotropy": dict(anisotropy_strength=0.8, anisotropy_rotation=0.6),
     "transmission": dict(transmission=0.9),
+    "specular-glossiness (ior 0)": dict(ior=0.0, specular_color=(0.5, 0.8, 1.0), specular=0.9),
     "all": dict(clearcoat=0.5, clearcoat_roughness=0.3, specular=0.8, specular_color=(0.5, 1.0, 2.0), ior=1.33,
                 anisotropy_strength=0.4, anisotropy_rotation=-0.3, transmission=0.5),
 }
@@ -610,3 +615,54 @@ def test_disc_light_on_an_anisotropic_lobe_matches_quadrature(r, strength):
                                [jp.DirectionalLight(direction=tuple(-c), intensity=1.0, angular_radius=sigma)], tangent=t)
         ref = _disc_quadrature(m, v, c, sigma, tangent=t[0])
         np.testing.assert_allclose(np.asarray(disc)[0], ref, rtol=1e-2)
+
+
+# ------------------------------------------------------------------------------------------------
+# Regressions found in review
+# ------------------------------------------------------------------------------------------------
+
+
+def test_split_sum_diffuse_weight_stays_bounded_at_grazing_views():
+    """specular < 1 on a smooth dielectric at grazing views: the diffuse weight is at most the
+    core's 1 (a ratio to 1 - E_core made it 1042x at n.v = 1e-4), and specular 0 gives the spec's
+    weight 1 exactly: under a constant environment L = 1 a white specular-0 dielectric returns 1."""
+    env = jp.Cubemap.from_function(lambda d: jnp.ones(d.shape[:-1] + (3,)), 8)
+    irr, pre, lut = jp.irradiance(env, 4), jp.prefilter(env, 8), jp.brdf_lut()
+    mu = np.array([1e-4, 1e-3, 0.05, 0.5, 1.0])
+    n = np.tile([0.0, 0.0, 1.0], (len(mu), 1))
+    v = np.stack([np.sqrt(1 - mu * mu), np.zeros_like(mu), mu], -1)
+    white = dict(base_color=(1.0, 1.0, 1.0), metallic=0.0, roughness=0.05)
+    core = np.asarray(jp.shade_ibl(n, v, jp.Material(**white), irr, pre, lut))
+    half = np.asarray(jp.shade_ibl(n, v, jp.Material(**white, specular=0.5), irr, pre, lut))
+    zero = np.asarray(jp.shade_ibl(n, v, jp.Material(**white, specular=0.0), irr, pre, lut))
+    assert (half <= core + 1e-5).all(), (half, core)
+    np.testing.assert_allclose(zero, np.asarray(irr.sample(jnp.asarray(n))), rtol=1e-6)  # base x Ebar x 1
+
+
+def test_a_degenerate_tangent_falls_back_to_a_frame_in_the_surface():
+    n, v, l = _configs(16, seed=4)
+    m = jp.Material(**BASE, anisotropy_strength=0.6)
+    good = np.asarray(jp.brdf(n, v, l, m, tangent=np.tile(T_X, (16, 1))))
+    for bad in (np.zeros((16, 3)), n.copy()):  # zero, and parallel to n: no direction in the surface
+        f = np.asarray(jp.brdf(n, v, l, m, tangent=bad))
+        assert np.isfinite(f).all()
+        # the fallback frame is another tangent direction: the same lobe rotated, same magnitude range
+        assert f.max() < 5 * good.max() + 1e-6
+    # at strength 0 any tangent gives the core BRDF
+    core = np.asarray(jp.brdf(n, v, l, jp.Material(**BASE)))
+    neutral = np.asarray(jp.brdf(n, v, l, m.replace(anisotropy_strength=0.0), tangent=n.copy()))
+    np.testing.assert_allclose(neutral, core, rtol=2e-6, atol=1e-7)
+
+
+def test_coat_fresnel_uses_the_absolute_cosine_everywhere():
+    """fresnel_coat takes |n_c.v|: a coat normal tilted away from the viewer darkens the emission
+    by the same factor in shade_direct's emission and in emission_soa."""
+    n = np.array([[0.0, 0.0, 1.0]])
+    v = _unit(np.array([[0.3, 0.0, 0.95]]))
+    nc = _unit(np.array([[-0.9, 0.0, -0.3]]))  # n_c.v < 0
+    m = jp.Material(emissive=(1.0, 1.0, 1.0), clearcoat=1.0)
+    c = float(abs(np.sum(nc * v)))
+    want = 1.0 - (0.04 + 0.96 * (1 - c) ** 5)
+    e = np.asarray(layered.emission_soa(m, jp._numerics.unpack3(jnp.asarray(n)), jp._numerics.unpack3(jnp.asarray(v)),
+                                        jp._numerics.unpack3(jnp.asarray(nc))))
+    np.testing.assert_allclose(e[0], want, rtol=1e-6)

@@ -161,3 +161,41 @@ def test_a_gbuffer_with_extension_materials_renders():
     img = np.asarray(jp.render(jp.Scene(gbuffer=gb, lights=[jp.DirectionalLight((0.0, 0.0, -1.0))], environment=_env())))
     assert np.isfinite(img).all()
     assert img[0, 0].sum() != img[-1, -1].sum()  # the coat weight changes the shading
+
+
+def test_the_anisotropy_texture_does_not_turn_the_normal_map():
+    """The normal map is in the surface's tangent frame; the anisotropy texture's direction only
+    steers the anisotropic lobe (it used to become the normal map's tangent)."""
+    from jaxpbr._numerics import unpack3
+
+    H, W = 2, 2
+    tilted = np.full((2, 2, 3), [0.8, 0.5, 0.9])  # tilted along +T
+    f = jp.Material(base_color=(0.5, 0.5, 0.5), metallic=1.0, roughness=0.3, anisotropy_strength=1.0)
+    normals = []
+    for direction in (None, [0.5, 1.0, 1.0]):  # no anisotropy texture; a texture pointing along +B
+        kw = {} if direction is None else {"anisotropy_texture": np.full((2, 2, 3), direction)}
+        tm = jp.TexturedMaterial(factors=f, normal_texture=tilted, **kw)
+        objects = (jp.Sphere(material=tm),)
+        m = renderer._gather_material(renderer._stack_materials(objects, jnp.float32, ("anisotropy",)), jnp.zeros((H, W), jnp.int32))
+        n = unpack3(jnp.tile(jnp.array([0.0, 0.0, 1.0]), (H, W, 1)))
+        t = unpack3(jnp.tile(jnp.array([1.0, 0.0, 0.0]), (H, W, 1)))
+        uv = (jnp.full((H, W), 0.25), jnp.full((H, W), 0.25))
+        _, n_out, _, aniso = renderer._apply_texture(objects, 0, jnp.zeros((H, W), jnp.int32), uv, t, n, m, jnp.float32)
+        normals.append(np.stack([np.asarray(c) for c in n_out], -1))
+        if direction is not None:
+            np.testing.assert_allclose(np.stack([np.asarray(c) for c in aniso], -1)[0, 0], [0.0, 1.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(normals[1], normals[0], atol=1e-6)
+    assert normals[0][0, 0, 0] > 0.3  # tilted along +T (x)
+
+
+def test_bake_includes_the_sheen_assets_only_when_asked():
+    env = _env()
+    plain = jp.bake(env)
+    assert plain.charlie is None and plain.sheen_lut is None
+    full = jp.bake(env, sheen=True)
+    assert full.charlie is not None and full.charlie.metadata["distribution"] == "charlie"
+    assert full.sheen_lut.shape == (128, 128)
+    # a sheen render on the fully baked environment computes no Charlie cube
+    sc = _scene([jp.Material(**BASE, sheen_color=(1.0, 1.0, 1.0))]).replace(environment=full)
+    assert renderer.plan(sc).charlie_size == full.charlie.face_size
+    assert np.isfinite(np.asarray(jp.render(sc))).all()
