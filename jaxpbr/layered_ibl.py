@@ -21,7 +21,10 @@ Choices, each measured against the brute-force layered reference (`jaxpbr.refere
   beyond the core dielectric, 1 - max(E_d - E_core, 0), so the neutral values reproduce the core IBL
   exactly, specular 0 gets the spec's weight 1, and the weight stays in [0, 1]. (The ratio
   (1 - E_d) / (1 - E_core) was tried first: at grazing views of a smooth surface 1 - E_core -> 0
-  and the diffuse of specular 0.5 came out 1042x too bright at n.v = 1e-4.)
+  and the diffuse of specular 0.5 came out 1042x too bright at n.v = 1e-4.) Measured against
+  `reference_layered` (dielectric (0.9, 0.6, 0.3), sky residual at 64^2, IBL term, mean relative
+  error at r = 0.15 / 0.5): specular 0 0.01 / 0.01 % (ratio: 8.5 / 5.3 %), specular 0.5 2.1 / 2.2 %
+  (ratio: 5.9 / 4.8 %).
 * Anisotropy: the extension's bent normal (the reflection of v about the normal bent towards
   B x (v x B) by 1 - (1 - strength (1 - r))^4); its last step, leaning the reflection towards the
   bent normal by alpha, is left out because it moves the isotropic (strength 0) lookup off R.
