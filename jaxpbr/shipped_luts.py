@@ -63,10 +63,11 @@ def _shipped_entry(n_r: int, n_nov: int, smith: str, samples: int):
 
 
 @functools.lru_cache(maxsize=8)
-def _load(filename: str) -> np.ndarray:
+def _load(filename: str, channels: int = 2) -> np.ndarray:
+    """A shipped table's first `channels` channels (read-only float32); one channel drops the axis."""
     with resources.as_file(_data_dir().joinpath(filename)) as path:
         img = image.read(path)
-    arr = np.ascontiguousarray(img[..., :2], np.float32)
+    arr = np.ascontiguousarray(img[..., :channels] if channels > 1 else img[..., 0], np.float32)
     arr.setflags(write=False)
     return arr
 
@@ -102,14 +103,6 @@ def _shipped_sheen_entry(n_r: int, n_nov: int, samples: int):
     return None
 
 
-@functools.lru_cache(maxsize=4)
-def _load_sheen(filename: str) -> np.ndarray:
-    with resources.as_file(_data_dir().joinpath(filename)) as path:
-        img = image.read(path)
-    arr = np.ascontiguousarray(img[..., 0], np.float32)
-    arr.setflags(write=False)
-    return arr
-
 
 def sheen_lut(size=128, *, samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True, progress=None):
     """Sheen albedo table E (n_r, n_nov) (KHR_materials_sheen; layout of
@@ -124,5 +117,5 @@ def sheen_lut(size=128, *, samples: int | None = None, dtype=jnp.float32, use_sh
     if use_shipped and jnp.dtype(dtype) == jnp.dtype(jnp.float32):
         entry = _shipped_sheen_entry(n_r, n_nov, n)
         if entry is not None:
-            return jax.device_put(_load_sheen(entry["file"]))
+            return jax.device_put(_load(entry["file"], 1))
     return compute_sheen_lut(size, samples=n, dtype=dtype, progress=progress)

@@ -196,7 +196,7 @@ def test_shipped_files_equal_the_computed_tables(shipped128):
     """The loader serves the file; the file is compute_sheen_lut's float32 table (regenerated
     here: equal to float32 rounding)."""
     assert shipped128.shape == (128, 128) and shipped128.dtype == np.float32
-    np.testing.assert_array_equal(shipped128, sl._load_sheen("sheen_lut_128.exr"))
+    np.testing.assert_array_equal(shipped128, sl._load("sheen_lut_128.exr", 1))
     fresh = np.asarray(compute_sheen_lut(128))
     np.testing.assert_allclose(shipped128, fresh, rtol=4e-7, atol=1e-9)
     # The EXR's other channels are zero.

@@ -401,13 +401,7 @@ def _prefilter(args, outs: OutputSet, env=None, out_path: Path | None = None) ->
         "conventions": cube_conventions(),
         "versions": library_versions(),
     }
-    write_json(out.with_name(out.name + ".json"), side, outputs=outs)
-    if not args.quiet:
-        e = ""
-        if rows:
-            w = summarize(rows)
-            e = f"; error vs reference (sampled texels): worst level mean {100 * w['mean']:.2f} %, worst texel {100 * w['max']:.2f} %"
-        print(f"wrote {out} ({pre.face_size}^2, {pre.num_levels} mips, {args.method}, {seconds:.2f} s{e})")
+    _finish_cube(out, side, outs, rows, args, f"{pre.face_size}^2, {pre.num_levels} mips, {args.method}, {seconds:.2f} s")
     return side
 
 
@@ -505,14 +499,20 @@ def _charlie(args, outs: OutputSet, env, out: Path, size: int, levels: int) -> d
         "conventions": cube_conventions(),
         "versions": library_versions(),
     }
+    _finish_cube(out, side, outs, rows, args,
+                 f"{ch.face_size}^2, {ch.num_levels} mips, Charlie from a {meta['source_face_size']}^2 source, {seconds:.2f} s")
+    return side
+
+
+def _finish_cube(out, side, outs, rows, args, what: str) -> None:
+    """Write a prefiltered cube's JSON sidecar and (unless --quiet) its one-line summary."""
     write_json(out.with_name(out.name + ".json"), side, outputs=outs)
     if not args.quiet:
         e = ""
         if rows:
             w = summarize(rows)
             e = f"; error vs reference (sampled texels): worst level mean {100 * w['mean']:.2f} %, worst texel {100 * w['max']:.2f} %"
-        print(f"wrote {out} ({ch.face_size}^2, {ch.num_levels} mips, Charlie from a {meta['source_face_size']}^2 source, {seconds:.2f} s{e})")
-    return side
+        print(f"wrote {out} ({what}{e})")
 
 
 def _engine_lookup(sheen: bool) -> dict:
