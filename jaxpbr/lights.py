@@ -429,9 +429,9 @@ def shade_direct(
                 return tuple(fc[i] * e[i] for i in range(3))
             s = light.sin_radius
             c = vdot(n3, l3)
+            # The part of the disc above the horizon: reflection at the centre lifted just above
+            # it (as the core path), times the cap's cosine-weighted solid angle above.
             lift = jnp.maximum(s - c, 0.0)
-            if transmits:  # a disc below the horizon is shaded at its centre (transmission)
-                lift = jnp.where(c < 0, 0.0, lift)
             lc = vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3)))
             g = geometry_soa(n3, v3, lc)
             ratio = disc_lobe_ratio(n3, v3, lc, s, alpha2, g, aniso=aniso)
@@ -443,8 +443,19 @@ def shade_direct(
             fc = layered(lc, specular_weight=ratio, **w)
             # f cos at the lifted centre -> f times the cap's cosine-weighted solid angle.
             cl = vdot(n3, lc)
-            k = jnp.where(cl > 0, cap_factor(c, s) / jnp.where(cl > 0, cl, 1.0), 1.0)
-            return tuple(fc[i] * e[i] * k for i in range(3))
+            k = jnp.where(cl > 0, cap_factor(c, s) / jnp.where(cl > 0, cl, 1.0), 0.0)
+            out = tuple(fc[i] * e[i] * k for i in range(3))
+            if transmits:
+                # The part below the horizon: transmission at the centre lowered just below it,
+                # times the cap's |cos|-weighted solid angle below (the mirror image of the part
+                # above). A disc straddling the horizon gets both; transmission 0 adds exactly 0.
+                drop = jnp.maximum(s + c, 0.0)
+                ld = vnormalize(tuple(l3[i] - drop * n3[i] for i in range(3)))
+                cd = -vdot(n3, ld)
+                kd = jnp.where(cd > 0, cap_factor(-c, s) / jnp.where(cd > 0, cd, 1.0), 0.0)
+                ft = layered(ld, **({"coat_weight": 0.0} if "clearcoat" in m.extensions else {}))  # the coat: above only
+                out = tuple(out[i] + ft[i] * e[i] * kd for i in range(3))
+            return out
         if not disc_lights:
             g = geometry_soa(n3, v3, l3)
             f = lobe(g)
