@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import numbers
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import as_float, is_concrete
+from ._numerics import as_float, is_concrete, remember_per_array
 from ._pytree import fields_of
 
-__all__ = ["batch_shape", "check_values", "choice", "positive_int", "vector"]
+__all__ = ["batch_shape", "check_radiance", "check_values", "choice", "positive_int", "vector"]
 
 
 def positive_int(name: str, value, *, minimum: int = 1, where: str | None = None, fix: str | None = None) -> int:
@@ -81,3 +83,46 @@ def batch_shape(where: str, *named, material=None) -> tuple:
             f"{where}: the inputs' batch axes do not broadcast ({listed}); give them equal leading axes, "
             f"or size-1 / no batch axes for the ones shared by all"
         ) from None
+
+
+_RADIANCE_OK: dict = {}  # arrays already found finite and >= 0 (`remember_per_array`)
+
+
+def check_radiance(name: str, x):
+    """Radiance must be finite and non-negative: raise a ValueError naming `name` (for a Cubemap,
+    each level as "<name>.levels[m]") and the fix; tracers pass unchecked. Returns `x`.
+
+    The one check of environment texels: `Environment` and every public function that takes an
+    environment Cubemap (a NaN or negative texel otherwise came out as NaN pixels of `render`, NaN
+    texels of `prefilter`, or was silently dropped by `irradiance`). Each concrete array is checked
+    once for as long as it lives; on an accelerator by two reductions on the device (two scalars
+    come back, not the array), on the CPU in place with NumPy (`np.asarray` is a view there)."""
+    levels = getattr(x, "levels", None)
+    if levels is not None:
+        for m, lv in enumerate(levels):
+            check_radiance(f"{name}.levels[{m}]", lv)
+        return x
+    if is_concrete(x):
+        remember_per_array(_RADIANCE_OK, x, "radiance", lambda: _radiance_ok(name, x))
+    return x
+
+
+def _radiance_ok(name: str, x) -> bool:
+    if isinstance(x, np.ndarray) or all(d.platform == "cpu" for d in getattr(x, "devices", lambda: ())()):
+        a = np.asarray(x)
+        lo, hi = (a.min(), a.max()) if a.size else (0.0, 0.0)
+    else:
+        lo, hi = jax.device_get((jnp.min(x), jnp.max(x))) if x.size else (0.0, 0.0)
+    if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:  # NaN, -Inf and +Inf reach lo or hi
+        return True
+    a = np.asarray(x)  # the error path: count them on the host
+    finite = np.isfinite(a)
+    if not finite.all():
+        raise ValueError(
+            f"{name} has {int(a.size - np.count_nonzero(finite))} NaN/Inf values; radiance must be finite "
+            "(find where they come from, or replace them explicitly, e.g. np.nan_to_num)"
+        )
+    raise ValueError(
+        f"{name} has {int(np.count_nonzero(a < 0))} negative values (min {float(a.min()):g}); radiance cannot be "
+        "negative (clamp them with np.maximum(x, 0), or use --clamp-negative on the command line)"
+    )

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._numerics import HIGHEST, map_row_chunks, progress_token, row_chunk_count
-from ._validate import positive_int
+from ._validate import check_radiance, positive_int
 from .cubemap import (
     _FACE_TABLE,
     Cubemap,
@@ -92,6 +92,7 @@ def sh9_project(env: Cubemap, *, level: int = 0) -> jax.Array:
     Texel centres and exact solid angles (uniform weights would bias by +3.1 %, MATH.md 7.4).
     Computed in float64 when x64 is enabled, otherwise in the map's dtype.
     """
+    check_radiance("sh9_project: env", env)
     lv = env.levels[level]
     return _sh9_sum(lv, *_sh9_tables(lv.shape[1], lv.dtype))
 
@@ -174,6 +175,7 @@ def irradiance_at(
     """Ebar = E/pi at arbitrary unit normals n (..., 3) -> (..., C). See `irradiance`."""
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
+    check_radiance("irradiance_at: env", env)
     n = jnp.asarray(n, env.dtype)
     s = _source_size(env.face_size, source_size) if method == "exact" else 0
     # Bound the (chunk, Ns, C) intermediate of the exact convolution to ~2^24 elements. The
@@ -253,6 +255,7 @@ def irradiance(
     size = positive_int("size", size)
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
+    check_radiance("irradiance: env", env)
     dirs = jax.device_put(np.asarray(texel_directions(size), env.dtype))  # a copy, no XLA program
     vals = irradiance_at(env, dirs, method=method, source_size=source_size, chunk=chunk, progress=progress)
     info = {

@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 
 from ._numerics import is_concrete
+from ._validate import check_radiance
 from .cubemap import _FACE_TABLE, Cubemap, dir_to_face, face_to_dir, texel_solid_angles
 from .diffuse import _face_moments
 from .lights import MAX_ANGULAR_RADIUS, DirectionalLight
@@ -160,6 +161,7 @@ def extract_lights(
             "extract_lights needs concrete texel values (it decides which texels form a light): call it "
             "outside jax.jit / grad, e.g. once per environment before a traced render"
         )
+    check_radiance("extract_lights: env", env)
     for name, x, lo in (("threshold", threshold, 1.0), ("min_power_share", min_power_share, 0.0)):
         if not (isinstance(x, (int, float)) and math.isfinite(x) and x >= lo):
             raise ValueError(f"{name} must be a finite number >= {lo:g}, got {x!r}")

@@ -58,7 +58,7 @@ from ._numerics import (
     with_callers_context,
 )
 from ._pytree import Pytree, evolve, fields_of, unchecked
-from ._validate import positive_int
+from ._validate import check_values, positive_int
 from ._version import __version__
 from .atomic import atomic_write
 from .brdf_terms import MODEL_REGISTRY, check_options
@@ -1314,7 +1314,8 @@ def render_batch(
             val = jnp.asarray(val)
             if val.ndim != 1:
                 raise ValueError(f"env_{key} must be a 1-D array (B,), got shape {val.shape}")
-            env_b[key] = val
+            # Concrete values as Environment checks them (tracers pass: see check_values).
+            env_b[key] = check_values(f"render_batch: env_{key}", val, lo=0.0 if key == "intensity" else None)
             sizes.append((val.shape[0], val))
     if env_b:
         if scene.environment is None:

@@ -29,7 +29,6 @@ from ._interp import bilinear
 from ._numerics import (
     as_float,
     is_concrete,
-    remember_per_array,
     safe_div,
     safe_sqrt,
     small_sq,
@@ -38,7 +37,7 @@ from ._numerics import (
     vnormalize,
 )
 from ._pytree import Pytree, evolve, leaf, static, subtree
-from ._validate import check_values, positive_int, vector
+from ._validate import check_radiance, check_values, positive_int, vector
 from .cubemap import Cubemap
 from .lights import DirectionalLight, LightSet, PointLight, SpotLight
 from .material import EXTENSION_FIELDS, Material
@@ -431,33 +430,6 @@ class Plane(Pytree):
 # ------------------------------------------------------------------------------------------
 
 
-_RADIANCE_OK: dict = {}  # texel arrays already found finite and >= 0 (`remember_per_array`)
-
-
-def _check_radiance(name: str, lv) -> None:
-    """Radiance texels must be finite and non-negative (checked once per concrete array, on the
-    host; tracers pass): a NaN or negative texel otherwise came out as NaN pixels of `render` and
-    NaN texels of `prefilter`, or was silently dropped by `irradiance` (issue 13)."""
-    if is_concrete(lv):
-        remember_per_array(_RADIANCE_OK, lv, "radiance", lambda: _radiance_values_ok(name, lv))
-
-
-def _radiance_values_ok(name: str, lv) -> bool:
-    a = np.asarray(lv)
-    finite = np.isfinite(a)
-    if not finite.all():
-        raise ValueError(
-            f"{name} has {int(a.size - np.count_nonzero(finite))} NaN/Inf values; radiance must be finite "
-            "(find where they come from, or replace them explicitly, e.g. np.nan_to_num)"
-        )
-    if a.size and a.min() < 0:
-        raise ValueError(
-            f"{name} has {int(np.count_nonzero(a < 0))} negative values (min {float(a.min()):g}); radiance cannot be "
-            "negative (clamp them with np.maximum(x, 0), or use --clamp-negative on the command line)"
-        )
-    return True
-
-
 class Environment(Pytree):
     """Distant lighting from a cube map, also drawn as the background.
 
@@ -516,7 +488,7 @@ class Environment(Pytree):
             cube = getattr(self, name)
             if cube is not None:
                 for m, lv in enumerate(cube.levels):
-                    _check_radiance(f"Environment.{name}.levels[{m}]", lv)
+                    check_radiance(f"Environment.{name}.levels[{m}]", lv)
         if self.lut is not None:
             lut = jnp.asarray(self.lut)
             if lut.ndim != 3 or lut.shape[-1] != 2:

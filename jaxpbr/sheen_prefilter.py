@@ -93,7 +93,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._numerics import HIGHEST, map_row_chunks
-from ._validate import positive_int
+from ._validate import check_radiance, positive_int
 from .brdf_terms import MIN_ROUGHNESS
 from .cubemap import (
     Cubemap,
@@ -401,6 +401,7 @@ def prefilter_charlie(
     Linear (differentiable) in env's texel values.
     """
     _check_blend(lod_blend)
+    check_radiance("prefilter_charlie: env", env)
     S = DEFAULT_CHARLIE_SIZE if size is None else positive_int("size", size)
     most = _mip_count(S)
     M = min(DEFAULT_CHARLIE_LEVELS, most) if num_levels is None else positive_int("num_levels", num_levels)
@@ -603,6 +604,7 @@ def charlie_reference(env: Cubemap, dirs, roughness: float, *, supersample: int 
     level 0 (q x q sub-texels each, q from `_reference_supersample` unless given), kernel
     `sheen.d_charlie(n.h, alpha, (1 - c)/2) (R.l)+`, alpha = max(r, min_roughness)^2
     -> (..., C) float64 NumPy."""
+    check_radiance("charlie_reference: env", env)
     r = float(roughness)
     if not 0.0 <= r <= 1.0:
         raise ValueError(f"roughness must be in [0, 1], got {r}")

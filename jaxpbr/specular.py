@@ -47,7 +47,7 @@ import numpy as np
 
 from ._api import keyword_only
 from ._numerics import HIGHEST, is_concrete, map_row_chunks, outside_traces, progress_token, row_chunk_count, safe_div
-from ._validate import positive_int
+from ._validate import check_radiance, positive_int
 from .conventions import luminance
 from .cubemap import (
     Cubemap,
@@ -694,6 +694,7 @@ def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: in
     exact share of its solid angle (q from `_reference_supersample` unless given). r = 0 returns the
     bilinear lookup of the source (D is a delta).
     """
+    check_radiance("prefilter_reference: env", env)
     r = float(roughness)
     if not 0.0 <= r <= 1.0:
         raise ValueError(f"roughness must be in [0, 1], got {r}")
@@ -817,6 +818,7 @@ def prefilter(
         raise ValueError(f"unknown prefilter method {method!r}; choose one of {PREFILTER_METHODS}")
     _check_mapping(mapping)
     _check_blend(lod_blend)
+    check_radiance("prefilter: env", env)
     S0 = env.face_size
     S = S0 if size is None else positive_int("size", size)
     ratio = S0 // S if S <= S0 else 0
