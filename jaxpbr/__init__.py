@@ -7,6 +7,10 @@ shading), colour and image I/O (EXR, HDR, PNG, KTX2).
 Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` and the README.
 """
 
+from . import _entry  # first, before NumPy and JAX load (the command line's start-up)
+
+_entry.phase("start")
+
 from . import atomic, brdf_terms, color, demo, envs, image, ktx2, renderer, scene
 from ._version import __version__
 from .brdf_terms import MIN_ROUGHNESS, MODELS

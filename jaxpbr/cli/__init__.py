@@ -14,7 +14,7 @@ import sys
 import threading
 import warnings
 
-from .. import atomic
+from .. import _entry, atomic
 from .._version import __version__
 from . import (
     _cache,
@@ -133,6 +133,7 @@ def _start_watchdog() -> None:
 
 
 def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
+    _entry.phase("main")
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:

@@ -1,0 +1,121 @@
+"""Ctrl-C (and SIGTERM) in the first second of a command: before and during the heavy imports.
+
+Each case re-bakes over a complete set in a subprocess and signals it at a named moment of its
+start-up. The command reports the moments it reaches in the file named by `JAXPBR_TEST_PHASES`
+and waits at the one named by `JAXPBR_TEST_PAUSE` (`jaxpbr/_entry.py`), so the signal lands where
+the test says, not where a timer guesses: "start" is the first statement of the package, before
+NumPy and JAX are imported; "main" is the start of `cli.main`, every module imported. The outcome
+wanted at every moment: one line on stderr, exit status 130 (143 for SIGTERM), nothing on stdout,
+and the previous set exactly as it was.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxpbr import image
+from jaxpbr.cli import main
+from jaxpbr.cubemap import equirect_directions
+
+_SCRIPT = Path(sys.executable).parent / "jaxpbr"  # the console script next to this interpreter
+
+
+def _ibl_args(pano, out_dir):
+    return ["ibl", str(pano), "--face-size", "16", "--samples", "16", "--lut-size", "8", "--charlie-size", "8",
+            "--charlie-levels", "3", "--no-error", "--quiet", "--out-dir", str(out_dir)]
+
+
+def _state(d):
+    """Every file (hidden temporaries and backups included) with its bytes, mtime and inode."""
+    return {p.name: (p.read_bytes(), p.stat().st_mtime_ns, p.stat().st_ino) for p in sorted(d.iterdir())}
+
+
+@pytest.fixture(scope="module")
+def baked(tmp_path_factory):
+    """A small panorama (written in code) and a complete set baked from it."""
+    root = tmp_path_factory.mktemp("sigint")
+    pano = root / "sky.exr"
+    d = equirect_directions(16)
+    image.write(pano, ((1.0 + 0.5 * d[..., 1:2]) * np.array([1.0, 0.9, 0.8])).astype(np.float32))
+    out_dir = root / "set"
+    out_dir.mkdir()
+    assert main(_ibl_args(pano, out_dir)) == 0
+    assert {"irradiance.ktx2", "prefiltered.ktx2", "brdf_lut.exr", "ibl.json"} <= {p.name for p in out_dir.iterdir()}
+    return pano, out_dir
+
+
+def _signal_at(cmd, phase, sig, *, pause, tmp_path):
+    """Run `cmd`; when it reports `phase` (waiting there if `pause`), send `sig`.
+    -> (exit status, stdout, stderr, phases reached)."""
+    phases = tmp_path / "phases.txt"
+    env = dict(os.environ, JAXPBR_TEST_PHASES=str(phases), JAXPBR_COMPILATION_CACHE="off")
+    env.pop("JAXPBR_TEST_PAUSE", None)
+    if pause:
+        env["JAXPBR_TEST_PAUSE"] = phase
+    # Python's default dispositions, as in a terminal (a background job of a script ignores SIGINT).
+    reset = lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGINT, signal.SIGTERM)]  # noqa: E731
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=reset)
+    try:
+        t0 = time.monotonic()
+        while not (phases.exists() and phase in phases.read_text().split()):
+            assert p.poll() is None, f"exited ({p.returncode}) before reaching {phase!r}: {p.stderr.read()}"
+            assert time.monotonic() - t0 < 120, f"{phase!r} not reached in 120 s"
+            time.sleep(0.002)
+        p.send_signal(sig)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+    return p.returncode, out, err, phases.read_text().split()
+
+
+def _entry(kind):
+    if kind == "script":
+        if not _SCRIPT.exists():
+            pytest.skip("no jaxpbr console script next to this interpreter")
+        return [str(_SCRIPT)]
+    return [sys.executable, "-m", "jaxpbr"]
+
+
+@pytest.mark.parametrize("kind", ["script", "module"])
+def test_sigint_before_the_heavy_imports(baked, tmp_path, kind):
+    """Signalled while waiting at the package's first statement (the issue: a traceback from inside
+    the imports)."""
+    pano, out_dir = baked
+    before = _state(out_dir)
+    code, out, err, _ = _signal_at(_entry(kind) + _ibl_args(pano, out_dir), "start", signal.SIGINT, pause=True, tmp_path=tmp_path)
+    assert (code, out, err) == (130, "", "jaxpbr: interrupted\n"), err
+    assert _state(out_dir) == before
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_during_the_imports(baked, tmp_path, sig):
+    """Signalled as soon as the package starts importing, without waiting: it lands inside the
+    imports of NumPy / JAX (the issue: a traceback, or an interrupt lost in a garbage-collection
+    callback and the set replaced with exit 0)."""
+    pano, out_dir = baked
+    before = _state(out_dir)
+    code, out, err, reached = _signal_at(_entry("script") + _ibl_args(pano, out_dir), "start", sig, pause=False, tmp_path=tmp_path)
+    assert "main" not in reached, "the signal arrived after the imports; this case wants it during them"
+    want = (130, "jaxpbr: interrupted\n") if sig == signal.SIGINT else (128 + signal.SIGTERM, "jaxpbr: terminated\n")
+    assert (code, out, err) == (want[0], "", want[1]), err
+    assert _state(out_dir) == before
+
+
+def test_sigint_after_the_imports_before_the_command_starts(baked, tmp_path):
+    """Signalled at the start of `cli.main`: every module imported, the command's own handlers not
+    installed yet."""
+    pano, out_dir = baked
+    before = _state(out_dir)
+    code, out, err, _ = _signal_at(_entry("script") + _ibl_args(pano, out_dir), "main", signal.SIGINT, pause=True, tmp_path=tmp_path)
+    assert (code, out, err) == (130, "", "jaxpbr: interrupted\n"), err
+    assert _state(out_dir) == before
