@@ -13,6 +13,8 @@ import numpy as np
 from . import envs, image
 from .atomic import OutputSet
 from .cubemap import Cubemap, downsample
+from ._memory import cube_bytes, require
+from ._validate import positive_int
 from .errors import InputError
 from .ktx2 import write_ktx2
 
@@ -42,7 +44,11 @@ def load_environment(paths, face_size: int | None = None, *, clamp_negative: boo
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [str(p) for p in paths]
-    if len(paths) == 1 and paths[0].startswith("procedural:"):
+    procedural = len(paths) == 1 and paths[0].startswith("procedural:")
+    if face_size is not None:  # before any work (a huge size aborted inside XLA)
+        S = positive_int("--face-size", face_size)
+        require(f"a {S}^2 environment cube", cube_bytes(S, supersample=4 if procedural else None), names={"face_size": "--face-size"})
+    if procedural:
         name = paths[0].split(":", 1)[1]
         if name != "sky":
             raise InputError(f"unknown procedural environment {name!r}; the one available is 'procedural:sky'")

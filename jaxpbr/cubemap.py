@@ -36,6 +36,7 @@ from ._api import keyword_only
 from ._interp import bilinear, lerp2
 from ._numerics import HIGHEST, is_concrete
 from ._pytree import Pytree, leaf, static
+from ._memory import cube_bytes, require
 from ._validate import positive_int
 
 __all__ = [
@@ -489,6 +490,7 @@ class Cubemap(Pytree):
         """
         S = positive_int("face_size", face_size)
         q = positive_int("supersample", supersample)
+        require(f"a {S}^2 cube at supersample {q}", cube_bytes(S, supersample=q), where="Cubemap.from_function")
 
         def filtered(d, wt):
             vals = jnp.asarray(fn(d), jnp.float64)
@@ -524,6 +526,7 @@ class Cubemap(Pytree):
         farther apart than a panorama pixel), weighted by their solid angles.
         """
         S = positive_int("face_size", face_size)
+        require(f"a {S}^2 cube", cube_bytes(S), where="Cubemap.from_equirect")
         img = np.asarray(img)
         if img.ndim == 2:
             img = img[..., None]

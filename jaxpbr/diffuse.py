@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._numerics import HIGHEST, map_row_chunks, progress_token, row_chunk_count
+from ._memory import irradiance_bytes, require
 from ._validate import check_radiance, positive_int
 from .cubemap import (
     _FACE_TABLE,
@@ -253,6 +254,7 @@ def irradiance(
     Returns a one-level Cubemap (6, size, size, C) with `info` recording quantity and method.
     """
     size = positive_int("size", size)
+    require(f"a {size}^2 irradiance map", irradiance_bytes(size), where="irradiance")
     if method not in IRRADIANCE_METHODS:
         raise ValueError(f"unknown irradiance method {method!r}; choose one of {IRRADIANCE_METHODS}")
     check_radiance("irradiance: env", env)

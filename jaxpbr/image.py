@@ -155,6 +155,25 @@ def read(path, *, channels=None) -> np.ndarray:
     return _read(path, channels, want_metadata=False)[0]
 
 
+def dimensions(path) -> tuple[int, int, int] | None:
+    """``(H, W, C)`` of an image file from its header, without reading the pixels (None if the
+    header cannot be read: `read` then reports why)."""
+    try:
+        oiio = _oiio()
+        with _quiet_native():
+            inp = oiio.ImageInput.open(str(os.fspath(path)))
+            if inp is None:
+                oiio.geterror()  # retrieved, or OIIO prints it at exit
+                return None
+            try:
+                spec = inp.spec()
+                return int(spec.height), int(spec.width), int(spec.nchannels)
+            finally:
+                inp.close()
+    except Exception:  # noqa: BLE001 -- a missing or corrupt file: `read` gives the message
+        return None
+
+
 def read_with_metadata(path, *, channels=None) -> tuple[np.ndarray, dict]:
     """Like :func:`read`, and also return the file's metadata.
 

@@ -43,6 +43,7 @@ import numpy as np
 from ._api import keyword_only
 from ._interp import bilinear, lerp
 from ._numerics import map_row_chunks, progress_token, row_chunk_count
+from ._memory import check_samples, lut_bytes, require
 from ._validate import positive_int
 from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated, v_smith_separable
 
@@ -298,6 +299,8 @@ def compute_brdf_lut(
     n_r, n_nov = _lut_shape(size)
     smith = resolve_smith(smith, "compute_brdf_lut")
     samples = positive_int("samples", samples, where="compute_brdf_lut", fix=f"the default is {DEFAULT_SAMPLES}")
+    check_samples("samples", samples, where="compute_brdf_lut")
+    require(f"a LUT of {n_r}x{n_nov} texels with {samples} samples per texel", lut_bytes(n_r, n_nov, samples), where="compute_brdf_lut")
     dtype = jnp.dtype(dtype)
     if dtype not in (jnp.dtype(jnp.float32), jnp.dtype(jnp.float64)):
         raise ValueError(f"compute_brdf_lut: dtype must be float32 or float64, got {dtype}")

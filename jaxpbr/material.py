@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import reprlib
 from typing import Any
 
 import jax
@@ -135,7 +136,7 @@ class Material(Pytree):
             name = field.name
             if getattr(self, name) is None and name in _EXT_OF:
                 continue
-            value = as_float(getattr(self, name))
+            value = _as_number(name, getattr(self, name), field.rank)
             if field.rank == 1 and (value.ndim == 0 or value.shape[-1] != 3):
                 raise ValueError(
                     f"Material.{name} must have a trailing axis of 3 (linear RGB), got shape "
@@ -154,6 +155,22 @@ class Material(Pytree):
     def diffuse_color(self) -> jax.Array:
         """c_diff = base_color * (1 - metallic), (..., 3): metals have no diffuse lobe."""
         return self.base_color * (1.0 - self.metallic[..., None])
+
+
+def _as_number(name: str, x, rank: int) -> jax.Array:
+    """`as_float(x)`, or a TypeError naming `Material.<name>` (JAX's own names neither the field
+    nor the fix: a string such as roughness='0.5' gave "... is not a valid JAX type")."""
+    example = f"{name}=(0.8, 0.5, 0.3)" if rank == 1 else f"{name}=0.5"
+    if isinstance(x, (str, bytes)):
+        raise TypeError(f"Material.{name} must be a number or an array of numbers, got the string {x!r}; pass e.g. {example}")
+    try:
+        return as_float(x)
+    except TypeError as e:
+        if "real values" in str(e):  # complex: as_float's own message, with the field named
+            raise TypeError(f"Material.{name}: {e}") from None
+        raise TypeError(
+            f"Material.{name} must be a number or an array of numbers, got {type(x).__name__} {reprlib.repr(x)}; pass e.g. {example}"
+        ) from None
 
 
 def _check_values(name: str, value: jax.Array) -> None:

@@ -44,6 +44,7 @@ from . import (  # called through the module: tests count precompute calls
     shipped_luts,
     specular,
 )
+from . import _memory
 from ._api import keyword_only
 from ._numerics import (
     is_concrete,
@@ -64,6 +65,7 @@ from .atomic import atomic_write
 from .brdf_terms import MODEL_REGISTRY, check_options
 from .cubemap import Cubemap
 from .ibl import shade_ibl
+from .lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
 from .layered import emission_soa
 from .lights import shade_direct
 from .material import EXTENSIONS, Material
@@ -644,6 +646,9 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, shee
         M = int(environment.prefiltered.metadata.get("mapping_levels", levels))
     else:
         levels = M = specular.default_num_levels(size)
+    probe = RenderPlan(direct=False, ibl=True, ibl_diffuse=True, env_background=False, emissive=False, textured=(),
+                       normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels, mapping_levels=M, env_lights=0)
+    _memory.require("baking the environment", _asset_bytes(environment, probe, opts, "bake"), where="bake")  # before any work
     lights = _env_split(environment, opts)[0]
     full = RenderPlan(
         direct=False, ibl=True, ibl_diffuse=True, env_background=environment.show_background, emissive=False,
@@ -1038,6 +1043,50 @@ def _options(options, overrides: dict, fn: str) -> RenderOptions:
     return dataclasses.replace(options, **overrides) if overrides else options
 
 
+def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: str = "render", names: dict | None = None) -> None:
+    """Refuse, before any work, a render of `scene` whose image, textures or IBL precomputes (those
+    its environment does not carry) would need more memory than is available: a ValueError
+    (`_memory.MemoryLimitError`) naming the field to lower (`names` maps the fields to a front
+    end's own flags or keys)."""
+    opts = options if options is not None else RenderOptions()
+    H, W = scene.image_shape
+    textures = {}
+    for obj in scene.objects:
+        m = getattr(obj, "material", None)
+        if isinstance(m, TexturedMaterial):
+            for f in fields_of(m):
+                x = getattr(m, f.name)
+                if f.name.endswith("_texture") and x is not None:
+                    textures[id(x)] = np.shape(x)
+    parts = _memory.render_bytes(W, H, textures.values())
+    parts = {("Camera.width/height" if k == "width/height" else "the textures' resolution" if k == "textures" else k): v for k, v in parts.items()}
+    env = scene.environment
+    if env is not None:
+        # (the plan without the light extraction, which is work; the maps' sizes are the same)
+        parts |= _asset_bytes(env, plan(scene, options=dataclasses.replace(opts, extract_lights=False)), opts, where)
+    what = f"rendering {W}x{H}" + (f" with {len(textures)} texture(s)" if textures else "") + (" and the environment's IBL maps" if env is not None else "")
+    _memory.require(what, parts, where=where, names=names)
+
+
+def _asset_bytes(env: Environment, p: RenderPlan, opts: RenderOptions, where: str) -> dict:
+    """The memory of the IBL precomputes a render (or bake) of `env` would run, by option."""
+    parts: dict = {}
+    if not p.ibl:
+        return parts
+    if env.prefiltered is None:
+        n = specular.DEFAULT_SAMPLES if opts.prefilter_samples is None else positive_int("prefilter_samples", opts.prefilter_samples)
+        _memory.check_samples("prefilter_samples", n, where=where)
+        counts = specular.default_sample_counts(n, p.prefilter_size, p.mapping_levels)[: p.prefilter_levels]
+        pre = _memory.prefilter_bytes(env.radiance.face_size, p.prefilter_size, counts)
+        parts["the environment's face size"] = pre["face_size"]
+        parts["prefilter_samples"] = pre["samples"]
+    if p.ibl_diffuse and env.irradiance is None:
+        parts["irradiance_size"] = _memory.irradiance_bytes(opts.irradiance_size)["size"]
+    if env.lut is None and shipped_luts._shipped_entry(opts.lut_size, opts.lut_size, _lut_smith(opts), DEFAULT_LUT_SAMPLES) is None:
+        parts["lut_size"] = sum(_memory.lut_bytes(opts.lut_size, opts.lut_size, DEFAULT_LUT_SAMPLES).values())
+    return parts
+
+
 def render(scene: Scene, *, options: RenderOptions | None = None, progress=None, **overrides) -> jax.Array:
     """Render `scene` to linear HDR radiance (H, W, 3) (Rec.709 primaries, scene-referred).
 
@@ -1055,6 +1104,7 @@ def render(scene: Scene, *, options: RenderOptions | None = None, progress=None,
     if not isinstance(scene, Scene):
         raise TypeError(f"render expects a jaxpbr.Scene, got {type(scene).__name__}")
     opts = _options(options, overrides, "render")
+    check_memory(scene, options=opts)  # before any work (a huge size aborted inside XLA)
     p = plan(scene, options=opts)
     env = scene.environment
     if not _staged():

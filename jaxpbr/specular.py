@@ -47,6 +47,7 @@ import numpy as np
 
 from ._api import keyword_only
 from ._numerics import HIGHEST, is_concrete, map_row_chunks, outside_traces, progress_token, row_chunk_count, safe_div
+from ._memory import check_samples, prefilter_bytes, require
 from ._validate import check_radiance, positive_int
 from .conventions import luminance
 from .cubemap import (
@@ -842,7 +843,11 @@ def prefilter(
         per_level = list(samples)
     if len(per_level) != M:
         raise ValueError(f"samples has {len(per_level)} entries; expected one per level ({M})")
-    per_level = [positive_int("samples", n) for n in per_level]
+    per_level = [check_samples("samples", positive_int("samples", n), where="prefilter") for n in per_level]
+    if method == "fis":  # before any work: a huge size or sample count aborted inside XLA
+        require(f"a prefilter of a {S0}^2 environment to {S}^2 with up to {max(per_level[1:], default=0)} samples per texel",
+                prefilter_bytes(S0, S, per_level[: last + 1]), where="prefilter",
+                names={"face_size": "the environment's face size"})
 
     full = env.level_cube(0).with_mips(int(round(math.log2(ratio))) + 1)  # down to the output size
     rough = level_roughness(M, mapping=mapping)

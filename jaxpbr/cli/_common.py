@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import threading
 import time
 
+from .. import _memory
 from .._validate import positive_int as _positive_int_value
 
 __all__ = ["CLIError", "Progress", "have_matplotlib", "nonnegative_int_arg", "positive_int_arg"]
@@ -100,38 +100,41 @@ def have_matplotlib() -> bool:
 
 
 #: Memory limit override (GB): `JAXPBR_MEMORY_LIMIT=64 jaxpbr ...` (default: the memory available now).
-MEMORY_ENV = "JAXPBR_MEMORY_LIMIT"
+MEMORY_ENV = _memory.MEMORY_ENV
 
 
 def available_memory() -> float:
-    """Bytes the command may use: $JAXPBR_MEMORY_LIMIT (GB) if set, else MemAvailable from
-    /proc/meminfo (else the physical memory)."""
-    own = os.environ.get(MEMORY_ENV)
-    if own:
-        try:
-            return float(own) * 1e9
-        except ValueError:
-            raise CLIError(f"{MEMORY_ENV} must be a number of gigabytes, got {own!r}") from None
+    """Bytes the command may use (`jaxpbr._memory.available_memory`: $JAXPBR_MEMORY_LIMIT in GB
+    if set, else MemAvailable), a malformed limit as a CLIError."""
     try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return float("inf")
+        return _memory.available_memory()
+    except ValueError as e:
+        raise CLIError(str(e)) from None
+
+
+def require_environment(face_size: int, *, procedural: bool = True, flag: str = "--face-size", samples=None, samples_flag: str = "--samples") -> None:
+    """Refuse before any work an environment cube of `face_size` (built from the procedural sky or
+    a panorama) and its default prefilter (or one with `samples` FIS samples on every level) that
+    would not fit: the library's estimates with `flag` named."""
+    from ..specular import DEFAULT_SAMPLES, default_num_levels, default_sample_counts
+
+    available_memory()  # a malformed limit: a CLIError
+    M = default_num_levels(face_size)
+    counts = [samples] * M if samples else default_sample_counts(DEFAULT_SAMPLES, face_size, M)
+    pre = _memory.prefilter_bytes(face_size, face_size, counts)
+    cube = _memory.cube_bytes(face_size, supersample=4 if procedural else None)["face_size"]
+    try:  # the cube's construction peak is over before the prefilter starts
+        _memory.require(f"a {face_size}^2 environment with its prefilter", {flag: max(cube, pre["face_size"]), samples_flag: pre["samples"]})
+    except _memory.MemoryLimitError as e:
+        raise CLIError(str(e)) from None
 
 
 def require_memory(what: str, nbytes: float, fix: str) -> None:
-    """Refuse before any work when `what` would need more memory than is available (issue 13:
-    huge sizes aborted inside XLA with a C++ stack, or ran the machine out of memory). The
+    """Refuse before any work when `what` would need more memory than is available: the
+    library's guard (`jaxpbr._memory.require`) with the command's fix, "lower <flag>". The
     estimates are per-texel / per-pixel costs measured on the CPU backend, rounded up."""
-    limit = available_memory()
-    if nbytes > limit:
-        raise CLIError(
-            f"{what} needs about {nbytes / 1e9:.3g} GB of memory, more than the {limit / 1e9:.3g} GB available; "
-            f"{fix}, or set {MEMORY_ENV}=<GB> to allow more"
-        )
+    available_memory()  # a malformed limit: a CLIError
+    try:
+        _memory.require(what, {fix.removeprefix("lower "): nbytes})
+    except _memory.MemoryLimitError as e:
+        raise CLIError(str(e)) from None

@@ -25,7 +25,8 @@ from ..lights import PointLight
 from ..material import Material
 from ..renderer import bake, render
 from ..scene import Camera, Environment, Scene, Sphere
-from ._common import positive_int_arg
+from .._memory import render_bytes
+from ._common import positive_int_arg, require_environment, require_memory
 from .timing import time_calls
 
 __all__ = ["GradBenchResult", "bench_grad"]
@@ -165,5 +166,7 @@ def add_command(bsub) -> None:
 
 
 def cmd_bench_grad(args) -> int:
+    require_environment(args.face_size)
+    require_memory(f"rendering {args.size}x{args.size}", render_bytes(args.size, args.size)["width/height"], "lower --size")
     print(bench_grad(args.size, face_size=args.face_size, repeats=args.repeats).report())
     return 0

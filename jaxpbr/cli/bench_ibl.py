@@ -24,7 +24,7 @@ from ..lut import compute_brdf_lut
 from ..measure import irradiance_error, lut_error, prefilter_error, summarize
 from ..sampling import hammersley, sample_ggx_h
 from ..specular import prefilter
-from ._common import positive_int_arg
+from ._common import positive_int_arg, require_environment
 from .timing import time_calls, to_host
 
 __all__ = ["add_command", "bench_ibl", "cmd_bench_ibl", "hammersley_lut"]
@@ -121,6 +121,8 @@ def add_command(bsub) -> None:
 
 
 def cmd_bench_ibl(args) -> int:
+    require_environment(args.face_size, procedural=not args.env)
+    require_environment(args.face_size, procedural=not args.env, samples=args.baseline_samples, samples_flag="--baseline-samples")
     env = load_environment([args.env] if args.env else ["procedural:sky"], args.face_size)
     print(bench_ibl(env, args.env or "procedural sky+sun", baseline_samples=args.baseline_samples))
     return 0

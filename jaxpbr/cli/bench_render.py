@@ -39,7 +39,8 @@ from ..renderer import render, render_batch
 from ..scene import Camera, Environment, GBuffer, Scene, Sphere
 from ..shipped_luts import brdf_lut
 from ..specular import prefilter
-from ._common import nonnegative_int_arg, positive_int_arg
+from .._memory import render_bytes
+from ._common import nonnegative_int_arg, positive_int_arg, require_environment, require_memory
 from .bench_shade import _PEAK_BANDWIDTH, VersusNumpy
 from .numpy_baselines import (
     GBUFFER_KEYS,
@@ -366,7 +367,17 @@ def bench_batch(
 
 
 
+#: Peak bytes per G-buffer pixel (NumPy G-buffer and shading temporaries, the JAX copies):
+#: 480x270 -> 960x540 raised the peak RSS by 170 MB, ~440 B per pixel.
+BYTES_PER_PIXEL = 600.0
+
+
 def _cmd_bench_render(args) -> int:
+    require_environment(args.face_size)
+    require_memory(f"a {args.width}x{args.height} G-buffer", BYTES_PER_PIXEL * args.width * args.height, "lower --width/--height")
+    if args.batch:
+        require_memory(f"a batch of {args.chunk} {args.batch_size}x{args.batch_size} renders",
+                       render_bytes(args.batch_size, args.batch_size)["width/height"] * min(args.chunk, args.batch), "lower --batch-size/--chunk")
     ibl = make_ibl(args.face_size)
     result = bench_render_gbuffer(
         args.width, args.height, repeats=args.repeats, numpy_repeats=args.numpy_repeats, face_size=args.face_size, ibl=ibl

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..lights import PointLight, shade_direct
 from ..material import Material
-from ._common import positive_int_arg
+from ._common import positive_int_arg, require_memory
 from .numpy_baselines import bench_lights, make_gbuffer, shade_numpy
 from .timing import time_calls
 
@@ -125,7 +125,13 @@ def add_command(bsub) -> None:
     bs.set_defaults(func=cmd_bench_shade)
 
 
+#: Peak bytes per G-buffer pixel (the NumPy G-buffer and shading's float32 temporaries, the JAX
+#: copies): 480x270 -> 960x540 raised the peak RSS by 197 MB, ~510 B per pixel.
+BYTES_PER_PIXEL = 600.0
+
+
 def cmd_bench_shade(args) -> int:
+    require_memory(f"a {args.width}x{args.height} G-buffer", BYTES_PER_PIXEL * args.width * args.height, "lower --width/--height")
     result = bench_shade(args.width, args.height, repeats=args.repeats, numpy_repeats=args.numpy_repeats)
     print(result.report())
     return 0

@@ -28,6 +28,8 @@ from ..cubemap import _mip_count, texel_directions
 from ..diffuse import irradiance, sh9_project
 from ..errors import Float16RangeError, InputError
 from ..extract import extract_lights, lights_to_json
+from .._memory import check_samples, lut_bytes, prefilter_bytes, require
+from ..lut import DEFAULT_SAMPLES as LUT_DEFAULT_SAMPLES
 from ..lut import SMITH_ALIASES, SMITH_VARIANTS, _lut_shape
 from ..measure import (
     _brightest_direction,
@@ -54,6 +56,8 @@ from ..specular import (
     LOD_BLENDS,
     MAPPINGS,
     MIN_CHAIN_LEVELS,
+    default_num_levels,
+    default_sample_counts,
     prefilter,
 )
 from ._common import Progress, positive_int_arg, raise_pending, require_memory
@@ -176,8 +180,10 @@ def _checked(outs: OutputSet, path: Path, suffixes) -> Path:
 
 
 def _check_prefilter_size(args, face_size) -> None:
-    """--size must be the environment cube's face size divided by a power of two (checked before
-    the work, with the flags named; the library's message names its API)."""
+    """--size must be the environment cube's face size divided by a power of two, --levels at most
+    what that size holds, --samples below 2^32, and the whole within the memory (checked before
+    the work, with the flags named; the library's messages name its API)."""
+    _check_samples_and_levels(args, face_size)
     S = args.size
     if not face_size or S is None:
         return
@@ -188,6 +194,21 @@ def _check_prefilter_size(args, face_size) -> None:
             f"--size {S} must be the environment cube's face size ({face_size}) divided by a power of two "
             f"({sizes}, ...); choose one of those, or set --face-size to a multiple of {S} by a power of two"
         )
+
+
+def _check_samples_and_levels(args, face_size) -> None:
+    check_samples("--samples", args.samples)
+    if not face_size:
+        return
+    S = args.size or face_size
+    if args.levels is not None and S <= face_size and args.levels > _mip_count(S):
+        raise InputError(f"--levels {args.levels}: a {S}^2 prefiltered cube has at most {_mip_count(S)} levels (each halves the face); "
+                         f"lower --levels (or raise --face-size)")
+    if args.method == "fis" and S <= face_size:
+        M = args.levels or default_num_levels(S)
+        per_level = default_sample_counts(args.samples, S, M)
+        require(f"a prefilter of a {face_size}^2 cube with up to {max(per_level[1:], default=0)} samples per texel",
+                prefilter_bytes(face_size, S, per_level), names={"face_size": "--face-size", "samples": "--samples"})
 
 
 def _check_half_range(args, out: Path, peak: float, what: str) -> None:
@@ -241,7 +262,11 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None, sheen: dict | None
     sheen albedo table and the sidecar records where that table came from."""
     out = _checked(outs, Path(out_path or args.output), (".exr",))
     n_r, n_nov = _lut_shape(args.size)
-    require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --size")
+    samples = args.samples or LUT_DEFAULT_SAMPLES
+    check_samples("--samples", samples)
+    flag = "--lut-size" if out_path is not None else "--size"
+    require(f"a LUT of {n_r}x{n_nov} texels" + (f" with {samples} samples per texel" if args.samples else ""),
+            lut_bytes(n_r, n_nov, samples), names={"size": flag, "samples": "--samples"})
     if getattr(args, "sheen", False):
         return _sheen_lut(args, outs, out)
     t0 = time.perf_counter()
@@ -549,7 +574,7 @@ def cmd_ibl(args) -> int:
                                ("brdf_lut.exr", (".exr",)), ("ibl.json", (".json",))) + ((("lights.json", (".json",)),) if args.extract_lights else ()):
             _checked(outs, d / name, suffixes)
         n_r, n_nov = _lut_shape(args.lut_size)
-        require_memory(f"a {n_r}x{n_nov} LUT", _BASE + 16.0 * n_r * n_nov, "lower --lut-size")
+        require(f"a LUT of {n_r}x{n_nov} texels", lut_bytes(n_r, n_nov, LUT_DEFAULT_SAMPLES), names={"size": "--lut-size"})
         _check_prefilter_size(args, args.face_size)
         env = _load(args, "prefilter")
         lights = None

@@ -16,8 +16,9 @@ from ..atomic import OutputSet
 from ..brdf_terms import MODELS
 from ..conventions import CONVENTIONS
 from ..demo import demo_scene
-from ..renderer import BAND_PIXELS, RenderOptions, plan, render
-from ._common import CLIError, Progress, positive_int_arg, raise_pending, require_memory
+from ..renderer import BAND_PIXELS, RenderOptions, check_memory, plan, render
+from ..scene import MAX_SUPERSAMPLE
+from ._common import CLIError, Progress, positive_int_arg, raise_pending
 from .scene_file import load_scene
 
 __all__ = ["add_command", "cmd_render"]
@@ -64,6 +65,18 @@ def add_command(sub) -> None:
     r.set_defaults(func=cmd_render)
 
 
+#: What to lower, named as the command line (demo) or the scene file spells it.
+_MEMORY_NAMES = {"Camera.width/height": "--width/--height"}
+_SCENE_MEMORY_NAMES = {
+    "Camera.width/height": "--width/--height (or camera.width/height)",
+    "the environment's face size": "environment.face_size",
+    "prefilter_samples": "render.prefilter_samples",
+    "irradiance_size": "render.irradiance_size",
+    "lut_size": "render.lut_size",
+    "the textures' resolution": "the textures' resolution (materials.*_texture)",
+}
+
+
 def _check_output_path(outs: OutputSet, path: Path, hdr: bool) -> None:
     """Every output validated before any work (issue 13: a read-only folder or an output that is a
     directory was found only after the whole render): suffix, existing writable folder, not a
@@ -108,6 +121,9 @@ def cmd_render(args) -> int:
 
 def _render_to(args, out: Path, outs: OutputSet) -> int:
     display_opts: dict = {}
+    if args.supersample is not None and args.supersample > MAX_SUPERSAMPLE:
+        raise CLIError(f"--supersample {args.supersample} asks for {args.supersample}^2 passes of the whole image; "
+                       f"at most {MAX_SUPERSAMPLE} is allowed and 4 to 16 is plenty for anti-aliasing")
     if args.scene is None:
         scene = demo_scene(
             args.width or 1280,
@@ -149,11 +165,8 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         # float32 with a screen of warnings).
         jax.config.update("jax_enable_x64", True)
     H, W = scene.image_shape
-    # ~0.12 kB per pixel measured with the render in bands (3840x2160: 1.52 GB, 7680x4320: 4.17 GB
-    # peak RSS; what grows is the frame's own copies: float32 HDR, display encoding, the PNG
-    # check), 0.15 kB kept as the margin, plus the process; the supersampling passes run one
-    # after another and add nothing.
-    require_memory(f"rendering {W}x{H}", 0.6e9 + 150.0 * W * H, "lower --width/--height")
+    # The library's guard (image, textures, the IBL precomputes) with the flags and keys named.
+    check_memory(scene, options=opts, where="", names=_MEMORY_NAMES if args.scene is None else _SCENE_MEMORY_NAMES)
     model = opts.model
     tonemap = args.tonemap or display_opts.get("tonemap") or ("reinhard" if model == "learnopengl" else "aces")
     encoding = args.encoding or display_opts.get("encoding") or ("gamma2.2" if model == "learnopengl" else "srgb")

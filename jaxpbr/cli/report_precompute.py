@@ -44,7 +44,7 @@ from ..specular import (
     prefilter_reference,
     roughness_to_lod,
 )
-from ._common import have_matplotlib, positive_int_arg
+from ._common import have_matplotlib, positive_int_arg, require_environment
 from .timing import time_calls, to_host
 
 __all__ = ["add_command", "cmd_report_precompute", "precompute_report"]
@@ -319,6 +319,7 @@ def add_command(rsub) -> None:
 
 
 def cmd_report_precompute(args) -> int:
+    require_environment(args.face_size)
     for p in args.env:
         if not Path(p).exists():
             raise InputError(f"environment file {p!r} does not exist")

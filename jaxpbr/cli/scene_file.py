@@ -39,6 +39,7 @@ from ..brdf_terms import MODELS, OPTION_CHOICES
 from ..color import TONEMAP_OPERATORS, TRANSFERS, srgb_decode, srgb_decode_np
 from ..cubeio import load_environment
 from ..diffuse import IRRADIANCE_METHODS
+from .._memory import MemoryLimitError, cube_bytes, require, texture_load_bytes
 from ..errors import InputError
 from ..lights import DirectionalLight, PointLight, SpotLight
 from ..material import EXTENSION_FIELDS, Material
@@ -170,6 +171,11 @@ def load_scene(path) -> SceneFile:
         raise InputError(f"scene file {str(p)!r} does not exist; check the path")
     if not p.is_file():
         raise InputError(f"scene file {str(p)!r} is not a file; pass a .toml scene file")
+    if p.suffix.lower() in image.SUPPORTED_EXTENSIONS or _image_magic(p):
+        raise InputError(
+            f"{str(p)!r} is an image, not a scene file; jaxpbr render takes a .toml scene description "
+            f"(docs/scene_format.md): put the image in one, e.g. [environment] file = {p.name!r}"
+        )
     try:
         text = p.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
@@ -178,6 +184,19 @@ def load_scene(path) -> SceneFile:
         raise InputError(f"cannot read scene file {str(p)!r}: {e.strerror or e}; check its permissions") from e
     sf = loads_scene(text, p.parent, name=str(p))
     return dataclasses.replace(sf, path=p)
+
+
+#: The first bytes of the image formats jaxpbr reads (EXR, PNG, Radiance HDR).
+_IMAGE_MAGIC = (b"\x76\x2f\x31\x01", b"\x89PNG", b"#?RADIANCE", b"#?RGBE")
+
+
+def _image_magic(p: Path) -> bool:
+    try:
+        with open(p, "rb") as f:
+            head = f.read(10)
+    except OSError:
+        return False  # read_text below reports it
+    return head.startswith(_IMAGE_MAGIC)
 
 
 def loads_scene(text: str, base_dir=".", *, name: str = "<string>") -> SceneFile:
@@ -442,6 +461,12 @@ class _Loader:
         face_size = None
         if "face_size" in t:
             face_size = self.integer(t["face_size"], "environment.face_size")
+            procedural = str(t.get("file", "")).startswith("procedural:")
+            try:  # before any work (a huge size aborted inside XLA)
+                require(f"a {face_size}^2 environment cube", cube_bytes(face_size, supersample=4 if procedural else None),
+                        names={"face_size": "it"})
+            except MemoryLimitError as e:
+                self.fail("environment.face_size", _one_line(e))
         clamp = self.boolean(t.get("clamp_negative", False), "environment.clamp_negative")
         if "file" in t:
             src = self.string(t["file"], "environment.file")
@@ -614,6 +639,12 @@ class _Loader:
         cache_key = (p, decode, srgb)
         if cache_key in self._images:
             return self._images[cache_key]
+        dims = image.dimensions(p)
+        if dims is not None:  # before reading it: the load's float copies are ~60 B per value
+            try:
+                require(f"loading a {dims[1]}x{dims[0]} texture", texture_load_bytes(dims), names={"texture": "its resolution"})
+            except MemoryLimitError as e:
+                self.fail(path, _one_line(e))
         try:
             img = np.asarray(image.read(p), np.float32)
         except Exception as e:  # noqa: BLE001 -- corrupt / unreadable: any reader error becomes one line
