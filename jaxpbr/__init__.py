@@ -7,8 +7,9 @@ shading), colour and image I/O (EXR, HDR, PNG, KTX2).
 Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` and the README.
 """
 
-from . import _entry  # first, before NumPy and JAX load (the command line's start-up)
+from . import _entry  # first, before NumPy and JAX load: the command line's signal handlers
 
+_entry.early()
 _entry.phase("start")
 
 from . import atomic, brdf_terms, color, demo, envs, image, ktx2, renderer, scene

@@ -224,10 +224,19 @@ class OutputSet:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> bool:
-        if self in _ACTIVE_SETS:
-            _ACTIVE_SETS.remove(self)
-        if exc_type is not None:
-            self.rollback()
-        else:
-            self._discard_backups()
+        try:
+            if exc_type is None:  # a signal not raised yet (Python dropped its exception) raises here
+                for hook in CRITICAL_EXIT_HOOKS:
+                    hook()
+        except BaseException:
+            exc_type = BaseException
+            raise
+        finally:
+            if self in _ACTIVE_SETS:
+                _ACTIVE_SETS.remove(self)
+            with critical():  # the commit or the rollback whole; a signal meanwhile raises after it
+                if exc_type is not None:
+                    self.rollback()
+                else:
+                    self._discard_backups()
         return False

@@ -11,6 +11,8 @@ and the previous set exactly as it was.
 
 from __future__ import annotations
 
+import argparse
+import gc
 import os
 import signal
 import subprocess
@@ -21,8 +23,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxpbr import image
+import jaxpbr.cli
+from jaxpbr import atomic, image
 from jaxpbr.cli import main
+from jaxpbr.cli._common import PENDING, raise_pending
 from jaxpbr.cubemap import equirect_directions
 
 _SCRIPT = Path(sys.executable).parent / "jaxpbr"  # the console script next to this interpreter
@@ -60,9 +64,7 @@ def _signal_at(cmd, phase, sig, *, pause, tmp_path):
     env.pop("JAXPBR_TEST_PAUSE", None)
     if pause:
         env["JAXPBR_TEST_PAUSE"] = phase
-    # Python's default dispositions, as in a terminal (a background job of a script ignores SIGINT).
-    reset = lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGINT, signal.SIGTERM)]  # noqa: E731
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=reset)
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
         t0 = time.monotonic()
         while not (phases.exists() and phase in phases.read_text().split()):
@@ -119,3 +121,57 @@ def test_sigint_after_the_imports_before_the_command_starts(baked, tmp_path):
     code, out, err, _ = _signal_at(_entry("script") + _ibl_args(pano, out_dir), "main", signal.SIGINT, pause=True, tmp_path=tmp_path)
     assert (code, out, err) == (130, "", "jaxpbr: interrupted\n"), err
     assert _state(out_dir) == before
+
+
+# ----------------------------------------------- a signal whose exception Python drops
+
+
+def test_a_signal_dropped_in_a_gc_callback_rolls_back_with_one_line(tmp_path, monkeypatch, capsys):
+    """SIGINT handled while a garbage-collection callback runs (JAX's `_xla_gc_callback`): Python
+    prints "Exception ignored in ..." and drops the KeyboardInterrupt. The command still ends as
+    interrupted, with one line, and the outputs it wrote are rolled back, not committed."""
+    keep, new = tmp_path / "kept.txt", tmp_path / "new.txt"
+    keep.write_text("old")
+
+    def command(args):
+        with atomic.OutputSet() as outs:
+            for p in (keep, new):
+                outs.add(p)
+                atomic.atomic_write(p, lambda tmp: Path(tmp).write_text("new"))
+
+            def callback(phase, info):
+                gc.callbacks.remove(callback)
+                os.kill(os.getpid(), signal.SIGINT)
+                for _ in range(100_000):  # the handler runs here, inside the callback
+                    pass
+
+            gc.callbacks.append(callback)
+            gc.collect()
+        return 0
+
+    parser = argparse.ArgumentParser(prog="jaxpbr")
+    parser.add_argument("--debug", action="store_true")
+    parser.set_defaults(func=command)
+    monkeypatch.setattr(jaxpbr.cli, "build_parser", lambda: parser)
+    dropped = []  # what reaches Python's hook that prints "Exception ignored in ..."
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: dropped.append(u.exc_type))
+    assert main([]) == 130
+    assert capsys.readouterr().err == "jaxpbr: interrupted\n" and dropped == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.txt"] and keep.read_text() == "old"
+
+
+def test_outputs_are_not_committed_while_a_signal_is_pending(tmp_path, monkeypatch):
+    monkeypatch.setattr(atomic, "CRITICAL_EXIT_HOOKS", [raise_pending])
+    keep = tmp_path / "kept.txt"
+    keep.write_text("old")
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with atomic.OutputSet() as outs:
+                for p in (keep, tmp_path / "new.txt"):
+                    outs.add(p)
+                    atomic.atomic_write(p, lambda tmp: Path(tmp).write_text("new"))
+                PENDING[0] = KeyboardInterrupt  # received, its exception dropped
+        assert PENDING[0] is None
+    finally:
+        PENDING[0] = None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.txt"] and keep.read_text() == "old"

@@ -71,29 +71,49 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"jaxpbr: warning: {message}", file=sys.stderr)
 
 
+#: The exception type of the current command's first signal (kept once raised, unlike PENDING).
+_SIGNALLED: list = [None]
+
+
 def _catch_signals():
     """SIGINT and SIGTERM raise in the main thread (KeyboardInterrupt / Terminated) and are also
     remembered (`_common.raise_pending`): Python drops an exception raised while a garbage
     collection callback runs ("Exception ignored in: _xla_gc_callback"), which once let an
-    interrupted bake run on and exit 0. Returns the previous handlers."""
+    interrupted bake run on and exit 0. Such a dropped exception is pending again (and not
+    printed: `sys.unraisablehook`), so the next safe point raises it; the outputs' commit is one
+    (`atomic.OutputSet`). A repeated signal does not cut the first one's rollback short.
+    Returns the previous handlers and unraisable hook (the before-the-imports handlers of
+    `jaxpbr._entry` when this process is the command line)."""
 
     def handler(signum, frame):
+        if _SIGNALLED[0] is not None:  # a repeat: the first signal's exit is under way (or pending)
+            return
         exc = Terminated if signum == signal.SIGTERM else KeyboardInterrupt
-        PENDING[0] = exc
+        _SIGNALLED[0] = PENDING[0] = exc
         if atomic.in_critical():  # raised when the section ends (atomic.CRITICAL_EXIT_HOOKS)
             return
         raise exc()
 
+    previous_hook = sys.unraisablehook
+
+    def unraisable(u):
+        if isinstance(u.exc_value, KeyboardInterrupt):  # raised at the next safe point instead
+            PENDING[0] = PENDING[0] or type(u.exc_value)
+            return
+        previous_hook(u)
+
     if raise_pending not in atomic.CRITICAL_EXIT_HOOKS:
         atomic.CRITICAL_EXIT_HOOKS.append(raise_pending)
 
+    _SIGNALLED[0] = PENDING[0] = None
     previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         try:
             previous[sig] = signal.signal(sig, handler)
         except ValueError:  # not the main thread: leave the defaults
             pass
-    return previous
+    sys.unraisablehook = unraisable
+    return previous, previous_hook
 
 
 #: Seconds the main thread gets to act on SIGINT / SIGTERM before the watchdog does it.
@@ -145,27 +165,21 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
         _start_watchdog()
     _cache.enable()
     _cache.enable_assets()
-    PENDING[0] = None
-    previous = _catch_signals()
+    previous, previous_hook = {}, sys.unraisablehook
     try:
+        previous, previous_hook = _catch_signals()
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning  # the library's warnings as one line, like errors
             code = int(args.func(args) or 0)
-            raise_pending()  # a signal whose exception was swallowed (files already final: report it)
+            raise_pending()  # a signal after the outputs' commit (`atomic.OutputSet`): report it
             return code
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (Terminated): files already rolled back
-        _HANDLED.set()
-        terminated = isinstance(exc, Terminated)
-        print(close_progress_line() + ("jaxpbr: terminated" if terminated else "jaxpbr: interrupted"), file=sys.stderr)
-        code = 128 + signal.SIGTERM if terminated else 130
-        if entry:
-            # Worker threads (a precompute still running) would keep the process alive until
-            # they finish; everything that must be undone has been undone by now.
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(code)
-        return code
+        return _interrupted(isinstance(exc, Terminated), entry)
     except Exception as exc:  # one line on stderr unless --debug
+        if _SIGNALLED[0] is not None and not args.debug:
+            # The signal's exception came back as another one: raised inside a callback that XLA
+            # runs ("CpuCallback error"), or an import or extension cut short. Outputs rolled back.
+            return _interrupted(_SIGNALLED[0] is Terminated, entry)
         if args.debug:
             raise
         msg = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -175,6 +189,21 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
     finally:
         for sig, h in previous.items():
             signal.signal(sig, h)
+        sys.unraisablehook = previous_hook
+
+
+def _interrupted(terminated: bool, entry: bool) -> int:
+    """The one line of an interrupted command and its exit status (exits at once as the command line)."""
+    _HANDLED.set()
+    print(close_progress_line() + ("jaxpbr: terminated" if terminated else "jaxpbr: interrupted"), file=sys.stderr)
+    code = 128 + signal.SIGTERM if terminated else 130
+    if entry:
+        # Worker threads (a precompute still running) would keep the process alive until
+        # they finish; everything that must be undone has been undone by now.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
 
 
 if __name__ == "__main__":  # pragma: no cover
