@@ -4,9 +4,8 @@ Per pixel, with mu = max(n.v, MIN_N_DOT_V), (A, B) the GGX LUT at (mu, r), LD(d,
 GGX-prefiltered environment, E_s the sheen albedo table, LD_c the Charlie-prefiltered environment:
 
     f0, f90   = dielectric_fresnel (ior, specular, specular_color)
-    E_d       = max3(f0 A + f90 B),  E_core = 0.04 A + B
-    k_spec    = 1 - max(E_d - E_core, 0)                                (1 exactly without _specular/_ior)
-    dielectric = LD(R', r) (f0 A + f90 B) + (1 - transmission) base Ebar k_spec
+    E_d       = max3(f0 A + f90 B),   k_d = 1 - max3(f0 + (f90 - f0) W(mu))
+    dielectric = LD(R', r) (f0 A + f90 B) + (1 - transmission) base Ebar k_d
                + transmission base LD(d_t, r_t) T(x) (A + B - E_d)   (thin; volume: 1 - E_d)
     metal      = LD(R', r) (base A + B)
     material   = mix(dielectric, metal, metallic)
@@ -16,15 +15,10 @@ GGX-prefiltered environment, E_s the sheen albedo table, LD_c the Charlie-prefil
 
 Choices, each measured against the brute-force layered reference (`jaxpbr.reference_render`,
 `jaxpbr report render`, README "glTF material extensions"):
-* k_spec: the core split sum gives the diffuse term the weight 1 (Ebar alone), not the spec's
-  1 - F; with KHR_materials_specular / _ior the diffuse gives up what the specular layer reflects
-  beyond the core dielectric, 1 - max(E_d - E_core, 0), so the neutral values reproduce the core IBL
-  exactly, specular 0 gets the spec's weight 1, and the weight stays in [0, 1]. (The ratio
-  (1 - E_d) / (1 - E_core) was tried first: at grazing views of a smooth surface 1 - E_core -> 0
-  and the diffuse of specular 0.5 came out 1042x too bright at n.v = 1e-4.) Measured against
-  `reference_layered` (dielectric (0.9, 0.6, 0.3), sky residual at 64^2, IBL term, mean relative
-  error at r = 0.15 / 0.5): specular 0 0.01 / 0.01 % (ratio: 8.5 / 5.3 %), specular 0.5 2.1 / 2.2 %
-  (ratio: 5.9 / 4.8 %).
+* k_d: the diffuse lobe's (1 - F) averaged over the Lambertian lobe (`ibl.diffuse_fresnel_weight`,
+  W the Schlick weight's Lambert average), as in the core split sum; the neutral values give the
+  core's 0.96 (1 - W), specular 0 the weight 1, and it stays in [0, 1]. (A weight relative to the
+  core's, (1 - E_d) / (1 - E_core), was 1042x too bright at grazing views of smooth surfaces.)
 * Anisotropy: the extension's bent normal (the reflection of v about the normal bent towards
   B x (v x B) by 1 - (1 - strength (1 - r))^4); its last step, leaning the reflection towards the
   bent normal by alpha, is left out because it moves the isotropic (strength 0) lookup off R.
@@ -58,8 +52,8 @@ import jax.numpy as jnp
 
 from ._numerics import pack3, safe_sqrt, unpack3, vcross, vdot, vnormalize
 from .layered import anisotropic_alphas, anisotropy_frame, coat_fresnel, dielectric_fresnel, refractive_index, transmittance
+from .ibl import schlick_lambert_average, specular_dominant_direction, split_sum_weights
 from .lut import lut_lookup
-from .material import F0_DIELECTRIC
 from .specular import lookup_of, roughness_to_lod
 
 __all__ = ["bent_reflection", "refract", "shade_ibl_layered"]
@@ -88,7 +82,7 @@ def bent_reflection(n3, v3, T, B, strength, r):
     return tuple(2.0 * d * bn[i] - v3[i] for i in range(3))
 
 
-def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, tangent=None, coat_normal=None, sheen_lut=None, charlie=None, volume_distance=None, transmit_direction=None):
+def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False, tangent=None, coat_normal=None, sheen_lut=None, charlie=None, volume_distance=None, transmit_direction=None):
     """The layered split sum (module docstring). n3, v3: Vec3 unit; R packed (..., 3) mirror
     direction; nov, r: clamped (...). m: Material with extensions (metallic already clamped).
     Returns (..., 3) without occlusion."""
@@ -113,6 +107,7 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, tangent=None, coat
         r_lut = safe_sqrt(safe_sqrt(0.5 * (at * at + ab_ * ab_)))  # 0 at r = 0, strength 0: gradient 0
     else:
         Rl = R
+    Rl = specular_dominant_direction(pack3(n3), Rl, r)  # as the core split sum
     ab = lut_lookup(lut, nov, r_lut)
     a, b = ab[..., 0], ab[..., 1]
     ld = pre.sample(Rl, lod(r))
@@ -122,19 +117,21 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, tangent=None, coat
     f90 = jnp.stack(jnp.broadcast_arrays(*f90), -1)
     a3, b3 = a[..., None], b[..., None]
     spec_d = ld * (f0 * a3 + f90 * b3)
-    f0max = jnp.max(f0, -1, keepdims=True)
     e_d = jnp.max(f0 * a3 + f90 * b3, -1, keepdims=True)  # max3 of the dielectric's specular albedo
-    if m.specular is not None or m.ior is not None:
-        # The core split sum gives the diffuse weight 1 (not 1 - E); the diffuse gives up what the
-        # specular layer reflects *beyond* the core dielectric's E (module docstring).
-        e_n = F0_DIELECTRIC * a3 + b3
-        k_spec = 1.0 - jnp.maximum(e_d - e_n, 0.0)
-    else:
-        k_spec = None
     diel = spec_d
+    if multiscatter:
+        # Fdez-Aguera per lobe, as the core split sum (`ibl.split_sum_weights` with F90).
+        fss_d, fms_d = split_sum_weights(f0, a, b, multiscatter=True, f90=f90)
+        _, fms_m = split_sum_weights(base, a, b, multiscatter=True)
     if irr is not None:
         ebar = irr.sample(pack3(n3))
-        diff = base * ebar if k_spec is None else base * ebar * k_spec
+        if multiscatter:
+            k_d = 1.0 - fss_d - fms_d
+            diel = diel + fms_d * ebar
+        else:
+            # The diffuse lobe under the dielectric Fresnel layer: (1 - max3 F) averaged over it.
+            k_d = 1.0 - jnp.max(f0 + (f90 - f0) * schlick_lambert_average(nov)[..., None], -1, keepdims=True)
+        diff = base * ebar * k_d
         if "transmission" in ext:
             diff = diff * (1.0 - jnp.clip(m.transmission, 0.0, 1.0))[..., None]
         diel = diel + diff
@@ -164,6 +161,8 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, tangent=None, coat
         lt = pre.sample(d_t, lod(rt)) * energy * base * tr
         diel = diel + (lt if att is None else lt * att)
     metal = ld * (base * a3 + b3)
+    if multiscatter:
+        metal = metal + fms_m * ebar
     out = diel + (metal - diel) * metallic
 
     if "sheen" in ext:
@@ -188,6 +187,7 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, tangent=None, coat
         ncv = jnp.clip(jnp.abs(ncv_raw), nov.dtype.type(1e-4), 1.0)  # |n_c.v|, as fresnel_coat
         Rc = pack3(tuple(2.0 * ncv_raw * nc[i] - v3[i] for i in range(3)))
         rc = jnp.clip(m.clearcoat_roughness, 0.0, 1.0)
+        Rc = specular_dominant_direction(pack3(nc), Rc, rc)
         abc = lut_lookup(lut, ncv, jnp.broadcast_to(rc, ncv.shape))
         ld_cc = pre.sample(Rc, lod(rc))
         cc = (jnp.clip(m.clearcoat, 0.0, 1.0) * coat_fresnel(ncv))[..., None]
