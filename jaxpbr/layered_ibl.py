@@ -52,7 +52,7 @@ import jax.numpy as jnp
 
 from ._numerics import pack3, safe_sqrt, unpack3, vcross, vdot, vnormalize
 from .layered import anisotropic_alphas, anisotropy_frame, coat_fresnel, dielectric_fresnel, refractive_index, transmittance
-from .ibl import schlick_lambert_average, specular_dominant_direction, split_sum_weights
+from .split_sum import schlick_lambert_average, specular_dominant_direction, split_sum_weights
 from .lut import lut_lookup
 from .specular import lookup_of, roughness_to_lod
 

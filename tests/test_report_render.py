@@ -35,7 +35,7 @@ def test_cli_render_report_tiny(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "| 0.5 | 0 |" in out and "| 0.5 | 1 |" in out
     md = (tmp_path / "render_report.md").read_text()
-    assert "split-sum error" in md and md.count("\n| 0.5 |") == 2
+    assert "split-sum error" in md and md.count("\n| 0.5 |") == 4  # the error table and the by-part table
     data = json.loads((tmp_path / "render_report.json").read_text())
     assert len(data["materials"]) == 2
     for row in data["materials"]:
@@ -142,3 +142,20 @@ def test_report_with_the_sun_extracted_meets_the_issue_targets():
         if a["metallic"] == 1.0:
             assert b["mean_rel_error"] > 2 * target, b
     assert len(on["config"]["extracted_lights"]) == 1
+
+
+def test_split_sum_dielectrics_and_rough_metals_against_the_reference():
+    """The IBL term of white-ish spheres under the procedural sky (sun split out, face 32, 16^2 px)
+    against the float64 reference: dielectrics within 1 % (mean and bias; the diffuse lobe without
+    the (1 - F) factor was +2.7 %), the diffuse part's bias within 0.5 %, the rough metal's IBL
+    within 3 % (looked up at R it was 4.1 % at r = 1 on the 64^2 sky). The energy-model columns
+    are present and finite for every material."""
+    res = render_report(pixels=16, face_size=32, roughness=(0.5, 1.0), metallic=(0.0, 1.0), log=lambda m: None)
+    for row in res["materials"]:
+        assert np.isfinite(row["ibl_single_scatter_furnace_normalised_error"]) and np.isfinite(row["ibl_multi_scatter_furnace_normalised_error"])
+        if row["metallic"] == 0.0:
+            assert row["ibl_mean_rel_error"] <= 0.01 and abs(row["ibl_bias"]) <= 0.01, row
+            assert abs(row["ibl_diffuse_bias"]) <= 0.005, row
+        elif row["roughness"] == 1.0:
+            assert row["ibl_mean_rel_error"] <= 0.03, row
+    assert "furnace-normalised" in markdown(res)

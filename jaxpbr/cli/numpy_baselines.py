@@ -23,6 +23,7 @@ import numpy as np
 
 from ..cubemap import Cubemap, _corner_mask, _pad_index
 from ..ibl import MIN_N_DOT_V
+from ..split_sum import SCHLICK_LAMBERT_FIT
 from ..material import F0_DIELECTRIC
 from ..lut import lut_coordinates, lut_padded, lut_r0
 from ..specular import lookup_of, roughness_to_lod
@@ -265,7 +266,8 @@ class NumpyIBL:
 
 def shade_ibl_numpy(g: dict[str, np.ndarray], ibl: NumpyIBL) -> np.ndarray:
     """`shade_ibl(model="gltf", multiscatter=False)` in NumPy on a float32 G-buffer -> (H, W, 3):
-    `c_diff * Ebar(n) + LD(R, lod(r)) * (F0 A + B)`, R = 2 (n.v) n - v."""
+    `c_diff 0.96 (1 - C(n.v)) Ebar(n) + LD(d, lod(r)) * (F0 A + B)`, R = 2 (n.v) n - v, d its
+    dominant direction (`jaxpbr.ibl`)."""
     shape = g["normal"].shape[:-1]
     n = g["normal"].reshape(-1, 3)
     v = g["view"].reshape(-1, 3)
@@ -278,12 +280,18 @@ def shade_ibl_numpy(g: dict[str, np.ndarray], ibl: NumpyIBL) -> np.ndarray:
     ab = lut_lookup_numpy(ibl.lut, nov, r)
     M = ibl.pre.num_levels if ibl.mapping_levels is None else ibl.mapping_levels
     lod = roughness_to_lod(r, M, mapping=ibl.mapping, lod_blend=ibl.lod_blend, xp=np).astype(r.dtype)
-    ld = ibl.pre.sample(k * nx - vx, k * ny - vy, k * nz - vz, lod)
+    a2 = r * r
+    s_ = 1.0 - a2
+    t = s_ * (np.sqrt(s_) + a2)
+    dx, dy, dz = nx + (k * nx - vx - nx) * t, ny + (k * ny - vy - ny) * t, nz + (k * nz - vz - nz) * t
+    ld = ibl.pre.sample(dx, dy, dz, lod)  # the sampler normalises
     ebar = ibl.irr.sample(nx, ny, nz)
     base = g["base_color"].reshape(-1, 3)
     m = g["metallic"].reshape(-1, 1)
     f0 = F0_DIELECTRIC * (1.0 - m) + base * m
-    out = (base * (1.0 - m)) * ebar + ld * (f0 * ab[:, 0:1] + ab[:, 1:2])
+    c = np.polynomial.polynomial.polyval(1.0 - nov, SCHLICK_LAMBERT_FIT).astype(nov.dtype)
+    kd = ((1.0 - F0_DIELECTRIC) * (1.0 - c)).reshape(-1, 1)
+    out = (base * (1.0 - m)) * kd * ebar + ld * (f0 * ab[:, 0:1] + ab[:, 1:2])
     if "occlusion" in g:
         out *= g["occlusion"].reshape(-1, 1)
     return out.reshape(shape + (3,))

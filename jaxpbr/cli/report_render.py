@@ -18,6 +18,7 @@ relative-error images (the PNG needs matplotlib: `pip install 'jaxpbr[report]'`)
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -37,7 +38,7 @@ from ..cubeio import ENVIRONMENT_HELP, load_environment
 from ..cubemap import Cubemap
 from ..diffuse import irradiance
 from ..errors import InputError
-from ..ibl import shade_ibl
+from ..ibl import disc_multiscatter, shade_ibl
 from ..material import Material
 from ..reference_render import (
     min_reference_roughness,
@@ -111,6 +112,51 @@ def _errors(test, ref):
     den = np.abs(ref).sum(-1)
     per_pixel = diff / np.maximum(den, 1e-300)
     return float(diff.sum() / max(den.sum(), 1e-300)), float(per_pixel.max(initial=0.0)), per_pixel
+
+
+def _bias(test, ref) -> float:
+    """Signed relative error sum(test - ref) / sum(ref) over all pixels and channels."""
+    return float((test - ref).sum() / max(np.abs(ref).sum(), 1e-300))
+
+
+def _ibl_parts(split_sum, furnace, terms, r, metallic, base_color, ibl, ref_ibl) -> dict:
+    """The IBL term's error by part and by energy model, for one material.
+
+    * bias: signed relative error of the IBL term (single scattering, the reference's model);
+    * dielectrics (metallic 0): the diffuse and specular parts apart. The split sum is linear in
+      base colour there, so the specular part is the IBL term at base colour 0 and the diffuse part
+      the difference to base colour 1; the reference's are its F0 LA + LB and Ld sums;
+    * energy models: the IBL term divided per pixel by the same model's white-furnace response (which
+      removes the choice of energy compensation and leaves what the environment contributes), the
+      single-scattering split sum and the multiple-scattering one (`multiscatter=True`, the renderer's
+      default for glTF) each against the reference divided by its own furnace response. The
+      reference's furnace is the LUT's single-scattering albedo (F0 A + B + (1 - metallic) base
+      0.96 (1 - C)): the split sum under L = 1 is exact but for the LUT, converged to ~1e-5.
+    """
+    f32 = jnp.float32
+
+    def mat(base):
+        return Material(base_color=jnp.asarray(base, f32), metallic=jnp.asarray(metallic, f32), roughness=jnp.asarray(r, f32))
+
+    out = dict(ibl_bias=_bias(ibl, ref_ibl))
+    if metallic == 0.0:
+        with jax.enable_x64(True):
+            zero = Material(base_color=jnp.zeros(3), metallic=jnp.float64(0.0), roughness=jnp.float64(r))
+            one = Material(base_color=jnp.ones(3), metallic=jnp.float64(0.0), roughness=jnp.float64(r))
+        ref_s = reference_ibl_from_terms(terms, zero)
+        ref_d = reference_ibl_from_terms(terms, one) - ref_s
+        ss_s = split_sum(mat((0.0, 0.0, 0.0)))
+        ss_d = split_sum(mat((1.0, 1.0, 1.0))) - ss_s
+        out.update(
+            ibl_diffuse_mean_rel_error=_errors(ss_d, ref_d)[0], ibl_diffuse_bias=_bias(ss_d, ref_d),
+            ibl_specular_mean_rel_error=_errors(ss_s, ref_s)[0], ibl_specular_bias=_bias(ss_s, ref_s),
+        )
+    m = mat(base_color)
+    ref_norm = ref_ibl / furnace(m, False)
+    for name, ms in (("single", False), ("multi", True)):
+        test = (ibl if not ms else split_sum(m, True)) / furnace(m, ms)
+        out[f"ibl_{name}_scatter_furnace_normalised_error"] = _errors(test, ref_norm)[0]
+    return out
 
 
 def render_report(
@@ -212,15 +258,24 @@ def render_report(
     lights32 = _lights_as(ss_lights[: len(ss_lights) - len(extracted)], f32)
     discs32 = _lights_as(ss_lights[len(ss_lights) - len(extracted):], f32) if extracted else None
 
-    @jax.jit
-    def split_sum(p_, n_, v_, m_, irr_, pre_, lut_, lights_, discs_):
+    @functools.partial(jax.jit, static_argnames=("multiscatter",))
+    def split_sum(p_, n_, v_, m_, irr_, pre_, lut_, lights_, discs_, multiscatter=False):
         # "IBL" = what the environment contributes: the split sum of the (residual) environment
-        # plus its extracted disc lights (emission added once, by the scene lights' term).
-        ibl = shade_ibl(n_, v_, m_, irr_, pre_, lut_)
+        # plus its extracted disc lights (emission added once, by the scene lights' term), with
+        # the multiple-scattering compensation of both when asked (as `render` does).
+        ibl = shade_ibl(n_, v_, m_, irr_, pre_, lut_, multiscatter=multiscatter)
         if discs_ is not None:
             dark = m_.replace(emissive=jnp.zeros_like(m_.emissive))
             ibl = ibl + _lights.shade_direct(p_, n_, v_, dark, discs_, disc_lights=True)
+            if multiscatter:
+                ibl = ibl + disc_multiscatter(n_, v_, m_, lut_, discs_)
         return _lights.shade_direct(p_, n_, v_, m_, lights_) + ibl, ibl
+
+    # The white furnace (L = 1 everywhere) of the split sum: the per-pixel response each energy
+    # model divides by in the energy-model columns.
+    ones = lambda c: Cubemap(tuple(jnp.ones_like(x) for x in c.levels), c.metadata)  # noqa: E731
+    irr1, pre1 = ones(irr), ones(pre)
+    furnace = jax.jit(lambda n_, v_, m_, ms: shade_ibl(n_, v_, m_, irr1, pre1, lut, multiscatter=ms), static_argnums=3)
 
     def material(r, m, dtype):
         return Material(base_color=jnp.asarray(base_color, dtype), metallic=jnp.asarray(m, dtype), roughness=jnp.asarray(r, dtype))
@@ -249,6 +304,8 @@ def render_report(
             ref_s = terms_s + time.perf_counter() - t0
             mean, mx, per_pixel = _errors(tot, ref)
             ibl_mean, ibl_max, _ = _errors(ibl, ref_ibl)
+            parts = _ibl_parts(lambda m_, ms=False: np.asarray(split_sum(p32, n32, v32, m_, irr, pre, lut, lights32, discs32, multiscatter=ms)[1], np.float64),
+                               lambda m_, ms: np.asarray(furnace(n32, v32, m_, ms), np.float64), terms, r, m, base_color, ibl, ref_ibl)
             img = np.full(mask.shape, np.nan)
             img[mask] = per_pixel
             images[(r, m)] = img
@@ -263,6 +320,7 @@ def render_report(
                     ibl_mean_rel_error=ibl_mean,
                     ibl_max_pixel_rel_error=ibl_max,
                     ibl_share_of_radiance=float(np.abs(ref_ibl).sum() / np.abs(ref).sum()),
+                    **parts,
                     split_sum_s=ss_s,
                     reference_s=ref_s,
                     reference_ibl_shared_s=terms_s,
@@ -403,6 +461,28 @@ def markdown(result: dict) -> str:
             f"| {r['roughness']:g} | {r['metallic']:g} | {100 * r['mean_rel_error']:.2f} % | {100 * r['max_pixel_rel_error']:.1f} % | "
             f"{100 * r['ibl_mean_rel_error']:.2f} % | {100 * r['ibl_max_pixel_rel_error']:.1f} % | {100 * r['ibl_share_of_radiance']:.0f} % | "
             f"{1e3 * r['split_sum_s']:.2f} | {r['reference_s']:.2f} |"
+        )
+    out += [
+        "",
+        "## The IBL term by part and by energy model",
+        "",
+        "Bias: signed relative error of the IBL term. Diffuse / specular (dielectrics): the two parts apart (the split sum is "
+        "linear in base colour: specular = the term at base colour 0, diffuse = the difference to base colour 1). "
+        "Furnace-normalised: each model's IBL term divided per pixel by its own white-furnace response, against the reference "
+        "divided by its single-scattering albedo: single scattering (`multiscatter=False`, the reference's model) and Fdez-Aguera "
+        "multiple scattering (`multiscatter=True`, the renderer's default for glTF).",
+        "",
+        "| roughness | metallic | IBL bias | diffuse mean (bias) | specular mean (bias) | single-scattering, furnace-normalised | multiple-scattering, furnace-normalised |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in result["materials"]:
+        if "ibl_bias" not in r:
+            continue
+        d = (f"{100 * r['ibl_diffuse_mean_rel_error']:.2f} % ({100 * r['ibl_diffuse_bias']:+.2f} %)" if "ibl_diffuse_bias" in r else "-")
+        sp = (f"{100 * r['ibl_specular_mean_rel_error']:.2f} % ({100 * r['ibl_specular_bias']:+.2f} %)" if "ibl_specular_bias" in r else "-")
+        out.append(
+            f"| {r['roughness']:g} | {r['metallic']:g} | {100 * r['ibl_bias']:+.2f} % | {d} | {sp} | "
+            f"{100 * r['ibl_single_scatter_furnace_normalised_error']:.2f} % | {100 * r['ibl_multi_scatter_furnace_normalised_error']:.2f} % |"
         )
     ext = result.get("extensions") or []
     if ext:
