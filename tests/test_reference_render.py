@@ -138,24 +138,35 @@ def test_convergence_under_doubled_supersampling():
 
 
 def test_agrees_with_split_sum_for_rough_materials():
-    """Smooth sky (no sun), rough lobes, NoV >= 0.6: split sum within a few %. The error grows at
-    grazing angles (the n = v = R assumption of the prefilter), which is the approximation, not a
-    bug: measured, not asserted."""
+    """Smooth sky (no sun), rough lobes, over a whole sphere (24^2 px): the split sum's mean relative
+    error is a few % (measured 1.0-4.3 %: metals 4.3 / 2.6 / 4.2 % at r = 0.5 / 0.75 / 1), and for
+    the metals it beats the lookup at the mirror direction R (5.2 / 5.3 / 6.3 %), which the
+    dominant direction replaced. Single pixels at grazing angles stay far worse (the n = v = R
+    assumption of the prefilter): measured, not asserted."""
+    from jaxpbr.cli.report_render import sphere_gbuffer
+    from jaxpbr.lut import lut_lookup
+    from jaxpbr.specular import lookup_of, roughness_to_lod
+
     env = jp.envs.sky_with_sun_cubemap(16, sun_radiance=0.0)
-    irr = jp.irradiance(env, 32)
+    irr = jp.irradiance(env, size=32)
     pre = jp.prefilter(env)
-    lut = jp.brdf_lut(128)
-    mu = np.array([1.0, 0.9, 0.75, 0.6])
-    ang = np.arccos(mu)
-    n = np.stack([np.sin(ang) * 0.6, np.sin(ang) * 0.8, mu], -1)
-    v = np.array([0.0, 0.0, 1.0])
+    lut = jp.brdf_lut(size=128)
+    _, n, v, _ = sphere_gbuffer(24)
+    n32, v32 = jnp.asarray(n, jnp.float32), jnp.asarray(v, jnp.float32)
+    M, mapping, blend = lookup_of(pre)
     for r in (0.5, 0.75, 1.0):
         for metal in (0.0, 1.0):
             m = jp.Material(base_color=(0.9, 0.6, 0.3), metallic=metal, roughness=r)
             ref = reference_ibl(n, v, m, env)
-            ss = np.asarray(jp.shade_ibl(jnp.asarray(n, jnp.float32), jnp.asarray(v, jnp.float32), m, irr, pre, lut), np.float64)
-            rel = np.abs(ss - ref).sum(-1) / ref.sum(-1)
-            assert rel.max() < 0.05, (r, metal, rel)
+            ss = np.asarray(jp.shade_ibl(n32, v32, m, irr, pre, lut, multiscatter=False), np.float64)
+            err = np.abs(ss - ref).sum() / ref.sum()
+            assert err < 0.05, (r, metal, err)
+            if metal:
+                R = 2 * n[:, 2:3] * n - v
+                ab = np.asarray(lut_lookup(lut, jnp.asarray(n[:, 2], jnp.float32), jnp.full(len(n), r, jnp.float32)), np.float64)
+                ld = np.asarray(pre.sample(jnp.asarray(R, jnp.float32), roughness_to_lod(jnp.float32(r), M, mapping=mapping, lod_blend=blend)), np.float64)
+                at_r = ld * (np.asarray(m.base_color) * ab[:, :1] + ab[:, 1:])
+                assert err < np.abs(at_r - ref).sum() / ref.sum(), (r, err)
 
 
 def test_shapes_chunking_and_from_terms():

@@ -262,7 +262,8 @@ def test_gbuffer_scene_equals_direct_kernels():
     pre = jp.prefilter(env)
     lut = jp.brdf_lut(128)
     # Jitted (one program each instead of ~200 eager primitive compilations).
-    kernels = jax.jit(lambda p, n, v, m: jp.shade_direct(p, n, v, m, lights) + jp.shade_ibl(n, v, m, irr, pre, lut))
+    # render's default for glTF: the multiple-scattering compensation of the IBL term.
+    kernels = jax.jit(lambda p, n, v, m: jp.shade_direct(p, n, v, m, lights) + jp.shade_ibl(n, v, m, irr, pre, lut, multiscatter=True))
     want = np.asarray(kernels(p, n, v, m))
     bg = np.asarray(jax.jit(lambda c, d: c.sample(d))(env, -v.astype(np.float32)))
     want = np.where(hit[..., None], want, bg)
@@ -314,7 +315,9 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     env = jp.Environment(radiance=small_env(64))
     mats = [jp.Material(metallic=1.0, roughness=r) for r in (0.0, 0.1, 0.3)]
     scene = jp.Scene(camera=jp.Camera(width=8, height=6), objects=[jp.Sphere(center=(x, 0, 0), material=m) for x, m in zip((-2, 0, 2), mats)], environment=env)
-    p = R.plan(scene)
+    assert R.plan(scene).ibl_diffuse  # the default multiple-scattering compensation reads Ebar
+    ss = R.RenderOptions(multiscatter=False)
+    p = R.plan(scene, options=ss)
     assert p.ibl and not p.ibl_diffuse
     # 64^2 prefilter: M = 5 levels (64 .. 4 at r = m/4), the default (mean-cosine) lod(0.3) = 1.15
     # -> levels 0..2 are enough.
@@ -330,11 +333,11 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     monkeypatch.setattr(jp.specular, "prefilter", spy_pre)
     monkeypatch.setattr(jp.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance computed for metals"))
     R.ASSETS.clear()
-    img = np.asarray(jp.render(scene))
+    img = np.asarray(jp.render(scene, options=ss))
     assert seen["levels"] == 3 and np.isfinite(img).all()
     # The truncated chain gives the same image as the full chain (lod <= 1.15 never reads beyond).
-    full = R._env_assets(env, R.dataclasses.replace(p, prefilter_levels=5), R.RenderOptions())
-    want = np.asarray(R._render_jit(scene, full, R.dataclasses.replace(p, prefilter_levels=5), R.RenderOptions()))
+    full = R._env_assets(env, R.dataclasses.replace(p, prefilter_levels=5), ss)
+    want = np.asarray(R._render_jit(scene, full, R.dataclasses.replace(p, prefilter_levels=5), ss))
     np.testing.assert_allclose(img, want, rtol=1e-6, atol=1e-7)
     # A dielectric brings the irradiance map back.
     p2 = R.plan(scene.replace(objects=scene.objects + (jp.Sphere(center=(0, 2, 0), material=jp.Material(metallic=0.5, roughness=0.3)),)))
@@ -414,7 +417,8 @@ def test_scene_errors_are_clear(build, message):
 
 def test_gbuffer_scene_with_extracted_sun_equals_kernels():
     """By default the sun is split out: the render equals shade_direct over the scene's and the
-    extracted disc lights plus the split sum of the residual environment."""
+    extracted disc lights plus the split sum of the residual environment (both compensated for
+    multiple scattering, render's default)."""
     from jaxpbr.extract import extract_lights
 
     rng = np.random.default_rng(4)
@@ -435,7 +439,9 @@ def test_gbuffer_scene_with_extracted_sun_equals_kernels():
     ex = extract_lights(env)
     (sun,) = ex.lights
     irr, pre, lut = jp.irradiance(ex.residual, 32), jp.prefilter(ex.residual), jp.brdf_lut(128)
-    want = jax.jit(lambda n, v, m: jp.shade_direct(np.zeros(3), n, v, m, sun) + jp.shade_ibl(n, v, m, irr, pre, lut))(n, v, m)
+    # with the default compensation: of the residual's IBL term and of the sun (its FmsEms times its irradiance)
+    want = jax.jit(lambda n, v, m: jp.shade_direct(np.zeros(3), n, v, m, sun) + jp.shade_ibl(n, v, m, irr, pre, lut, multiscatter=True)
+                   + jp.ibl.disc_multiscatter(n, v, m, lut, [sun]))(n, v, m)
     np.testing.assert_allclose(img, np.asarray(want), rtol=2e-5, atol=1e-6)
     off = np.asarray(jp.render(scene, extract_lights=False))
     assert np.abs(off - img).max() > 1e-3  # the split changes the image (the split sum's error)
