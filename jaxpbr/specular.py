@@ -106,17 +106,24 @@ DEFAULT_SAMPLES = 256
 #: Most FIS samples `default_sample_counts` gives a level.
 MAX_SAMPLES = 4096
 #: Default number of brightest source texels convolved exactly instead of sampled (see `split_bright`),
-#: per 256^2 of face area: the budget is a solid angle (1.5e-3 of the sphere), so that a sun covers
+#: per 256^2 of face area: the budget is a solid angle (2.1 % of the sphere), so that a sun covers
 #: the same share of it at every resolution (`default_exact_texels`). A fixed 256 let a 1-degree
-#: 5e4 sun (~700 texels at 1024^2) stay in the sampled part: worst texel 130 % (issue 13).
-DEFAULT_EXACT_TEXELS = 256
+#: 5e4 sun (~700 texels at 1024^2) stay in the sampled part: worst texel 130 % (issue 13); 256 per
+#: 256^2 left most of a wide sun (a 4-degree Gaussian of peak 400: 5795 texels above 4x the mean at
+#: 256^2) in the sampled part, whose clamp at the 257th texel (332, 220x the mean) the FIS could not
+#: sample: worst texel 18 % at r = 0.25, 7 % at r = 0.5 and 1 (issue 23). The far field's grids and
+#: second moments (`_bright_all`) keep the cost of thousands of texels near that of the sampling.
+DEFAULT_EXACT_TEXELS = 8192
+#: ... and at least this many (small faces).
+MIN_EXACT_TEXELS = 256
 
 
 def default_exact_texels(face_size: int) -> int:
-    """DEFAULT_EXACT_TEXELS x max(1, (face_size / 256)^2): 256 up to 256^2, 1024 at 512^2, 4096 at
-    1024^2, 16384 at 2048^2. Only the texels actually above threshold are convolved (rounded up to
-    a power of two), and far from them a cell sum stands in for them (`_bright_all`)."""
-    return max(DEFAULT_EXACT_TEXELS, (DEFAULT_EXACT_TEXELS * face_size * face_size) // (256 * 256))
+    """max(MIN_EXACT_TEXELS, DEFAULT_EXACT_TEXELS x (face_size / 256)^2): 256 up to 45^2, 2048 at
+    128^2, 8192 at 256^2, 32768 at 512^2, 131072 at 1024^2, 524288 at 2048^2. Only the texels
+    actually above threshold are convolved (rounded up to a power of two), and far from them cell
+    sums stand in for them (`_bright_all`)."""
+    return max(MIN_EXACT_TEXELS, (DEFAULT_EXACT_TEXELS * face_size * face_size) // (256 * 256))
 #: Default FIS LOD bias (+1 = Filament's K = 4).
 DEFAULT_LOD_BIAS = 1.0
 
@@ -522,6 +529,29 @@ def _bright_chunk(R, sub, Bw, a2):
     return jnp.matmul(k, Bw, precision=HIGHEST)
 
 
+def _bright_far_chunk(R, mu, cov, Bw, a2):
+    """sum_g P_g E_g[K(R.w)] over cells g for R (chunk, 3): each cell's texels as their power-weighted
+    mean mu (G, 3) (inside the sphere, |mu| < 1) and covariance cov (G, 6) (xx, yy, zz, xy, xz, yz),
+    Bw (G, C) the cells' B Omega / W. With c = R.w and f(c) = K, the cell's mean kernel is
+    E f(c) = f(c_bar) + f''(c_bar) Var(c) / 2 + O(E|c - c_bar|^3) exactly (c_bar = R.mu,
+    Var(c) = R^T cov R): no first-order term, and the second-order one computed, so a cell may be
+    several times wider against the lobe than a point at its centroid allows.
+
+    f = a2 c / (pi d^2), d = (1-c)/2 + (1+c)/2 a2, f'' = 2 a2 B (2d + 3Bc) / (pi d^4), B = (1-a2)/2;
+    1 - c_bar = (|R - mu|^2 + 1 - |mu|^2)/2 (1 - |mu|^2 = tr cov) without cancellation. Cells
+    across the lobe's horizon (a kink of f) are left to the caller's criterion."""
+    q = jnp.sum((R[:, None, :] - mu[None, :, :]) ** 2, -1)
+    u = 0.5 * (q + jnp.sum(cov[:, :3], -1)[None, :])  # 1 - c_bar
+    c = 1.0 - u
+    d = 0.5 * u + (1.0 - 0.5 * u) * a2
+    B = 0.5 * (1.0 - a2)
+    x, y, z = R[:, 0], R[:, 1], R[:, 2]
+    RR = jnp.stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z], -1)
+    var = jnp.matmul(RR, cov.T, precision=HIGHEST)  # (chunk, G)
+    k = a2 / (math.pi * d * d) * (c + B * (2.0 * d + 3.0 * B * c) * var / (d * d))
+    return jnp.matmul(jnp.where(c > 0, k, 0.0), Bw, precision=HIGHEST)
+
+
 #: Output directions per chunk of the exact bright-texel convolution.
 BRIGHT_CHUNK = 64
 
@@ -531,29 +561,64 @@ BRIGHT_CHUNK = 64
 BRIGHT_CELLS = 8
 
 #: Far-field criterion: a cell of rms angular spread rho seen from output directions at angle theta
-#: (beyond the chunk's radius) with GGX width alpha is summed as a point when
+#: (beyond the chunk's radius) with GGX width alpha is summed from its moments when
 #: BRIGHT_FAR^2 rho^2 <= alpha^2 + theta^2 / 4, and when the lobe's horizon (R.l = 0, a kink of the
-#: kernel) cannot cross it. The point (the power-weighted centroid) has no first-order error; the
-#: second-order one is ~ rho^2 / (alpha^2 + theta^2/4) of the cell's share. Measured on the 1-degree
-#: 5e4 sun at 1024^2 faces (issue 13), max relative difference from the full sum over all levels:
-#: 7.3e-3 at 10, 1.9e-3 at 20, 1.6e-4 at 40; the bright pass took 13.7 s in full, ~3 s culled.
-BRIGHT_FAR = 40.0
+#: kernel) cannot cross it (BRIGHT_KINK). The moments (power, mean direction, covariance:
+#: `_bright_far_chunk`) leave no first- or second-order error; the third-order one is
+#: ~ (rho^2 / (alpha^2 + theta^2/4))^(3/2) of the cell's share. The centroid alone (no covariance)
+#: needed 40 for 1.6e-4 on the 1-degree 5e4 sun at 1024^2 faces (issue 13: 7.3e-3 at 10). With the
+#: covariance, max relative difference from the full sum over all levels of a 4-degree, 400-peak
+#: Gaussian sun (8192 exact texels of a 256^2 cube, prefiltered to 128^2): 2.6e-5 at 40, 2.7e-5 at
+#: 20, 9.6e-5 at 10 (with BRIGHT_KINK 40), 3.6e-4 at 10 / 10.
+BRIGHT_FAR = 10.0
+
+#: The horizon's criterion (see `_bright_all`): a cell whose error across the horizon could exceed
+#: 1/BRIGHT_KINK^2 of its power spread evenly over the hemisphere is summed finer (finer grids, or
+#: the texels). Off (0 difference) on the narrow levels, where the kernel at the horizon is ~4 alpha^4
+#: of its peak; on the rough ones, 10 instead of 40 halved the bright pass of the sun above at 512^2.
+BRIGHT_KINK = 10.0
 
 
-def bright_cells(idx, S0: int):
+def bright_cells(idx, S0: int, g: int | None = None):
     """The far-field cell of each flat texel index idx (k,) into (6, S0, S0): face-major cells of a
-    g x g grid per face, g = min(S0, BRIGHT_CELLS). Works on NumPy and JAX integers. -> (cells, 6 g^2)."""
-    g = min(S0, BRIGHT_CELLS)
+    g x g grid per face, g = min(S0, BRIGHT_CELLS) unless given. Works on NumPy and JAX integers.
+    -> (cells, 6 g^2)."""
+    g = min(S0, BRIGHT_CELLS) if g is None else g
     face, rem = idx // (S0 * S0), idx % (S0 * S0)
     i, j = rem // S0, rem % S0
     return face * g * g + (i * g // S0) * g + (j * g // S0), 6 * g * g
 
 
+def bright_tiers(S0: int) -> tuple[int, ...]:
+    """The far field's cell grids, coarsest first: g x g cells per face for g = BRIGHT_CELLS,
+    2 BRIGHT_CELLS, ..., up to S0/2 (just min(S0, BRIGHT_CELLS) for faces up to 2 BRIGHT_CELLS).
+    A chunk of output directions sums the bright texels at the coarsest grid whose every cell is
+    far enough (`_bright_all`), the texels themselves only where none is."""
+    g = min(S0, BRIGHT_CELLS)
+    out = [g]
+    while 4 * g <= S0:
+        g *= 2
+        out.append(g)
+    return tuple(out)
+
+
+def _tier_slots(idx, S0: int, g: int, n_slots: int):
+    """Cell slots (k,) of the candidates idx (k,) at grid g, in the program (traced candidates):
+    the cell numbers themselves when n_slots = 6 g^2, else the cells renumbered 0..n_slots-1
+    (`jnp.unique` with a fixed size, n_slots >= k)."""
+    cells, total = bright_cells(idx, S0, g)
+    if n_slots == total:
+        return cells
+    return jnp.unique(cells, size=n_slots, fill_value=0, return_inverse=True)[1].reshape(-1).astype(jnp.int32)
+
+
 def _bright_clusters(idx, bright, slot, n_slots: int, S0: int, omega):
     """Per cell slot: power-weighted centroid direction (G, 3), power B Omega (G, C), squared rms
     angular spread rho^2 (G,) and angular extent (G,) (the largest angle from the centroid to a
-    texel centre, plus the texel's half-diagonal); empty slots have zero power. Differentiable in
-    bright (double-where on the empty slots)."""
+    texel centre, plus the texel's half-diagonal), and the moments (mu, cov, dmu, dcov) of the
+    directions: the centres' mean (G, 3) and covariance (G, 6) (xx, yy, zz, xy, xz, yz;
+    `_bright_far_chunk`), and what the texels' extent takes from the mean and adds to the
+    covariance, all power-weighted; empty slots have zero power. Differentiable in bright (double-where on the empty slots)."""
     d, om = _subtexel_points_at(idx, S0, 1, omega)
     d, om = d[:, 0], om[:, 0]
     P = bright.astype(om.dtype) * om[:, None]  # (k, C)
@@ -569,7 +634,19 @@ def _bright_clusters(idx, bright, slot, n_slots: int, S0: int, omega):
     ang = jnp.where(w > 0, _angle(d, jax.lax.stop_gradient(centre)[slot]), 0.0)
     extent = jax.ops.segment_max(ang, slot, num_segments=n_slots)
     extent = jnp.where(has, extent, 0.0) + half
-    return centre, cP, spread, jax.lax.stop_gradient(extent), has
+    # Mean and covariance of the texel centres (centred: no cancellation in float32), and what a
+    # texel's own extent adds: as a uniform patch of solid angle Omega its directions have mean
+    # (1 - Omega/12) d and covariance Omega/12 (I - d d^T); q x q sub-texels have (1 - 1/q^2) of
+    # that (the caller scales it per level, as its sub-texel sum does), and tr cov = 1 - |mu|^2 to
+    # second order either way.
+    div = lambda x: safe_div(seg(w[:, None] * x), cw[:, None], has[:, None])  # noqa: E731
+    outer = lambda a, b: jnp.stack([a[:, 0] * b[:, 0], a[:, 1] * b[:, 1], a[:, 2] * b[:, 2], a[:, 0] * b[:, 1], a[:, 0] * b[:, 2], a[:, 1] * b[:, 2]], -1)  # noqa: E731
+    mu = div(d)
+    e = d - mu[slot]
+    v = (om / 12.0)[:, None]
+    eye = jnp.asarray([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], d.dtype)
+    moments = (mu, div(outer(e, e)), div(v * d), div(v * (eye - outer(d, d))))
+    return centre, cP, spread, jax.lax.stop_gradient(extent), has, moments
 
 
 def _angle(a, b):
@@ -577,7 +654,7 @@ def _angle(a, b):
     return 2.0 * jnp.arcsin(jnp.minimum(0.5 * jnp.linalg.norm(a - b, axis=-1), 1.0))
 
 
-def _bright_all(R, level_of, idx, bright, slot, omega, S0: int, alphas: tuple, n_slots: int, far: float, chunk: int = BRIGHT_CHUNK, token=None):
+def _bright_all(R, level_of, idx, bright, slots, omega, S0: int, alphas: tuple, tiers: tuple, n_slots: tuple, far: float, kink: float, chunk: int = BRIGHT_CHUNK, token=None):
     """Exact (sub-texel) convolution of the sparse bright part at output directions R (N, 3), each
     of level `level_of` (N,) with GGX width alphas[level]; every chunk of R lies in one level.
 
@@ -585,24 +662,43 @@ def _bright_all(R, level_of, idx, bright, slot, omega, S0: int, alphas: tuple, n
     unselected candidates). Each level's sub-texel sources (q x q per texel, q from its alpha) are
     padded with zero weights to a common count so that one compiled loop body serves every level.
 
-    Far field: the bright texels are grouped into cells (`bright_cells`; slot (k,) numbers the
-    cells 0..n_slots-1). A chunk whose directions are far from every non-empty cell (`far`:
-    BRIGHT_FAR; infinity turns the far field off)
-    sums the cells at their power-weighted centroids (n_slots terms per direction) instead of all
-    k q^2 sub-texels: a compact sun costs the full sum only near it (lax.cond runs one branch).
-    Rematerialised under differentiation, like `_fis_rows`."""
-    srcs = []
+    Far field, a hierarchy of cell grids (`bright_tiers`: g x g cells per face, g = tiers[t],
+    coarsest first; slots[t] (k,) numbers the candidates' cells 0..n_slots[t]-1, None: numbered
+    here). A chunk of directions takes the coarsest grid whose every non-empty cell is far from it
+    (`far`: BRIGHT_FAR; infinity turns the far field off): small against the lobe at that distance,
+    and not crossed by the lobe's horizon (R.l = 0, a kink of the kernel; `kink`: BRIGHT_KINK). It
+    then sums that grid's cells from their moments (`_bright_far_chunk`; n_slots[t] terms per
+    direction) instead of all k q^2 sub-texels, which it does only where no grid is far enough:
+    near a compact sun, the full sum; near a wide one (thousands of texels), cells a few texels across on the narrow levels and
+    tens of texels across on the rough ones (nested lax.cond: only the branch taken runs, and a
+    finer grid is tested only where the coarser one failed). Rematerialised under
+    differentiation, like `_fis_rows`."""
+    srcs, fq = [], []
     for alpha in alphas:
         q = _reference_supersample(alpha, S0)
+        fq.append(1.0 - 1.0 / (q * q))  # the share of a texel's own extent the q x q sum sees
         srcs.append(_bright_sources(idx, bright, lobe_normalizer(alpha), omega, S=S0, q=q, dtype=R.dtype))
     n = max(sub.shape[0] for sub, _ in srcs)
     pad = lambda x: jnp.pad(x, ((0, n - x.shape[0]), (0, 0)))  # noqa: E731  (weight 0: adds nothing)
     sub = jnp.stack([pad(a) for a, _ in srcs])  # (M, n, 3)
     Bw = jnp.stack([pad(b) for _, b in srcs])  # (M, n, C)
     a2 = jnp.asarray([a * a for a in alphas], R.dtype)
-    centre, cP, spread, extent, has = _bright_clusters(idx, bright, slot, n_slots, S0, omega)
-    cBw = jnp.stack([cP / lobe_normalizer(a) for a in alphas]).astype(R.dtype)  # (M, G, C)
-    centre, spread, extent = (x.astype(R.dtype) for x in (centre, spread, extent))
+    # The kink's weight per level: a cell of angular extent e across the horizon errs by about
+    # s e B Omega, s = 4 a^2 / (pi (1 + a^2)^2) the kernel's slope in R.l there; it counts when
+    # that is more than 1/BRIGHT_KINK^2 of the cell's power spread evenly over the hemisphere,
+    # B Omega W(alpha) / (2 pi), i.e. when e > kink_at[level]. On the narrow levels (alpha = 0.04:
+    # 1.6e-4 of it at e = 0.05) the horizon never matters: the kernel there is ~4 alpha^4 of its peak.
+    kink_at = jnp.asarray(
+        [lobe_normalizer(a) * (1 + a * a) ** 2 / (8.0 * a * a * kink * kink) if far < math.inf else 0.0 for a in alphas], R.dtype
+    )
+    grids = []
+    for g, slot, ns in zip(tiers, slots, n_slots):
+        if slot is None:
+            slot = _tier_slots(idx, S0, g, ns)
+        centre, cP, spread, extent, has, moments = _bright_clusters(idx, bright, slot, ns, S0, omega)
+        cBw = jnp.stack([cP / lobe_normalizer(a) for a in alphas]).astype(R.dtype)  # (M, G, C)
+        grids.append(tuple(x.astype(R.dtype) for x in (centre, cBw, spread, extent)) + (has, tuple(x.astype(R.dtype) for x in moments)))
+    fq = jnp.asarray(fq, R.dtype)
     half_pi = 0.5 * math.pi
 
     def chunk_fn(Rc, lc):
@@ -612,25 +708,46 @@ def _bright_all(R, level_of, idx, bright, slot, omega, S0: int, alphas: tuple, n
         u = jnp.sum(Rc, 0)
         u = u / jnp.maximum(jnp.linalg.norm(u), 1e-6)
         radius = jnp.max(_angle(Rc, u))
-        to = _angle(centre, u)
-        theta = jnp.maximum(to - radius, 0.0)
-        # Near: the cell is not small against the lobe at that distance (second-order error of
-        # the point), or the lobe's horizon R.l = 0 (a kink of the kernel: first-order error)
-        # may cross the cell.
-        smooth = far * far * spread > a2[j] + 0.25 * theta * theta
-        kink = jnp.abs(to - half_pi) < radius + extent
-        near = jax.lax.stop_gradient(jnp.any(has & (smooth | kink)))
-        return jax.lax.cond(
-            near,
-            lambda: _bright_chunk(Rc, sub[j], Bw[j], a2[j]),
-            lambda: _bright_chunk(Rc, centre, cBw[j], a2[j]),
-        )
+
+        def near(grid):
+            centre, _, spread, extent, has, _ = grid
+            to = _angle(centre, u)
+            theta = jnp.maximum(to - radius, 0.0)
+            # Near: the cell is not small against the lobe at that distance (third-order error
+            # of the moments), or the lobe's horizon R.l = 0 (a kink of the kernel: first-order
+            # error) may cross the cell where that matters (extent > kink_at).
+            smooth = far * far * spread > a2[j] + 0.25 * theta * theta
+            crosses = (jnp.abs(to - half_pi) < radius + extent) & (extent > kink_at[j])
+            return jax.lax.stop_gradient(jnp.any(has & (smooth | crosses)))
+
+        def from_tier(t):
+            if t == len(grids):
+                return _bright_chunk(Rc, sub[j], Bw[j], a2[j])
+            _, cBw, _, _, _, (mu, cov, dmu, dcov) = grids[t]
+            far_sum = lambda: _bright_far_chunk(Rc, mu - fq[j] * dmu, cov + fq[j] * dcov, cBw[j], a2[j])  # noqa: E731
+            return jax.lax.cond(near(grids[t]), lambda: from_tier(t + 1), far_sum)
+
+        return from_tier(0)
 
     return map_row_chunks(jax.checkpoint(chunk_fn), chunk, R, level_of, token=token)
 
 
-@functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "n_slots", "far", "bright_chunk"))
-def _prefilter_fis(level0, idx, bright, slot, omega, R, table, local, w, lod, token, *, sizes, plan, chunk, S0, n_bright, n_slots, far, bright_chunk):
+def _tile_order(x, S: int, inverse: bool = False):
+    """Rows (6 S^2, ...) of a level's texels from face-major row order into b x b tiles (b = gcd(S,
+    8)), or back (inverse): a chunk of 64 bright-pass directions is then an 8 x 8 patch, not a strip
+    of a row (a compact chunk is far from more cells). Reshapes only (no index constants)."""
+    b = math.gcd(S, 8)
+    n = S // b
+    tail = x.shape[1:]
+    if inverse:
+        y = x.reshape((6, n, n, b, b) + tail)
+    else:
+        y = x.reshape((6, n, b, n, b) + tail)
+    return jnp.swapaxes(y, 2, 3).reshape(x.shape)
+
+
+@functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "tiers", "n_slots", "far", "kink", "bright_chunk"))
+def _prefilter_fis(level0, idx, bright, slots, omega, R, table, local, w, lod, token, *, sizes, plan, chunk, S0, n_bright, tiers, n_slots, far, kink, bright_chunk):
     """Every FIS level of a prefilter as one compiled program.
 
     level0: the (residual) source; its area-correct pyramid (`sizes`) is built here. R (rows, 3)
@@ -638,8 +755,8 @@ def _prefilter_fis(level0, idx, bright, slot, omega, R, table, local, w, lod, to
     nb_m sample batches, direction-major. plan: per level (N_m, nb_m, alpha_m). Returns the levels'
     LD (6, S_m, S_m, C) as a tuple: the rows' sums reduced over batches and divided by the sample weights'
     sum, plus the exact convolution of the first n_bright bright-texel candidates (idx, bright:
-    None for none). slot (n_bright,): each candidate's far-field cell slot (None: the cells of
-    `bright_cells`, n_slots of them); omega: one face's texel solid angles (S0, S0), an argument
+    None for none). slots: per far-field grid g of `tiers` (`bright_tiers`), each candidate's cell
+    slot (n_bright,) (None: numbered in the program), n_slots[t] of them; omega: one face's texel solid angles (S0, S0), an argument
     rather than a constant; token: a `progress_token` (None: no progress reports)."""
     flat = _Pyramid(_mip_chain_impl(level0, len(sizes))).flat
     sums = _fis_rows(flat, sizes, R, table, local, w, lod, chunk, token)
@@ -652,23 +769,23 @@ def _prefilter_fis(level0, idx, bright, slot, omega, R, table, local, w, lod, to
     faces = lambda x: x.reshape(6, math.isqrt(x.shape[0] // 6), -1, x.shape[-1])  # noqa: E731  (N, C) -> (6, S, S, C)
     if idx is None:
         return tuple(faces(o) for o in out)
-    # Bright pass: each level's directions padded to whole chunks (one source set per chunk).
+    # Bright pass: each level's directions in 8 x 8 tiles, padded to whole chunks (one source set
+    # per chunk).
     Rb, lv_of, spans, pos, start = [], [], [], 0, 0
     for m, (N, nb, _) in enumerate(plan):
         Rm = R[start : start + N * nb : nb]  # the level's directions (rows are direction-major)
+        Rm = _tile_order(Rm, math.isqrt(N // 6))
         start += N * nb
         padn = (-N) % bright_chunk
         Rb.append(jnp.concatenate([Rm, jnp.broadcast_to(Rm[:1], (padn, 3))]) if padn else Rm)
         lv_of.append(jnp.full((N + padn,), m, jnp.int32))
         spans.append((pos, N))
         pos += N + padn
-    if slot is None:
-        slot = bright_cells(idx[:n_bright], S0)[0]
     ex = _bright_all(
-        jnp.concatenate(Rb), jnp.concatenate(lv_of), idx[:n_bright], bright[:n_bright], slot, omega, S0,
-        tuple(a for _, _, a in plan), n_slots, far, bright_chunk, token,
+        jnp.concatenate(Rb), jnp.concatenate(lv_of), idx[:n_bright], bright[:n_bright], slots, omega, S0,
+        tuple(a for _, _, a in plan), tiers, n_slots, far, kink, bright_chunk, token,
     )
-    return tuple(faces(o + ex[p : p + N]) for o, (p, N) in zip(out, spans))
+    return tuple(faces(o + _tile_order(ex[p : p + N], math.isqrt(N // 6), inverse=True)) for o, (p, N) in zip(out, spans))
 
 
 # ------------------------------------------------------------------------------------------
@@ -854,7 +971,8 @@ def prefilter(
     levels = [full.levels[-1]]  # r = 0: the source at the output size
     idx = bright = None  # candidate bright texels (None: none) and their excess radiance
     n_bright = 0  # how many of the candidates are convolved exactly
-    slot, n_slots = None, 0  # their far-field cell slots (None: computed in the program)
+    tiers = bright_tiers(S0)  # the far field's cell grids
+    slots, n_slots = (None,) * len(tiers), ()  # the candidates' cell slots per grid (None: computed in the program)
     n_exact = "0"
     if method == "fis":
         exact_texels = default_exact_texels(S0) if exact_texels is None else int(exact_texels)
@@ -866,27 +984,31 @@ def prefilter(
         omega = jax.device_put(np.asarray(texel_solid_angles(S0)[0], jnp.result_type(float)))
         if 0 < exact_texels < 6 * S0 * S0:
             resid, idx, bright, sel = _split_bright_fixed(src_level0, omega, exact_texels)
-            n_slots = bright_cells(0, S0)[1]
             if is_concrete(sel):
                 # Concrete values: convolve only the selected texels (a prefix of the candidates,
                 # which come in decreasing luminance), rounded up to a power of two (the extra
                 # candidates have zero excess) so that few distinct programs are compiled; the
-                # far-field cells numbered over the occupied ones only (also a power of two).
+                # far-field cells of each grid numbered over the occupied ones only (also a power
+                # of two).
                 n = int(np.count_nonzero(np.asarray(sel)))
                 n_exact = str(n)
                 n_bright = min(exact_texels, 1 << max(0, n - 1).bit_length()) if n else 0
-                cells = bright_cells(np.asarray(idx[:n_bright]).astype(np.int64), S0)[0]
-                occupied, inverse = np.unique(cells[:n], return_inverse=True)
-                slot = np.zeros(n_bright, np.int32)
-                slot[:n] = inverse
-                n_slots = 1 << max(0, len(occupied) - 1).bit_length()
+                slots = []
+                for g in tiers:
+                    cells = bright_cells(np.asarray(idx[:n]).astype(np.int64), S0, g)[0]
+                    occupied, inverse = np.unique(cells, return_inverse=True)
+                    slot = np.zeros(n_bright, np.int32)
+                    slot[:n] = inverse.reshape(-1)
+                    slots.append(slot)
+                    n_slots += (1 << max(0, len(occupied) - 1).bit_length(),)
             else:
                 n_exact = f"<={exact_texels}"  # traced: the count is not known here
                 n_bright = exact_texels
+                n_slots = tuple(min(6 * g * g, n_bright) for g in tiers)
             if n_bright:
                 src_level0 = resid
             else:
-                idx = bright = slot = None
+                idx = bright = None
         sizes = tuple(S0 >> i for i in range(_mip_count(S0)))
         dt = np.dtype(env.dtype)
         # Rows of work of all levels (direction-major: N_m directions x nb_m sample batches) and
@@ -916,11 +1038,11 @@ def prefilter(
                 total += row_chunk_count(sum(N + (-N) % BRIGHT_CHUNK for N, _, _ in plan), BRIGHT_CHUNK)
             with progress_token(progress, total) as token:
                 lvs = _prefilter_fis(
-                    src_level0, idx, bright, None if slot is None else dev(slot, np.int32), omega,
+                    src_level0, idx, bright, tuple(None if sl is None else dev(sl, np.int32) for sl in slots), omega,
                     dev(R_all), dev(np.concatenate(tabs), np.int32),
                     *(dev(np.concatenate([tb[i] for tb in tables])) for i in range(3)), token,
-                    sizes=sizes, plan=tuple(plan), chunk=chunk, S0=S0, n_bright=n_bright, n_slots=n_slots,
-                    far=float(BRIGHT_FAR), bright_chunk=BRIGHT_CHUNK,
+                    sizes=sizes, plan=tuple(plan), chunk=chunk, S0=S0, n_bright=n_bright, tiers=tiers, n_slots=n_slots,
+                    far=float(BRIGHT_FAR), kink=float(BRIGHT_KINK), bright_chunk=BRIGHT_CHUNK,
                 )
                 if token is not None:
                     lvs = jax.block_until_ready(lvs)
