@@ -144,7 +144,7 @@ def _prefilter_args(p):
     p.add_argument("--lod-blend", choices=LOD_BLENDS, default=DEFAULT_LOD_BLEND, help="lookup between two mips, recorded in the metadata: linear in the lobe's mean cosine (exact for a smooth environment) or plain lod = r*(M-1) (default: %(default)s)")
     p.add_argument("--method", choices=("fis", "reference"), default="fis", help="filtered importance sampling or the float64 brute-force reference (slow)")
     p.add_argument("--samples", type=positive_int_arg, default=DEFAULT_SAMPLES, help="FIS samples on the large levels (default: %(default)s; small levels get more)")
-    p.add_argument("--exact-texels", type=int, default=None, help=f"brightest texels convolved exactly (default: {DEFAULT_EXACT_TEXELS} per 256^2 of face area, i.e. 4096 at 1024^2; 0 = off)")
+    p.add_argument("--exact-texels", type=int, default=None, help=f"brightest texels convolved exactly (default: {DEFAULT_EXACT_TEXELS} per 256^2 of face area, i.e. {DEFAULT_EXACT_TEXELS * 16} at 1024^2; 0 = off)")
 
 
 #: Peak memory per unit, measured on the CPU backend (`/usr/bin/time -v`, issue 13, after the
