@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import as_float, is_concrete, remember_per_array
+from ._numerics import as_float, is_concrete, outside_traces, remember_per_array
 from ._pytree import fields_of
 
 __all__ = ["batch_shape", "check_radiance", "check_values", "choice", "positive_int", "vector"]
@@ -107,12 +107,19 @@ def check_radiance(name: str, x):
     return x
 
 
+def _on_host(x) -> bool:
+    """Whether x's memory is host memory (a NumPy array or a CPU-device array)."""
+    return isinstance(x, np.ndarray) or all(d.platform == "cpu" for d in getattr(x, "devices", lambda: ())())
+
+
 def _radiance_ok(name: str, x) -> bool:
-    if isinstance(x, np.ndarray) or all(d.platform == "cpu" for d in getattr(x, "devices", lambda: ())()):
+    if _on_host(x):
         a = np.asarray(x)
         lo, hi = (a.min(), a.max()) if a.size else (0.0, 0.0)
     else:
-        lo, hi = jax.device_get((jnp.min(x), jnp.max(x))) if x.size else (0.0, 0.0)
+        # Two reductions on the device and two numbers back; on another thread, so that a call
+        # made while tracing (a constant environment under an outer jit) runs them concretely.
+        lo, hi = outside_traces(lambda: jax.device_get((jnp.min(x), jnp.max(x)))) if x.size else (0.0, 0.0)
     if np.isfinite(lo) and np.isfinite(hi) and lo >= 0:  # NaN, -Inf and +Inf reach lo or hi
         return True
     a = np.asarray(x)  # the error path: count them on the host

@@ -111,7 +111,8 @@ class RenderOptions:
         rough metals are otherwise up to ~2.8x darker than in those viewers. False gives the
         single-scattering glTF BRDF that the float64 references (and Mitsuba) integrate. gltf only:
         True with another model raises ValueError). The suns split out of the environment get the
-        same compensation (`ibl.multiscatter_weight` times their irradiance); punctual lights none.
+        same compensation (`ibl.multiscatter_weight` times their irradiance); punctual lights none (as the
+        Sample Viewer and three.js; Filament compensates direct lights too).
     smith: gltf only: "correlated" (the glTF spec, default) or "separable" Smith-GGX G2, for the
         direct lighting (`brdf(smith=)`) and the IBL term alike (the split-sum LUT of that G,
         computed on first use: only the correlated and Schlick-GGX tables are shipped).
@@ -140,10 +141,19 @@ class RenderOptions:
     dtype: str = "float32"
     extract_lights: bool = True
 
+    @property
+    def compensates(self) -> bool:
+        """Whether the IBL term is compensated for multiple scattering: `multiscatter`, or when it
+        is None the model's default (on for gltf, the models with the option)."""
+        if self.multiscatter is not None:
+            return bool(self.multiscatter)
+        spec = MODEL_REGISTRY.get(self.model)
+        return spec is not None and "multiscatter" in spec.ibl_options
+
     def __post_init__(self):
-        if self.multiscatter is None:  # the model's default (normalised: equal options hash alike)
-            object.__setattr__(self, "multiscatter", "multiscatter" in MODEL_REGISTRY.get(self.model, MODEL_REGISTRY["gltf"]).ibl_options)
-        check_options(self.model, multiscatter=self.multiscatter, smith=self.smith)
+        # multiscatter=None stays None (the model's default, resolved by `compensates`), so that
+        # replacing only the model keeps meaning "the model's default".
+        check_options(self.model, multiscatter=bool(self.compensates), smith=self.smith)
         try:
             name = np.dtype(self.dtype).name  # "float32", np.float64, jnp.float32, np.dtype(...)
         except TypeError:
@@ -315,7 +325,7 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
             # The lookup of the map `_asset_prefiltered` makes (prefilter's default lod_blend), in
             # NumPy: this runs at trace time, possibly inside a jit.
             levels = specular.levels_for_roughness(r_max, M, mapping=opts.mapping)
-        diffuse = opts.multiscatter or met_min < 1.0
+        diffuse = opts.compensates or met_min < 1.0
         env_lights = _env_split(env, opts)[0]
         n_env_lights = 0 if env_lights is None else len(env_lights)
         charlie_size = _charlie_size(env) if "sheen" in extensions else 0
@@ -889,7 +899,7 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
             kw = {k: (pack3(_rotate_y(unpack3(x), rot)) if k in ("tangent", "coat_normal", "transmit_direction") else x)
                   for k, x in _layer_kwargs(g, m, dtype).items()}
         sheen_kw = {} if sheen is None else {"sheen_lut": sheen[0], "charlie": sheen[1]}
-        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.multiscatter, **kw, **sheen_kw)
+        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, **kw, **sheen_kw)
         if p_plan.env_lights:
             # The suns split out of the environment, as disc lights in its frame (emission is
             # added once, by the direct stage).
@@ -899,7 +909,7 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
             kw.pop("transmit_direction", None)
             sheen_kw.pop("charlie", None)
             ibl = ibl + shade_direct(zero, n_e, v_e, dark, ls, model=opts.model, smith=opts.smith, disc_lights=True, **kw, **sheen_kw)
-            if opts.multiscatter:
+            if opts.compensates:
                 ibl = ibl + disc_multiscatter(n_e, v_e, m, lut, ls)
         ibl = jnp.asarray(env.intensity, dtype) * ibl
         out = ibl if out is None else out + ibl

@@ -500,7 +500,10 @@ def _selection_size(level0, omega, max_texels: int) -> int:
     """The k to give `_split_bright_fixed` for concrete texels: a power of two above the count of
     texels over the threshold (>= 1), at most max_texels. Selects what max_texels would (the
     (k+1)-th largest is then not above the threshold), with a smaller top_k and fewer programs."""
-    above = int(_count_bright(level0, omega))
+    above = _count_bright(level0, omega)
+    if not is_concrete(above):  # concrete texels inside an outer trace: the count is traced
+        return max_texels
+    above = int(above)
     return max(1, min(max_texels, 1 << above.bit_length()))
 
 

@@ -249,8 +249,8 @@ def test_signature_defaults_are_the_registry_defaults():
                 assert p.default == OPTION_DEFAULTS[name], (fn.__name__, name)
     # The kernels default to the single-scattering glTF BRDF; render compensates for glTF (README,
     # "energy model"), and a model without the option keeps the registry's default.
-    assert RenderOptions().multiscatter is True
-    assert RenderOptions(model="learnopengl").multiscatter == OPTION_DEFAULTS["multiscatter"]
+    assert RenderOptions().compensates is True
+    assert RenderOptions(model="learnopengl").compensates == OPTION_DEFAULTS["multiscatter"]
 
 
 FOREIGN = [

@@ -175,3 +175,26 @@ def test_render_batch_environment_parameters_traced(scene):
     value, (g_rot, g_k) = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(rot, k)
     np.testing.assert_allclose(float(value), eager.sum(), rtol=1e-5)
     assert np.isfinite(np.asarray(g_rot)).all() and np.isfinite(np.asarray(g_k)).all() and (np.asarray(g_k) > 0).all()
+
+
+def test_precomputes_of_a_constant_environment_inside_jit():
+    """A concrete environment captured by a jitted function: the radiance check and the prefilter's
+    bright-texel selection run while tracing, on the host path and on the accelerator path (forced
+    here: two device reductions, which must not be staged into the caller's trace)."""
+    from jaxpbr import _validate
+
+    env = jp.envs.sky_with_sun_cubemap(8)
+    out = jax.jit(lambda: jp.prefilter(env, size=8, samples=16).levels[1])()
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jp.prefilter(env, size=8, samples=16).levels[1]), rtol=1e-5)
+    for on_host in (True, False):
+        fresh = jp.Cubemap(env.levels[0] + 0.0)  # not yet checked
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(_validate, "_on_host", lambda x, v=on_host: v)
+            e = jax.jit(lambda n: jp.diffuse.irradiance_at(fresh, n))(jnp.asarray([[0.0, 1.0, 0.0]]))
+        assert np.isfinite(np.asarray(e)).all()
+        bad = np.asarray(env.levels[0]).copy()
+        bad[0, 0, 0, 0] = np.nan
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(_validate, "_on_host", lambda x, v=on_host: v)
+            with pytest.raises(ValueError, match="NaN/Inf"):
+                jax.jit(lambda n, b=jp.Cubemap(jnp.asarray(bad)): jp.diffuse.irradiance_at(b, n))(jnp.asarray([[0.0, 1.0, 0.0]]))

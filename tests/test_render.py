@@ -452,9 +452,13 @@ def test_default_energy_model_compensates_multiple_scattering():
     show): a white rough metal in a white furnace reflects 1; multiscatter=False gives the
     single-scattering albedo A + B < 1 (1 - ln 2 at normal incidence, r = 1). learnopengl
     defaults to no compensation."""
-    assert jp.RenderOptions().multiscatter is True
-    assert jp.RenderOptions(model="learnopengl").multiscatter is False
-    assert jp.RenderOptions() == jp.RenderOptions(multiscatter=True)
+    import dataclasses
+
+    assert jp.RenderOptions().compensates and not jp.RenderOptions(model="learnopengl").compensates
+    # None means "the model's default" also after replacing only the model
+    assert not dataclasses.replace(jp.RenderOptions(), model="learnopengl").compensates
+    with pytest.raises(ValueError, match="multiscatter is defined for the gltf model only"):
+        jp.RenderOptions(model="learnopengl", multiscatter=True)
     white = jp.Cubemap.from_function(lambda d: jnp.ones(d.shape[:-1] + (3,)), 8)
     cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), width=9, height=9, fov_y_deg=10.0)
     scene = jp.Scene(camera=cam, objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0,

@@ -190,6 +190,11 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
         for sig, h in previous.items():
             signal.signal(sig, h)
         sys.unraisablehook = previous_hook
+        # In-process callers (a notebook, tests) go on: nothing of this command's signals stays
+        # pending for the library's later atomic writes.
+        _SIGNALLED[0] = PENDING[0] = None
+        if raise_pending in atomic.CRITICAL_EXIT_HOOKS:
+            atomic.CRITICAL_EXIT_HOOKS.remove(raise_pending)
 
 
 def _interrupted(terminated: bool, entry: bool) -> int:
