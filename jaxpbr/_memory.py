@@ -80,7 +80,7 @@ class MemoryLimitError(InputError):
 
 def available_memory() -> float:
     """Bytes a computation may use: $JAXPBR_MEMORY_LIMIT (GB) if set, else MemAvailable from
-    /proc/meminfo (else the physical memory, else unlimited)."""
+    /proc/meminfo (else the physical memory, else unlimited), at most what the cgroup allows."""
     own = os.environ.get(MEMORY_ENV)
     if own:
         try:
@@ -90,16 +90,35 @@ def available_memory() -> float:
         if not value > 0:  # NaN, 0 and negatives too
             raise InputError(f"{MEMORY_ENV} must be a number of gigabytes > 0, got {own!r}")
         return value * 1e9
+    avail = None
     try:
         with open("/proc/meminfo") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return float(line.split()[1]) * 1024
+                    avail = float(line.split()[1]) * 1024
+                    break
     except OSError:
         pass
+    if avail is None:
+        try:
+            avail = float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            avail = float("inf")
+    return min(avail, _cgroup_room())
+
+
+def _cgroup_room() -> float:
+    """What the process's cgroup (v2) still allows, memory.max - memory.current (a container or a
+    CI runner limits memory below what /proc/meminfo reports); inf without a limit."""
     try:
-        return float(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
+        with open("/sys/fs/cgroup/memory.max") as f:
+            limit = f.read().strip()
+        if limit == "max":
+            return float("inf")
+        with open("/sys/fs/cgroup/memory.current") as f:
+            used = float(f.read().strip())
+        return max(float(limit) - used, 0.0)
+    except (OSError, ValueError):
         return float("inf")
 
 

@@ -16,12 +16,13 @@ GGX-prefiltered environment, E_s the sheen albedo table, LD_c the Charlie-prefil
 Choices, each measured against the brute-force layered reference (`jaxpbr.reference_render`,
 `jaxpbr report render`, README "glTF material extensions"):
 * k_d: the diffuse lobe's (1 - F) averaged over the Lambertian lobe (`ibl.diffuse_fresnel_weight`,
-  W the Schlick weight's Lambert average), as in the core split sum; the neutral values give the
+  W = C(mu) the Schlick weight's Lambert average; with multiscatter 1 - max3(FssEss + FmsEms)), as in the core split sum; the neutral values give the
   core's 0.96 (1 - W), specular 0 the weight 1, and it stays in [0, 1]. (A weight relative to the
   core's, (1 - E_d) / (1 - E_core), was 1042x too bright at grazing views of smooth surfaces.)
 * Anisotropy: the extension's bent normal (the reflection of v about the normal bent towards
   B x (v x B) by 1 - (1 - strength (1 - r))^4); its last step, leaning the reflection towards the
-  bent normal by alpha, is left out because it moves the isotropic (strength 0) lookup off R.
+  bent normal by alpha, is replaced by the dominant direction every lobe gets
+  (`split_sum.specular_dominant_direction`), so strength 0 looks up where the core split sum does.
   The LUT is read at the rms alpha sqrt((alpha_t^2 + alpha_b^2)/2): the stretched lobe reflects
   less than the isotropic one at alpha_b (more masking along T). Measured against
   `reference_layered` (metal, strength 0.7, sky residual at 64^2, IBL term, mean relative error):
@@ -126,7 +127,8 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
     if irr is not None:
         ebar = irr.sample(pack3(n3))
         if multiscatter:
-            k_d = 1.0 - fss_d - fms_d
+            # what neither scattering order reflects (max3, as the single-scattering weight)
+            k_d = 1.0 - jnp.max(fss_d + fms_d, -1, keepdims=True)
             diel = diel + fms_d * ebar
         else:
             # The diffuse lobe under the dielectric Fresnel layer: (1 - max3 F) averaged over it.
@@ -158,6 +160,8 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
         # A zero direction (total internal reflection cannot happen entering a denser medium, but a
         # caller's exit direction may be 0) looks up -v.
         d_t = jnp.where(jnp.sum(d_t * d_t, -1, keepdims=True) > 0, d_t, -pack3(v3))
+        if multiscatter:  # the multiply scattered reflection is not transmitted either
+            energy = jnp.maximum(energy - jnp.max(fms_d, -1, keepdims=True), 0.0)
         lt = pre.sample(d_t, lod(rt)) * energy * base * tr
         diel = diel + (lt if att is None else lt * att)
     metal = ld * (base * a3 + b3)

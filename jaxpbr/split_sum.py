@@ -83,16 +83,25 @@ def split_sum_weights(f0, a, b, *, multiscatter: bool = False, f90=1.0):
 
 
 def multiscatter_weight(nov, m: Material, lut) -> jax.Array:
-    """FmsEms of the core material (the dielectric and metal lobes mixed by metallic), (..., 3):
+    """FmsEms of the base material (the dielectric and metal lobes mixed by metallic), (..., 3):
     what the Fdez-Aguera compensation adds per unit Ebar(n). `shade_ibl(multiscatter=True)` adds it
     times the environment's irradiance; the scene layer adds it times the irradiance of the suns
-    split out of the environment (`jaxpbr.extract`), so splitting does not change the compensation.
-    nov (...) clamped n.v; the roughness is m.roughness clamped to [0, 1]."""
+    split out of the environment (`jaxpbr.extract`). The dielectric lobe takes the material's F0 and
+    F90 (KHR_materials_ior / _specular); the sheen and clear-coat layers' scaling of the base and an
+    anisotropic lobe's albedo are not applied here, so with those extensions splitting a sun out
+    changes the compensation slightly. nov (...) clamped n.v; the roughness is m.roughness clamped
+    to [0, 1]."""
     r = jnp.clip(m.roughness, 0.0, 1.0)
     ab = lut_lookup(lut, *jnp.broadcast_arrays(nov, r))
     a, b = ab[..., 0], ab[..., 1]
     base = m.base_color
-    _, fms_d = split_sum_weights(jnp.full_like(base, F0_DIELECTRIC), a, b, multiscatter=True)
+    if m.layered:
+        from .layered import dielectric_fresnel
+
+        f0, f90 = (jnp.stack(jnp.broadcast_arrays(*x), -1) for x in dielectric_fresnel(m.complete()))
+        _, fms_d = split_sum_weights(f0, a, b, multiscatter=True, f90=f90)
+    else:
+        _, fms_d = split_sum_weights(jnp.full_like(base, F0_DIELECTRIC), a, b, multiscatter=True)
     _, fms_m = split_sum_weights(base, a, b, multiscatter=True)
     metallic = jnp.clip(m.metallic, 0.0, 1.0)[..., None]
     return fms_d + (fms_m - fms_d) * metallic
@@ -101,8 +110,8 @@ def multiscatter_weight(nov, m: Material, lut) -> jax.Array:
 def disc_multiscatter(n, v, m: Material, lut, suns) -> jax.Array:
     """The multiple-scattering compensation of disc lights split out of an environment: FmsEms
     (`multiscatter_weight`) times their irradiance / pi at n, as `shade_ibl(multiscatter=True)`
-    gives the residual environment's, so splitting a sun out leaves the compensation unchanged.
-    n, v (..., 3) unit; suns: a list of DirectionalLights or a LightSet. Occlusion applied."""
+    gives the residual environment's, so splitting a sun out leaves the compensation unchanged (up
+    to the extensions `multiscatter_weight` leaves out). n, v (..., 3) unit; suns: a list of DirectionalLights or a LightSet. Occlusion applied."""
     n3 = unpack3(n)
     ls = pack_lights(suns if not isinstance(suns, tuple) else list(suns))
     ebar = None

@@ -136,7 +136,7 @@ def test_gltf_split_sum_formula_against_hand_computation(luts):
 
 def test_dominant_direction_limits_and_gradients():
     """R at r = 0, n at r = 1, unit in between; finite value and gradient at R = -n (v = -n, a
-    back-facing normal) for every roughness, where lerp(n, R, 1/2) = 0."""
+    back-facing normal) for every roughness, including the one where lerp(n, R, 1/2) = 0."""
     from jaxpbr.ibl import specular_dominant_direction
 
     n = jnp.asarray([[0.0, 0.0, 1.0]] * 3)
@@ -146,7 +146,13 @@ def test_dominant_direction_limits_and_gradients():
     d = np.asarray(specular_dominant_direction(n, R, jnp.full(3, 0.6)))
     np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
     np.testing.assert_allclose(d[0], _dominant(np.asarray(n[0]), np.asarray(R[0]), 0.6), atol=1e-12)
-    rs = jnp.linspace(0.0, 1.0, 101)
+    # the roughness where s (sqrt(s) + alpha) = 1/2 exactly (bisection in float64), where d = 0
+    lo, hi = 0.0, 1.0
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        a = mid * mid
+        lo, hi = (mid, hi) if (1 - a) * (np.sqrt(1 - a) + a) > 0.5 else (lo, mid)
+    rs = jnp.concatenate([jnp.linspace(0.0, 1.0, 100), jnp.asarray([lo])])
     f = lambda r: jnp.sum(specular_dominant_direction(jnp.broadcast_to(n[1], (101, 3)), jnp.broadcast_to(R[1], (101, 3)), r))
     assert np.isfinite(float(f(rs))) and np.isfinite(np.asarray(jax.grad(f)(rs))).all()
 

@@ -703,3 +703,22 @@ def test_disc_light_straddling_the_horizon_on_thin_transmission_matches_quadratu
         core = jp.Material(base_color=m.base_color, metallic=m.metallic, roughness=m.roughness)
         np.testing.assert_allclose(np.asarray(jp.shade_direct(np.zeros((1, 3)), n1, v[None], m0, light)),
                                    np.asarray(jp.shade_direct(np.zeros((1, 3)), n1, v[None], core, light)), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("ext", [dict(), dict(ior=2.5), dict(specular=0.5, specular_color=(1.0, 0.5, 0.2)),
+                                 dict(transmission=1.0), dict(transmission=1.0, thickness=0.5)])
+def test_layered_multiscatter_white_furnace_never_gains_energy(ext):
+    """A white dielectric with extensions under L = 1 and the multiple-scattering compensation
+    reflects + transmits at most 1 (the volume's transmitted share once forgot the multiply
+    scattered reflection: 1.0012 at r = 1); the core dielectric gives exactly 1."""
+    white = jp.Cubemap(tuple(jnp.ones((6, 8 >> k, 8 >> k, 3)) for k in range(4)), {"roughness_mapping": "linear"})
+    lut = jp.brdf_lut(size=128)
+    mu = np.array([0.05, 0.3, 0.7, 1.0])
+    n = np.tile([0.0, 0.0, 1.0], (len(mu), 1))
+    v = np.stack([np.sqrt(1 - mu * mu), 0 * mu, mu], -1)
+    for r in (0.2, 0.6, 1.0):
+        m = jp.Material(base_color=(1.0, 1.0, 1.0), metallic=0.0, roughness=r, **ext)
+        out = np.asarray(jp.shade_ibl(n, v, m, white, white, lut, multiscatter=True))
+        assert out.max() <= 1.0 + 1e-6, (r, out.max())
+        if not ext:
+            np.testing.assert_allclose(out, 1.0, atol=1e-6)
