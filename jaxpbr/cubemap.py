@@ -366,13 +366,42 @@ def _mip_count(size: int) -> int:
 # ------------------------------------------------------------------------------------------
 
 
+#: The metadata keys that change how a map is read (`specular.lookup_of`,
+#: `sheen_prefilter.charlie_lookup`): only these are part of a Cubemap's identity in compiled
+#: programs. Every other key (the environment's name, sample counts, checksums) is provenance.
+LOOKUP_KEYS = frozenset({"distribution", "mapping_levels", "roughness_mapping", "lod_blend", "min_roughness"})
+
+
+def _lookup_part(pairs) -> tuple:
+    return tuple(kv for kv in pairs if kv[0] in LOOKUP_KEYS)
+
+
+class CubeInfo(tuple):
+    """A Cubemap's metadata, (key, value) pairs, as its static pytree data. Equality and hash see
+    the lookup keys (`LOOKUP_KEYS`) only, so two environments of one size whose metadata differs in
+    provenance alone share every compiled program. (A Cubemap *returned* by a cached jitted
+    function carries the provenance of the call that compiled it.)"""
+
+    __slots__ = ()
+
+    def __eq__(self, other):
+        return isinstance(other, tuple) and _lookup_part(self) == _lookup_part(other)
+
+    def __ne__(self, other):
+        return not self == other
+
+    def __hash__(self):
+        return hash(_lookup_part(self))
+
+
 class Cubemap(Pytree):
     """Six square faces with an optional mip chain: `levels[m]` is (6, S >> m, S >> m, C).
 
     `levels` accepts one (6, S, S, C) array or a sequence of them; it is stored as a tuple (its
     length, the number of levels, is part of the tree structure). `info` is static metadata (a
     tuple of (key, value) string pairs, or a dict), e.g. what a prefiltered map's levels mean; it
-    travels with the pytree as auxiliary data.
+    travels with the pytree as auxiliary data, and only its lookup keys (`LOOKUP_KEYS`) are part
+    of the compiled programs' identity (`CubeInfo`).
     """
 
     levels: Any = leaf(rank=4)
@@ -402,7 +431,7 @@ class Cubemap(Pytree):
                     f"S = {S}, C = {levels[0].shape[3]}"
                 )
         info = self.info
-        self._set(levels=levels, info=tuple(info.items()) if isinstance(info, dict) else tuple(info))
+        self._set(levels=levels, info=CubeInfo(info.items() if isinstance(info, dict) else info))
 
     # properties -----------------------------------------------------------------------------
     @property

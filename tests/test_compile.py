@@ -139,3 +139,32 @@ def test_asset_cache_recomputes_an_unreadable_file_and_survives_an_unwritable_di
     renderer.ASSETS.clear()
     np.testing.assert_array_equal(np.asarray(jp.render(_scene(env))), first)
     assert not Path(blocker / "assets").exists()
+
+
+def test_environments_differing_in_content_and_provenance_share_every_program():
+    """Two environments of one size (different texels, names and data-dependent metadata such as
+    the prefilter's exact-texel count): the second render compiles no stage again, because only
+    a map's lookup keys are part of its identity (cubemap.CubeInfo); its own metadata is kept."""
+    cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), width=12, height=12, fov_y_deg=40.0)
+
+    def scene(env):
+        return jp.Scene(camera=cam, objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0,
+                        material=jp.Material(base_color=(0.8, 0.5, 0.3), metallic=0.0, roughness=0.5))],
+                        lights=[jp.PointLight(position=(2.0, 2.0, 3.0), intensity=10.0)], environment=env)
+
+    a = jp.envs.sky_with_sun_cubemap(16, sun_radiance=0.0)
+    b = jp.Cubemap(a.levels[0][..., ::-1] * 0.5 + 0.1, {"environment": "another one", "source": "test"})
+    ea, eb = jp.bake(jp.Environment(radiance=a)), jp.bake(jp.Environment(radiance=b))
+    assert dict(ea.radiance.info) != dict(eb.radiance.info)  # provenance differs ...
+    assert eb.radiance.metadata["environment"] == "another one"  # ... and is kept
+    stages = (renderer._geometry_jit, renderer._shade_direct_jit, renderer._shade_rest_jit)
+    jp.render(scene(ea))
+    sizes = [f._cache_size() for f in stages]
+    img = jp.render(scene(eb))
+    assert [f._cache_size() for f in stages] == sizes
+    assert np.isfinite(np.asarray(img)).all()
+    # a different lookup rule is a different program
+    from jaxpbr.cubemap import CubeInfo
+
+    assert CubeInfo((("lod_blend", "roughness"),)) != CubeInfo((("lod_blend", "mean_cosine"),))
+    assert CubeInfo((("lod_blend", "roughness"), ("environment", "x"))) == CubeInfo((("lod_blend", "roughness"),))

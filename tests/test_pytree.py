@@ -279,7 +279,8 @@ STATIC_CHANGES = {
     "Camera": dict(width=16),
     "Environment": dict(show_background=False),
     "Scene": dict(ambient=0.2),
-    "Cubemap": dict(info=(("quantity", "other"),)),
+    # a lookup key: only those are part of a Cubemap's identity (provenance keys are not, cubemap.CubeInfo)
+    "Cubemap": dict(info=(("quantity", "test"), ("roughness_mapping", "quadratic"))),
 }
 
 
