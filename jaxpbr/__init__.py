@@ -4,7 +4,7 @@ Pure, jit-compiled, vmappable kernels (GGX / Smith / Fresnel-Schlick / Lambert /
 metallic-roughness and LearnOpenGL/UE4 models), punctual direct lighting, image-based lighting
 (cube maps, exact and SH9 irradiance, GGX-prefiltered mips, the converged split-sum LUT, split-sum
 shading), colour and image I/O (EXR, HDR, PNG, KTX2).
-Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` and the README.
+Conventions (axes, units, alpha = r^2, ...) are listed in `jaxpbr.CONVENTIONS` and docs/conventions.md.
 """
 
 from . import _entry  # first, before NumPy and JAX load: the command line's signal handlers

@@ -28,7 +28,7 @@ original's exactly (up to rounding); for luminance, irradiance at every normal t
 whole region above its horizon equals the original's exactly (the disc's irradiance is
 pi sin^2 sigma L_Y (n.d) = n . M1). Where the region straddles the horizon the disc's irradiance
 is computed exactly for the disc (`lights.cap_irradiance`) and differs from the region's by its
-shape (measured in the README). An environment without a dominant source yields no lights and
+shape (measured in docs/ibl.md). An environment without a dominant source yields no lights and
 the same environment object back.
 """
 
@@ -56,7 +56,7 @@ __all__ = [
 ]
 
 #: A texel is bright above this multiple of the environment's solid-angle-weighted median
-#: luminance (see README "Light extraction" for the measurements behind the defaults).
+#: luminance (see docs/ibl.md, "Suns as disc lights", for the measurements behind the defaults).
 DEFAULT_THRESHOLD = 100.0
 #: A region becomes a light only if its excess carries at least this share of the total power.
 DEFAULT_MIN_POWER_SHARE = 0.005

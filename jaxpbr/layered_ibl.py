@@ -14,7 +14,7 @@ GGX-prefiltered environment, E_s the sheen albedo table, LD_c the Charlie-prefil
     Lo         = occlusion coated
 
 Choices, each measured against the brute-force layered reference (`jaxpbr.reference_render`,
-`jaxpbr report render`, README "glTF material extensions"):
+`jaxpbr report render`, docs/extensions.md):
 * k_d: the diffuse lobe's (1 - F) averaged over the Lambertian lobe (`ibl.diffuse_fresnel_weight`,
   W = C(mu) the Schlick weight's Lambert average; with multiscatter 1 - max3(FssEss + FmsEms)), as in the core split sum; the neutral values give the
   core's 0.96 (1 - W), specular 0 the weight 1, and it stays in [0, 1]. (A weight relative to the

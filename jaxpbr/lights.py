@@ -343,7 +343,7 @@ def shade_direct(
     the GGX slope distribution's mass over the disc's elliptical image in slope space). That gives
     D itself at sigma = 0 and the mirror image of the disc, F E_perp / (pi sin^2 sigma), as
     r -> 0; V and F are taken at the centre. Its error against quadrature over the disc, per
-    roughness and radius, is in the README (`examples/disc_light_error.py`).
+    roughness and radius, is in docs/ibl.md (`examples/disc_light_error.py`).
     sigma = 0 reduces to the punctual light.
 
     Args:

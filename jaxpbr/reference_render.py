@@ -43,7 +43,7 @@ by less than the stated tolerance. Because q_near is capped, roughness below
 `min_reference_roughness(face_size)` = sqrt(4 * texel / MAX_NEAR_Q) (0.044 at face 64, 0.088 at
 16, 0.022 at 256) cannot be resolved even at NoV >= 1/4 and is rejected with a ValueError. Below
 NoV = 1/4 the cap can bind for lobes near that floor (r = 0.05 at face 64 for NoV < 0.1): the
-result there is still a float64 texel sum but less resolved (measured in the README). Memory is
+result there is still a float64 texel sum but less resolved (measured in docs/ibl.md). Memory is
 bounded by evaluating chunks of pixels (a power of two that keeps the largest pixels x sub-texels
 block near 4M float64 elements) with one compiled program per tier configuration, so any image
 size runs; compilation (~2-5 s per configuration) dominates small calls.

@@ -19,7 +19,7 @@ mean cosine c(r) = int K (R.l) (R.l) dl / int K (R.l) dl, K = D(h) (R.l)+, alpha
     lod = m + (c(r_m) - c(r)) / (c(r_m) - c(r_{m+1})),
 
 which is exact for an environment linear in direction (LD = a + b c(alpha) R.d). Both choices, the
-chain floor and the measured error behind them are in the README ("Prefiltered maps").
+chain floor and the measured error behind them are in docs/ibl.md.
 
 Two methods:
 
@@ -84,7 +84,7 @@ MAPPINGS = ("linear", "quadratic")
 #: How `roughness_to_lod` blends two levels: "roughness" (the mapping's formula, lod = r (M-1) for
 #: "linear") or "mean_cosine" (linear in the lobe's mean cosine between the bracketing levels).
 LOD_BLENDS = ("roughness", "mean_cosine")
-#: Default lookup blend (chosen from `jaxpbr report precompute`'s chain sweep; see README): on an
+#: Default lookup blend (chosen from `jaxpbr report precompute`'s chain sweep; see docs/ibl.md): on an
 #: environment linear in direction, lookups at random directions and roughnesses of a 128^2 chain
 #: to 16^2 are off by mean 0.03 % / max 0.38 % with "mean_cosine" and 0.38 % / 7.1 % with "roughness".
 DEFAULT_LOD_BLEND = "mean_cosine"
@@ -94,14 +94,14 @@ DEFAULT_LOD_BLEND = "mean_cosine"
 DEFAULT_CHAIN_FLOOR = 16
 #: ... but at least this many levels where the size allows (sources below 256^2 go below the floor):
 #: fewer levels are coarser roughness steps, and on sharp real environments (an indoor loft, an
-#: overcast sky) 3 levels of a 64^2 map were 1.5-2x worse than the old full chain (README).
+#: overcast sky) 3 levels of a 64^2 map were 1.5-2x worse than the old full chain (docs/ibl.md).
 MIN_CHAIN_LEVELS = 5
 #: The lookup a map is read with when its metadata predates "lod_blend" (jaxpbr before issue 11).
 LEGACY_LOD_BLEND = "roughness"
 PREFILTER_METHODS = ("fis", "reference")
 
 #: Default FIS sample count per level (chosen from the error-vs-time sweep of `jaxpbr report
-#: precompute`; see README).
+#: precompute`; see docs/ibl.md).
 DEFAULT_SAMPLES = 256
 #: Most FIS samples `default_sample_counts` gives a level.
 MAX_SAMPLES = 4096

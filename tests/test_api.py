@@ -247,7 +247,7 @@ def test_signature_defaults_are_the_registry_defaults():
         for name, p in inspect.signature(fn).parameters.items():
             if name in OPTION_DEFAULTS:
                 assert p.default == OPTION_DEFAULTS[name], (fn.__name__, name)
-    # The kernels default to the single-scattering glTF BRDF; render compensates for glTF (README,
+    # The kernels default to the single-scattering glTF BRDF; render compensates for glTF (docs/ibl.md,
     # "energy model"), and a model without the option keeps the registry's default.
     assert RenderOptions().compensates is True
     assert RenderOptions(model="learnopengl").compensates == OPTION_DEFAULTS["multiscatter"]

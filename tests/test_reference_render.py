@@ -123,7 +123,7 @@ def test_convergence_under_doubled_supersampling():
     """refine=2 (every sub-texel count doubled per side) changes the reference by < 2e-3 relative
     per pixel and < 5e-4 on average, on the sky + 3000-radiance sun (face 16), with pixels facing
     the sun, the horizon and away from both. (The default report's face 64 measures less, see the
-    README paragraph.)"""
+    paragraph in docs/ibl.md.)"""
     env = jp.envs.sky_with_sun_cubemap(16, dtype=jnp.float64)
     rng = np.random.default_rng(3)
     n = _unit(rng.normal(size=(40, 3)) + np.array([0.0, 0.0, 1.5]))

@@ -132,7 +132,7 @@ def test_report_with_the_sun_extracted_meets_the_issue_targets():
     48^2 px): with the sun split out, metals <= 10 % and dielectrics <= 3 % mean relative error
     for r >= 0.3; the split sum alone is far off on the same materials (the check can fail).
     (r <= 0.15 is left out: there the sun's mirror image is sub-pixel and one sample per pixel
-    decides the number for the reference and the render alike; see the README.)"""
+    decides the number for the reference and the render alike; see docs/ibl.md.)"""
     kw = dict(roughness=(0.3, 0.5, 1.0), log=lambda m: None)
     on = render_report(**kw)
     off = render_report(extract_lights=False, **kw)
