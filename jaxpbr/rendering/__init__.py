@@ -1,0 +1,1 @@
+"""Rendering scenes: geometry, visibility, texture filtering, the staged renderer."""
