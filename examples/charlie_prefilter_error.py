@@ -1,4 +1,4 @@
-"""Error and run time of the Charlie-prefiltered sheen chain (`jaxpbr.sheen_prefilter`): the zonal
+"""Error and run time of the Charlie-prefiltered sheen chain (`jaxpbr.ibl.sheen_prefilter`): the zonal
 method (rings in c = R.l, footprint-matched pyramid lookups) against the older box method (every
 texel of one source level), side by side in one process.
 
@@ -24,9 +24,14 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxpbr import envs, specular
-from jaxpbr.extract import extract_lights
-from jaxpbr.sheen_prefilter import charlie_level_roughness, charlie_lookup, charlie_reference, prefilter_charlie
+from jaxpbr.ibl import envs, specular
+from jaxpbr.ibl.extract import extract_lights
+from jaxpbr.ibl.sheen_prefilter import (
+    charlie_level_roughness,
+    charlie_lookup,
+    charlie_reference,
+    prefilter_charlie,
+)
 
 CONFIGS = [  # (label, keyword arguments of prefilter_charlie)
     ("box (old default)", dict(method="box", size=64, source_size=64, num_levels=5)),

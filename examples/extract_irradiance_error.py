@@ -17,10 +17,10 @@ import jax
 import numpy as np
 
 import jaxpbr as jp
-from jaxpbr.cubeio import load_environment
-from jaxpbr.cubemap import texel_directions
-from jaxpbr.diffuse import irradiance_at
-from jaxpbr.extract import extract_lights
+from jaxpbr.ibl.cubeio import load_environment
+from jaxpbr.ibl.cubemap import texel_directions
+from jaxpbr.ibl.diffuse import irradiance_at
+from jaxpbr.ibl.extract import extract_lights
 
 
 def disc_irradiance(lights, d):
@@ -30,7 +30,7 @@ def disc_irradiance(lights, d):
         s = math.sin(float(light.angular_radius))
         towards = -np.asarray(light.direction, np.float64)
         radiance = np.asarray(light.color, np.float64) * float(light.intensity) / (math.pi * s * s)
-        out += np.asarray(jp.lights.cap_irradiance(d @ towards, s))[:, None] * radiance / math.pi
+        out += np.asarray(jp.shading.lights.cap_irradiance(d @ towards, s))[:, None] * radiance / math.pi
     return out
 
 

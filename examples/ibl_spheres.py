@@ -39,7 +39,7 @@ scene = jp.Scene(
     objects=objects,
     environment=jp.Environment(radiance=cube),
 )
-print("plan:", jp.renderer.plan(scene).describe())
+print("plan:", jp.rendering.renderer.plan(scene).describe())
 t0 = time.perf_counter()
 hdr = jp.render(scene, multiscatter=True)
 img = np.asarray(jp.color.tonemap(jp.color.exposure(hdr, args.exposure), "aces"))

@@ -27,8 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import integrate
 
-from jaxpbr.cubemap import Cubemap, texel_directions
-from jaxpbr.specular import level_roughness, roughness_to_lod
+from jaxpbr.ibl.cubemap import Cubemap, texel_directions
+from jaxpbr.ibl.specular import level_roughness, roughness_to_lod
 
 jax.config.update("jax_enable_x64", True)
 

@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 import jaxpbr as jp
-from jaxpbr.demo import demo_scene
+from jaxpbr.rendering.demo import demo_scene
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("--width", type=int, default=1280)
@@ -20,7 +20,7 @@ ap.add_argument("--output", default="sphere_grid")
 args = ap.parse_args()
 
 scene = demo_scene(args.width, args.height, supersample=args.supersample)
-print("plan:", jp.renderer.plan(scene).describe())
+print("plan:", jp.rendering.renderer.plan(scene).describe())
 t0 = time.perf_counter()
 hdr = jp.render(scene).block_until_ready()
 t1 = time.perf_counter()

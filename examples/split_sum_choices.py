@@ -30,15 +30,15 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxpbr as jp
-from jaxpbr import extract
 from jaxpbr.cli.report_render import sphere_gbuffer
-from jaxpbr.cubemap import Cubemap
-from jaxpbr.cubeio import load_environment
-from jaxpbr.ibl import MIN_N_DOT_V, specular_dominant_direction, split_sum_weights
-from jaxpbr.lut import lut_lookup
-from jaxpbr.reference_render import reference_ibl_from_terms, reference_ibl_terms
-from jaxpbr.shipped_luts import brdf_lut
-from jaxpbr.specular import lookup_of, prefilter_reference, roughness_to_lod
+from jaxpbr.ibl import extract
+from jaxpbr.ibl.cubeio import load_environment
+from jaxpbr.ibl.cubemap import Cubemap
+from jaxpbr.ibl.reference_render import reference_ibl_from_terms, reference_ibl_terms
+from jaxpbr.ibl.shade import MIN_N_DOT_V, specular_dominant_direction, split_sum_weights
+from jaxpbr.ibl.specular import lookup_of, prefilter_reference, roughness_to_lod
+from jaxpbr.shading.lut import lut_lookup
+from jaxpbr.shading.shipped_luts import brdf_lut
 
 ROUGHNESS = (1 / 6, 2 / 6, 3 / 6, 4 / 6, 5 / 6, 1.0)
 LUMA = np.array([0.2126, 0.7152, 0.0722])

@@ -51,7 +51,7 @@ scene = jp.Scene(
     lights=[jp.PointLight(position=(3.0, 4.0, 4.0), intensity=60.0)],
     environment=jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(128), rotation=math.radians(-75)),
 )
-print("plan:", jp.renderer.plan(scene).describe())
+print("plan:", jp.rendering.renderer.plan(scene).describe())
 hdr = jp.render(scene)
 jp.image.write(args.output, np.asarray(jp.color.tonemap(hdr, "aces")), encoding="srgb")
 print(f"wrote {args.output}")

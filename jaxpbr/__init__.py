@@ -12,15 +12,18 @@ from . import _entry  # first, before NumPy and JAX load: the command line's sig
 _entry.early()
 _entry.phase("start")
 
-from . import atomic, brdf_terms, color, demo, envs, image, ktx2, renderer, scene
+from . import color, ibl, io, rendering, shading
+from .ibl import envs
+from .io import image, ktx2
+from .rendering import demo
 from ._version import __version__
-from .brdf_terms import MIN_ROUGHNESS, MODELS
-from .layered import brdf
+from .shading.brdf_terms import MIN_ROUGHNESS, MODELS
+from .shading.layered import brdf
 from .conventions import CONVENTIONS
-from .cubemap import Cubemap
-from .diffuse import irradiance, sh9_irradiance, sh9_project
-from .ibl import shade_ibl
-from .lights import (
+from .ibl.cubemap import Cubemap
+from .ibl.diffuse import irradiance, sh9_irradiance, sh9_project
+from .ibl.shade import shade_ibl
+from .shading.lights import (
     DirectionalLight,
     LightSet,
     PointLight,
@@ -28,16 +31,19 @@ from .lights import (
     pack_lights,
     shade_direct,
 )
-from .lut import compute_brdf_lut, lut_lookup, lut_reference
-from .material import Material
-from .renderer import RenderOptions, bake, render, render_batch
-from .scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
-from .shipped_luts import brdf_lut
-from .specular import prefilter, prefilter_reference, roughness_to_lod
+from .shading.lut import compute_brdf_lut, lut_lookup, lut_reference
+from .shading.material import Material
+from .rendering.renderer import RenderOptions, bake, render, render_batch
+from .rendering.scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
+from .shading.shipped_luts import brdf_lut
+from .ibl.specular import prefilter, prefilter_reference, roughness_to_lod
 
 __all__ = [
     "__version__",
-    "atomic",
+    "shading",
+    "ibl",
+    "io",
+    "rendering",
     "bake",
     "CONVENTIONS",
     "Camera",
@@ -52,7 +58,6 @@ __all__ = [
     "demo",
     "render",
     "render_batch",
-    "renderer",
     "brdf_lut",
     "compute_brdf_lut",
     "envs",
@@ -74,10 +79,8 @@ __all__ = [
     "PointLight",
     "SpotLight",
     "brdf",
-    "brdf_terms",
     "color",
     "image",
-    "scene",
     "pack_lights",
     "shade_direct",
 ]

@@ -3,14 +3,14 @@
 Every function here takes **linear, scene-referred RGB with Rec.709/sRGB primaries** (the radiance that the
 shading kernels produce), shape ``(..., 3)`` unless said otherwise, and returns an array of the same shape.
 Output encoding (tone mapping, the sRGB or gamma transfer function, clipping to ``[0, 1]``) happens only in this
-module and in :mod:`jaxpbr.image`; nothing upstream of them ever sees display-encoded values.
+module and in :mod:`jaxpbr.io.image`; nothing upstream of them ever sees display-encoded values.
 
 The JAX functions are pure, elementwise (or per-pixel) and safe under ``jax.jit``, ``jax.vmap`` and ``jax.grad``:
 they preserve the input's floating dtype (float32 in, float32 out; integer input is promoted to JAX's default
 float), use the double-``where`` pattern wherever a branch or a power would produce an infinite or NaN gradient,
 and keep NaN inputs NaN rather than silently turning them into numbers.
 
-The ``*_np`` functions are host-side NumPy paths that call colour-science; :func:`jaxpbr.image.write` uses
+The ``*_np`` functions are host-side NumPy paths that call colour-science; :func:`jaxpbr.io.image.write` uses
 :func:`srgb_encode_np` when it writes sRGB-encoded PNG files.
 
 References
@@ -50,7 +50,7 @@ __all__ = [
 
 #: Names accepted by :func:`tonemap`.
 TONEMAP_OPERATORS = ("none", "clamp", "reinhard", "aces", "aces_narkowicz")
-#: Names accepted by :func:`encode` (and by ``jaxpbr.image.write(..., encoding=...)``).
+#: Names accepted by :func:`encode` (and by ``jaxpbr.io.image.write(..., encoding=...)``).
 TRANSFERS = ("srgb", "gamma2.2", "linear")
 
 # IEC 61966-2-1 constants.
@@ -382,7 +382,7 @@ def srgb_encode_np(c):
     """Host-side linear → sRGB encoding through colour-science (``colour.cctf_encoding(c, function="sRGB")``).
 
     This is the exact IEC 61966-2-1 inverse EOTF (see :func:`srgb_encode`), evaluated in float64 by
-    colour-science; :func:`jaxpbr.image.write` uses it for ``encoding="srgb"``.
+    colour-science; :func:`jaxpbr.io.image.write` uses it for ``encoding="srgb"``.
 
     Args:
       c: array-like of linear values, any shape (NumPy or JAX array).

@@ -19,29 +19,29 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.brdf_terms import MODEL_REGISTRY, OPTION_CHOICES, OPTION_DEFAULTS
-from jaxpbr.renderer import RenderOptions
+from jaxpbr.rendering.renderer import RenderOptions
+from jaxpbr.shading.brdf_terms import MODEL_REGISTRY, OPTION_CHOICES, OPTION_DEFAULTS
 
 MODULES = [
     "jaxpbr",
-    "jaxpbr.atomic",
-    "jaxpbr.brdf_terms",
+    "jaxpbr.io.atomic",
+    "jaxpbr.shading.brdf_terms",
     "jaxpbr.color",
-    "jaxpbr.cubemap",
-    "jaxpbr.demo",
-    "jaxpbr.diffuse",
-    "jaxpbr.envs",
-    "jaxpbr.ibl",
-    "jaxpbr.image",
-    "jaxpbr.ktx2",
-    "jaxpbr.lights",
-    "jaxpbr.lut",
-    "jaxpbr.measure",
-    "jaxpbr.reference_render",
-    "jaxpbr.renderer",
-    "jaxpbr.scene",
-    "jaxpbr.shipped_luts",
-    "jaxpbr.specular",
+    "jaxpbr.ibl.cubemap",
+    "jaxpbr.rendering.demo",
+    "jaxpbr.ibl.diffuse",
+    "jaxpbr.ibl.envs",
+    "jaxpbr.ibl.shade",
+    "jaxpbr.io.image",
+    "jaxpbr.io.ktx2",
+    "jaxpbr.shading.lights",
+    "jaxpbr.shading.lut",
+    "jaxpbr.ibl.measure",
+    "jaxpbr.ibl.reference_render",
+    "jaxpbr.rendering.renderer",
+    "jaxpbr.rendering.scene",
+    "jaxpbr.shading.shipped_luts",
+    "jaxpbr.ibl.specular",
 ]
 
 #: Names that are options wherever they appear (a positional parameter so named is flagged even
@@ -60,38 +60,38 @@ OPTION_NAMES = frozenset(
 #: positionally. Keyed by "<module>.<qualname>" of the definition.
 DATA = {
     # arrays of the formula, not switches
-    "jaxpbr.brdf_terms.d_ggx": ("sin2_h",),
-    "jaxpbr.brdf_terms.fresnel_mix": ("f0",),
-    "jaxpbr.brdf_terms.fresnel_schlick": ("f90",),
+    "jaxpbr.shading.brdf_terms.d_ggx": ("sin2_h",),
+    "jaxpbr.shading.brdf_terms.fresnel_mix": ("f0",),
+    "jaxpbr.shading.brdf_terms.fresnel_schlick": ("f90",),
     "jaxpbr.color.gamma_encode": ("gamma",),  # differentiable (tests take d/d gamma)
     "jaxpbr.color.gamma_decode": ("gamma",),
     # the primary argument, positional in the README: tonemap(x, "aces"), encode(x, "srgb")
     "jaxpbr.color.tonemap": ("operator",),
     "jaxpbr.color.encode": ("transfer",),
     # the one leading size (README / examples pass it positionally)
-    "jaxpbr.shipped_luts.brdf_lut": ("size",),
-    "jaxpbr.shipped_luts.sheen_lut": ("size",),  # the table's resolution, as brdf_lut(128)
-    "jaxpbr.lut.compute_brdf_lut": ("size",),
-    "jaxpbr.diffuse.irradiance": ("size",),
-    "jaxpbr.specular.prefilter": ("size",),
-    "jaxpbr.cubemap.Cubemap.from_equirect": ("face_size",),
-    "jaxpbr.cubemap.Cubemap.from_function": ("face_size",),
-    "jaxpbr.envs.sky_with_sun_cubemap": ("face_size",),
+    "jaxpbr.shading.shipped_luts.brdf_lut": ("size",),
+    "jaxpbr.shading.shipped_luts.sheen_lut": ("size",),  # the table's resolution, as brdf_lut(128)
+    "jaxpbr.shading.lut.compute_brdf_lut": ("size",),
+    "jaxpbr.ibl.diffuse.irradiance": ("size",),
+    "jaxpbr.ibl.specular.prefilter": ("size",),
+    "jaxpbr.ibl.cubemap.Cubemap.from_equirect": ("face_size",),
+    "jaxpbr.ibl.cubemap.Cubemap.from_function": ("face_size",),
+    "jaxpbr.ibl.envs.sky_with_sun_cubemap": ("face_size",),
     # the size/levels *is* the data these describe
-    "jaxpbr.cubemap.texel_directions": ("size",),
-    "jaxpbr.cubemap.texel_solid_angles": ("size",),
-    "jaxpbr.cubemap.equirect_directions": ("height",),
-    "jaxpbr.measure.texel_subset": ("size",),
-    "jaxpbr.reference_render.min_reference_roughness": ("face_size",),
-    "jaxpbr.specular.level_roughness": ("num_levels",),
-    "jaxpbr.specular.roughness_to_lod": ("num_levels",),  # M of the map being looked up
-    "jaxpbr.specular.levels_for_roughness": ("num_levels",),  # as roughness_to_lod
-    "jaxpbr.specular.lookup_metadata": ("num_levels",),  # the chain it describes
-    "jaxpbr.specular.default_num_levels": ("size",),
+    "jaxpbr.ibl.cubemap.texel_directions": ("size",),
+    "jaxpbr.ibl.cubemap.texel_solid_angles": ("size",),
+    "jaxpbr.ibl.cubemap.equirect_directions": ("height",),
+    "jaxpbr.ibl.measure.texel_subset": ("size",),
+    "jaxpbr.ibl.reference_render.min_reference_roughness": ("face_size",),
+    "jaxpbr.ibl.specular.level_roughness": ("num_levels",),
+    "jaxpbr.ibl.specular.roughness_to_lod": ("num_levels",),  # M of the map being looked up
+    "jaxpbr.ibl.specular.levels_for_roughness": ("num_levels",),  # as roughness_to_lod
+    "jaxpbr.ibl.specular.lookup_metadata": ("num_levels",),  # the chain it describes
+    "jaxpbr.ibl.specular.default_num_levels": ("size",),
     # demo scenes: the image shape / grid shape
-    "jaxpbr.demo.demo_scene": ("width", "height"),
-    "jaxpbr.demo.learnopengl_scene": ("width", "height"),
-    "jaxpbr.demo.sphere_grid": ("rows", "cols"),
+    "jaxpbr.rendering.demo.demo_scene": ("width", "height"),
+    "jaxpbr.rendering.demo.learnopengl_scene": ("width", "height"),
+    "jaxpbr.rendering.demo.sphere_grid": ("rows", "cols"),
 }
 
 _POSITIONAL = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
@@ -133,14 +133,14 @@ PUBLIC = public_functions()
 
 
 def test_the_walk_finds_the_public_api():
-    for key in ("jaxpbr.brdf_terms.brdf", "jaxpbr.lights.shade_direct", "jaxpbr.ibl.shade_ibl",
-                "jaxpbr.lut.compute_brdf_lut", "jaxpbr.lut.lut_lookup", "jaxpbr.lut.lut_reference",
-                "jaxpbr.shipped_luts.brdf_lut", "jaxpbr.diffuse.irradiance", "jaxpbr.diffuse.sh9_project",
-                "jaxpbr.specular.prefilter", "jaxpbr.specular.roughness_to_lod", "jaxpbr.renderer.render",
-                "jaxpbr.renderer.render_batch", "jaxpbr.renderer.plan", "jaxpbr.color.tonemap",
-                "jaxpbr.image.read", "jaxpbr.image.write", "jaxpbr.cubemap.Cubemap.from_equirect",
-                "jaxpbr.cubemap.Cubemap.from_function", "jaxpbr.measure.lut_error",
-                "jaxpbr.reference_render.reference_ibl", "jaxpbr.envs.sky_with_sun_cubemap"):
+    for key in ("jaxpbr.shading.brdf_terms.brdf", "jaxpbr.shading.lights.shade_direct", "jaxpbr.ibl.shade.shade_ibl",
+                "jaxpbr.shading.lut.compute_brdf_lut", "jaxpbr.shading.lut.lut_lookup", "jaxpbr.shading.lut.lut_reference",
+                "jaxpbr.shading.shipped_luts.brdf_lut", "jaxpbr.ibl.diffuse.irradiance", "jaxpbr.ibl.diffuse.sh9_project",
+                "jaxpbr.ibl.specular.prefilter", "jaxpbr.ibl.specular.roughness_to_lod", "jaxpbr.rendering.renderer.render",
+                "jaxpbr.rendering.renderer.render_batch", "jaxpbr.rendering.renderer.plan", "jaxpbr.color.tonemap",
+                "jaxpbr.io.image.read", "jaxpbr.io.image.write", "jaxpbr.ibl.cubemap.Cubemap.from_equirect",
+                "jaxpbr.ibl.cubemap.Cubemap.from_function", "jaxpbr.ibl.measure.lut_error",
+                "jaxpbr.ibl.reference_render.reference_ibl", "jaxpbr.ibl.envs.sky_with_sun_cubemap"):
         assert key in PUBLIC, key
     assert len(PUBLIC) > 80
 
@@ -196,12 +196,12 @@ def test_the_check_can_fail():
         (lambda: jp.compute_brdf_lut(8, "correlated"), "smith"),
         (lambda: jp.lut_reference(0.5, 0.5, "correlated"), "smith"),
         (lambda: jp.roughness_to_lod(0.5, 4, "linear"), "mapping"),
-        (lambda: jp.specular.level_roughness(4, "linear"), "mapping"),
-        (lambda: jp.renderer.plan(_scene(), RenderOptions()), "options"),
-        (lambda: jp.scene.primary_rays(jp.Camera(width=2, height=2), jnp.float32), "dtype"),
-        (lambda: jp.cubemap.equirect_directions(2, 4), "width"),
-        (lambda: jp.cubemap.face_to_dir(np.array(0), np.array(0.5), np.array(0.5), np), "xp"),
-        (lambda: importlib.import_module("jaxpbr.measure").texel_subset(2, 4), "count"),
+        (lambda: jp.ibl.specular.level_roughness(4, "linear"), "mapping"),
+        (lambda: jp.rendering.renderer.plan(_scene(), RenderOptions()), "options"),
+        (lambda: jp.rendering.scene.primary_rays(jp.Camera(width=2, height=2), jnp.float32), "dtype"),
+        (lambda: jp.ibl.cubemap.equirect_directions(2, 4), "width"),
+        (lambda: jp.ibl.cubemap.face_to_dir(np.array(0), np.array(0.5), np.array(0.5), np), "xp"),
+        (lambda: importlib.import_module("jaxpbr.ibl.measure").texel_subset(2, 4), "count"),
     ],
 )
 def test_old_positional_calls_still_work_with_a_deprecation_warning(call, old_name):
@@ -228,17 +228,16 @@ def _simple():
 
 
 def test_every_entry_point_reads_the_registry():
-    from jaxpbr.cli import build_parser
-    from jaxpbr.cli import scene_file
+    from jaxpbr.cli import build_parser, scene_file
 
-    assert jp.MODELS == tuple(MODEL_REGISTRY) == jp.ibl.IBL_MODELS
+    assert jp.MODELS == tuple(MODEL_REGISTRY) == jp.ibl.shade.IBL_MODELS
     assert scene_file.MODELS is jp.MODELS
     render_parser = build_parser()._subparsers._group_actions[0].choices["render"]
     model_action = next(a for a in render_parser._actions if a.dest == "model")
     assert tuple(model_action.choices) == jp.MODELS
     for model, spec in MODEL_REGISTRY.items():
         assert spec.options | spec.ibl_options <= set(OPTION_DEFAULTS), model
-        assert spec.lut_smith in jp.lut.SMITH_VARIANTS
+        assert spec.lut_smith in jp.shading.lut.SMITH_VARIANTS
     assert set(OPTION_CHOICES) <= set(OPTION_DEFAULTS)
 
 
@@ -306,10 +305,10 @@ def test_learnopengl_render_uses_the_registrys_lut():
 
 def test_brdf_and_lut_smith_vocabularies_are_distinct():
     assert set(OPTION_CHOICES["smith"]) == {"correlated", "separable"}
-    assert set(jp.lut.SMITH_VARIANTS) == {"correlated", "schlick_ggx", "separable"}
+    assert set(jp.shading.lut.SMITH_VARIANTS) == {"correlated", "schlick_ggx", "separable"}
     # The shared names mean the same G in both: the height-correlated and the uncorrelated
     # (separable) Smith-GGX G2; the LUT's Schlick-GGX (k = alpha/2) is not a brdf choice.
-    assert set(OPTION_CHOICES["smith"]) & set(jp.lut.SMITH_VARIANTS) == {"correlated", "separable"}
+    assert set(OPTION_CHOICES["smith"]) & set(jp.shading.lut.SMITH_VARIANTS) == {"correlated", "separable"}
     with pytest.raises(ValueError, match="smith must be one of"):
         jp.compute_brdf_lut(8, smith="schlick_k_r_plus_1")
     with pytest.raises(ValueError, match="unknown smith"):
@@ -340,7 +339,7 @@ def test_render_takes_options_as_a_value_and_keyword_overrides_on_top():
     np.testing.assert_array_equal(over, np.asarray(jp.render(scene, model="gltf", dtype="float64")))
     assert not np.array_equal(over, by_value)
     opts = RenderOptions(model="learnopengl")
-    assert jp.renderer.plan(scene, options=opts, model="gltf") == jp.renderer.plan(scene)
+    assert jp.rendering.renderer.plan(scene, options=opts, model="gltf") == jp.rendering.renderer.plan(scene)
 
 
 def test_render_options_errors_name_the_fix():

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.extract import extract_lights
-from jaxpbr.sheen_prefilter import charlie_reference, prefilter_charlie
+from jaxpbr.ibl.extract import extract_lights
+from jaxpbr.ibl.sheen_prefilter import charlie_reference, prefilter_charlie
 
 S = 8
 BAD = {"nan": np.nan, "inf": np.inf, "negative": -1000.0}
@@ -41,7 +41,7 @@ CUBE_FUNCTIONS = {
     "prefilter_reference": lambda c: jp.prefilter_reference(c, DIRS, 0.5, supersample=1),
     "irradiance": lambda c: jp.irradiance(c, 4),
     "irradiance(method='sh9')": lambda c: jp.irradiance(c, 4, method="sh9"),
-    "diffuse.irradiance_at": lambda c: jp.diffuse.irradiance_at(c, DIRS),
+    "diffuse.irradiance_at": lambda c: jp.ibl.diffuse.irradiance_at(c, DIRS),
     "sh9_project": lambda c: jp.sh9_project(c),
     "prefilter_charlie": lambda c: prefilter_charlie(c, size=S, num_levels=2),
     "charlie_reference": lambda c: charlie_reference(c, DIRS, 0.5, supersample=1),
@@ -190,11 +190,11 @@ def test_precomputes_of_a_constant_environment_inside_jit():
         fresh = jp.Cubemap(env.levels[0] + 0.0)  # not yet checked
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(_validate, "_on_host", lambda x, v=on_host: v)
-            e = jax.jit(lambda n: jp.diffuse.irradiance_at(fresh, n))(jnp.asarray([[0.0, 1.0, 0.0]]))
+            e = jax.jit(lambda n: jp.ibl.diffuse.irradiance_at(fresh, n))(jnp.asarray([[0.0, 1.0, 0.0]]))
         assert np.isfinite(np.asarray(e)).all()
         bad = np.asarray(env.levels[0]).copy()
         bad[0, 0, 0, 0] = np.nan
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(_validate, "_on_host", lambda x, v=on_host: v)
             with pytest.raises(ValueError, match="NaN/Inf"):
-                jax.jit(lambda n, b=jp.Cubemap(jnp.asarray(bad)): jp.diffuse.irradiance_at(b, n))(jnp.asarray([[0.0, 1.0, 0.0]]))
+                jax.jit(lambda n, b=jp.Cubemap(jnp.asarray(bad)): jp.ibl.diffuse.irradiance_at(b, n))(jnp.asarray([[0.0, 1.0, 0.0]]))

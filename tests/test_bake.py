@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import diffuse, renderer, specular
+from jaxpbr.ibl import diffuse, specular
+from jaxpbr.rendering import renderer
 
 FACE = 16
 
@@ -64,7 +65,7 @@ _LEAK_SCRIPT = textwrap.dedent(
     v2, g2 = step(0.6)                       # then a second traced call with another value
     g3 = jax.grad(loss)(0.45)                # and a new (unjitted) trace
     vm = jax.vmap(lambda r: jp.render(scene(r), dtype=dtype))(jnp.asarray([0.2, 0.7]))
-    leaves = jax.tree_util.tree_leaves([v for v in jp.renderer.ASSETS._store.values()])
+    leaves = jax.tree_util.tree_leaves([v for v in jp.rendering.renderer.ASSETS._store.values()])
     tracers = sum(isinstance(x, jax.core.Tracer) for x in leaves)
     print(repr((float(v1), float(g1), float(jnp.mean(fwd)), float(v2), float(g2), float(g3),
                 bool(np.all(np.isfinite(np.asarray(fwd)))), bool(np.all(np.isfinite(np.asarray(vm)))),
@@ -156,7 +157,7 @@ def test_bake_covers_every_roughness_and_keeps_given_maps(counted):
     baked = jp.bake(env)
     M = baked.prefiltered.num_levels
     # The default chain (specular.default_num_levels: 16^2 -> 16 .. 1, 5 levels), every level of it.
-    assert M == jp.specular.default_num_levels(FACE) == 5 and baked.prefiltered.metadata["mapping_levels"] == str(M)
+    assert M == jp.ibl.specular.default_num_levels(FACE) == 5 and baked.prefiltered.metadata["mapping_levels"] == str(M)
     again = jp.bake(baked)  # everything present: nothing computed, the same maps
     assert again.prefiltered is baked.prefiltered and again.irradiance is baked.irradiance
     assert counted == {"irradiance": 1, "prefilter": 1}
@@ -272,7 +273,7 @@ def test_render_with_separable_smith_uses_its_lut_and_shadows_more():
     brdf and the reference offer): the bake carries the separable LUT, the direct term is
     brdf(smith="separable"), and since G1(v) G1(l) <= the height-correlated G2 a metal comes out
     darker or equal at every pixel, strictly darker somewhere."""
-    from jaxpbr.lut import compute_brdf_lut
+    from jaxpbr.shading.lut import compute_brdf_lut
 
     env = jp.bake(_env(face=8), smith="separable")
     assert env.lut_smith == "separable"

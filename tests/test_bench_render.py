@@ -39,8 +39,8 @@ import jaxpbr as jp
 from jaxpbr.cli import bench_render as br
 from jaxpbr.cli import numpy_baselines as nb
 from jaxpbr.cli.numpy_baselines import bench_lights
-from jaxpbr.cubemap import Cubemap, _Pyramid
-from jaxpbr.ibl import shade_ibl
+from jaxpbr.ibl.cubemap import Cubemap, _Pyramid
+from jaxpbr.ibl.shade import shade_ibl
 
 U = 2.0**-24
 K_ARITH = 32

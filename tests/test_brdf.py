@@ -1,4 +1,4 @@
-"""Tests of `jaxpbr.brdf_terms`: every term and both models against the float64 NumPy reference
+"""Tests of `jaxpbr.shading.brdf_terms`: every term and both models against the float64 NumPy reference
 (`tests/reference.py`, written from MATH.md, not from jaxpbr), plus the closed forms, integrals and
 white-furnace oracles of MATH.md §1.5 / §7.
 
@@ -36,8 +36,8 @@ try:  # tests/ as a package or as a plain directory on sys.path (pytest rootdir 
 except ImportError:  # pragma: no cover
     import reference as ref  # noqa: E402
 
-# The terms live in the module `jaxpbr.brdf_terms` (named apart from the function `jp.brdf`).
-B = importlib.import_module("jaxpbr.brdf_terms")
+# The terms live in the module `jaxpbr.shading.brdf_terms` (named apart from the function `jp.brdf`).
+B = importlib.import_module("jaxpbr.shading.brdf_terms")
 
 EPS64 = float(np.finfo(np.float64).eps)
 DTYPES = (np.float64, np.float32)
@@ -246,7 +246,7 @@ TERM_CASES = {
 
 
 def test_every_public_term_is_covered():
-    """Every public function of jaxpbr.brdf_terms (except the models) has a reference case here."""
+    """Every public function of jaxpbr.shading.brdf_terms (except the models) has a reference case here."""
     public = {name for name in B.__all__ if callable(getattr(B, name)) and name != "brdf"}
     covered = {case.split("_scalar")[0].split("_colour")[0].split("_sin2")[0] for case in TERM_CASES}
     covered |= {"blinn_phong"}  # blinn_phong_normalized

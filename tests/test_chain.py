@@ -19,9 +19,9 @@ import pytest  # noqa: E402
 from scipy import integrate  # noqa: E402
 
 import jaxpbr as jp  # noqa: E402
-from jaxpbr import specular  # noqa: E402
-from jaxpbr.cubemap import Cubemap, texel_directions  # noqa: E402
-from jaxpbr.specular import (  # noqa: E402
+from jaxpbr.ibl import specular  # noqa: E402
+from jaxpbr.ibl.cubemap import Cubemap, texel_directions  # noqa: E402
+from jaxpbr.ibl.specular import (  # noqa: E402
     DEFAULT_CHAIN_FLOOR,
     DEFAULT_LOD_BLEND,
     MIN_CHAIN_LEVELS,
@@ -251,10 +251,10 @@ def test_renderer_plans_levels_with_the_lookup():
         objects=[jp.Sphere(center=(0, 0, 0), material=jp.Material(metallic=1.0, roughness=0.3))],
         environment=env,
     )
-    p = jp.renderer.plan(scene)
+    p = jp.rendering.renderer.plan(scene)
     # 64^2: M = 5 (64 .. 4); the mean-cosine lod of r = 0.3 is 1.15 -> levels 0..2.
     assert (p.mapping_levels, p.prefilter_levels) == (5, levels_for_roughness(0.3, 5)) == (5, 3)
     old = env.replace(prefiltered=_stepped_map(6, {"roughness_mapping": "linear"}))
-    p_old = jp.renderer.plan(scene.replace(environment=old))
+    p_old = jp.rendering.renderer.plan(scene.replace(environment=old))
     assert (p_old.mapping_levels, p_old.prefilter_levels) == (6, 6)
     assert specular.lookup_of(old.prefiltered)[2] == "roughness"

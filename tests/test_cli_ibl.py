@@ -8,10 +8,10 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from jaxpbr import image
 from jaxpbr.cli import main
-from jaxpbr.cubemap import Cubemap, equirect_directions
-from jaxpbr.ktx2 import read_ktx2
+from jaxpbr.ibl.cubemap import Cubemap, equirect_directions
+from jaxpbr.io import image
+from jaxpbr.io.ktx2 import read_ktx2
 
 
 def _sky_equirect(H=32):
@@ -74,7 +74,7 @@ def test_lut_command_writes_exr_with_layout(tmp_path):
     assert main(["lut", "--size", "16", "-o", str(out), "--quiet"]) == 0
     img, meta = image.read_with_metadata(out)
     assert img.shape == (16, 16, 3) and np.all(img[..., 2] == 0)
-    from jaxpbr.lut import lut_reference
+    from jaxpbr.shading.lut import lut_reference
 
     ref = lut_reference((np.arange(16) + 0.5) / 16, 0.5 / 16)  # row 0: r = 1/32
     np.testing.assert_allclose(img[0, :, :2], ref, atol=1e-4)
@@ -108,9 +108,9 @@ _SIDECAR_CHARLIE_KEYS = {"files", "face_size", "num_levels", "level_roughness", 
 def test_ibl_bakes_the_charlie_cube_and_the_sheen_channel_of_the_lut(tmp_path):
     """One bake: GGX and Charlie cubes, a 3-channel LUT (R, G = the GGX split sum, B = the shipped
     sheen albedo table), and an ibl.json recording all of it and how an engine looks it up."""
-    from jaxpbr.cubeio import load_environment
-    from jaxpbr.sheen_prefilter import prefilter_charlie
-    from jaxpbr.shipped_luts import brdf_lut, sheen_lut, shipped_manifest
+    from jaxpbr.ibl.cubeio import load_environment
+    from jaxpbr.ibl.sheen_prefilter import prefilter_charlie
+    from jaxpbr.shading.shipped_luts import brdf_lut, sheen_lut, shipped_manifest
 
     argv = ["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "128", "--charlie-size", "8",
             "--charlie-levels", "3", "--ktx-format", "rgba32f", "--out-dir", str(tmp_path), "--quiet", "--no-error"]
@@ -143,7 +143,7 @@ def test_ibl_bakes_the_charlie_cube_and_the_sheen_channel_of_the_lut(tmp_path):
     lut = index["brdf_lut"]
     assert lut["channels"] == {"R": "A (GGX split sum, F0 weight)", "G": "B (F90 weight)", "B": "E_sheen: Charlie sheen albedo / sheen IBL weight"}
     shipped = next(e for e in shipped_manifest()["sheen_luts"] if e["size"] == [128, 128])
-    assert lut["sheen_albedo"]["source"] == "shipped" and lut["sheen_albedo"]["shipped_file"] == f"luts/{shipped['file']}"
+    assert lut["sheen_albedo"]["source"] == "shipped" and lut["sheen_albedo"]["shipped_file"] == f"jaxpbr/_luts/{shipped['file']}"
     assert lut["sheen_albedo"]["max_abs_error"] == shipped["max_abs_error"]
     assert set(index["lookup"]) >= {"irradiance", "prefiltered", "charlie", "brdf_lut"}
     assert "lod_formula" in index["lookup"]["charlie"] and "NoV" in index["lookup"]["brdf_lut"]
@@ -166,7 +166,7 @@ def test_ibl_failure_while_writing_the_charlie_cube_restores_the_folder(tmp_path
     """The disk fills up while charlie.ktx2 is being written (after the irradiance and GGX cubes
     are in place, and a partial charlie.ktx2 landed): no new file is left, and the previous
     set's files, charlie.ktx2 included, are back byte for byte."""
-    from jaxpbr import cubeio
+    from jaxpbr.ibl import cubeio
 
     old = {"irradiance.ktx2": b"old irr", "prefiltered.ktx2": b"old pre", "charlie.ktx2": b"old charlie",
            "charlie.ktx2.json": b"{}", "brdf_lut.exr": b"old lut", "ibl.json": b"{}"}
@@ -273,7 +273,7 @@ def test_six_face_input(tmp_path):
     out = tmp_path / "irr.ktx2"
     assert main(["irradiance", *paths, "--size", "4", "-o", str(out), "--quiet", "--ktx-format", "rgba32f"]) == 0
     levels, _, _ = read_ktx2(out)
-    from jaxpbr.diffuse import irradiance
+    from jaxpbr.ibl.diffuse import irradiance
 
     expect = np.asarray(irradiance(Cubemap(faces), 4).levels[0])
     np.testing.assert_allclose(levels[0][..., :3], expect, rtol=1e-6)
@@ -295,7 +295,7 @@ def test_lut_smith_schlick_ggx_and_its_deprecated_alias(tmp_path, capsys):
 
 def test_write_cubemap_failure_midway_leaves_no_faces(tmp_path, monkeypatch):
     """Per-face EXR output: if the 8th face fails (a full disk), the 7 already written are removed."""
-    from jaxpbr import cubeio
+    from jaxpbr.ibl import cubeio
 
     cube = Cubemap(np.ones((6, 4, 4, 3), np.float32)).with_mips(2)
     real_write, calls = cubeio.image.write, []

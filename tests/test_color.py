@@ -10,8 +10,8 @@ import warnings  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-
 from gradcheck import check_partials  # noqa: E402
+
 from jaxpbr import color  # noqa: E402
 
 with warnings.catch_warnings():

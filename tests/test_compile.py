@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import renderer
 from jaxpbr.cli import _cache
+from jaxpbr.rendering import renderer
 
 #: At most this many XLA programs for the demo from a cold start (issue 10: 221 before).
 MAX_PROGRAMS = 25
@@ -164,7 +164,7 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
     assert [f._cache_size() for f in stages] == sizes
     assert np.isfinite(np.asarray(img)).all()
     # a different lookup rule is a different program
-    from jaxpbr.cubemap import CubeInfo
+    from jaxpbr.ibl.cubemap import CubeInfo
 
     assert CubeInfo((("lod_blend", "roughness"),)) != CubeInfo((("lod_blend", "mean_cosine"),))
     assert CubeInfo((("lod_blend", "roughness"), ("environment", "x"))) == CubeInfo((("lod_blend", "roughness"),))

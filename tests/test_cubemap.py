@@ -1,4 +1,4 @@
-"""Tests for jaxpbr.cubemap: the GL/KTX face table, exact texel solid angles, the seam-aware
+"""Tests for jaxpbr.ibl.cubemap: the GL/KTX face table, exact texel solid angles, the seam-aware
 bilinear/trilinear lookup, the area-correct pyramid, from_function / from_equirect / to_equirect.
 
 Every oracle is independent of the module: the OpenGL major-axis table is written out below from the
@@ -16,11 +16,11 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-from scipy import integrate  # noqa: E402
-
 import reference as ref  # noqa: E402
 from gradcheck import check_partials  # noqa: E402
-from jaxpbr.cubemap import (  # noqa: E402
+from scipy import integrate  # noqa: E402
+
+from jaxpbr.ibl.cubemap import (  # noqa: E402
     Cubemap,
     dir_to_equirect,
     dir_to_face,

@@ -1,4 +1,4 @@
-"""Tests for jaxpbr.diffuse: the stored quantity Ebar = E/pi for both methods ("exact" texel-moment
+"""Tests for jaxpbr.ibl.diffuse: the stored quantity Ebar = E/pi for both methods ("exact" texel-moment
 convolution and "sh9"), against closed forms (MATH.md 7.4) and independent float64 computations.
 
 Independent machinery written here (float64 NumPy):
@@ -27,11 +27,17 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+import reference as ref  # noqa: E402
 from scipy import integrate  # noqa: E402
 
-import reference as ref  # noqa: E402
-from jaxpbr.cubemap import Cubemap, texel_directions  # noqa: E402
-from jaxpbr.diffuse import irradiance, irradiance_at, sh9_basis, sh9_irradiance, sh9_project  # noqa: E402
+from jaxpbr.ibl.cubemap import Cubemap, texel_directions  # noqa: E402
+from jaxpbr.ibl.diffuse import (  # noqa: E402
+    irradiance,
+    irradiance_at,
+    sh9_basis,
+    sh9_irradiance,
+    sh9_project,
+)
 
 EPS64 = np.finfo(np.float64).eps
 EPS32 = np.finfo(np.float32).eps
@@ -410,7 +416,7 @@ def test_exact_method_is_exact_when_no_texel_straddles():
 
 
 def test_texel_moments_match_independent_closed_form():
-    from jaxpbr.diffuse import _texel_moments
+    from jaxpbr.ibl.diffuse import _texel_moments
 
     g = Geo(16)
     np.testing.assert_allclose(_texel_moments(16), g.phi, rtol=1e-12, atol=1e-13 * np.abs(g.phi).max())
@@ -418,7 +424,7 @@ def test_texel_moments_match_independent_closed_form():
 
 def test_texel_moments_within_midpoint_bound():
     # The bound quad_bound rests on: |m_j - Phi_j| <= (h^2/24) 10 fz_j, h = 2/(4S).
-    from jaxpbr.diffuse import _texel_moments
+    from jaxpbr.ibl.diffuse import _texel_moments
 
     for S in (8, 16, 32):
         g = Geo(S)

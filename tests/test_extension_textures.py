@@ -1,4 +1,4 @@
-"""Textures of the glTF material extensions on TexturedMaterial (jaxpbr.scene.apply_extension_textures):
+"""Textures of the glTF material extensions on TexturedMaterial (jaxpbr.rendering.scene.apply_extension_textures):
 channels and factor x texture per the KHR specs, the clear-coat normal map, the anisotropy direction
 texture, validation, jit and grad."""
 
@@ -11,7 +11,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr._pytree import evolve
-from jaxpbr.scene import EXTENSION_TEXTURES, apply_extension_textures
+from jaxpbr.rendering.scene import EXTENSION_TEXTURES, apply_extension_textures
 
 H, W = 3, 4
 DT = jnp.float32
@@ -114,7 +114,7 @@ def test_textures_are_sampled_at_uv():
     tm = jp.TexturedMaterial(factors=f, specular_texture=img, specular_color_texture=img)
     u, v, sel, n, t = _frame()
     out, _, _ = apply_extension_textures(tm, _per_pixel(f), u, v, sel, n, t, dtype=DT)
-    ref = np.asarray(jp.scene.sample_texture(jnp.asarray(img), u, v))
+    ref = np.asarray(jp.rendering.scene.sample_texture(jnp.asarray(img), u, v))
     s = np.asarray(sel)
     np.testing.assert_allclose(_np(out.specular)[s], 0.5 * ref[..., 3][s], rtol=1e-6)
     np.testing.assert_allclose(_np(out.specular_color)[s], ref[..., :3][s], rtol=1e-6)
@@ -327,7 +327,7 @@ def test_gradients_are_finite_and_right():
     assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves)
     # d/d factor of sum_sel (factor * tex)^2 = 2 factor sum_sel tex^2 (clearcoat: R channel).
     s = np.asarray(sel)
-    tex = np.asarray(jp.scene.sample_texture(jnp.asarray(tm0.clearcoat_texture), u, v))[..., 0]
+    tex = np.asarray(jp.rendering.scene.sample_texture(jnp.asarray(tm0.clearcoat_texture), u, v))[..., 0]
     np.testing.assert_allclose(float(g.factors.clearcoat), 2 * 0.8 * np.sum(tex[s] ** 2), rtol=1e-5)
     # The textures and the normal scale get gradients (the normal map and direction ones too).
     for name in ("clearcoat_texture", "sheen_roughness_texture", "clearcoat_normal_texture", "anisotropy_texture"):

@@ -1,4 +1,4 @@
-"""Dominant-light extraction (`jaxpbr.extract`) and disc lights in `shade_direct` (issue 11).
+"""Dominant-light extraction (`jaxpbr.ibl.extract`) and disc lights in `shade_direct` (issue 11).
 
 Oracles: the energy identities of the moment fit (float64 sums over the texels' exact first
 moments, independent of the fit), the cap's closed-form cosine-weighted solid angle, and
@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import envs
-from jaxpbr.cubemap import Cubemap, texel_directions, texel_solid_angles
-from jaxpbr.diffuse import _texel_moments
-from jaxpbr.extract import _LUMA, extract_lights, lights_to_json
+from jaxpbr.ibl import envs
+from jaxpbr.ibl.cubemap import Cubemap, texel_directions, texel_solid_angles
+from jaxpbr.ibl.diffuse import _texel_moments
+from jaxpbr.ibl.extract import _LUMA, extract_lights, lights_to_json
 
 S = 32
 SUN = np.array(envs.SUN_DIRECTION) / np.linalg.norm(envs.SUN_DIRECTION)
@@ -88,7 +88,7 @@ def test_energy_identities_power_and_irradiance_float64():
         d = -np.asarray(light.direction)
         e0 = _texel_irradiance(L0, n, S) @ _LUMA
         e1 = _texel_irradiance(L1, n, S) @ _LUMA
-        e_disc = np.asarray(jp.lights.cap_irradiance(n @ d, math.sin(sigma))) * (rad @ _LUMA)
+        e_disc = np.asarray(jp.shading.lights.cap_irradiance(n @ d, math.sin(sigma))) * (rad @ _LUMA)
         np.testing.assert_allclose(e1 + e_disc, e0, rtol=1e-12)
 
 
@@ -117,7 +117,7 @@ def test_irradiance_where_the_sun_straddles_the_horizon():
         # the texel sum clipped per sub-texel point (fine quadrature of max(n.w, 0) over the region)
         L0, L1 = _np(env), _np(ex.residual)
         q = 16
-        from jaxpbr.cubemap import _subtexel_points_np
+        from jaxpbr.ibl.cubemap import _subtexel_points_np
 
         pts, wts = _subtexel_points_np(Sz, q)  # (6, S, S, q*q, 3), (S, S, q*q) summing to 1 per texel
         pts = pts.reshape(-1, q * q, 3)
@@ -126,7 +126,7 @@ def test_irradiance_where_the_sun_straddles_the_horizon():
         excess = (L0 - L1)[changed] @ _LUMA
         region = np.array([np.sum(excess[:, None] * wts[changed] * np.maximum(pts[changed] @ nn, 0.0)) for nn in n])
         full = float(_disc_radiance(light) @ _LUMA) * math.pi * math.sin(sigma) ** 2
-        disc = np.asarray(jp.lights.cap_irradiance(n @ d, math.sin(sigma))) * float(_disc_radiance(light) @ _LUMA)
+        disc = np.asarray(jp.shading.lights.cap_irradiance(n @ d, math.sin(sigma))) * float(_disc_radiance(light) @ _LUMA)
         assert np.max(np.abs(disc - region)) / full < 0.02
 
 

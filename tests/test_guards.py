@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import _memory, envs, image
+from jaxpbr import _memory
 from jaxpbr.cli import main
+from jaxpbr.ibl import envs
+from jaxpbr.io import image
 
 LIMIT_GB = "8"
 
@@ -145,7 +147,7 @@ def test_textures_count_in_the_render_estimate(monkeypatch):
     with pytest.raises(ValueError, match=r"render: rendering 32x18 with 1 texture\(s\) needs about .* GB of memory.*lower the textures' resolution"):
         jp.render(scene)
     plain = jp.Scene(camera=jp.Camera(width=32, height=18), objects=(jp.Sphere(),))
-    jp.renderer.check_memory(plain)  # the same image without the texture fits
+    jp.rendering.renderer.check_memory(plain)  # the same image without the texture fits
 
 
 # --------------------------------------------------------------------- command line: messages
@@ -154,7 +156,7 @@ def test_textures_count_in_the_render_estimate(monkeypatch):
 def test_supersample_beyond_the_cap_is_refused_naming_the_flag(tmp_path, capsys, no_work):
     assert main(["render", "--supersample", "100000", "-o", str(tmp_path / "x.png")]) == 2
     line = _one_error_line(capsys)
-    assert "--supersample 100000" in line and f"at most {jp.scene.MAX_SUPERSAMPLE}" in line, line
+    assert "--supersample 100000" in line and f"at most {jp.rendering.scene.MAX_SUPERSAMPLE}" in line, line
     with pytest.raises(ValueError, match=r"Camera.supersample must be <= 64"):
         jp.Camera(supersample=65)
     assert jp.Camera(supersample=64).supersample == 64
@@ -216,8 +218,8 @@ def test_api_bake_and_render_refuse_before_any_work(small_env, monkeypatch):
     def started(*a, **k):
         raise AssertionError("a precompute started before the refusal")
 
-    monkeypatch.setattr(jp.renderer.specular, "prefilter", started)
-    monkeypatch.setattr(jp.renderer.extract, "extract_lights", started)
+    monkeypatch.setattr(jp.rendering.renderer.specular, "prefilter", started)
+    monkeypatch.setattr(jp.rendering.renderer.extract, "extract_lights", started)
     env = jp.Environment(radiance=small_env)
     with pytest.raises(ValueError, match=r"^bake: .* GB of memory.*lower prefilter_samples"):
         jp.bake(env, prefilter_samples=4_000_000_000)
@@ -237,17 +239,21 @@ def test_the_defaults_fit_in_modest_memory(monkeypatch):
     """The thresholds are measured costs, not caps that refuse real work: the default bake of a
     512^2 environment, the default demo render and the default LUT all pass a 2 GB limit."""
     monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "2")
-    from jaxpbr.specular import DEFAULT_SAMPLES, default_num_levels, default_sample_counts
+    from jaxpbr.ibl.specular import (
+        DEFAULT_SAMPLES,
+        default_num_levels,
+        default_sample_counts,
+    )
 
     for S in (256, 512, 1024):
         counts = default_sample_counts(DEFAULT_SAMPLES, S, default_num_levels(S))
         _memory.require("prefilter", _memory.prefilter_bytes(S, S, counts))
     _memory.require("procedural sky", _memory.cube_bytes(256, supersample=4))
     _memory.require("panorama", _memory.cube_bytes(1024))
-    _memory.require("lut", _memory.lut_bytes(256, 256, jp.lut.DEFAULT_SAMPLES))
+    _memory.require("lut", _memory.lut_bytes(256, 256, jp.shading.lut.DEFAULT_SAMPLES))
     _memory.require("irradiance", _memory.irradiance_bytes(64))
     demo = jp.demo.demo_scene(1280, 720)
-    jp.renderer.check_memory(demo)
+    jp.rendering.renderer.check_memory(demo)
     # ... while the measured cost of a 1024^2 procedural sky (7.2 GB) is refused at 2 GB.
     with pytest.raises(ValueError, match="GB of memory"):
         _memory.require("procedural sky", _memory.cube_bytes(1024, supersample=4))

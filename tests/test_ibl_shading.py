@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.cubemap import Cubemap
-from jaxpbr.ibl import MIN_N_DOT_V, shade_ibl, split_sum_weights
-from jaxpbr.lut import compute_brdf_lut, lut_lookup
+from jaxpbr.ibl.cubemap import Cubemap
+from jaxpbr.ibl.shade import MIN_N_DOT_V, shade_ibl, split_sum_weights
+from jaxpbr.shading.lut import compute_brdf_lut, lut_lookup
 
 
 def const_cube(value, size=4, levels=3, dtype=jnp.float64):
@@ -78,7 +78,7 @@ def _schlick_lambert_average(mu, k=256):
 def test_schlick_lambert_average_against_quadrature():
     """The diffuse lobe's Fresnel factor C(n.v) (MATH 6.1b) against an independent quadrature:
     the fit's error is 1e-6 (the quadrature converges to 1e-12 at 256^2 nodes)."""
-    from jaxpbr.ibl import schlick_lambert_average
+    from jaxpbr.ibl.shade import schlick_lambert_average
 
     mus = np.array([0.0, 1e-4, 0.05, 0.2, 0.37, 0.5, 0.71, 0.9, 1.0])
     got = np.asarray(schlick_lambert_average(jnp.asarray(mus)))
@@ -137,7 +137,7 @@ def test_gltf_split_sum_formula_against_hand_computation(luts):
 def test_dominant_direction_limits_and_gradients():
     """R at r = 0, n at r = 1, unit in between; finite value and gradient at R = -n (v = -n, a
     back-facing normal) for every roughness, including the one where lerp(n, R, 1/2) = 0."""
-    from jaxpbr.ibl import specular_dominant_direction
+    from jaxpbr.ibl.shade import specular_dominant_direction
 
     n = jnp.asarray([[0.0, 0.0, 1.0]] * 3)
     R = jnp.asarray([[0.6, 0.0, 0.8], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])

@@ -1,4 +1,4 @@
-"""Tests for jaxpbr.image: EXR / Radiance .hdr / PNG round trips, metadata, atomic writes, bad input."""
+"""Tests for jaxpbr.io.image: EXR / Radiance .hdr / PNG round trips, metadata, atomic writes, bad input."""
 
 import jax
 
@@ -13,7 +13,7 @@ import numpy as np  # noqa: E402
 import OpenEXR  # noqa: E402
 import pytest  # noqa: E402
 
-from jaxpbr import image  # noqa: E402
+from jaxpbr.io import image  # noqa: E402
 
 DATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data"
 

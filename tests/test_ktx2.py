@@ -1,8 +1,8 @@
-"""Tests for jaxpbr.ktx2: byte layout checked against the KTX 2.0 / Khronos Data Format specs, round trips, bad input.
+"""Tests for jaxpbr.io.ktx2: byte layout checked against the KTX 2.0 / Khronos Data Format specs, round trips, bad input.
 
 The byte-level oracles below are written from the specification text (ktxspec.adoc "File Structure", "Index",
 "Level Index", "Data Format Descriptor", "Key/Value Data", "Mip Level Array", "mipPadding"; KDF 1.4 "Khronos
-Basic Data Format Descriptor Block"), with struct offsets spelled out here, not taken from jaxpbr.ktx2.
+Basic Data Format Descriptor Block"), with struct offsets spelled out here, not taken from jaxpbr.io.ktx2.
 """
 
 import os
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import jaxpbr
-from jaxpbr import ktx2
-from jaxpbr.ktx2 import read_ktx2, write_ktx2
+from jaxpbr.io import ktx2
+from jaxpbr.io.ktx2 import read_ktx2, write_ktx2
 
 # "identifier": '«', 'K', 'T', 'X', ' ', '2', '0', '»', '\r', '\n', '\x1A', '\n'
 SPEC_IDENTIFIER = b"\xabKTX 20\xbb\r\n\x1a\n"
@@ -44,7 +44,7 @@ def listing(d):
 
 
 def parse(buf: bytes) -> dict:
-    """Independent KTX2 parse from the spec's field offsets (no code from jaxpbr.ktx2)."""
+    """Independent KTX2 parse from the spec's field offsets (no code from jaxpbr.io.ktx2)."""
     f = {}
     f["identifier"] = buf[:12]
     (f["vkFormat"], f["typeSize"], f["pixelWidth"], f["pixelHeight"], f["pixelDepth"], f["layerCount"],

@@ -1,4 +1,4 @@
-"""The glTF material extensions (jaxpbr.layered, jaxpbr.layered_ibl): closed forms, an independent
+"""The glTF material extensions (jaxpbr.shading.layered, jaxpbr.ibl.layered_ibl): closed forms, an independent
 float64 transcription of the extension texts, neutral values, energy, stiff inputs, the plan."""
 
 import functools
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import layered
 from jaxpbr._pytree import evolve
-from jaxpbr.material import EXTENSION_FIELDS, EXTENSIONS
+from jaxpbr.shading import layered
+from jaxpbr.shading.material import EXTENSION_FIELDS, EXTENSIONS
 
 NEUTRAL = {g: dict(fs) for g, fs in EXTENSION_FIELDS.items()}
 T_X = np.array([1.0, 0.0, 0.0])
@@ -64,13 +64,13 @@ def test_every_extension_at_its_neutral_value_is_the_core_split_sum(group, small
 @pytest.fixture(scope="module")
 def small_ibl():
     env = jp.envs.sky_with_sun_cubemap(16)
-    from jaxpbr import sheen_prefilter
+    from jaxpbr.ibl import sheen_prefilter
 
     return (
         jp.irradiance(env, 8),
         jp.prefilter(env, 16),
         jp.brdf_lut(),
-        jp.shipped_luts.sheen_lut(),
+        jp.shading.shipped_luts.sheen_lut(),
         sheen_prefilter.prefilter_charlie(env, size=8),
     )
 
@@ -135,10 +135,10 @@ def test_anisotropic_terms_reduce_to_isotropic_at_zero_strength():
             at, ab = layered.anisotropic_alphas(alpha, 0.0)
             assert at == ab == alpha
             d_a = layered.d_ggx_anisotropic(h[:, 2], h[:, 0], h[:, 1], at, ab)
-            d_i = jp.brdf_terms.d_ggx(h[:, 2], alpha, h[:, 0] ** 2 + h[:, 1] ** 2)
+            d_i = jp.shading.brdf_terms.d_ggx(h[:, 2], alpha, h[:, 0] ** 2 + h[:, 1] ** 2)
             np.testing.assert_allclose(np.asarray(d_a), np.asarray(d_i), rtol=1e-10)
             va = layered.v_smith_correlated_anisotropic(v[:, 2], l[:, 2], v[:, 0], v[:, 1], l[:, 0], l[:, 1], at, ab)
-            vi = jp.brdf_terms.v_smith_correlated(v[:, 2], l[:, 2], alpha)
+            vi = jp.shading.brdf_terms.v_smith_correlated(v[:, 2], l[:, 2], alpha)
             np.testing.assert_allclose(np.asarray(va), np.asarray(vi), rtol=1e-10)
 
 
@@ -309,7 +309,7 @@ def _albedo(m, nv, table=None, n_t=400, n_phi=360):
     w = np.where(l[:, 2] > 0, w, 0.0)
     total = np.zeros(3)
     for dirs in (l, l * [1, 1, -1]):
-        fc = jp.layered.layered_soa(
+        fc = jp.shading.layered.layered_soa(
             (jnp.zeros(1), jnp.zeros(1), jnp.ones(1)), tuple(jnp.asarray(np.full(1, c)) for c in v),
             tuple(jnp.asarray(dirs[:, i]) for i in range(3)), m, min_roughness=0.045, sheen_lut=table,
             extra=layered.LayerInputs(tangent=(jnp.ones(1), jnp.zeros(1), jnp.zeros(1))),
@@ -333,7 +333,7 @@ def _quadrature_error(rough):
 
 def _white(case, rough, metallic):
     p = dict(base_color=(1.0, 1.0, 1.0), metallic=metallic, roughness=rough, **FURNACE_CASES[case])
-    table = jp.shipped_luts.sheen_lut() if "sheen_color" in p else None
+    table = jp.shading.shipped_luts.sheen_lut() if "sheen_color" in p else None
     return jp.Material(**{k: jnp.asarray(x, jnp.float64) for k, x in p.items()}), table
 
 
@@ -421,7 +421,7 @@ def _stiff_check(dtype, *, lights: bool, grads: bool):
     geo = tuple(jnp.asarray(x, dtype) for x in (n, v, l, r))
     vals = tuple(jnp.asarray(ext[nm], dtype) for nm in names)
     tang = jnp.asarray(np.tile([1.0, 0.0, 0.0], (k, 1)), dtype)
-    table = jnp.asarray(jp.shipped_luts.sheen_lut(), dtype)
+    table = jnp.asarray(jp.shading.shipped_luts.sheen_lut(), dtype)
 
     def radiance(n, v, l, rough, tangent, *e):
         m = jp.Material(base_color=jnp.full((k, 3), 0.7, dtype), metallic=jnp.full(k, 0.5, dtype), roughness=rough,
@@ -523,7 +523,7 @@ def test_a_charlie_map_is_refused_as_the_ggx_prefiltered_map(small_ibl):
 
 
 def test_refract_is_snells_law():
-    from jaxpbr.layered_ibl import refract
+    from jaxpbr.ibl.layered_ibl import refract
 
     rng = np.random.default_rng(5)
     n = np.tile([0.0, 0.0, 1.0], (50, 1))

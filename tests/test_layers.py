@@ -1,6 +1,8 @@
-"""The package's layers only point down (docs/architecture.md): no import cycle anywhere, and the
-library never imports its tools (`jaxpbr.cli`). The import graph is read from the source with
-`ast`, function-local imports included, so a cycle hidden inside a function still fails."""
+"""The package's rooms only point down (docs/architecture.md): foundations (the modules at the top of
+`jaxpbr/`) <- `io` <- `shading` <- `ibl` <- `rendering` <- `cli`. No import cycle anywhere, no room
+imports a room above it, no private name crosses from one room into another, and the library never
+imports its tools (`jaxpbr.cli`). The import graph is read from the source with `ast`,
+function-local imports included, so an import hidden inside a function still counts."""
 
 from __future__ import annotations
 
@@ -26,8 +28,15 @@ def _modules(root: Path) -> dict[str, Path]:
 
 def import_graph(root: Path = PACKAGE) -> dict[str, set[str]]:
     """module -> the package modules it imports (anywhere in its body, relative or absolute)."""
+    return _read_imports(root)[0]
+
+
+def _read_imports(root: Path = PACKAGE):
+    """(graph, names): the module graph, and for each module the (source module, imported name)
+    pairs of its `from ... import name` statements."""
     mods = _modules(root)
     graph: dict[str, set[str]] = {m: set() for m in mods}
+    names: dict[str, set[tuple[str, str]]] = {m: set() for m in mods}
     for name, path in mods.items():
         package = name if path.name == "__init__.py" else name.rpartition(".")[0]
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
@@ -43,13 +52,14 @@ def import_graph(root: Path = PACKAGE) -> dict[str, set[str]]:
                     mod = node.module or ""
                 # `from . import x` imports the submodule x when there is one
                 targets = [f"{mod}.{a.name}" if f"{mod}.{a.name}" in mods else mod for a in node.names]
+                names[name] |= {(mod, a.name) for a in node.names if f"{mod}.{a.name}" not in mods}
             for t in targets:
                 # `import jaxpbr.cli.scene_file` -> the longest known module prefix
                 while t and t not in mods:
                     t = t.rpartition(".")[0]
                 if t and t != name:
                     graph[name].add(t)
-    return graph
+    return graph, names
 
 
 def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
@@ -116,9 +126,74 @@ def test_importing_the_library_loads_no_tool_module():
     assert out.stdout.strip() == "[]"
 
 
-@pytest.mark.parametrize("module", ["jaxpbr._numerics", "jaxpbr.brdf_terms", "jaxpbr.material"])
+@pytest.mark.parametrize("module", ["jaxpbr._numerics", "jaxpbr.shading.brdf_terms", "jaxpbr.shading.material"])
 def test_kernels_are_leaves(module):
     """The kernel layer depends on nothing above it (no precompute, scene, I/O or tools)."""
     graph = import_graph()
-    upper = {"jaxpbr.scene", "jaxpbr.renderer", "jaxpbr.image", "jaxpbr.cubeio", "jaxpbr.specular", "jaxpbr.diffuse"}
+    upper = {"jaxpbr.rendering.scene", "jaxpbr.rendering.renderer", "jaxpbr.io.image", "jaxpbr.ibl.cubeio", "jaxpbr.ibl.specular", "jaxpbr.ibl.diffuse"}
     assert not (graph[module] & upper)
+
+
+#: The rooms from the bottom up; a module of a room imports only its own room and the rooms below.
+ROOMS = ("jaxpbr", "jaxpbr.io", "jaxpbr.shading", "jaxpbr.ibl", "jaxpbr.rendering", "jaxpbr.cli")
+#: Modules at the top of the package that sit above the rooms: the public namespace and entry points.
+TOP = {"jaxpbr", "jaxpbr.__main__"}
+
+
+def room_of(module: str) -> str:
+    """The room of a module: its first-level subpackage, or the foundations (`jaxpbr`)."""
+    parts = module.split(".")
+    if len(parts) > 2 or (len(parts) == 2 and (PACKAGE / parts[1]).is_dir()):
+        return ".".join(parts[:2])
+    return "jaxpbr"
+
+
+def test_every_subpackage_is_a_room():
+    subpackages = {f"jaxpbr.{p.name}" for p in PACKAGE.iterdir() if (p / "__init__.py").exists()}
+    assert subpackages - {"jaxpbr._luts"} == set(ROOMS[1:]), "add the new room to ROOMS (and docs/architecture.md)"
+
+
+def test_rooms_point_down():
+    graph = import_graph()
+    rank = {r: i for i, r in enumerate(ROOMS)}
+    bad = sorted(
+        f"{m} -> {t}" for m, ts in graph.items() if m not in TOP for t in ts
+        if t not in TOP and rank[room_of(t)] > rank[room_of(m)]
+    )
+    assert not bad, "imports pointing up the rooms: " + ", ".join(bad)
+    assert not any(t in TOP for m, ts in graph.items() if m not in TOP for t in ts), "a room imports the top namespace"
+
+
+def test_no_private_names_cross_rooms():
+    """A name starting with `_` (or a private module) is used only inside its own room; the
+    foundations' private modules (`_numerics`, `_pytree`, ...) are the shared base every room builds on."""
+    graph, names = _read_imports()
+    bad = sorted(
+        f"{m}: {src}.{n}" for m, pairs in names.items() for src, n in pairs
+        if n.startswith("_") and not n.startswith("__") and room_of(src) != room_of(m) and m not in TOP
+    )
+    bad += sorted(
+        f"{m}: {t}" for m, ts in graph.items() for t in ts
+        if t.rpartition(".")[2].startswith("_") and t.count(".") > 1 and room_of(t) != room_of(m) and m not in TOP
+    )
+    assert not bad, "private names imported across rooms: " + ", ".join(bad)
+
+
+def test_room_checks_can_fail(tmp_path):
+    """The room reader sees a planted upward import and a private name crossing rooms."""
+    global PACKAGE
+    pkg = tmp_path / "jaxpbr"
+    for d in ("", "io", "shading"):
+        (pkg / d).mkdir(exist_ok=True)
+        (pkg / d / "__init__.py").write_text("")
+    (pkg / "io" / "a.py").write_text("from ..shading.b import _helper\n")
+    (pkg / "shading" / "b.py").write_text("def _helper(): pass\n")
+    saved = PACKAGE
+    PACKAGE = pkg
+    try:
+        graph, names = _read_imports(pkg)
+        assert graph["jaxpbr.io.a"] == {"jaxpbr.shading.b"}
+        assert room_of("jaxpbr.io.a") == "jaxpbr.io" and room_of("jaxpbr.shading.b") == "jaxpbr.shading"
+        assert ("jaxpbr.shading.b", "_helper") in names["jaxpbr.io.a"]
+    finally:
+        PACKAGE = saved

@@ -7,11 +7,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference as ref
 
 import jaxpbr as jp
-from jaxpbr.lights import UNROLL_MAX_LIGHTS, light_incidence
-
-import reference as ref
+from jaxpbr.shading.lights import UNROLL_MAX_LIGHTS, light_incidence
 
 N = np.array([0.0, 0.0, 1.0])
 V = np.array([0.3, -0.2, 0.9]) / np.linalg.norm([0.3, -0.2, 0.9])
@@ -203,7 +202,7 @@ def test_cap_irradiance_against_quadrature(sigma):
     with jax.enable_x64(True):
         h = math.pi / 2
         thetas = np.array([0.0, 0.7, h - sigma / 2, h - sigma / 5, h, h + sigma / 3, h + 0.9 * sigma, 2.5])
-        got = np.asarray(jp.lights.cap_irradiance(np.cos(thetas), math.sin(sigma)))
+        got = np.asarray(jp.shading.lights.cap_irradiance(np.cos(thetas), math.sin(sigma)))
         expect = np.array([_cap_brute(t, sigma) for t in thetas])
         np.testing.assert_allclose(got, expect, rtol=0, atol=1e-6 * math.pi * math.sin(sigma) ** 2)
 
@@ -212,15 +211,15 @@ def test_cap_irradiance_closed_form_limits():
     with jax.enable_x64(True):
         c = np.linspace(-1.0, 1.0, 41)
         # a hemisphere of directions (sigma = pi/2) centred at angle theta: pi (1 + cos theta) / 2
-        np.testing.assert_allclose(jp.lights.cap_irradiance(c, 1.0), math.pi * (1 + c) / 2, atol=1e-12)
+        np.testing.assert_allclose(jp.shading.lights.cap_irradiance(c, 1.0), math.pi * (1 + c) / 2, atol=1e-12)
         # fully above the horizon: pi sin^2 sigma cos theta; fully below: 0
         s = math.sin(0.2)
         above, below = c[c > math.sin(0.2) + 1e-9], c[c < -math.sin(0.2) - 1e-9]
-        np.testing.assert_allclose(jp.lights.cap_irradiance(above, s), math.pi * s * s * above, rtol=1e-14)
-        assert np.all(np.asarray(jp.lights.cap_irradiance(below, s)) == 0.0)
+        np.testing.assert_allclose(jp.shading.lights.cap_irradiance(above, s), math.pi * s * s * above, rtol=1e-14)
+        assert np.all(np.asarray(jp.shading.lights.cap_irradiance(below, s)) == 0.0)
         # continuous where the cap touches the horizon (cos theta = +-sin sigma)
         for edge in (s, -s):
-            lo, hi = jp.lights.cap_irradiance(np.array([edge - 1e-9, edge + 1e-9]), s)
+            lo, hi = jp.shading.lights.cap_irradiance(np.array([edge - 1e-9, edge + 1e-9]), s)
             assert abs(float(hi) - float(lo)) < 1e-8 * math.pi * s * s
 
 
@@ -232,8 +231,8 @@ def test_cap_irradiance_values_and_gradients_finite_on_stiff_inputs(dtype):
         s = np.array([0.0, 1e-6, 1e-3, math.sin(0.3), 0.9999, 1.0])
         c = np.unique(np.concatenate([[-1.0, -0.5, 0.0, 0.5, 1.0], s, -s]))
         C, S = (jnp.asarray(a, dtype) for a in np.meshgrid(c, s, indexing="ij"))
-        val = jp.lights.cap_irradiance(C, S)
-        gc, gs = jax.vmap(jax.vmap(jax.grad(jp.lights.cap_irradiance, argnums=(0, 1))))(C, S)
+        val = jp.shading.lights.cap_irradiance(C, S)
+        gc, gs = jax.vmap(jax.vmap(jax.grad(jp.shading.lights.cap_irradiance, argnums=(0, 1))))(C, S)
         for a in (val, gc, gs):
             assert np.all(np.isfinite(np.asarray(a)))
         assert np.all(np.asarray(val) >= 0)
@@ -246,4 +245,4 @@ def test_cap_irradiance_gradient_matches_finite_differences():
     with jax.enable_x64(True):
         for c0, s0 in [(0.8, 0.3), (0.1, 0.3), (-0.2, 0.5), (0.0, 0.05)]:
             x = np.array([c0, s0])
-            check_partials(lambda v: jp.lights.cap_irradiance(v[0], v[1]), x, [0, 1], step=1e-6, atol=1e-7, rtol=1e-6)
+            check_partials(lambda v: jp.shading.lights.cap_irradiance(v[0], v[1]), x, [0, 1], step=1e-6, atol=1e-7, rtol=1e-6)

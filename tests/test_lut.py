@@ -13,10 +13,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference as ref
 from scipy import integrate
 
-import reference as ref
-from jaxpbr.lut import SMITH_VARIANTS, compute_brdf_lut, lut_lookup, lut_reference
+from jaxpbr.shading.lut import (
+    SMITH_VARIANTS,
+    compute_brdf_lut,
+    lut_lookup,
+    lut_reference,
+)
 
 lookup = jax.jit(lut_lookup)  # one compilation per shape instead of one per primitive (eager)
 lookup_clamped = jax.jit(functools.partial(lut_lookup, edges="clamp"))

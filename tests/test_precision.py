@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import diffuse, reference_render, specular
-from jaxpbr.lut import compute_brdf_lut
+from jaxpbr.ibl import diffuse, reference_render, specular
+from jaxpbr.shading.lut import compute_brdf_lut
 
 HIGHEST = jax.lax.Precision.HIGHEST
 
@@ -93,7 +93,7 @@ def test_prefilter_reference(env):
     dirs = np.asarray([[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
     # The reference converts to NumPy at the end; walk its summation program.
     with jax.enable_x64(True):
-        from jaxpbr.cubemap import _subtexel_coords, texel_solid_angles
+        from jaxpbr.ibl.cubemap import _subtexel_coords, texel_solid_angles
 
         L = jnp.ones((6, 4, 4, 3))
         c = jax.device_put(_subtexel_coords(4, 2))

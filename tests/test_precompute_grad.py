@@ -17,13 +17,13 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-
 import reference as ref  # noqa: E402
 from gradcheck import check_partials  # noqa: E402
-from jaxpbr.cubemap import Cubemap  # noqa: E402
-from jaxpbr.diffuse import irradiance  # noqa: E402
-from jaxpbr.envs import sky_with_sun_cubemap  # noqa: E402
-from jaxpbr.specular import level_roughness, lobe_normalizer, prefilter  # noqa: E402
+
+from jaxpbr.ibl.cubemap import Cubemap  # noqa: E402
+from jaxpbr.ibl.diffuse import irradiance  # noqa: E402
+from jaxpbr.ibl.envs import sky_with_sun_cubemap  # noqa: E402
+from jaxpbr.ibl.specular import level_roughness, lobe_normalizer, prefilter  # noqa: E402
 
 S = 16
 M = 5
@@ -35,7 +35,7 @@ ref_solid_angles = ref.solid_angles
 
 
 def old_split_bright(level0, max_texels, min_ratio=4.0):
-    """The NumPy selection prefilter used before it was traceable (jaxpbr.specular.split_bright)."""
+    """The NumPy selection prefilter used before it was traceable (jaxpbr.ibl.specular.split_bright)."""
     L = np.asarray(level0, np.float64)
     S, C = L.shape[1], L.shape[-1]
     lum = L @ LUMA if C == 3 else L.mean(-1)

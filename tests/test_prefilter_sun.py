@@ -24,8 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpbr.cubemap import Cubemap, texel_directions
-from jaxpbr.specular import default_num_levels, level_roughness, prefilter
+from jaxpbr.ibl.cubemap import Cubemap, texel_directions
+from jaxpbr.ibl.specular import default_num_levels, level_roughness, prefilter
 
 SUN = np.array([0.3, 0.6, 0.5]) / np.linalg.norm([0.3, 0.6, 0.5])
 SIGMA = math.radians(4.0)

@@ -15,7 +15,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr._pytree import Pytree, evolve, fields_of, leaf, static, unchecked
-from jaxpbr.lights import LightSet, pack_lights
+from jaxpbr.shading.lights import LightSet, pack_lights
 
 H, W = 2, 3
 
@@ -418,7 +418,7 @@ def test_constructors_are_unchanged():
 
 
 def test_unchecked_builds_without_validation_and_needs_every_field():
-    ext = {f: None for fs in jp.material.EXTENSION_FIELDS.values() for f in fs}
+    ext = {f: None for fs in jp.shading.material.EXTENSION_FIELDS.values() for f in fs}
     m = unchecked(jp.Material, base_color=1, metallic=2, roughness=3, occlusion=4, emissive=None, **ext)
     assert m.roughness == 3 and m.emissive is None
     with pytest.raises(TypeError, match="missing"):

@@ -1,5 +1,5 @@
 """The float64 brute-force reference of the layered BSDF under an environment
-(`jaxpbr.reference_render.reference_layered`).
+(`jaxpbr.ibl.reference_render.reference_layered`).
 
 Oracles: `reference_ibl` at neutral extension values; closed forms under a constant environment
 (a Lambert base under a clear coat, a pure sheen lobe, thin transmission with separable Smith);
@@ -15,8 +15,12 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.reference_render import min_reference_roughness, reference_ibl, reference_layered
-from jaxpbr.shipped_luts import sheen_lut
+from jaxpbr.ibl.reference_render import (
+    min_reference_roughness,
+    reference_ibl,
+    reference_layered,
+)
+from jaxpbr.shading.shipped_luts import sheen_lut
 
 
 def _const_env(S, value=1.0):
@@ -89,7 +93,7 @@ def test_pure_sheen_lobe_is_the_sheen_albedo():
     """Constant environment, black base with specular = 0 (no base lobe at all), sheen colour 1:
     Lo = the sheen lobe's directional albedo E(n.v, r_s) (`sheen_lut_reference`, converged), to the
     quadrature error of the 16^2 map (2e-4 absolute where E is ~1e-3: the lobe hugs the horizon)."""
-    from jaxpbr.sheen_lut import sheen_lut_reference
+    from jaxpbr.shading.sheen_lut import sheen_lut_reference
 
     env = _const_env(16)
     mu = np.array([1.0, 0.7, 0.4])
@@ -194,12 +198,12 @@ def test_white_furnace_every_extension():
     specular 1, ior 1 and 3, anisotropy 1, transmission 1 thin and volumetric), n.v from 1 to
     0.05: Lo <= 1 + 1e-9 wherever the BSDF conserves energy. Two places where it does not, by
     definition, are excluded and measured instead: the sheen lobe's own albedo E exceeds 1 at
-    grazing views for small sheen roughness (E(0.05, 0.09) = 1.09, `jaxpbr.sheen_lut`), and glTF's
+    grazing views for small sheen roughness (E(0.05, 0.09) = 1.09, `jaxpbr.shading.sheen_lut`), and glTF's
     dielectric base (diffuse weighted by 1 - F(v.h) per light direction) gains energy at grazing
     views with a white base colour (1.44 at n.v = 0.05, r = 0.09) — so the dielectric cases
     use a black base (the specular layer alone) or F0 = 1, and the coat / sheen / anisotropy
     cases a white metal base. Measured max: 0.99991 (coat, refine 2 reaches the same)."""
-    from jaxpbr.sheen_lut import sheen_lut_lookup
+    from jaxpbr.shading.sheen_lut import sheen_lut_lookup
 
     S = 16
     env = _const_env(S)

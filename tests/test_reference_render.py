@@ -1,4 +1,4 @@
-"""The float64 reference render of image-based lighting (`jaxpbr.reference_render`).
+"""The float64 reference render of image-based lighting (`jaxpbr.ibl.reference_render`).
 
 Oracles: the BRDF itself (`jp.brdf`), the directional albedo of MATH.md 7.2/7.3 (white furnace),
 a 1-D quadrature of the Fresnel-weighted Lambert lobe, the punctual-light limit of a small bright
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.reference_render import (
+from jaxpbr.ibl.reference_render import (
     _kernels,
     min_reference_roughness,
     reference_ibl,
@@ -106,7 +106,7 @@ def test_small_bright_cap_is_a_directional_light(r, metallic):
         lambda x: jnp.where((x @ jnp.asarray(d)) [..., None] > math.cos(gamma), Lc, 0.0) * jnp.ones(3), 32, supersample=8, dtype=jnp.float64
     )
     # the texelised cap carries the cap's power (area filter)
-    om = jp.cubemap.texel_solid_angles(32)
+    om = jp.ibl.cubemap.texel_solid_angles(32)
     power = float(np.sum(np.asarray(env.levels[0])[..., 0] * om))
     cap = 2 * math.pi * (1 - math.cos(gamma))
     assert abs(power / (Lc * cap) - 1) < 1e-2  # supersample 8 of a sharp edge: 0.6 %; the light below uses `power`
@@ -144,8 +144,8 @@ def test_agrees_with_split_sum_for_rough_materials():
     dominant direction replaced. Single pixels at grazing angles stay far worse (the n = v = R
     assumption of the prefilter): measured, not asserted."""
     from jaxpbr.cli.report_render import sphere_gbuffer
-    from jaxpbr.lut import lut_lookup
-    from jaxpbr.specular import lookup_of, roughness_to_lod
+    from jaxpbr.ibl.specular import lookup_of, roughness_to_lod
+    from jaxpbr.shading.lut import lut_lookup
 
     env = jp.envs.sky_with_sun_cubemap(16, sun_radiance=0.0)
     irr = jp.irradiance(env, size=32)

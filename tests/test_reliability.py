@@ -30,8 +30,7 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import image
-
+from jaxpbr.io import image
 
 # ---------------------------------------------------------------------------------- full disk
 
@@ -235,7 +234,7 @@ def test_an_interrupted_rebake_keeps_the_previous_set(tmp_path, sig):
 
 
 def test_output_set_protect_restores_replaced_files_and_cleans_up(tmp_path):
-    from jaxpbr.atomic import OutputSet, atomic_write
+    from jaxpbr.io.atomic import OutputSet, atomic_write
 
     a, b, c = tmp_path / "a.txt", tmp_path / "b.txt", tmp_path / "c.txt"
     a.write_text("old a")
@@ -414,7 +413,7 @@ def test_environment_refuses_nan_and_negative_radiance(bad, what):
 
 
 def test_a_grey_panorama_becomes_rgb_radiance(tmp_path):
-    from jaxpbr.cubeio import load_environment
+    from jaxpbr.ibl.cubeio import load_environment
 
     grey = tmp_path / "grey.exr"
     image.write(grey, np.full((16, 32), 2.0, np.float32))

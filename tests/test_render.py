@@ -6,12 +6,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference as ref
 
 import jaxpbr as jp
-import reference as ref
-from jaxpbr import renderer as R
-from jaxpbr.demo import learnopengl_scene, sphere_grid
-from jaxpbr.scene import intersect_plane, intersect_sphere, primary_rays, sample_texture
+from jaxpbr.rendering import renderer as R
+from jaxpbr.rendering.demo import learnopengl_scene, sphere_grid
+from jaxpbr.rendering.scene import (
+    intersect_plane,
+    intersect_sphere,
+    primary_rays,
+    sample_texture,
+)
 
 W, H = 65, 37  # odd: the centre pixel's ray is exactly the camera axis
 
@@ -323,7 +328,7 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     # -> levels 0..2 are enough.
     assert (p.mapping_levels, p.prefilter_levels) == (5, 3)
     seen = {}
-    real_pre = jp.specular.prefilter
+    real_pre = jp.ibl.specular.prefilter
 
     def spy_pre(*a, **k):
         out = real_pre(*a, **k)
@@ -419,7 +424,7 @@ def test_gbuffer_scene_with_extracted_sun_equals_kernels():
     """By default the sun is split out: the render equals shade_direct over the scene's and the
     extracted disc lights plus the split sum of the residual environment (both compensated for
     multiple scattering, render's default)."""
-    from jaxpbr.extract import extract_lights
+    from jaxpbr.ibl.extract import extract_lights
 
     rng = np.random.default_rng(4)
     Hh, Ww = 5, 4
@@ -432,16 +437,16 @@ def test_gbuffer_scene_with_extracted_sun_equals_kernels():
     g = jp.GBuffer(hit=hit, position=np.zeros((Hh, Ww, 3)), normal=n, view=v, material=m)
     env = jp.envs.sky_with_sun_cubemap(32)
     scene = jp.Scene(gbuffer=g, environment=jp.Environment(radiance=env))
-    assert jp.renderer.plan(scene).env_lights == 1
-    assert "1 sun(s) split out" in jp.renderer.plan(scene).describe()
-    assert jp.renderer.plan(scene, extract_lights=False).env_lights == 0
+    assert jp.rendering.renderer.plan(scene).env_lights == 1
+    assert "1 sun(s) split out" in jp.rendering.renderer.plan(scene).describe()
+    assert jp.rendering.renderer.plan(scene, extract_lights=False).env_lights == 0
     img = np.asarray(jp.render(scene))
     ex = extract_lights(env)
     (sun,) = ex.lights
     irr, pre, lut = jp.irradiance(ex.residual, 32), jp.prefilter(ex.residual), jp.brdf_lut(128)
     # with the default compensation: of the residual's IBL term and of the sun (its FmsEms times its irradiance)
     want = jax.jit(lambda n, v, m: jp.shade_direct(np.zeros(3), n, v, m, sun) + jp.shade_ibl(n, v, m, irr, pre, lut, multiscatter=True)
-                   + jp.ibl.disc_multiscatter(n, v, m, lut, [sun]))(n, v, m)
+                   + jp.ibl.shade.disc_multiscatter(n, v, m, lut, [sun]))(n, v, m)
     np.testing.assert_allclose(img, np.asarray(want), rtol=2e-5, atol=1e-6)
     off = np.asarray(jp.render(scene, extract_lights=False))
     assert np.abs(off - img).max() > 1e-3  # the split changes the image (the split sum's error)
@@ -479,7 +484,7 @@ def test_multiscatter_of_split_out_suns_matches_the_environment_s():
     scene = jp.Scene(camera=cam, objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0,
                      material=jp.Material(base_color=(1.0, 1.0, 1.0), metallic=1.0, roughness=0.8))],
                      lights=[], environment=env)
-    assert jp.renderer.plan(scene).env_lights == 1
+    assert jp.rendering.renderer.plan(scene).env_lights == 1
     delta = {ex: np.asarray(jp.render(scene, extract_lights=ex)) - np.asarray(jp.render(scene, extract_lights=ex, multiscatter=False))
              for ex in (True, False)}
     assert delta[False].sum() > 0.05 * np.asarray(jp.render(scene, extract_lights=False)).sum()

@@ -49,7 +49,7 @@ def batched_materials(B=5):
 
 
 def take(tree, i):
-    from jaxpbr.renderer import _batched
+    from jaxpbr.rendering.renderer import _batched
 
     return jax.tree_util.tree_map(lambda x: x[i], _batched("batch", tree)[1])
 
@@ -131,9 +131,9 @@ SHARD_SCRIPT = textwrap.dedent(
     sharded = jp.render_batch(scene, materials=mats, chunk=2)
     # The sharded path runs each device's share as one program per chunk; on one device XLA:CPU
     # runs the stages as separate programs (renderer.STAGED = None). Compare like with like:
-    jp.renderer.STAGED = False
+    jp.rendering.renderer.STAGED = False
     single = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
-    jp.renderer.STAGED = None
+    jp.rendering.renderer.STAGED = None
     staged = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
     a, b, c = np.asarray(sharded), np.asarray(single), np.asarray(staged)
     rel = float((np.abs(a - b) / np.maximum(np.abs(b), 1e-6)).max())
@@ -171,7 +171,7 @@ def test_staged_batch_equals_a_loop_of_renders(monkeypatch):
     """Staged (the XLA:CPU default) render_batch runs the stages as separate programs vmapped over
     each chunk: the same programs' math as `render` per image (bitwise here; bounded by float32
     rounding)."""
-    from jaxpbr import renderer
+    from jaxpbr.rendering import renderer
 
     monkeypatch.setattr(renderer, "STAGED", True)
     scene = base_scene()

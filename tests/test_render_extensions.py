@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import renderer, sheen_prefilter
-from jaxpbr.material import EXTENSION_FIELDS
+from jaxpbr.ibl import sheen_prefilter
+from jaxpbr.rendering import renderer
+from jaxpbr.shading.material import EXTENSION_FIELDS
 
 
 def _env():

@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from gradcheck import check_partials
 
 import jaxpbr as jp
-from gradcheck import check_partials
 
 W, H = 10, 8
 F64 = dict(dtype="float64")

@@ -4,10 +4,10 @@ end to end (slow)."""
 import numpy as np
 import pytest
 
-from jaxpbr import envs
+from jaxpbr.cli import main
 from jaxpbr.cli import report_precompute as report
 from jaxpbr.cli._common import have_matplotlib
-from jaxpbr.cli import main
+from jaxpbr.ibl import envs
 
 
 def test_report_rows_table_and_plot(tmp_path):

@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 
 from jaxpbr.cli._common import have_matplotlib
-from jaxpbr.cli.report_render import add_command, markdown, render_report, sphere_gbuffer
+from jaxpbr.cli.report_render import (
+    add_command,
+    markdown,
+    render_report,
+    sphere_gbuffer,
+)
 
 
 def _parser():

@@ -11,10 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import reference as ref
 from scipy import integrate
 
-import reference as ref
-from jaxpbr import sampling as S
+from jaxpbr.shading import sampling as S
 
 DTYPES = [jnp.float32, jnp.float64]
 N_QMC = 2**16

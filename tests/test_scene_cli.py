@@ -8,7 +8,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr.cli import main
-from jaxpbr.demo import demo_scene, learnopengl_scene
+from jaxpbr.rendering.demo import demo_scene, learnopengl_scene
 
 
 def test_learnopengl_model_differs_from_gltf_but_is_close():
@@ -29,7 +29,7 @@ def test_default_demo_renders_finite_with_sky_background():
     scene = demo_scene(48, 27, face_size=32)
     img = np.asarray(jp.render(scene))
     assert img.shape == (27, 48, 3) and np.isfinite(img).all() and (img >= 0).all()
-    plan = jp.renderer.plan(scene)
+    plan = jp.rendering.renderer.plan(scene)
     assert plan.direct and plan.ibl and plan.ibl_diffuse and plan.prefilter_levels == plan.mapping_levels
     # Top-left corner: sky above the horizon, bluish (zenith blue > red).
     assert img[0, 0, 2] > img[0, 0, 0] > 0

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr import image
-from jaxpbr.errors import InputError
-from jaxpbr.material import Material
-from jaxpbr.scene import TexturedMaterial
 from jaxpbr.cli.scene_file import SceneFile, hex_to_linear, load_scene, loads_scene
+from jaxpbr.errors import InputError
+from jaxpbr.io import image
+from jaxpbr.rendering.scene import TexturedMaterial
+from jaxpbr.shading.material import Material
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples" / "scenes"
 
@@ -437,7 +437,7 @@ def test_extension_key_sets_its_material_field(key):
     assert isinstance(m, Material)
     np.testing.assert_allclose(_np(getattr(m, field)), expect, rtol=1e-6)
     # Only that extension is present; the others are absent (None: no code compiled for them).
-    from jaxpbr.material import EXTENSION_FIELDS
+    from jaxpbr.shading.material import EXTENSION_FIELDS
 
     group = next(g for g, fs in EXTENSION_FIELDS.items() if field in fs)
     assert m.extensions == (group,)

@@ -1,10 +1,10 @@
-"""The sheen albedo table E (jaxpbr.sheen_lut): the Charlie normalisation, the float64 reference
+"""The sheen albedo table E (jaxpbr.shading.sheen_lut): the Charlie normalisation, the float64 reference
 against scipy, its own refinement and an independent Monte Carlo estimate, the fast table and the
 shipped files against the reference at every texel, the lookup (exact at texel centres, finite
 values and gradients at the stiff points), the CLI and the loader.
 
 Oracles: the closed-form normalisation int D_c (n.h) dh = 1; scipy adaptive quadrature in
-half-vector space (the reference integrates over l); Monte Carlo over l with jaxpbr.sheen's own
+half-vector space (the reference integrates over l); Monte Carlo over l with jaxpbr.shading.sheen's own
 d_charlie / v_charlie (the shading code's terms). `sheen_lut_reference` is only an oracle for
 `compute_sheen_lut` after it has passed those checks.
 """
@@ -16,11 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxpbr.shipped_luts as sl
-from jaxpbr import image
+import jaxpbr.shading.shipped_luts as sl
 from jaxpbr.cli import main
-from jaxpbr.sheen import d_charlie, lambda_sheen, v_charlie
-from jaxpbr.sheen_lut import (
+from jaxpbr.io import image
+from jaxpbr.shading.sheen import d_charlie, lambda_sheen, v_charlie
+from jaxpbr.shading.sheen_lut import (
     DEFAULT_SAMPLES,
     _ref_lambda,
     compute_sheen_lut,
@@ -64,7 +64,7 @@ def test_charlie_is_normalised(r):
 
 
 def test_reference_terms_match_the_shading_terms():
-    """The reference writes Lambda again in NumPy: it agrees with jaxpbr.sheen.lambda_sheen across
+    """The reference writes Lambda again in NumPy: it agrees with jaxpbr.shading.sheen.lambda_sheen across
     both branches of the fit where that one's floor (x and 1 - x >= 1e-6) is not active."""
     x = np.concatenate([np.geomspace(1e-6, 0.4999, 40), np.linspace(0.5, 1.0 - 1e-6, 40)])
     for r in (0.045, 0.3, 0.7, 1.0):

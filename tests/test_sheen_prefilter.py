@@ -1,4 +1,4 @@
-"""The Charlie-prefiltered sheen chain (`jaxpbr.sheen_prefilter`): normalisation, an independent
+"""The Charlie-prefiltered sheen chain (`jaxpbr.ibl.sheen_prefilter`): normalisation, an independent
 oracle for a linear environment, agreement with the float64 reference, stiff inputs, metadata,
 gradients of the lookup, HIGHEST-precision matmuls."""
 
@@ -10,10 +10,9 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from jaxpbr import envs
-from jaxpbr.brdf_terms import MIN_ROUGHNESS
-from jaxpbr.cubemap import Cubemap, texel_directions
-from jaxpbr.sheen_prefilter import (
+from jaxpbr.ibl import envs
+from jaxpbr.ibl.cubemap import Cubemap, texel_directions
+from jaxpbr.ibl.sheen_prefilter import (
     _charlie_rows,
     _reference_sum,
     charlie_level_roughness,
@@ -23,6 +22,7 @@ from jaxpbr.sheen_prefilter import (
     charlie_roughness_to_lod,
     prefilter_charlie,
 )
+from jaxpbr.shading.brdf_terms import MIN_ROUGHNESS
 from tests.test_precision import not_highest
 
 G = np.array([0.3, -0.5, 0.4])
@@ -188,7 +188,7 @@ def test_matmuls_are_highest():
         n, bad = not_highest(lambda lv: prefilter_charlie(Cubemap([lv]), size=4, num_levels=3, zonal_levels=zl).levels, env.levels[0])
         assert n > 0 and not bad, bad[:3]
     with jax.enable_x64(True):
-        from jaxpbr.cubemap import _subtexel_coords, texel_solid_angles
+        from jaxpbr.ibl.cubemap import _subtexel_coords, texel_solid_angles
 
         L = jnp.ones((6, 4, 4, 3))
         c = jax.device_put(_subtexel_coords(4, 2))

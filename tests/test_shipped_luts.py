@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.lut import DEFAULT_SAMPLES, compute_brdf_lut, lut_reference
-from jaxpbr.shipped_luts import _load, shipped_manifest
+from jaxpbr.shading.lut import DEFAULT_SAMPLES, compute_brdf_lut, lut_reference
+from jaxpbr.shading.shipped_luts import _load, shipped_manifest
 
 
 def test_manifest_lists_both_sizes_and_variants_within_target():

@@ -24,10 +24,10 @@ import numpy as np
 import pytest
 
 import jaxpbr.cli
-from jaxpbr import atomic, image
 from jaxpbr.cli import main
 from jaxpbr.cli._common import PENDING, raise_pending
-from jaxpbr.cubemap import equirect_directions
+from jaxpbr.ibl.cubemap import equirect_directions
+from jaxpbr.io import atomic, image
 
 _SCRIPT = Path(sys.executable).parent / "jaxpbr"  # the console script next to this interpreter
 

@@ -57,8 +57,8 @@ def test_prefilter_quality_at_1024_faces_with_a_compact_sun():
     """Issue 13, item 7: a 1-degree, 5e4-radiance sun at 1024^2 faces (~700 texels) stayed in the
     sampled part with a fixed budget of 256 exact texels: worst level mean 19.8 %, worst texel 130 %
     (512^2: 0.30 % / 0.83 %). With the budget scaled by face area: measured 0.28 % / 0.85 %."""
-    from jaxpbr.envs import sky_with_sun
-    from jaxpbr.measure import prefilter_error, summarize
+    from jaxpbr.ibl.envs import sky_with_sun
+    from jaxpbr.ibl.measure import prefilter_error, summarize
 
     env = jp.Cubemap.from_function(lambda d: sky_with_sun(d, sun_radiance=5e4, sun_radius_deg=1.0), 1024, supersample=2)
     pre = jp.prefilter(env)

@@ -1,4 +1,4 @@
-"""Tests for jaxpbr.specular: roughness <-> mip mapping, the GGX lobe normaliser, the float64 reference
+"""Tests for jaxpbr.ibl.specular: roughness <-> mip mapping, the GGX lobe normaliser, the float64 reference
 convolution and the FIS driver (with and without the exactly convolved brightest texels).
 
 Oracles are independent float64 computations written here: the GGX NDF and the lobe integrals in l-space by
@@ -18,12 +18,12 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+import reference as ref  # noqa: E402
 from scipy import integrate  # noqa: E402
 
-import reference as ref  # noqa: E402
-from jaxpbr import specular  # noqa: E402
-from jaxpbr.cubemap import Cubemap, texel_directions  # noqa: E402
-from jaxpbr.specular import (  # noqa: E402
+from jaxpbr.ibl import specular  # noqa: E402
+from jaxpbr.ibl.cubemap import Cubemap, texel_directions  # noqa: E402
+from jaxpbr.ibl.specular import (  # noqa: E402
     DEFAULT_SAMPLES,
     level_roughness,
     lobe_normalizer,
@@ -409,7 +409,7 @@ def test_default_exact_texels_scale_with_the_face_area():
     """A budget of solid angle, not of texels: a 1-degree sun has ~700 texels at 1024^2 faces and
     stayed in the sampled part with a fixed 256 (worst texel 130 %, issue 13; tests/test_slow.py);
     2.1 % of the sphere holds a 4-degree Gaussian sun (tests/test_prefilter_sun.py)."""
-    from jaxpbr.specular import default_exact_texels
+    from jaxpbr.ibl.specular import default_exact_texels
 
     assert [default_exact_texels(S) for S in (16, 128, 256, 512, 1024, 2048)] == [256, 2048, 8192, 32768, 131072, 524288]
 

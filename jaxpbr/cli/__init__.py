@@ -14,8 +14,9 @@ import sys
 import threading
 import warnings
 
-from .. import _entry, atomic
+from .. import _entry
 from .._version import __version__
+from ..io import atomic
 from . import (
     _cache,
     bench_grad,

@@ -89,7 +89,7 @@ def prune(path: Path, max_bytes: int = MAX_BYTES) -> None:
 
 def enable_assets() -> Path | None:
     """Keep the renderer's computed IBL maps on disk; returns the directory or None."""
-    from ..renderer import ASSETS
+    from ..rendering.renderer import ASSETS
 
     path = asset_dir()
     if path is not None:

@@ -116,7 +116,11 @@ def require_environment(face_size: int, *, procedural: bool = True, flag: str = 
     """Refuse before any work an environment cube of `face_size` (built from the procedural sky or
     a panorama) and its default prefilter (or one with `samples` FIS samples on every level) that
     would not fit: the library's estimates with `flag` named."""
-    from ..specular import DEFAULT_SAMPLES, default_num_levels, default_sample_counts
+    from ..ibl.specular import (
+        DEFAULT_SAMPLES,
+        default_num_levels,
+        default_sample_counts,
+    )
 
     available_memory()  # a malformed limit: a CLIError
     M = default_num_levels(face_size)

@@ -19,13 +19,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import diffuse, specular
-from ..envs import sky_with_sun_cubemap
-from ..lights import PointLight
-from ..material import Material
-from ..renderer import bake, render
-from ..scene import Camera, Environment, Scene, Sphere
 from .._memory import render_bytes
+from ..ibl import diffuse, specular
+from ..ibl.envs import sky_with_sun_cubemap
+from ..rendering.renderer import bake, render
+from ..rendering.scene import Camera, Environment, Scene, Sphere
+from ..shading.lights import PointLight
+from ..shading.material import Material
 from ._common import positive_int_arg, require_environment, require_memory
 from .timing import time_calls
 

@@ -7,7 +7,7 @@ in the same process (JIT compile reported apart; run times are the best of repea
 * BRDF LUT 256^2: the converged quadrature vs the classic 1024-sample Hammersley estimate (Karis).
 * irradiance 32^2: exact convolution on the default 64^2 moment level vs the full-resolution
   exact convolution (the reference itself) and SH9.
-Errors are against the float64 references of `jaxpbr.measure` (sampled texels for the cubes,
+Errors are against the float64 references of `jaxpbr.ibl.measure` (sampled texels for the cubes,
 every texel for the LUT).
 """
 
@@ -17,13 +17,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..brdf_terms import schlick_weight, v_smith_correlated
-from ..cubeio import load_environment
-from ..diffuse import irradiance
-from ..lut import compute_brdf_lut
-from ..measure import irradiance_error, lut_error, prefilter_error, summarize
-from ..sampling import hammersley, sample_ggx_h
-from ..specular import prefilter
+from ..ibl.cubeio import load_environment
+from ..ibl.diffuse import irradiance
+from ..ibl.measure import irradiance_error, lut_error, prefilter_error, summarize
+from ..ibl.specular import prefilter
+from ..shading.brdf_terms import schlick_weight, v_smith_correlated
+from ..shading.lut import compute_brdf_lut
+from ..shading.sampling import hammersley, sample_ggx_h
 from ._common import positive_int_arg, require_environment
 from .timing import time_calls, to_host
 

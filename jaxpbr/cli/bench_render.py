@@ -28,19 +28,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import envs
-from .._validate import positive_int
-from ..cubemap import Cubemap
-from ..diffuse import irradiance
-from ..ibl import shade_ibl
-from ..lights import PointLight, shade_direct
-from ..material import Material
-from ..renderer import render, render_batch
-from ..scene import Camera, Environment, GBuffer, Scene, Sphere
-from ..shipped_luts import brdf_lut
-from ..specular import prefilter
 from .._memory import render_bytes
-from ._common import nonnegative_int_arg, positive_int_arg, require_environment, require_memory
+from .._validate import positive_int
+from ..ibl import envs
+from ..ibl.cubemap import Cubemap
+from ..ibl.diffuse import irradiance
+from ..ibl.shade import shade_ibl
+from ..ibl.specular import prefilter
+from ..rendering.renderer import render, render_batch
+from ..rendering.scene import Camera, Environment, GBuffer, Scene, Sphere
+from ..shading.lights import PointLight, shade_direct
+from ..shading.material import Material
+from ..shading.shipped_luts import brdf_lut
+from ._common import (
+    nonnegative_int_arg,
+    positive_int_arg,
+    require_environment,
+    require_memory,
+)
 from .bench_shade import _PEAK_BANDWIDTH, VersusNumpy
 from .numpy_baselines import (
     GBUFFER_KEYS,

@@ -15,8 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..lights import PointLight, shade_direct
-from ..material import Material
+from ..shading.lights import PointLight, shade_direct
+from ..shading.material import Material
 from ._common import positive_int_arg, require_memory
 from .numpy_baselines import bench_lights, make_gbuffer, shade_numpy
 from .timing import time_calls

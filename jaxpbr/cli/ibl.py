@@ -20,35 +20,30 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import image
-from ..atomic import OutputSet, write_json
-from ..conventions import cube_conventions, library_versions
-from ..cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
-from ..cubemap import _mip_count, texel_directions
-from ..diffuse import irradiance, sh9_project
-from ..errors import Float16RangeError, InputError
-from ..extract import extract_lights, lights_to_json
 from .._memory import check_samples, lut_bytes, prefilter_bytes, require
-from ..lut import DEFAULT_SAMPLES as LUT_DEFAULT_SAMPLES
-from ..lut import SMITH_ALIASES, SMITH_VARIANTS, _lut_shape
-from ..measure import (
-    _brightest_direction,
-    _rel,
+from ..conventions import cube_conventions, library_versions
+from ..errors import Float16RangeError, InputError
+from ..ibl.cubeio import ENVIRONMENT_HELP, load_environment, write_cubemap
+from ..ibl.cubemap import mip_count, texel_directions
+from ..ibl.diffuse import irradiance, sh9_project
+from ..ibl.extract import extract_lights, lights_to_json
+from ..ibl.measure import (
+    brightest_direction,
+    relative_error,
     irradiance_error,
     lut_error,
     prefilter_error,
     summarize,
     texel_subset,
 )
-from ..sheen_prefilter import (
+from ..ibl.sheen_prefilter import (
     DEFAULT_CHARLIE_LEVELS,
     DEFAULT_CHARLIE_SIZE,
     charlie_level_roughness,
     charlie_reference,
     prefilter_charlie,
 )
-from ..shipped_luts import brdf_lut
-from ..specular import (
+from ..ibl.specular import (
     DEFAULT_CHAIN_FLOOR,
     DEFAULT_EXACT_TEXELS,
     DEFAULT_LOD_BLEND,
@@ -60,6 +55,11 @@ from ..specular import (
     default_sample_counts,
     prefilter,
 )
+from ..io import image
+from ..io.atomic import OutputSet, write_json
+from ..shading.lut import DEFAULT_SAMPLES as LUT_DEFAULT_SAMPLES
+from ..shading.lut import SMITH_ALIASES, SMITH_VARIANTS, lut_shape
+from ..shading.shipped_luts import brdf_lut
 from ._common import Progress, positive_int_arg, raise_pending, require_memory
 
 __all__ = ["add_commands", "cmd_ibl", "cmd_irradiance", "cmd_lut", "cmd_prefilter"]
@@ -201,8 +201,8 @@ def _check_samples_and_levels(args, face_size) -> None:
     if not face_size:
         return
     S = args.size or face_size
-    if args.levels is not None and S <= face_size and args.levels > _mip_count(S):
-        raise InputError(f"--levels {args.levels}: a {S}^2 prefiltered cube has at most {_mip_count(S)} levels (each halves the face); "
+    if args.levels is not None and S <= face_size and args.levels > mip_count(S):
+        raise InputError(f"--levels {args.levels}: a {S}^2 prefiltered cube has at most {mip_count(S)} levels (each halves the face); "
                          f"lower --levels (or raise --face-size)")
     if args.method == "fis" and S <= face_size:
         M = args.levels or default_num_levels(S)
@@ -261,7 +261,7 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None, sheen: dict | None
     """The split-sum LUT file; with `sheen` (from `_sheen_table`: the bake), its B channel holds the
     sheen albedo table and the sidecar records where that table came from."""
     out = _checked(outs, Path(out_path or args.output), (".exr",))
-    n_r, n_nov = _lut_shape(args.size)
+    n_r, n_nov = lut_shape(args.size)
     samples = args.samples or LUT_DEFAULT_SAMPLES
     check_samples("--samples", samples)
     flag = "--lut-size" if out_path is not None else "--size"
@@ -318,9 +318,9 @@ def _lut(args, outs: OutputSet, out_path: Path | None = None, sheen: dict | None
 
 
 def _sheen_lut(args, outs: OutputSet, out: Path) -> dict:
-    """`jaxpbr lut --sheen`: the sheen albedo table (jaxpbr.sheen_lut), as `_lut` writes the LUT."""
-    from ..sheen_lut import sheen_lut_error
-    from ..shipped_luts import sheen_lut
+    """`jaxpbr lut --sheen`: the sheen albedo table (jaxpbr.shading.sheen_lut), as `_lut` writes the LUT."""
+    from ..shading.sheen_lut import sheen_lut_error
+    from ..shading.shipped_luts import sheen_lut
 
     t0 = time.perf_counter()
     lut = np.asarray(sheen_lut(args.size, samples=args.samples, use_shipped=False, progress=Progress("lut", args.quiet)))
@@ -434,10 +434,10 @@ def _sheen_table(args) -> dict:
     """The sheen albedo table E for the LUT's B channel (size --lut-size) and its provenance: the
     shipped file with its MANIFEST error when one matches, otherwise computed (and its error
     measured against the float64 reference unless --no-error)."""
-    from ..sheen_lut import DEFAULT_SAMPLES, sheen_lut_error
-    from ..shipped_luts import sheen_lut, shipped_manifest
+    from ..shading.sheen_lut import DEFAULT_SAMPLES, sheen_lut_error
+    from ..shading.shipped_luts import sheen_lut, shipped_manifest
 
-    n_r, n_nov = _lut_shape(args.lut_size)
+    n_r, n_nov = lut_shape(args.lut_size)
     entry = next((e for e in shipped_manifest().get("sheen_luts", []) if e["size"] == [n_r, n_nov] and e["samples"] == DEFAULT_SAMPLES), None)
     t0 = time.perf_counter()
     table = np.asarray(sheen_lut(args.lut_size, progress=None if entry else Progress("sheen lut", args.quiet)), np.float32)
@@ -450,11 +450,11 @@ def _sheen_table(args) -> dict:
         "seconds": time.perf_counter() - t0,
     }
     if entry is not None:
-        info |= {"source": "shipped", "shipped_file": f"luts/{entry['file']}",
+        info |= {"source": "shipped", "shipped_file": f"jaxpbr/_luts/{entry['file']}",
                  **{k: entry[k] for k in ("max_abs_error", "mean_abs_error", "error_texels", "error_reference", "generated_by") if k in entry}}
     else:
         err = None if args.no_error else sheen_lut_error(table, texels=1024)
-        info |= {"source": "computed (jaxpbr.sheen_lut.compute_sheen_lut)", "error_vs_float64_reference": err}
+        info |= {"source": "computed (jaxpbr.shading.sheen_lut.compute_sheen_lut)", "error_vs_float64_reference": err}
     return info | {"table": table}
 
 
@@ -463,7 +463,7 @@ def _charlie_geometry(args, env) -> tuple[int, int]:
     renderer's: DEFAULT_CHARLIE_SIZE, no larger than the environment), refused with the flags
     named before any work."""
     S = args.charlie_size or min(DEFAULT_CHARLIE_SIZE, env.face_size)
-    most = _mip_count(S)
+    most = mip_count(S)
     M = args.charlie_levels or min(DEFAULT_CHARLIE_LEVELS, most)
     if M > most:
         raise InputError(f"--charlie-levels {M}: a {S}^2 Charlie cube has at most {most} levels (each halves the face); "
@@ -486,14 +486,14 @@ def _charlie_error(env, ch, *, texels_per_level: int = CHARLIE_ERROR_TEXELS, tex
     of the environment's level 0) at a seeded texel subset that includes the texels nearest the
     brightest source direction."""
     rough = charlie_level_roughness(ch.num_levels)
-    sun = _brightest_direction(env)
+    sun = brightest_direction(env)
     rows = []
     for m in range(ch.num_levels):
         Sm = ch.levels[m].shape[1]
         sel = texel_subset(Sm, count=texels_level0 if m == 0 else texels_per_level, toward=sun, seed=m)
         d = texel_directions(Sm).reshape(-1, 3)[sel]
         ref = charlie_reference(env, d, float(rough[m]))
-        e = _rel(np.asarray(ch.levels[m], np.float64).reshape(-1, ch.channels)[sel], ref)
+        e = relative_error(np.asarray(ch.levels[m], np.float64).reshape(-1, ch.channels)[sel], ref)
         rows.append({"level": m, "roughness": float(rough[m]), "face_size": Sm, "texels": len(sel), "mean": float(e.mean()), "max": float(e.max())})
         if progress is not None:
             progress(m + 1, ch.num_levels)
@@ -501,7 +501,7 @@ def _charlie_error(env, ch, *, texels_per_level: int = CHARLIE_ERROR_TEXELS, tex
 
 
 def _charlie(args, outs: OutputSet, env, out: Path, size: int, levels: int) -> dict:
-    """The Charlie-prefiltered cube (`jaxpbr.sheen_prefilter.prefilter_charlie`) and its sidecar,
+    """The Charlie-prefiltered cube (`jaxpbr.ibl.sheen_prefilter.prefilter_charlie`) and its sidecar,
     written like the GGX cube (same container, metadata keys, rollback)."""
     out = _checked(outs, out, (".ktx2", ".exr"))
     t0 = time.perf_counter()
@@ -573,7 +573,7 @@ def cmd_ibl(args) -> int:
         for name, suffixes in (("irradiance.ktx2", (".ktx2",)), ("prefiltered.ktx2", (".ktx2",))) + ((("charlie.ktx2", (".ktx2",)),) if sheen else ()) + (
                                ("brdf_lut.exr", (".exr",)), ("ibl.json", (".json",))) + ((("lights.json", (".json",)),) if args.extract_lights else ()):
             _checked(outs, d / name, suffixes)
-        n_r, n_nov = _lut_shape(args.lut_size)
+        n_r, n_nov = lut_shape(args.lut_size)
         require(f"a LUT of {n_r}x{n_nov} texels", lut_bytes(n_r, n_nov, LUT_DEFAULT_SAMPLES), names={"size": "--lut-size"})
         _check_prefilter_size(args, args.face_size)
         env = _load(args, "prefilter")

@@ -21,12 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..cubemap import Cubemap, _corner_mask, _pad_index
-from ..ibl import MIN_N_DOT_V
-from ..split_sum import SCHLICK_LAMBERT_FIT
-from ..material import F0_DIELECTRIC
-from ..lut import lut_coordinates, lut_padded, lut_r0
-from ..specular import lookup_of, roughness_to_lod
+from ..ibl.cubemap import Cubemap, corner_mask, pad_index
+from ..ibl.shade import MIN_N_DOT_V
+from ..ibl.specular import lookup_of, roughness_to_lod
+from ..shading.lut import lut_coordinates, lut_padded, lut_r0
+from ..shading.material import F0_DIELECTRIC
+from ..shading.split_sum import SCHLICK_LAMBERT_FIT
 
 __all__ = [
     "GBUFFER_KEYS",
@@ -133,8 +133,8 @@ def shade_numpy(g: dict[str, np.ndarray], lights: list[dict], min_roughness: flo
 def _pad_level_np(level: np.ndarray) -> np.ndarray:
     """NumPy port of `cubemap._pad_level`: (6, S, S, C) -> (6, S+2, S+2, C) seam pad."""
     S, C = level.shape[1], level.shape[3]
-    g = level.reshape(6 * S * S, C)[_pad_index(S)]  # (6, S+2, S+2, 3, C)
-    corner = _corner_mask(S)[..., None]
+    g = level.reshape(6 * S * S, C)[pad_index(S)]  # (6, S+2, S+2, 3, C)
+    corner = corner_mask(S)[..., None]
     return np.where(corner, (g[..., 0, :] + g[..., 1, :] + g[..., 2, :]) * _F32(1.0 / 3.0), g[..., 0, :])
 
 
@@ -215,7 +215,7 @@ class NumpyCube:
 
 
 def lut_lookup_numpy(lut: np.ndarray, n_dot_v: np.ndarray, roughness: np.ndarray) -> np.ndarray:
-    """NumPy port of `jaxpbr.lut.lut_lookup` (split-sum edges: the closed form at r = 0, the table
+    """NumPy port of `jaxpbr.shading.lut.lut_lookup` (split-sum edges: the closed form at r = 0, the table
     extended to r = 1 and NoV = 1, bilinear, clamped beyond) for float32 (P,) inputs."""
     table = lut_padded(np.asarray(lut), xp=np)
     n_r, n_nov = lut.shape[:2]
@@ -267,7 +267,7 @@ class NumpyIBL:
 def shade_ibl_numpy(g: dict[str, np.ndarray], ibl: NumpyIBL) -> np.ndarray:
     """`shade_ibl(model="gltf", multiscatter=False)` in NumPy on a float32 G-buffer -> (H, W, 3):
     `c_diff 0.96 (1 - C(n.v)) Ebar(n) + LD(d, lod(r)) * (F0 A + B)`, R = 2 (n.v) n - v, d its
-    dominant direction (`jaxpbr.ibl`)."""
+    dominant direction (`jaxpbr.ibl.shade`)."""
     shape = g["normal"].shape[:-1]
     n = g["normal"].reshape(-1, 3)
     v = g["view"].reshape(-1, 3)

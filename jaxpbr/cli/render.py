@@ -11,13 +11,14 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from .. import color, image
-from ..atomic import OutputSet
-from ..brdf_terms import MODELS
+from .. import color
 from ..conventions import CONVENTIONS
-from ..demo import demo_scene
-from ..renderer import BAND_PIXELS, RenderOptions, check_memory, plan, render
-from ..scene import MAX_SUPERSAMPLE
+from ..io import image
+from ..io.atomic import OutputSet
+from ..rendering.demo import demo_scene
+from ..rendering.renderer import BAND_PIXELS, RenderOptions, check_memory, plan, render
+from ..rendering.scene import MAX_SUPERSAMPLE
+from ..shading.brdf_terms import MODELS
 from ._common import CLIError, Progress, positive_int_arg, raise_pending
 from .scene_file import load_scene
 

@@ -2,7 +2,7 @@
 
 For the BRDF LUT, each irradiance method and the prefiltered specular cube, a sweep of sample
 counts / resolutions is timed (after a warm-up call, so JIT compilation is excluded and reported
-apart) and compared with the float64 references of `jaxpbr.measure`. Environments: a procedural sky
+apart) and compared with the float64 references of `jaxpbr.ibl.measure`. Environments: a procedural sky
 with a 3000-radiance sun generated in code, plus any HDR panoramas given. Output: a Markdown table
 and a PNG plot (the plot needs matplotlib: `pip install 'jaxpbr[report]'`).
 
@@ -26,15 +26,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import envs
-from ..atomic import OutputSet, atomic_write
-from ..cubeio import load_environment
-from ..diffuse import irradiance
 from ..errors import InputError
-from ..lut import compute_brdf_lut
-from ..measure import irradiance_error, lut_error, prefilter_error, summarize
-from ..cubemap import Cubemap, texel_directions
-from ..specular import (
+from ..ibl import envs
+from ..ibl.cubeio import load_environment
+from ..ibl.cubemap import Cubemap, texel_directions
+from ..ibl.diffuse import irradiance
+from ..ibl.measure import irradiance_error, lut_error, prefilter_error, summarize
+from ..ibl.specular import (
     DEFAULT_CHAIN_FLOOR,
     DEFAULT_LOD_BLEND,
     LOD_BLENDS,
@@ -48,6 +46,8 @@ from ..specular import (
     prefilter_reference,
     roughness_to_lod,
 )
+from ..io.atomic import OutputSet, atomic_write
+from ..shading.lut import compute_brdf_lut
 from ._common import have_matplotlib, positive_int_arg, require_environment
 from .timing import time_calls, to_host
 
@@ -203,7 +203,7 @@ def chain_env_rows(env, env_name: str, floors=CHAIN_FLOORS, mappings=MAPPINGS, b
     """The chain sweep on a real environment: the default FIS prefilter of `env` (face size S) for
     each floor and mapping, looked up with each blend at `directions` random directions per
     roughness, against `prefilter_reference` (float64, every texel) at the same (R, r); relative L1
-    error over the channels (as `jaxpbr.measure`). Includes the prefilters' sampling error."""
+    error over the channels (as `jaxpbr.ibl.measure`). Includes the prefilters' sampling error."""
     S = env.face_size
     rng = np.random.default_rng(seed)
     R = rng.normal(size=(len(roughness), directions, 3))

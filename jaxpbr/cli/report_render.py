@@ -29,26 +29,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import envs
-from .. import extract as _extract
-from .. import lights as _lights
 from .._validate import positive_int
-from ..atomic import OutputSet, atomic_write
-from ..cubeio import ENVIRONMENT_HELP, load_environment
-from ..cubemap import Cubemap
-from ..diffuse import irradiance
 from ..errors import InputError
-from ..ibl import disc_multiscatter, shade_ibl
-from ..material import Material
-from ..reference_render import (
+from ..ibl import envs
+from ..ibl import extract as _extract
+from ..ibl.cubeio import ENVIRONMENT_HELP, load_environment
+from ..ibl.cubemap import Cubemap
+from ..ibl.diffuse import irradiance
+from ..ibl.reference_render import (
     min_reference_roughness,
     reference_ibl_from_terms,
     reference_ibl_terms,
     reference_layered,
 )
-from ..shipped_luts import brdf_lut
-from ..specular import prefilter
-from ._common import have_matplotlib, positive_int_arg, require_environment, require_memory
+from ..ibl.shade import disc_multiscatter, shade_ibl
+from ..ibl.specular import prefilter
+from ..io.atomic import OutputSet, atomic_write
+from ..shading import lights as _lights
+from ..shading.material import Material
+from ..shading.shipped_luts import brdf_lut
+from ._common import (
+    have_matplotlib,
+    positive_int_arg,
+    require_environment,
+    require_memory,
+)
 from .timing import time_calls
 
 __all__ = ["DEFAULT_EXTENSION_ROUGHNESS", "DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "EXTENSION_ROWS", "add_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
@@ -180,11 +185,11 @@ def render_report(
 ) -> dict:
     """Render the material grid both ways and measure the split-sum error.
 
-    env: None (the procedural sky + 3000-radiance sun of `jaxpbr.envs` at `face_size`), a
-        `Cubemap`, or a path / "procedural:sky" (read with `jaxpbr.cubeio.load_environment`).
+    env: None (the procedural sky + 3000-radiance sun of `jaxpbr.ibl.envs` at `face_size`), a
+        `Cubemap`, or a path / "procedural:sky" (read with `jaxpbr.ibl.cubeio.load_environment`).
     roughness, metallic: the grid (every roughness >= `min_reference_roughness(face size)`).
     lights: punctual lights (default `default_lights()`).
-    extract_lights: split dominant lights out of the environment first (`jaxpbr.extract`, as
+    extract_lights: split dominant lights out of the environment first (`jaxpbr.ibl.extract`, as
         `render` does by default): the split sum then shades the residual and the disc lights.
     extensions: names of `EXTENSION_ROWS` (or "all") to add rows for, one per value of
         `extension_roughness` (the extension's own roughness where it has one): the layered split
@@ -364,8 +369,8 @@ def _extension_rows(names, roughness, *, base_color, env, ss_env, n, v, p, mask,
     sheen_missing = None
     if "sheen" in names:
         try:
-            from ..sheen_prefilter import prefilter_charlie
-            from ..shipped_luts import sheen_lut
+            from ..ibl.sheen_prefilter import prefilter_charlie
+            from ..shading.shipped_luts import sheen_lut
 
             t0 = time.perf_counter()
             slut = sheen_lut()

@@ -34,18 +34,26 @@ from typing import Any
 
 import numpy as np
 
-from .. import image
-from ..brdf_terms import MODELS, OPTION_CHOICES
-from ..color import TONEMAP_OPERATORS, TRANSFERS, srgb_decode, srgb_decode_np
-from ..cubeio import load_environment
-from ..diffuse import IRRADIANCE_METHODS
 from .._memory import MemoryLimitError, cube_bytes, require, texture_load_bytes
+from ..color import TONEMAP_OPERATORS, TRANSFERS, srgb_decode, srgb_decode_np
 from ..errors import InputError
-from ..lights import DirectionalLight, PointLight, SpotLight
-from ..material import EXTENSION_FIELDS, Material
-from ..renderer import RenderOptions
-from ..scene import EXTENSION_TEXTURES, Camera, Environment, Plane, Scene, Sphere, TexturedMaterial
-from ..specular import MAPPINGS
+from ..ibl.cubeio import load_environment
+from ..ibl.diffuse import IRRADIANCE_METHODS
+from ..ibl.specular import MAPPINGS
+from ..io import image
+from ..rendering.renderer import RenderOptions
+from ..rendering.scene import (
+    EXTENSION_TEXTURES,
+    Camera,
+    Environment,
+    Plane,
+    Scene,
+    Sphere,
+    TexturedMaterial,
+)
+from ..shading.brdf_terms import MODELS, OPTION_CHOICES
+from ..shading.lights import DirectionalLight, PointLight, SpotLight
+from ..shading.material import EXTENSION_FIELDS, Material
 
 __all__ = ["SceneFile", "hex_to_linear", "load_scene", "loads_scene"]
 

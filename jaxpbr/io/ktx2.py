@@ -50,9 +50,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ._version import __version__
+from .._version import __version__
+from ..errors import Float16RangeError
 from .atomic import atomic_write
-from .errors import Float16RangeError
 
 __all__ = ["FORMATS", "read_ktx2", "write_ktx2"]
 
@@ -281,7 +281,7 @@ def _metadata_pairs(metadata) -> list[tuple[bytes, bytes]]:
                 "(jaxpbr writes KTXwriter and KTXorientation itself); use another key, e.g. 'jaxpbr:...'"
             )
         if not isinstance(value, str):
-            raise ValueError(  # noqa: TRY004 - ValueError for all bad metadata, as in jaxpbr.image
+            raise ValueError(  # noqa: TRY004 - ValueError for all bad metadata, as in jaxpbr.io.image
                 f"metadata value for {key!r} must be str (KTX2 values are stored as UTF-8 strings); got "
                 f"{type(value).__name__}. Serialise it first, e.g. json.dumps(value)."
             )

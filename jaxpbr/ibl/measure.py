@@ -11,22 +11,22 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from ._api import keyword_only
+from .._api import keyword_only
+from ..shading.lut import lut_reference, resolve_smith
 from .cubemap import Cubemap, face_to_dir, texel_directions
 from .diffuse import irradiance_at
-from .lut import lut_reference, resolve_smith
 from .specular import level_roughness, lookup_of, prefilter_reference
 
 __all__ = ["irradiance_error", "lut_error", "prefilter_error", "texel_subset"]
 
 
-def _rel(x, ref) -> np.ndarray:
+def relative_error(x, ref) -> np.ndarray:
     x = np.asarray(x, np.float64)
     ref = np.asarray(ref, np.float64)
     return np.abs(x - ref).sum(-1) / np.maximum(np.abs(ref).sum(-1), 1e-300)
 
 
-def _brightest_direction(env: Cubemap) -> np.ndarray:
+def brightest_direction(env: Cubemap) -> np.ndarray:
     """The centre direction of the texel with the largest channel sum (only that texel's
     direction is computed: the full direction grid of a 2048^2 cube was 0.6 GB)."""
     S = env.face_size
@@ -60,7 +60,7 @@ def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, 
     progress: optional callable(done_levels, total_levels)."""
     M, mapping, _ = lookup_of(pre)  # a partial chain: the M-level roughness
     rough = level_roughness(M, mapping=mapping)
-    sun = _brightest_direction(env)
+    sun = brightest_direction(env)
     rows = []
     for m in range(1, pre.num_levels):
         Sm = pre.levels[m].shape[1]
@@ -68,7 +68,7 @@ def prefilter_error(env: Cubemap, pre: Cubemap, *, texels_per_level: int = 256, 
         d = texel_directions(Sm).reshape(-1, 3)[sel]
         ref = prefilter_reference(env, d, float(rough[m]))
         got = np.asarray(pre.levels[m], np.float64).reshape(-1, pre.channels)[sel]
-        e = _rel(got, ref)
+        e = relative_error(got, ref)
         rows.append(
             dict(level=m, roughness=float(rough[m]), face_size=Sm, texels=len(sel), mean=float(e.mean()), max=float(e.max()))
         )
@@ -82,13 +82,13 @@ def irradiance_error(env: Cubemap, irr: Cubemap, *, texels: int = 512, seed: int
     convolution (source_size = env face size) in float64, at a texel subset (`progress` as in
     `irradiance`)."""
     S = irr.face_size
-    sel = texel_subset(S, count=texels, toward=_brightest_direction(env), seed=seed)
+    sel = texel_subset(S, count=texels, toward=brightest_direction(env), seed=seed)
     d = texel_directions(S).reshape(-1, 3)[sel]
     with jax.enable_x64(True):
         env64 = Cubemap(tuple(np.asarray(lv, np.float64) for lv in env.levels[:1]))
         ref = np.asarray(irradiance_at(env64, d, method="exact", source_size=env.face_size, chunk=16, progress=progress))
     got = np.asarray(irr.levels[0], np.float64).reshape(-1, irr.channels)[sel]
-    e = _rel(got, ref)
+    e = relative_error(got, ref)
     return dict(texels=len(sel), mean=float(e.mean()), max=float(e.max()))
 
 

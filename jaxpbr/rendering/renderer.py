@@ -38,15 +38,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import (  # called through the module: tests count precompute calls
-    diffuse,
-    extract,
-    shipped_luts,
-    specular,
-)
-from . import _memory
-from ._api import keyword_only
-from ._numerics import (
+from .. import _memory
+from .._api import keyword_only
+from .._numerics import (
     is_concrete,
     outside_traces,
     pack3,
@@ -58,26 +52,30 @@ from ._numerics import (
     vnormalize,
     with_callers_context,
 )
-from ._pytree import Pytree, evolve, fields_of, unchecked
-from ._validate import check_values, positive_int
-from ._version import __version__
-from .atomic import atomic_write
-from .brdf_terms import MODEL_REGISTRY, check_options
-from .cubemap import Cubemap
-from .ibl import disc_multiscatter, shade_ibl
-from .lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
-from .layered import emission_soa
-from .lights import shade_direct
-from .material import EXTENSIONS, Material
+from .._pytree import Pytree, evolve, fields_of, unchecked
+from .._validate import check_values, positive_int
+from .._version import __version__
+
+# called through the modules: tests count precompute calls
+from ..ibl import diffuse, extract, specular
+from ..ibl.cubemap import Cubemap
+from ..ibl.shade import disc_multiscatter, shade_ibl
+from ..io.atomic import atomic_write
+from ..shading import shipped_luts
+from ..shading.brdf_terms import MODEL_REGISTRY, check_options
+from ..shading.layered import emission_soa
+from ..shading.lights import shade_direct
+from ..shading.lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
+from ..shading.material import EXTENSIONS, Material
 from .scene import (
     Environment,
     Plane,
     Scene,
     Sphere,
     TexturedMaterial,
+    apply_extension_textures,
     intersect_plane,
     intersect_sphere,
-    apply_extension_textures,
     primary_rays,
     sample_texture,
 )
@@ -123,7 +121,7 @@ class RenderOptions:
     mapping: roughness -> mip mapping of the prefiltered map ("linear" | "quadratic").
     dtype: float32 | float64 for the shading: a name, a NumPy or a JAX dtype (stored as its name).
     extract_lights: split dominant lights (suns) out of a concrete environment whose maps are
-        computed here (`jaxpbr.extract.extract_lights`, defaults), shade them as analytic disc
+        computed here (`jaxpbr.ibl.extract.extract_lights`, defaults), shade them as analytic disc
         lights and the residual with the split sum (default True; the split sum alone is off by
         30-60 % on metals under a sun, issue 11). Once per environment content (cached). An
         environment with given maps uses its own `lights` (None: nothing is split).
@@ -353,7 +351,7 @@ def _charlie_size(env: Environment) -> int:
     """Face size of the Charlie cube the plan reads: the environment's own, or the default."""
     if env.charlie is not None:
         return env.charlie.face_size
-    from . import sheen_prefilter
+    from ..ibl import sheen_prefilter
 
     return min(sheen_prefilter.DEFAULT_CHARLIE_SIZE, env.radiance.face_size)
 
@@ -543,7 +541,7 @@ def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions):
         table = ASSETS.get("sheen_lut", (opts.lut_size, dtype.name), lambda: shipped_luts.sheen_lut(opts.lut_size))
     charlie = env.charlie
     if charlie is None:
-        from . import sheen_prefilter
+        from ..ibl import sheen_prefilter
 
         src = env.radiance
         compute = lambda: sheen_prefilter.prefilter_charlie(src, size=p.charlie_size)  # noqa: E731
@@ -967,7 +965,7 @@ def _volume_inputs(g, m: Material, dtype):
     direction is -v."""
     if "radius" not in g or "volume" not in m.extensions:
         return None, None
-    from .layered_ibl import refract
+    from ..ibl.layered_ibl import refract
 
     mc = m.complete(("ior", "volume"))
     n = pack3(g["n"])

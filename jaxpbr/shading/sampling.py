@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import (
+from .._numerics import (
     Vec3,
     as_float,
     eps,

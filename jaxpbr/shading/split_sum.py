@@ -1,14 +1,14 @@
-"""The pieces of the split sum shared by the core and the layered IBL (`jaxpbr.ibl`,
-`jaxpbr.layered_ibl`) and the scene layer: the LUT weights with Fdez-Aguera's multiple-scattering
+"""The pieces of the split sum shared by the core and the layered IBL (`jaxpbr.ibl.shade`,
+`jaxpbr.ibl.layered_ibl`) and the scene layer: the LUT weights with Fdez-Aguera's multiple-scattering
 term, the diffuse lobe's Fresnel factor, the prefiltered map's lookup direction, and the
-compensation of the suns split out of an environment. Re-exported by `jaxpbr.ibl`."""
+compensation of the suns split out of an environment. Re-exported by `jaxpbr.ibl.shade`."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 
-from ._numerics import pack3, safe_normalize, safe_sqrt, unpack3, vdot
+from .._numerics import pack3, safe_normalize, safe_sqrt, unpack3, vdot
 from .lights import cap_factor, light_incidence_soa, pack_lights
 from .lut import lut_lookup
 from .material import F0_DIELECTRIC, Material
@@ -86,7 +86,7 @@ def multiscatter_weight(nov, m: Material, lut) -> jax.Array:
     """FmsEms of the base material (the dielectric and metal lobes mixed by metallic), (..., 3):
     what the Fdez-Aguera compensation adds per unit Ebar(n). `shade_ibl(multiscatter=True)` adds it
     times the environment's irradiance; the scene layer adds it times the irradiance of the suns
-    split out of the environment (`jaxpbr.extract`). The dielectric lobe takes the material's F0 and
+    split out of the environment (`jaxpbr.ibl.extract`). The dielectric lobe takes the material's F0 and
     F90 (KHR_materials_ior / _specular); the sheen and clear-coat layers' scaling of the base and an
     anisotropic lobe's albedo are not applied here, so with those extensions splitting a sun out
     changes the compensation slightly. nov (...) clamped n.v; the roughness is m.roughness clamped

@@ -45,22 +45,30 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._api import keyword_only
-from ._numerics import HIGHEST, is_concrete, map_row_chunks, outside_traces, progress_token, row_chunk_count, safe_div
-from ._memory import check_samples, prefilter_bytes, require
-from ._validate import check_radiance, positive_int
-from .conventions import luminance
+from .._api import keyword_only
+from .._memory import check_samples, prefilter_bytes, require
+from .._numerics import (
+    HIGHEST,
+    is_concrete,
+    map_row_chunks,
+    outside_traces,
+    progress_token,
+    row_chunk_count,
+    safe_div,
+)
+from .._validate import check_radiance, positive_int
+from ..conventions import luminance
+from ..shading.sampling import hammersley, pdf_ggx_h, sample_ggx_h, tangent_frame
 from .cubemap import (
     Cubemap,
     _mip_chain_impl,
-    _mip_count,
+    mip_count,
     _Pyramid,
     _subtexel_coords,
     face_to_dir,
     texel_directions,
     texel_solid_angles,
 )
-from .sampling import hammersley, pdf_ggx_h, sample_ggx_h, tangent_frame
 
 __all__ = [
     "DEFAULT_CHAIN_FLOOR",
@@ -140,7 +148,7 @@ def default_num_levels(size: int, *, floor: int = DEFAULT_CHAIN_FLOOR, min_level
     16 -> 5 (16..1), 4 -> 3, 1 -> 1."""
     S = positive_int("size", size)
     floor = positive_int("floor", floor)
-    most = _mip_count(S)
+    most = mip_count(S)
     M = 1
     while S % 2 == 0 and S // 2 >= floor:
         S //= 2
@@ -966,7 +974,7 @@ def prefilter(
             f"prefilter size {S} must be the environment's face size {S0} divided by a power of two "
             f"(1, 2, 4, ...); resample the environment with Cubemap.from_equirect/from_function first"
         )
-    most = _mip_count(S)
+    most = mip_count(S)
     M = default_num_levels(S) if num_levels is None else positive_int("num_levels", num_levels)
     last = M - 1 if max_level is None else int(max_level)
     if not 0 <= last <= M - 1:
@@ -1033,7 +1041,7 @@ def prefilter(
                 src_level0 = resid
             else:
                 idx = bright = None
-        sizes = tuple(S0 >> i for i in range(_mip_count(S0)))
+        sizes = tuple(S0 >> i for i in range(mip_count(S0)))
         dt = np.dtype(env.dtype)
         # Rows of work of all levels (direction-major: N_m directions x nb_m sample batches) and
         # their sample tables stacked: one program computes the whole chain.

@@ -15,8 +15,8 @@ import secrets
 import shutil
 from pathlib import Path
 
-from ._api import keyword_only
-from .errors import InputError
+from .._api import keyword_only
+from ..errors import InputError
 
 __all__ = ["OutputSet", "atomic_write", "write_json"]
 

@@ -25,9 +25,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import HIGHEST, map_row_chunks, progress_token, row_chunk_count
-from ._memory import irradiance_bytes, require
-from ._validate import check_radiance, positive_int
+from .._memory import irradiance_bytes, require
+from .._numerics import HIGHEST, map_row_chunks, progress_token, row_chunk_count
+from .._validate import check_radiance, positive_int
 from .cubemap import (
     _FACE_TABLE,
     Cubemap,

@@ -32,12 +32,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._api import keyword_only
-from ._interp import bilinear, lerp2
-from ._numerics import HIGHEST, is_concrete
-from ._pytree import Pytree, leaf, static
-from ._memory import cube_bytes, require
-from ._validate import positive_int
+from .._api import keyword_only
+from .._interp import bilinear, lerp2
+from .._memory import cube_bytes, require
+from .._numerics import HIGHEST, is_concrete
+from .._pytree import Pytree, leaf, static
+from .._validate import positive_int
 
 __all__ = [
     "FACE_NAMES",
@@ -191,7 +191,7 @@ def _equirect_row_solid_angles(height: int, width: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _pad_index(size: int) -> np.ndarray:
+def pad_index(size: int) -> np.ndarray:
     """Flat source indices (6, S+2, S+2, 3) into a (6*S*S) face array for the one-texel seam pad.
 
     Interior pads repeat their own index 3 times; an edge pad is the nearest texel of the
@@ -206,7 +206,7 @@ def _pad_index(size: int) -> np.ndarray:
 
 
 def _pad_level(level: jax.Array) -> jax.Array:
-    """(6, S, S, C) -> (6, S+2, S+2, C) with the seam pad of `_pad_index`: the interior copied,
+    """(6, S, S, C) -> (6, S+2, S+2, C) with the seam pad of `pad_index`: the interior copied,
     the border (`_pad_border`: O(S) indices, not a (6, S+2, S+2, 3) table, which XLA embedded as
     a constant: 75 MB at 1024^2 and ~1 GB of compile memory; issue 13) gathered and scattered."""
     S, C = level.shape[1], level.shape[3]
@@ -222,7 +222,7 @@ def _pad_level(level: jax.Array) -> jax.Array:
 @functools.lru_cache(maxsize=64)
 def _pad_border(S: int):
     """The border cells of the seam pad: flat positions (E,) into (6, S+2, S+2), their three
-    source indices (E, 3) into (6*S*S) (as in `_pad_index`) and whether each is a corner (E,);
+    source indices (E, 3) into (6*S*S) (as in `pad_index`) and whether each is a corner (E,);
     E = 6 (4S + 4). int32 / bool NumPy arrays."""
     k = np.arange(-1, S + 1)
     ii = np.concatenate([np.full(S + 2, -1), np.full(S + 2, S), np.arange(S), np.arange(S)])
@@ -240,7 +240,7 @@ def _pad_border(S: int):
 
 def _pad_sources(S: int, f: int, ii, jj):
     """The three source indices (n, 3) of the pad cells (ii, jj) in [-1, S] of face f (see
-    `_pad_index`): interior cells repeat their own index; an edge pad is the nearest texel of the
+    `pad_index`): interior cells repeat their own index; an edge pad is the nearest texel of the
     neighbouring face (the face plane extended one half texel past the edge and re-projected); a
     corner pad lists its own clamped texel and the two across its edges."""
 
@@ -262,7 +262,7 @@ def _pad_sources(S: int, f: int, ii, jj):
 
 
 @functools.lru_cache(maxsize=64)
-def _corner_mask(S: int) -> np.ndarray:
+def corner_mask(S: int) -> np.ndarray:
     m = np.zeros((6, S + 2, S + 2), bool)
     m[:, [0, 0, -1, -1], [0, -1, 0, -1]] = True
     return m
@@ -353,7 +353,7 @@ def _mip_chain_impl(level0, num_levels: int):
 _mip_chain = jax.jit(_mip_chain_impl, static_argnums=1)
 
 
-def _mip_count(size: int) -> int:
+def mip_count(size: int) -> int:
     n = 1
     while size % 2 == 0 and size > 1:
         size //= 2
@@ -487,7 +487,7 @@ class Cubemap(Pytree):
         """This map's level 0 with an area-correct pyramid (default: down to 1x1, or the last
         even size)."""
         S = self.face_size
-        most = _mip_count(S)
+        most = mip_count(S)
         if num_levels is None:
             num_levels = most
         num_levels = positive_int("num_levels", num_levels)

@@ -10,13 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import envs, image
-from .atomic import OutputSet
+from .._memory import cube_bytes, require
+from .._validate import positive_int
+from ..errors import InputError
+from ..io import image
+from ..io.atomic import OutputSet
+from ..io.ktx2 import write_ktx2
+from . import envs
 from .cubemap import Cubemap, downsample
-from ._memory import cube_bytes, require
-from ._validate import positive_int
-from .errors import InputError
-from .ktx2 import write_ktx2
 
 __all__ = ["ENVIRONMENT_HELP", "FACE_FILE_NAMES", "default_face_size", "load_environment", "write_cubemap"]
 

@@ -1,4 +1,4 @@
-"""Split-sum image-based lighting of the glTF material extensions (see `jaxpbr.layered`).
+"""Split-sum image-based lighting of the glTF material extensions (see `jaxpbr.shading.layered`).
 
 Per pixel, with mu = max(n.v, MIN_N_DOT_V), (A, B) the GGX LUT at (mu, r), LD(d, r) the
 GGX-prefiltered environment, E_s the sheen albedo table, LD_c the Charlie-prefiltered environment:
@@ -13,7 +13,7 @@ GGX-prefiltered environment, E_s the sheen albedo table, LD_c the Charlie-prefil
     coated     = sheen (1 - clearcoat Fc) + clearcoat Fc LD(R_c, r_c) (A_c + B_c),   Fc at n_c.v
     Lo         = occlusion coated
 
-Choices, each measured against the brute-force layered reference (`jaxpbr.reference_render`,
+Choices, each measured against the brute-force layered reference (`jaxpbr.ibl.reference_render`,
 `jaxpbr report render`, docs/extensions.md):
 * k_d: the diffuse lobe's (1 - F) averaged over the Lambertian lobe (`ibl.diffuse_fresnel_weight`,
   W = C(mu) the Schlick weight's Lambert average; with multiscatter 1 - max3(FssEss + FmsEms)), as in the core split sum; the neutral values give the
@@ -51,10 +51,21 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._numerics import pack3, safe_sqrt, unpack3, vcross, vdot, vnormalize
-from .layered import anisotropic_alphas, anisotropy_frame, coat_fresnel, dielectric_fresnel, refractive_index, transmittance
-from .split_sum import schlick_lambert_average, specular_dominant_direction, split_sum_weights
-from .lut import lut_lookup
+from .._numerics import pack3, safe_sqrt, unpack3, vcross, vdot, vnormalize
+from ..shading.layered import (
+    anisotropic_alphas,
+    anisotropy_frame,
+    coat_fresnel,
+    dielectric_fresnel,
+    refractive_index,
+    transmittance,
+)
+from ..shading.lut import lut_lookup
+from ..shading.split_sum import (
+    schlick_lambert_average,
+    specular_dominant_direction,
+    split_sum_weights,
+)
 from .specular import lookup_of, roughness_to_lod
 
 __all__ = ["bent_reflection", "refract", "shade_ibl_layered"]
@@ -170,13 +181,13 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
     out = diel + (metal - diel) * metallic
 
     if "sheen" in ext:
-        from .sheen import floored_sheen_roughness, sheen_albedo_scaling
-        from .sheen_lut import sheen_lut_lookup
-        from .brdf_terms import MIN_ROUGHNESS
+        from ..shading.brdf_terms import MIN_ROUGHNESS
+        from ..shading.sheen import floored_sheen_roughness, sheen_albedo_scaling
+        from ..shading.sheen_lut import sheen_lut_lookup
 
         if sheen_lut is None or charlie is None:
             raise ValueError(
-                "the material has KHR_materials_sheen: its IBL term needs sheen_lut= (jaxpbr.sheen_lut()) "
+                "the material has KHR_materials_sheen: its IBL term needs sheen_lut= (jaxpbr.shading.sheen_lut()) "
                 "and charlie= (the Charlie-prefiltered environment, jaxpbr.prefilter_charlie(env))."
             )
         rs = floored_sheen_roughness(m.sheen_roughness, MIN_ROUGHNESS)

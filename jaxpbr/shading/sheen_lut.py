@@ -2,7 +2,7 @@
 reference, lookup.
 
 Definition. For a unit normal n, a view direction v with `mu = n.v` and the sheen lobe of
-`jaxpbr.sheen` (Charlie NDF D_c, Charlie visibility V_c with the Conty-Kulla Lambda fit),
+`jaxpbr.shading.sheen` (Charlie NDF D_c, Charlie visibility V_c with the Conty-Kulla Lambda fit),
 
     E(mu, r) = int_{H^2} D_c(h) V_c(v, l) (n.l) dl,    alpha = max(r, 0.045)^2,
 
@@ -24,10 +24,10 @@ independent Monte Carlo estimate, `tests/test_sheen_lut.py`). The albedo scaling
 integrand's 1/mu is not cancelled (Lambda(mu) stays finite), so E has no limit there; the
 lookup clamps NoV to the first texel centre.
 
-Layout (as the GGX LUT, `jaxpbr.lut`): shape `(n_roughness, n_nov)`, element `[j, i]` at
+Layout (as the GGX LUT, `jaxpbr.shading.lut`): shape `(n_roughness, n_nov)`, element `[j, i]` at
 `r = (j + 0.5) / n_roughness`, `NoV = (i + 0.5) / n_nov`; rows whose r is below the floor hold
 E at the floor. `sheen_lut_lookup` is bilinear between texel centres and clamps to the edge.
-In EXR files (`luts/sheen_lut_*.exr`): R = E, G = B = 0, image row j (row 0 at the top).
+In EXR files (`jaxpbr/_luts/sheen_lut_*.exr`): R = E, G = B = 0, image row j (row 0 at the top).
 
 `compute_sheen_lut` is a deterministic product Gauss-Legendre rule in half-vector space (see the
 notes above `_sheen_row`): 4 m^2 nodes per texel; with the default 784 (m = 14) every texel of a
@@ -46,9 +46,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._interp import bilinear
-from ._numerics import map_row_chunks, progress_token, row_chunk_count
-from ._validate import positive_int
+from .._interp import bilinear
+from .._numerics import map_row_chunks, progress_token, row_chunk_count
+from .._validate import positive_int
 from .brdf_terms import MIN_ROUGHNESS
 from .lut import _gauss_legendre_01, _phi_lines
 from .sheen import SHEEN_FIT, floored_sheen_roughness, lambda_sheen
@@ -101,7 +101,7 @@ def _order_from_samples(samples: int) -> int:
 # compute_sheen_lut: the fast, converged rule
 # ============================================================================================
 #
-# Geometry (as `jaxpbr.lut`). n = +z, v = (s_v, 0, mu), h = (sin t cos p, sin t sin p, cos t),
+# Geometry (as `jaxpbr.shading.lut`). n = +z, v = (s_v, 0, mu), h = (sin t cos p, sin t sin p, cos t),
 # dl = 4 (v.h) dw_h, so with V_c (n.l) = 1 / ((1 + Lambda(mu) + Lambda(n.l)) 4 mu):
 #
 #     E = 2 int_0^pi dp int D_c(t) (v.h) sin t / (mu (1 + Lambda(mu) + Lambda(n.l))) dt.
@@ -127,7 +127,7 @@ def _order_from_samples(samples: int) -> int:
 #
 # D in the log domain: log sin^2(theta_h) = log1p(-sin^2 delta) (accurate near the lobe's peak,
 # where 1 - sin^2 would lose the digits that 1/(2 alpha) ~ 250 amplifies) or 2 log cos delta
-# (delta >= pi/4). Lambda is `jaxpbr.sheen.lambda_sheen`, the one the shading code uses.
+# (delta >= pi/4). Lambda is `jaxpbr.shading.sheen.lambda_sheen`, the one the shading code uses.
 #
 # Precision: per-line quantities are float64; the integrand at the nodes is evaluated in
 # `node_dtype` (float32 for a float32 table; measured effect ~1e-7) and summed in float64.
@@ -232,7 +232,7 @@ def compute_sheen_lut(size=128, *, samples: int = DEFAULT_SAMPLES, dtype=jnp.flo
 #     sin^2(theta_h) = T / (T + (mu + x)^2),   T = |v + l|_tangential^2 = (s_v - s_l)^2 + 4 s_v s_l cos^2(phi/2),
 # so log D = log((2 + 1/alpha)/(2 pi)) - log1p((mu + x)^2 / T) / (2 alpha). D and Lambda are written
 # here again in NumPy from the extension text (only the fit's coefficient table is shared with
-# `jaxpbr.sheen`; a test compares the two implementations).
+# `jaxpbr.shading.sheen`; a test compares the two implementations).
 # Composite Gauss-Legendre on panels, all geometric with ratio 4: in x towards 0 (the horizon,
 # where Lambda(x) grows through many decades: 4^-levels), towards 1 (sqrt(1 - x^2) and the
 # (1 - x)^c of the fit's upper branch are singular there: 4^-(levels - 6)), at x = 1/2 (the fit's
@@ -356,7 +356,7 @@ def sheen_lut_lookup(lut: jax.Array, n_dot_v: jax.Array, sheen_roughness: jax.Ar
 def sheen_lut_error(lut, *, texels: int | None = 1024, seed: int = 0) -> dict:
     """Max / mean absolute error of a table (n_r, n_nov) against `sheen_lut_reference` at its
     texel centres: every texel if `texels` is None, else the four edges plus a seeded random
-    subset (as `jaxpbr.measure.lut_error`)."""
+    subset (as `jaxpbr.ibl.measure.lut_error`)."""
     lut = np.asarray(lut, np.float64)
     nr, nn = lut.shape
     jj, ii = np.meshgrid(np.arange(nr), np.arange(nn), indexing="ij")

@@ -40,12 +40,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._api import keyword_only
-from ._interp import bilinear, lerp
-from ._numerics import map_row_chunks, progress_token, row_chunk_count
-from ._memory import check_samples, lut_bytes, require
-from ._validate import positive_int
-from .brdf_terms import d_ggx, k_ibl, schlick_weight, v_schlick_ggx, v_smith_correlated, v_smith_separable
+from .._api import keyword_only
+from .._interp import bilinear, lerp
+from .._memory import check_samples, lut_bytes, require
+from .._numerics import map_row_chunks, progress_token, row_chunk_count
+from .._validate import positive_int
+from .brdf_terms import (
+    d_ggx,
+    k_ibl,
+    schlick_weight,
+    v_schlick_ggx,
+    v_smith_correlated,
+    v_smith_separable,
+)
 
 __all__ = [
     "DEFAULT_SAMPLES",
@@ -96,7 +103,7 @@ def resolve_smith(smith, fn: str = "compute_brdf_lut") -> str:
     return smith
 
 
-def _lut_shape(size) -> tuple[int, int]:
+def lut_shape(size) -> tuple[int, int]:
     fix = "pass an int such as 128, or a pair (n_roughness, n_nov) such as (64, 128)"
     if isinstance(size, (tuple, list)):
         if len(size) != 2:
@@ -296,7 +303,7 @@ def compute_brdf_lut(
     texels (bounded memory). Compiles once per (size, smith, samples, dtype) (~1.4 s); a 256^2
     table then takes 0.3-0.8 s on one CPU core (XLA:CPU runs it single-threaded).
     """
-    n_r, n_nov = _lut_shape(size)
+    n_r, n_nov = lut_shape(size)
     smith = resolve_smith(smith, "compute_brdf_lut")
     samples = positive_int("samples", samples, where="compute_brdf_lut", fix=f"the default is {DEFAULT_SAMPLES}")
     check_samples("samples", samples, where="compute_brdf_lut")
@@ -328,7 +335,7 @@ def compute_brdf_lut(
 # with a composite Gauss-Legendre rule on geometrically graded panels (no variable maps), the
 # horizon enters as the inner limit phi_max(theta), n.l comes from the double-angle form
 # mu cos 2t + s_v sin 2t cos p, and V from the textbook Smith Lambda / Schlick G1 (MATH.md §1.2,
-# §1.3), not from jaxpbr.brdf_terms. With f_spec (n.l) dl = D G2 F / (4 mu) * 4 (v.h) dw_h:
+# §1.3), not from jaxpbr.shading.brdf_terms. With f_spec (n.l) dl = D G2 F / (4 mu) * 4 (v.h) dw_h:
 #
 #     {A, B} = 2 int_0^{t_top} dt sin t D(t) int_0^{phi_max(t)} dp G2 (v.h) {1-Fc, Fc} / mu
 #

@@ -21,11 +21,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import (
+from .._numerics import (
     Vec3,
-    orthonormal_frame,
     as_float,
     is_concrete,
+    orthonormal_frame,
     pack3,
     safe_div,
     safe_sqrt,
@@ -34,10 +34,22 @@ from ._numerics import (
     vdot,
     vnormalize,
 )
-from ._pytree import Pytree, fields_of, leaf
-from ._validate import batch_shape, check_values, vector
-from .brdf_terms import MIN_ROUGHNESS, brdf_soa, check_options, floored_roughness, geometry_soa
-from .layered import anisotropic_alphas, anisotropy_frame, emission_soa, layer_setup, layered_soa
+from .._pytree import Pytree, fields_of, leaf
+from .._validate import batch_shape, check_values, vector
+from .brdf_terms import (
+    MIN_ROUGHNESS,
+    brdf_soa,
+    check_options,
+    floored_roughness,
+    geometry_soa,
+)
+from .layered import (
+    anisotropic_alphas,
+    anisotropy_frame,
+    emission_soa,
+    layer_setup,
+    layered_soa,
+)
 from .material import Material
 
 __all__ = [
@@ -361,9 +373,9 @@ def shade_direct(
         the model does not use (`brdf_terms.MODEL_REGISTRY`) raises ValueError unless it has its
         default value.
       tangent, coat_normal, volume_distance, sheen_lut: what the glTF material extensions need
-        (`jaxpbr.layered`): (..., 3) surface tangent (anisotropy), (..., 3) clear-coat normal
+        (`jaxpbr.shading.layered`): (..., 3) surface tangent (anisotropy), (..., 3) clear-coat normal
         (default n), (...) path length in the medium (volume; default the thickness), the sheen
-        albedo table (default the shipped 128^2 one, `jaxpbr.sheen_lut()`). A Material with
+        albedo table (default the shipped 128^2 one, `jaxpbr.shading.sheen_lut()`). A Material with
         extensions is shaded by the layered BSDF (model "gltf" only); one without by the core
         model, bit for bit as before.
     """

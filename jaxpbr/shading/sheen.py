@@ -12,7 +12,7 @@ writes it (Implementation Notes), with `alpha = sheen_roughness^2`:
     f_sheen = sheen_color * D_c V_c,
     base    *= sheen_albedo_scaling = min(1 - max3(sheen_color) E(n.v), 1 - max3(sheen_color) E(n.l))
 
-where E(mu) = int D_c V_c (n.l) dl is the sheen lobe's directional albedo (`jaxpbr.sheen_lut`).
+where E(mu) = int D_c V_c (n.l) dl is the sheen lobe's directional albedo (`jaxpbr.shading.sheen_lut`).
 
 Stiff cases. alpha -> 0 makes D a delta at theta_h = 90 deg (`pow(sin^2, 1/(2 alpha))` is 0^inf or
 1^inf); sheen roughness is floored like the base roughness (`floored_sheen_roughness`, the same
@@ -24,7 +24,7 @@ as exp(c log x) on x > 0 and set to its value 0 at x = 0 by a double where, so t
 and the gradient there is 0 instead of inf * 0 = NaN. (Flooring x would not do: x^c is 0.08 at
 x = 1e-6, so L would move by ~6.)
 E (the sheen albedo) exceeds 1 at grazing views for small sheen roughness (up to 4.4 at r = 0.045,
-n.v = 1/512: the fitted visibility is not energy conserving there, `jaxpbr.sheen_lut`), so
+n.v = 1/512: the fitted visibility is not energy conserving there, `jaxpbr.shading.sheen_lut`), so
 `sheen_albedo_scaling` is clamped at 0: the base layer is never subtracted.
 """
 

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import color
+from .. import color
 from .atomic import atomic_write
 
 __all__ = ["SUPPORTED_EXTENSIONS", "read", "read_with_metadata", "write"]

@@ -18,8 +18,8 @@ define the material as a stack, bottom to top:
 with specular_brdf = D V (GGX, height-correlated Smith; anisotropic D and V with _anisotropy:
 alpha_t = mix(alpha, 1, strength^2) along the rotated tangent, alpha_b = alpha), coat_brdf = D V at
 alpha_c = clearcoat_roughness^2 about the coat normal n_c, D_c V_c the Charlie sheen lobe
-(`jaxpbr.sheen`), sheen_albedo_scaling = min(1 - max3(sheen_color) E(n.v), 1 - max3(sheen_color)
-E(|n.l|)) with E the sheen albedo table (`jaxpbr.sheen_lut`).
+(`jaxpbr.shading.sheen`), sheen_albedo_scaling = min(1 - max3(sheen_color) E(n.v), 1 - max3(sheen_color)
+E(|n.l|)) with E the sheen albedo table (`jaxpbr.shading.sheen_lut`).
 
 Transmission (light below the surface, n.l < 0, viewer above):
 * thin-walled (thickness = 0; _transmission): specular_btdf = D(h_T) V_T with the transmission half
@@ -55,9 +55,18 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from .._numerics import (
+    Vec3,
+    as_float,
+    orthonormal_frame,
+    pack3,
+    unpack3,
+    vcross,
+    vdot,
+    vnormalize,
+)
+from .._validate import batch_shape, check_values, vector
 from . import brdf_terms
-from ._numerics import Vec3, as_float, orthonormal_frame, pack3, unpack3, vcross, vdot, vnormalize
-from ._validate import batch_shape, check_values, vector
 from .brdf_terms import (
     F0_DIELECTRIC,
     MIN_ROUGHNESS,
@@ -334,7 +343,7 @@ def layered_soa(
         from .sheen_lut import sheen_lut_lookup  # the table module imports the kernels
 
         if sheen_lut is None:
-            raise ValueError("the material has KHR_materials_sheen: pass sheen_lut= (jaxpbr.sheen_lut()).")
+            raise ValueError("the material has KHR_materials_sheen: pass sheen_lut= (jaxpbr.shading.sheen_lut()).")
         rs = floored_sheen_roughness(m.sheen_roughness, min_roughness)
         a_s = rs * rs
         lobe = jnp.where(g.front, d_charlie(g.n_dot_h, a_s, g.sin2_h) * v_charlie(g.n_dot_v, g.n_dot_l, a_s) * g.n_dot_l, 0.0)

@@ -8,9 +8,9 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .envs import sky_with_sun_cubemap
-from .lights import PointLight
-from .material import Material
+from ..ibl.envs import sky_with_sun_cubemap
+from ..shading.lights import PointLight
+from ..shading.material import Material
 from .scene import Camera, Environment, Scene, Sphere
 
 __all__ = ["DEMO_BASE_COLOR", "DEMO_ENV_ROTATION", "demo_scene", "learnopengl_scene", "sphere_grid"]
@@ -48,7 +48,7 @@ def _four_lights(intensity: float = 300.0):
 def demo_scene(width: int = 1280, height: int = 720, *, face_size: int = 128, supersample: int = 1,
                lights: bool = True, environment: bool = True) -> Scene:
     """The default demo: a 7x7 sphere grid (metallic by row, roughness 0..1 by column) under the
-    procedural sky with a 3000-radiance sun (`jaxpbr.envs`), rotated to light the spheres from
+    procedural sky with a 3000-radiance sun (`jaxpbr.ibl.envs`), rotated to light the spheres from
     behind the camera, plus four point lights of 300 cd at (+-10, +-10, 10)."""
     env = None
     if environment:

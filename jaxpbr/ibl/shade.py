@@ -6,9 +6,9 @@ with k_d = 0.96 (1 - W(n.v)) the dielectric Fresnel layer's (1 - F) averaged ove
 lobe (`diffuse_fresnel_weight`; the float64 reference integrates the glTF BRDF's (1 - F) diffuse
 weight, and leaving it out makes dielectrics ~4 % too bright).
 
-(Karis 2013; MATH.md 4, 6). `Ebar = E/pi` comes from `jaxpbr.diffuse`, `LD` from
-`jaxpbr.specular` (its roughness -> mip mapping is read from the map's metadata), `(A, B)` from
-`jaxpbr.lut`. With `multiscatter=True` the Fdez-Aguera 2019 energy compensation (MATH.md 5.3, with
+(Karis 2013; MATH.md 4, 6). `Ebar = E/pi` comes from `jaxpbr.ibl.diffuse`, `LD` from
+`jaxpbr.ibl.specular` (its roughness -> mip mapping is read from the map's metadata), `(A, B)` from
+`jaxpbr.shading.lut`. With `multiscatter=True` the Fdez-Aguera 2019 energy compensation (MATH.md 5.3, with
 the *minus* sign: k_D = c_diff (1 - FssEss - FmsEms)) is applied per lobe -- the dielectric lobe
 (F0 = 0.04, c_diff = base_color) and the metal lobe (F0 = base_color, no diffuse) -- and the two
 are mixed by metallic, so a white furnace returns exactly 1 for either (MATH.md 7.5).
@@ -24,14 +24,12 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._numerics import as_float, pack3, unpack3, vdot, vnormalize
-from .brdf_terms import MODELS, check_options, fresnel_schlick_roughness
-from ._validate import batch_shape
-from .cubemap import Cubemap
-from .lut import lut_lookup
-from .material import F0_DIELECTRIC, Material
-from .specular import lookup_of, roughness_to_lod
-from .split_sum import (  # noqa: F401  (re-exported: the split sum's pieces are part of this module's API)
+from .._numerics import as_float, pack3, unpack3, vdot, vnormalize
+from .._validate import batch_shape
+from ..shading.brdf_terms import MODELS, check_options, fresnel_schlick_roughness
+from ..shading.lut import lut_lookup
+from ..shading.material import F0_DIELECTRIC, Material
+from ..shading.split_sum import (  # noqa: F401  (re-exported: the split sum's pieces are part of this module's API)
     MIN_N_DOT_V,
     diffuse_fresnel_weight,
     disc_multiscatter,
@@ -40,6 +38,8 @@ from .split_sum import (  # noqa: F401  (re-exported: the split sum's pieces are
     specular_dominant_direction,
     split_sum_weights,
 )
+from .cubemap import Cubemap
+from .specular import lookup_of, roughness_to_lod
 
 __all__ = ["IBL_MODELS", "MIN_N_DOT_V", "diffuse_fresnel_weight", "schlick_lambert_average", "shade_ibl", "disc_multiscatter", "multiscatter_weight", "specular_dominant_direction", "split_sum_weights"]
 
@@ -70,9 +70,9 @@ def shade_ibl(
     n: (..., 3) unit shading normal; v: (..., 3) unit direction to the viewer.
     m: Material (leaves broadcast with n); occlusion multiplies the result; emissive is *not*
         added (shade_direct adds it once).
-    irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.diffuse`), or None to leave the diffuse
+    irr: irradiance Cubemap storing Ebar = E/pi (`jaxpbr.ibl.diffuse`), or None to leave the diffuse
         term out (exact for metals, metallic = 1, without multiscatter; the scene layer does this).
-    pre: prefiltered Cubemap (`jaxpbr.specular`); lod from its metadata (`specular.lookup_of`:
+    pre: prefiltered Cubemap (`jaxpbr.ibl.specular`); lod from its metadata (`specular.lookup_of`:
         "roughness_mapping", "lod_blend", absent in maps written before it: lod = r (M-1)). A map
         holding only the first mips of an M-level chain (metadata "mapping_levels" = M) is looked
         up with the M-level mapping, clamped to its last level.
@@ -82,7 +82,7 @@ def shade_ibl(
     multiscatter: Fdez-Aguera energy compensation (gltf model only: True with learnopengl raises
         ValueError, False is allowed).
     tangent, coat_normal, sheen_lut, charlie, volume_distance, transmit_direction: inputs of the
-        glTF material extensions (`jaxpbr.layered_ibl`): (..., 3) tangent (anisotropy), (..., 3)
+        glTF material extensions (`jaxpbr.ibl.layered_ibl`): (..., 3) tangent (anisotropy), (..., 3)
         coat normal (default n), the sheen albedo table and the Charlie-prefiltered environment
         (sheen), (...) path length in the medium and (..., 3) direction the transmitted light
         comes from (volume; defaults: thickness and the refracted -v). A Material without

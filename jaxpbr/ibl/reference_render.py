@@ -3,7 +3,7 @@
     Lo(v) = ao * integral over the sphere of L(l) f_r(v, l) (n.l)+ dl
 
 with L the environment's level 0 as a piecewise-constant function of its texels (the definition
-`jaxpbr.specular.prefilter_reference` and the exact irradiance use) and f_r the complete glTF
+`jaxpbr.ibl.specular.prefilter_reference` and the exact irradiance use) and f_r the complete glTF
 BRDF of `jaxpbr.brdf` (Lambert diffuse under the dielectric Fresnel layer + GGX / Smith specular),
 with *no* roughness floor. This is what the split sum `jaxpbr.shade_ibl` approximates; the
 difference of the two is the split-sum error that `jaxpbr.report_render` shows.
@@ -59,10 +59,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._api import keyword_only
-from ._numerics import HIGHEST
-from ._validate import positive_int
-from .conventions import luminance
+from .._api import keyword_only
+from .._numerics import HIGHEST
+from .._pytree import evolve, fields_of
+from .._validate import positive_int
+from ..conventions import luminance
+from ..shading.material import EXTENSION_FIELDS, F0_DIELECTRIC, Material
 from .cubemap import (
     _FACE_TABLE,
     Cubemap,
@@ -71,8 +73,6 @@ from .cubemap import (
     face_to_dir,
     texel_solid_angles,
 )
-from ._pytree import evolve, fields_of
-from .material import EXTENSION_FIELDS, F0_DIELECTRIC, Material
 
 __all__ = [
     "MAX_NEAR_Q",
@@ -374,7 +374,7 @@ _BLOCK_LAYERED = 1 << 20
 
 def _layered_kernel(m, tangent, coat_normal, volume_distance, sheen_lut, smith: str):
     """sum of L(l) f(v, l) |cos| om over the samples with the layered BSDF -> (P, C)."""
-    from .layered import LayerInputs, layered_soa
+    from ..shading.layered import LayerInputs, layered_soa
 
     def kernel(s: _Samples, expand):
         nd = s.nol.ndim - 1
@@ -411,7 +411,7 @@ def _spine_centres(count, nc, vc, m, tangent):
     """(P, count, 3): `count` (odd) centres along the anisotropic lobe's spine: the mirror directions of v about
     h = cos(theta) n + sin(theta) T, theta evenly spaced in [-theta_max, theta_max]
     (`_spine_angle`) with T the anisotropy direction; theta = 0 gives R."""
-    from .layered import anisotropic_alphas, anisotropy_frame
+    from ..shading.layered import anisotropic_alphas, anisotropy_frame
 
     n3 = tuple(nc[:, i] for i in range(3))
     t3 = tangent / jnp.linalg.norm(tangent, axis=-1, keepdims=True)
@@ -616,7 +616,7 @@ def reference_layered(
     """Float64 reference of image-based lighting with the glTF material extensions, (..., 3).
 
     Lo = occlusion * integral over the whole sphere of L(l) f(v, l) |cos| dl, with f |cos| the
-    layered BSDF of `jaxpbr.layered.layered_soa` (clear coat, sheen, specular, ior, anisotropy,
+    layered BSDF of `jaxpbr.shading.layered.layered_soa` (clear coat, sheen, specular, ior, anisotropy,
     thin and volumetric transmission: reflection above the surface, transmission below it) and L
     the piecewise-constant texels of env level 0; the same quadrature as `reference_ibl` (module
     docstring), with near tiers around every lobe the material has:
@@ -660,7 +660,7 @@ def reference_layered(
     if "anisotropy" in ext and tangent is None:
         raise ValueError("the material has KHR_materials_anisotropy, which needs a surface tangent: pass tangent=.")
     if "sheen" in ext and sheen_lut is None:
-        raise ValueError("the material has KHR_materials_sheen: pass sheen_lut= (the sheen albedo table, jaxpbr.sheen_lut()).")
+        raise ValueError("the material has KHR_materials_sheen: pass sheen_lut= (the sheen albedo table, jaxpbr.shading.sheen_lut()).")
     n = np.asarray(n, np.float64)
     v = np.asarray(v, np.float64)
     fields = [(f.name, f.rank, np.asarray(getattr(material, f.name), np.float64)) for f in fields_of(material) if getattr(material, f.name) is not None]

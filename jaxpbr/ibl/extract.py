@@ -39,11 +39,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._numerics import is_concrete
-from ._validate import check_radiance
+from .._numerics import is_concrete
+from .._validate import check_radiance
+from ..shading.lights import MAX_ANGULAR_RADIUS, DirectionalLight
 from .cubemap import _FACE_TABLE, Cubemap, dir_to_face, face_to_dir, texel_solid_angles
 from .diffuse import _face_moments
-from .lights import MAX_ANGULAR_RADIUS, DirectionalLight
 
 __all__ = [
     "DEFAULT_MAX_ANGULAR_RADIUS",

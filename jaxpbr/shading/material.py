@@ -8,8 +8,8 @@ from typing import Any
 import jax
 import numpy as np
 
-from ._numerics import as_float, is_concrete
-from ._pytree import Pytree, fields_of, leaf
+from .._numerics import as_float, is_concrete
+from .._pytree import Pytree, fields_of, leaf
 
 __all__ = ["EXTENSIONS", "EXTENSION_FIELDS", "Material", "F0_DIELECTRIC"]
 
@@ -108,14 +108,14 @@ class Material(Pytree):
 
     @property
     def layered(self) -> bool:
-        """Whether shading needs the layered BSDF (`jaxpbr.layered`): some extension other than
+        """Whether shading needs the layered BSDF (`jaxpbr.shading.layered`): some extension other than
         emissive_strength, which only scales the emission, is present."""
         return any(g != "emissive_strength" for g in self.extensions)
 
     def complete(self, groups=None) -> "Material":
         """A copy whose groups `groups` (default: the present ones) have every field set, unset
         ones to their neutral values (unchecked: safe inside transformations)."""
-        from ._pytree import evolve
+        from .._pytree import evolve
 
         groups = self.extensions if groups is None else tuple(groups)
         fill = {}

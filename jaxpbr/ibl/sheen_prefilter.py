@@ -92,21 +92,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._numerics import HIGHEST, map_row_chunks
-from ._validate import check_radiance, positive_int
-from .brdf_terms import MIN_ROUGHNESS
+from .._numerics import HIGHEST, map_row_chunks
+from .._validate import check_radiance, positive_int
+from ..shading.brdf_terms import MIN_ROUGHNESS
+from ..shading.sampling import tangent_frame
+from ..shading.sheen import d_charlie
 from .cubemap import (
     Cubemap,
     _mip_chain,
-    _mip_count,
+    mip_count,
     _Pyramid,
     _subtexel_coords,
     face_to_dir,
     texel_directions,
     texel_solid_angles,
 )
-from .sampling import tangent_frame
-from .sheen import d_charlie
 
 __all__ = [
     "CHARLIE_LOD_BLENDS",
@@ -403,7 +403,7 @@ def prefilter_charlie(
     _check_blend(lod_blend)
     check_radiance("prefilter_charlie: env", env)
     S = DEFAULT_CHARLIE_SIZE if size is None else positive_int("size", size)
-    most = _mip_count(S)
+    most = mip_count(S)
     M = min(DEFAULT_CHARLIE_LEVELS, most) if num_levels is None else positive_int("num_levels", num_levels)
     if M > most:
         raise ValueError(f"a {S}^2 Charlie chain supports at most {most} levels (each halves the face); asked for {M}")
@@ -446,7 +446,7 @@ def prefilter_charlie(
     if Z > 0:  # the zonal method for levels 0..Z-1
         S0 = env.face_size
         src_z = DEFAULT_CHARLIE_ZONAL_SOURCE_SIZE if zonal_source_size is None else positive_int("zonal_source_size", zonal_source_size)
-        pyr_sizes = tuple(S0 >> i for i in range(_mip_count(S0)))
+        pyr_sizes = tuple(S0 >> i for i in range(mip_count(S0)))
         finest = _finest_level(S0, src_z)
         rings = positive_int("rings", rings)
         if not phi_density > 0:

@@ -34,8 +34,8 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from ._numerics import Vec3, pack3, saturate, unpack3, vcross, vdot, vnormalize
-from ._validate import batch_shape, check_values, vector
+from .._numerics import Vec3, pack3, saturate, unpack3, vcross, vdot, vnormalize
+from .._validate import batch_shape, check_values, vector
 from .material import F0_DIELECTRIC, Material
 
 __all__ = [
@@ -96,7 +96,7 @@ class ModelSpec:
 
     options: the `brdf` / `shade_direct` options the model reads (defaults in `OPTION_DEFAULTS`).
     ibl_options: the `shade_ibl` / `RenderOptions` options it reads.
-    lut_smith: the Smith term (`jaxpbr.lut` vocabulary) of the LUT that `shade_ibl` expects with it.
+    lut_smith: the Smith term (`jaxpbr.shading.lut` vocabulary) of the LUT that `shade_ibl` expects with it.
     """
 
     options: frozenset[str]
@@ -508,7 +508,7 @@ def brdf(
     Returns 0 where NoV <= 0 or NoL <= 0 (the light or the viewer is below the surface).
 
     The core model only: a Material with glTF extension fields raises ValueError; `jaxpbr.brdf`
-    (`jaxpbr.layered.brdf`) shades both.
+    (`jaxpbr.shading.layered.brdf`) shades both.
     """
     check_options(model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon)
     # Named shape checks (always) and finiteness (concrete values): a NaN direction gave 0.
@@ -517,7 +517,7 @@ def brdf(
     if m.layered:
         raise ValueError(
             f"brdf_terms.brdf shades the core model; this material has the glTF extensions {m.extensions}: "
-            "call jaxpbr.brdf (jaxpbr.layered.brdf), which shades both."
+            "call jaxpbr.brdf (jaxpbr.shading.layered.brdf), which shades both."
         )
     g = geometry(n, v, l)
     f = brdf_soa(

@@ -4,7 +4,7 @@ Everything here is a JAX pytree whose array fields are leaves (so a scene can be
 vmapped over a batch axis or passed through `jax.jit`) and whose structure -- which objects, which
 textures, image size -- is static. The types are declared with `jaxpbr._pytree` (each field once,
 as `leaf(rank=...)`, `subtree()` or `static()`; validation in each class's `_validate`).
-`jaxpbr.renderer.render` turns a `Scene` into linear HDR radiance; this module holds the data types
+`jaxpbr.rendering.renderer.render` turns a `Scene` into linear HDR radiance; this module holds the data types
 and the geometry (primary rays, ray casting, surface attributes).
 
 Conventions (DESIGN.md): right-handed, +Y up, the camera looks from `position` to `target`; pixel
@@ -24,9 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._api import keyword_only
-from ._interp import bilinear
-from ._numerics import (
+from .._api import keyword_only
+from .._interp import bilinear
+from .._numerics import (
     as_float,
     is_concrete,
     safe_div,
@@ -36,11 +36,11 @@ from ._numerics import (
     vdot,
     vnormalize,
 )
-from ._pytree import Pytree, evolve, leaf, static, subtree
-from ._validate import check_radiance, check_values, positive_int, vector
-from .cubemap import Cubemap
-from .lights import DirectionalLight, LightSet, PointLight, SpotLight
-from .material import EXTENSION_FIELDS, Material
+from .._pytree import Pytree, evolve, leaf, static, subtree
+from .._validate import check_radiance, check_values, positive_int, vector
+from ..ibl.cubemap import Cubemap
+from ..shading.lights import DirectionalLight, LightSet, PointLight, SpotLight
+from ..shading.material import EXTENSION_FIELDS, Material
 
 __all__ = [
     "Camera",
@@ -454,12 +454,12 @@ class Environment(Pytree):
     lut, lut_smith: optional split-sum LUT (n_r, n_nov, 2) and the Smith variant it was computed
         for (static; `brdf_terms.MODEL_REGISTRY[model].lut_smith`); a render with a model whose
         variant differs raises. `jaxpbr.bake(environment)` fills irradiance, prefiltered and lut.
-    lights: optional tuple of disc `DirectionalLight`s split out of the environment (`jaxpbr.extract`),
+    lights: optional tuple of disc `DirectionalLight`s split out of the environment (`jaxpbr.ibl.extract`),
         in the environment's frame and units (rotation and intensity apply to them too). Set by
         `bake` (or a user who split the lights: `radiance` and the maps are then the residual);
         when None and no map is given, `render` extracts them itself (`RenderOptions.extract_lights`).
-    charlie, sheen_lut: optional Charlie-prefiltered Cubemap (`jaxpbr.sheen_prefilter`) and sheen
-        albedo table (n_r, n_nov) (`jaxpbr.sheen_lut`), read by materials with KHR_materials_sheen;
+    charlie, sheen_lut: optional Charlie-prefiltered Cubemap (`jaxpbr.ibl.sheen_prefilter`) and sheen
+        albedo table (n_r, n_nov) (`jaxpbr.shading.sheen_lut`), read by materials with KHR_materials_sheen;
         `bake` fills them, `render` computes them only for a scene that has sheen.
     """
 

@@ -1,0 +1,96 @@
+"""The installed package holds every room: each subpackage of the source tree imports from the
+installation (not from this checkout), and the shipped tables come with it.
+
+`pip install .` (what CI and users run) builds a wheel and installs it into site-packages; the test
+runs a separate interpreter in isolated mode (`-I`: no current directory, no PYTHONPATH) from a
+temporary directory, so a subpackage missing from the wheel fails here even though the tests
+themselves import from the source tree. An editable install maps back to this checkout, so there
+the test builds a wheel itself (`pip wheel`, needs the package index) and is marked slow."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import zipfile
+from importlib import metadata
+from pathlib import Path
+
+import pytest
+
+SOURCE = Path(__file__).resolve().parent.parent / "jaxpbr"
+
+
+def _source_packages() -> set[str]:
+    return {
+        ".".join(p.parent.relative_to(SOURCE.parent).parts) for p in SOURCE.rglob("__init__.py")
+    }
+
+
+def _editable() -> bool:
+    try:
+        dist = metadata.distribution("jaxpbr")
+    except metadata.PackageNotFoundError:
+        pytest.skip("jaxpbr is not installed (tests run from a bare checkout)")
+    direct = dist.read_text("direct_url.json")
+    return bool(direct and json.loads(direct).get("dir_info", {}).get("editable"))
+
+
+_PROBE = """
+import importlib, json, sys
+from pathlib import Path
+names = json.loads(sys.argv[1])
+out = {}
+for n in names:
+    m = importlib.import_module(n)
+    out[n] = str(Path(m.__file__).resolve())
+import jaxpbr
+from jaxpbr.shading.shipped_luts import shipped_manifest
+out["__luts__"] = len(shipped_manifest().get("luts", []))
+print(json.dumps(out))
+"""
+
+
+def _import_all(python: str, cwd: Path, env_path: str | None = None) -> dict:
+    names = sorted(_source_packages())
+    env = None if env_path is None else {"PYTHONPATH": env_path, "PATH": "/usr/bin:/bin"}
+    # -I: no current directory, no PYTHONPATH, no user site; with env_path the unpacked wheel must
+    # come first on PYTHONPATH, which -I would ignore.
+    flags = ["-I"] if env_path is None else []
+    r = subprocess.run(
+        [python, *flags, "-c", _PROBE, json.dumps(names)], capture_output=True, text=True, cwd=cwd, env=env, timeout=300
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def _check(found: dict, root: Path) -> None:
+    assert found.pop("__luts__") >= 1, "the shipped LUTs are missing from the installation"
+    for name, path in found.items():
+        assert Path(path).is_relative_to(root), f"{name} imported from {path}, not from the installation {root}"
+    assert set(found) == _source_packages()
+
+
+def test_every_subpackage_imports_from_the_installation(tmp_path):
+    if _editable():
+        pytest.skip("editable install: test_every_subpackage_in_a_built_wheel (slow) builds a wheel instead")
+    dist = metadata.distribution("jaxpbr")
+    root = Path(dist.locate_file("jaxpbr")).resolve()
+    assert root != SOURCE, "the installation is this checkout"
+    _check(_import_all(sys.executable, tmp_path), root)
+
+
+@pytest.mark.slow
+def test_every_subpackage_in_a_built_wheel(tmp_path):
+    wheels = tmp_path / "wheels"
+    r = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(SOURCE.parent)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    (wheel,) = wheels.glob("jaxpbr-*.whl")
+    unpacked = tmp_path / "site"
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(unpacked)
+    site = [p for p in sys.path if p.endswith("site-packages")]
+    _check(_import_all(sys.executable, tmp_path, ":".join([str(unpacked), *site])), unpacked.resolve())
