@@ -1,0 +1,38 @@
+"""glTF 2.0 loader: `load_gltf(path)` -> `GltfAsset`, a scene flattened to world space in NumPy.
+
+Reads .gltf (external .bin/images, data: URIs) and .glb with pygltflib for the JSON and the GLB
+container; accessors (all component types, normalized integers, byteStride, sparse, no
+bufferView) are decoded in NumPy. Materials map onto `jaxpbr.Material` keyword arguments
+(`GltfMaterial.factors`) plus texture slots (`GltfTextureRef`); images are decoded with
+OpenImageIO to float32 arrays of the encoded values. KHR_lights_punctual lights and cameras come
+with world transforms. See `load_gltf` for what is supported, refused and ignored.
+"""
+
+from ._loader import SUPPORTED_EXTENSIONS, load_gltf
+from ._materials import texture_transform_matrix
+from ._types import (
+    TEXTURE_CHANNELS,
+    GltfAsset,
+    GltfCamera,
+    GltfImage,
+    GltfLight,
+    GltfMaterial,
+    GltfPrimitive,
+    GltfSampler,
+    GltfTextureRef,
+)
+
+__all__ = [
+    "SUPPORTED_EXTENSIONS",
+    "TEXTURE_CHANNELS",
+    "GltfAsset",
+    "GltfCamera",
+    "GltfImage",
+    "GltfLight",
+    "GltfMaterial",
+    "GltfPrimitive",
+    "GltfSampler",
+    "GltfTextureRef",
+    "load_gltf",
+    "texture_transform_matrix",
+]

@@ -1,0 +1,505 @@
+"""`load_gltf`: a glTF 2.0 file (.gltf or .glb) -> `GltfAsset` flattened to world space."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import InputError
+from ._binary import Buffers, fail, get
+from ._geometry import MODE_NAMES, face_normals, node_matrix, normalize_rows, triangle_list, weld
+from ._images import make_images
+from ._materials import MATERIAL_EXTENSIONS, MaterialReader
+from ._types import GltfAsset, GltfCamera, GltfLight, GltfMaterial, GltfPrimitive
+
+__all__ = ["load_gltf", "SUPPORTED_EXTENSIONS"]
+
+#: The extensions `load_gltf` implements; others in extensionsRequired are refused, others in
+#: extensionsUsed are ignored with a warning.
+SUPPORTED_EXTENSIONS = (
+    *MATERIAL_EXTENSIONS,
+    "KHR_texture_transform",
+    "KHR_lights_punctual",
+    "KHR_mesh_quantization",
+)
+
+_FLOATISH = (5120, 5121, 5122, 5123, 5126)  # FLOAT, or integers read as (normalized) numbers
+_FIX = "repair or re-export the asset (the Khronos glTF-Validator names the problem)"
+
+
+@dataclass
+class _Shape:
+    """A mesh primitive in object space, ready to be instanced (shared by the nodes using the mesh)."""
+
+    positions: np.ndarray  # (V, 3) float64
+    normals: np.ndarray  # (V, 3) float64
+    tris: np.ndarray  # (T, 3) int64
+    tangents: np.ndarray | None
+    texcoords: dict
+    color: np.ndarray | None
+    flat_normals: bool
+    generated_tangents: bool
+
+
+def _read_document(path: Path):
+    """(pygltflib.GLTF2, GLB binary chunk or None) of the file, or InputError."""
+    import pygltflib
+
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"glTF file {str(path)!r} not found. Fix: check the path") from None
+    except OSError as e:
+        raise InputError(f"glTF file {str(path)!r} cannot be read: {e}. Fix: check the path and permissions") from None
+    if data[:4] == b"glTF":
+        if len(data) < 20:
+            fail(path, "GLB header", f"the file has only {len(data)} bytes", "the file is truncated: re-export it")
+        version, length = struct.unpack_from("<II", data, 4)
+        if version != 2:
+            fail(path, "GLB header", f"container version {version}, only version 2 (glTF 2.0) is read",
+                 "convert the asset to glTF 2.0 (e.g. with the Khronos glTF converters or Blender)")
+        if length > len(data):
+            fail(path, "GLB header", f"declares {length} bytes but the file has {len(data)}",
+                 "the file is truncated: download or export it again")
+        offset, chunks = 12, []
+        while offset + 8 <= length:
+            clen, ctype = struct.unpack_from("<II", data, offset)
+            if offset + 8 + clen > length:
+                fail(path, f"GLB chunk {len(chunks)}", f"runs past the end of the file ({offset + 8 + clen} > {length})",
+                     "the file is truncated: download or export it again")
+            chunks.append((ctype, data[offset + 8 : offset + 8 + clen]))
+            offset += 8 + clen
+        if not chunks or chunks[0][0] != 0x4E4F534A:  # 'JSON'
+            fail(path, "GLB", "the first chunk is not the JSON chunk", _FIX)
+        try:
+            doc = json.loads(chunks[0][1].decode("utf-8"))
+            gltf = pygltflib.GLTF2.load_from_bytes(data[:length])
+        except (ValueError, UnicodeDecodeError) as e:
+            fail(path, "GLB JSON chunk", f"is not valid JSON ({e})", _FIX)
+        except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
+            fail(path, "GLB", f"pygltflib cannot parse it ({type(e).__name__}: {e})", _FIX)
+        blob = next((c for t, c in chunks[1:] if t == 0x004E4942), None)  # 'BIN\0'
+        return gltf, doc, blob
+    try:
+        text = data.decode("utf-8-sig")
+        doc = json.loads(text)
+    except (ValueError, UnicodeDecodeError) as e:
+        fail(path, "", f"is neither GLB nor valid JSON ({e})",
+             "check that the file is a glTF 2.0 asset (.gltf JSON or .glb binary) and not truncated")
+    if not isinstance(doc, dict):
+        fail(path, "", "the JSON is not an object", _FIX)
+    try:
+        gltf = pygltflib.GLTF2.gltf_from_json(text)
+    except Exception as e:  # noqa: BLE001
+        fail(path, "", f"pygltflib cannot parse the JSON ({type(e).__name__}: {e})", _FIX)
+    return gltf, doc, None
+
+
+class _Loader:
+    def __init__(self, path: Path, scene: int | None, lazy_images: bool):
+        self.path = path
+        self.scene_arg = scene
+        self.lazy_images = lazy_images
+        self.notes: list[str] = []
+        self.ignored_features: dict[str, set] = {}
+
+    # ------------------------------------------------------------------------------------------
+    def run(self) -> GltfAsset:
+        gltf, doc, blob = _read_document(self.path)
+        self.gltf = gltf
+        self.doc = doc
+        asset = doc.get("asset")
+        version = str(get(asset, "version", "")) if isinstance(asset, dict) else ""
+        if not version.startswith("2."):
+            fail(self.path, "asset.version", f"is {version or 'missing'!r}; only glTF 2.x is read",
+                 "convert the asset to glTF 2.0 (glTF 1.0 files can be upgraded with gltf-pipeline or Blender)")
+        self._check_extensions()
+        self.buffers = Buffers(gltf, self.path, blob)
+        self.materials_reader = MaterialReader(gltf, self.path, self.notes)
+        materials = [self.materials_reader.material(i) for i in range(len(gltf.materials or []))]
+        self.materials = materials
+        self.default_material: int | None = None
+        self.shapes: dict[tuple[int, int], _Shape | None] = {}
+        self.primitives: list[GltfPrimitive] = []
+        self.lights: list[GltfLight] = []
+        self.cameras: list[GltfCamera] = []
+        scene_index, roots = self._scene()
+        self._traverse(roots)
+        if gltf.animations:
+            self._ignore("animations", f"{len(gltf.animations)} animation(s) (the static pose is loaded)")
+        images = make_images(gltf, self.buffers, self.path)
+        if not self.lazy_images:
+            used = sorted({t.image for m in self.materials for t in m.textures.values()})
+            for i in used:
+                images[i].pixels  # noqa: B018 - decode now, so that a bad image fails the load
+        if self.primitives:
+            lo = np.min([p.positions.min(axis=0) for p in self.primitives if p.num_vertices], axis=0)
+            hi = np.max([p.positions.max(axis=0) for p in self.primitives if p.num_vertices], axis=0)
+            bounds = np.stack([lo, hi]).astype(np.float64)
+        else:
+            bounds = None
+        for feature, items in self.ignored_features.items():
+            self.notes.append(f"ignored (not supported): {feature}: {', '.join(sorted(items))}")
+        return GltfAsset(
+            path=self.path,
+            generator=str(get(asset, "generator", "")),
+            version=version,
+            scene=scene_index,
+            primitives=self.primitives,
+            materials=self.materials,
+            images=images,
+            lights=self.lights,
+            cameras=self.cameras,
+            bounds=bounds,
+            extensions_used=tuple(self.gltf.extensionsUsed or ()),
+            warnings=tuple(self.notes),
+        )
+
+    def _ignore(self, feature: str, item: str):
+        self.ignored_features.setdefault(feature, set()).add(item)
+
+    def _check_extensions(self):
+        required = list(self.gltf.extensionsRequired or [])
+        used = list(self.gltf.extensionsUsed or [])
+        missing = [e for e in required if e not in SUPPORTED_EXTENSIONS]
+        if missing:
+            fail(self.path, "extensionsRequired",
+                 f"needs {', '.join(missing)}, which jaxpbr does not implement "
+                 f"(supported: {', '.join(SUPPORTED_EXTENSIONS)})",
+                 "re-export without those extensions (e.g. decompress Draco/meshopt and convert KTX2/WebP "
+                 "textures with gltf-transform), or make them optional")
+        ignored = [e for e in used if e not in SUPPORTED_EXTENSIONS]
+        if ignored:
+            self.notes.append(f"extensionsUsed not implemented, ignored: {', '.join(ignored)} "
+                              f"(supported: {', '.join(SUPPORTED_EXTENSIONS)})")
+
+    # -- scene graph -------------------------------------------------------------------------------
+    def _scene(self):
+        scenes = self.gltf.scenes or []
+        nodes = self.gltf.nodes or []
+        index = self.scene_arg
+        if index is None:
+            index = self.gltf.scene
+        if index is None and scenes:
+            index = 0
+        if index is None:  # no scenes: every root node
+            children = {c for n in nodes for c in (get(n, "children", []) or [])}
+            return None, [i for i in range(len(nodes)) if i not in children]
+        if not isinstance(index, int) or not 0 <= index < len(scenes):
+            fail(self.path, "scene", f"scene {index!r} does not exist (the file has {len(scenes)})",
+                 f"pick a scene index in [0, {len(scenes)})" if scenes else _FIX)
+        return index, list(get(scenes[index], "nodes", []) or [])
+
+    def _traverse(self, roots):
+        nodes = self.gltf.nodes or []
+        stack = [(r, np.eye(4), ()) for r in reversed(roots)]
+        while stack:
+            i, parent, ancestors = stack.pop()
+            if not isinstance(i, int) or not 0 <= i < len(nodes):
+                fail(self.path, "scene graph", f"node {i!r} does not exist (the file has {len(nodes)})", _FIX)
+            if i in ancestors:
+                fail(self.path, f"node {i}", "is its own ancestor (a cycle in the node hierarchy)", _FIX)
+            node = nodes[i]
+            where = f"node {i}" + (f" ({node.name!r})" if get(node, "name") else "")
+            matrix = get(node, "matrix")
+            try:
+                local = node_matrix(matrix, get(node, "translation"), get(node, "rotation"), get(node, "scale"))
+            except (ValueError, TypeError) as e:
+                fail(self.path, where, f"invalid transform ({e})", _FIX)
+            if not np.all(np.isfinite(local)):
+                fail(self.path, where, "transform has non-finite values", _FIX)
+            world = parent @ local
+            if get(node, "mesh") is not None:
+                self._instance_mesh(i, node, world, where)
+            if get(node, "camera") is not None:
+                self._camera(i, node, world, where)
+            light = (get(node, "extensions", {}) or {}).get("KHR_lights_punctual")
+            if light is not None and get(light, "light") is not None:
+                self._light(i, get(light, "light"), world, where)
+            if get(node, "skin") is not None:
+                self._ignore("skins", f"node {i} (its mesh is loaded in the bind pose, with the node's transform)")
+            for c in reversed(list(get(node, "children", []) or [])):
+                stack.append((c, world, ancestors + (i,)))
+
+    # -- meshes ------------------------------------------------------------------------------------
+    def _instance_mesh(self, node_index, node, world, where):
+        meshes = self.gltf.meshes or []
+        m = get(node, "mesh")
+        if not isinstance(m, int) or not 0 <= m < len(meshes):
+            fail(self.path, where, f"mesh {m!r} does not exist (the file has {len(meshes)})", _FIX)
+        mesh = meshes[m]
+        a = world[:3, :3]
+        det = float(np.linalg.det(a))
+        sign = 1.0 if det >= 0 else -1.0
+        try:
+            normal_matrix = np.linalg.inv(a).T if abs(det) > 1e-300 else np.linalg.pinv(a).T
+        except np.linalg.LinAlgError:
+            normal_matrix = np.linalg.pinv(a).T
+        for p, prim in enumerate(get(mesh, "primitives", []) or []):
+            key = (m, p)
+            material_index = self._material_index(prim, m, p)
+            if key not in self.shapes:
+                self.shapes[key] = self._shape(m, mesh, p, prim, self.materials[material_index])
+            shape = self.shapes[key]
+            if shape is None:
+                continue
+            positions = shape.positions @ a.T + world[:3, 3]
+            normals = normalize_rows(shape.normals @ normal_matrix.T)
+            tris = shape.tris if det >= 0 else shape.tris[:, [0, 2, 1]]
+            tangents = None
+            if shape.tangents is not None:
+                xyz = normalize_rows(shape.tangents[:, :3] @ a.T)
+                tangents = np.concatenate([xyz, shape.tangents[:, 3:4] * sign], axis=1).astype(np.float32)
+            mesh_name = get(mesh, "name") or f"mesh{m}"
+            self.primitives.append(GltfPrimitive(
+                positions=positions.astype(np.float32),
+                normals=normals.astype(np.float32),
+                indices=np.ascontiguousarray(tris, np.int32),
+                material=material_index,
+                node=node_index,
+                mesh=m,
+                primitive=p,
+                name=f"{mesh_name}/{p}",
+                world_matrix=world.copy(),
+                tangents=tangents,
+                texcoord_0=shape.texcoords.get(0),
+                texcoord_1=shape.texcoords.get(1),
+                color_0=shape.color,
+                flat_normals=shape.flat_normals,
+                generated_tangents=shape.generated_tangents,
+            ))
+
+    def _material_index(self, prim, m, p) -> int:
+        i = get(prim, "material")
+        if i is None:
+            if self.default_material is None:
+                self.materials.append(self.materials_reader.material(None))
+                self.default_material = len(self.materials) - 1
+            return self.default_material
+        if not isinstance(i, int) or not 0 <= i < len(self.gltf.materials or []):
+            fail(self.path, f"mesh {m} primitive {p}",
+                 f"material {i!r} does not exist (the file has {len(self.gltf.materials or [])})", _FIX)
+        return i
+
+    def _attribute(self, attrs, name, where, types, components):
+        i = attrs.get(name)
+        if i is None:
+            return None
+        a = self.buffers.accessor(i, f"{where} {name}", allowed_types=types, allowed_components=components)
+        return a
+
+    def _shape(self, m, mesh, p, prim, material: GltfMaterial) -> _Shape | None:
+        mesh_name = get(mesh, "name")
+        where = f"mesh {m}" + (f" ({mesh_name!r})" if mesh_name else "") + f" primitive {p}"
+        mode = get(prim, "mode", 4)
+        if mode not in (4, 5, 6):
+            name = MODE_NAMES.get(mode, f"unknown mode {mode}")
+            fail(self.path, where, f"has mode {name}; jaxpbr renders triangles only "
+                 "(TRIANGLES, TRIANGLE_STRIP, TRIANGLE_FAN)",
+                 "remove the point/line primitives from the asset (or convert them to triangle geometry) and re-export")
+        raw = get(prim, "attributes")
+        attrs = {k: v for k, v in (vars(raw) if not isinstance(raw, dict) else raw).items() if v is not None} if raw else {}
+        if get(prim, "targets"):
+            self._ignore("morph targets", f"mesh {m} (the base shape is loaded, without morph weights)")
+        if "POSITION" not in attrs:
+            self.notes.append(f"{where} has no POSITION attribute and is skipped (as the spec says)")
+            return None
+        positions = self._attribute(attrs, "POSITION", where, ("VEC3",), _FLOATISH + (5125,))
+        positions = np.asarray(positions, np.float64)
+        n = positions.shape[0]
+        normals = self._attribute(attrs, "NORMAL", where, ("VEC3",), _FLOATISH)
+        tangents = self._attribute(attrs, "TANGENT", where, ("VEC4",), _FLOATISH)
+        texcoords = {}
+        for s in (0, 1):
+            uv = self._attribute(attrs, f"TEXCOORD_{s}", where, ("VEC2",), _FLOATISH)
+            if uv is not None:
+                texcoords[s] = np.asarray(uv, np.float32)
+        color = self._attribute(attrs, "COLOR_0", where, ("VEC3", "VEC4"), (5121, 5123, 5126))
+        for name, arr in (("NORMAL", normals), ("TANGENT", tangents), ("COLOR_0", color),
+                          *((f"TEXCOORD_{s}", uv) for s, uv in texcoords.items())):
+            if arr is not None and arr.shape[0] != n:
+                fail(self.path, where, f"{name} has {arr.shape[0]} elements but POSITION has {n}", _FIX)
+        if not np.all(np.isfinite(positions)):
+            fail(self.path, where, "POSITION holds NaN or infinite values", _FIX)
+        if color is not None:
+            color = np.asarray(color, np.float32)
+            if color.shape[1] == 3:
+                color = np.concatenate([color, np.ones((n, 1), np.float32)], axis=1)
+        if get(prim, "indices") is not None:
+            idx = self.buffers.accessor(get(prim, "indices"), f"{where} indices", allowed_types=("SCALAR",),
+                                        allowed_components=(5121, 5123, 5125))
+            idx = np.asarray(idx, np.int64)
+            if idx.size and idx.max() >= n:
+                bad = int(np.argmax(idx >= n))
+                fail(self.path, f"{where} indices (accessor {get(prim, 'indices')})",
+                     f"index {int(idx[bad])} at position {bad} is out of range: the vertex attributes have {n} elements",
+                     "the indices and vertex accessors do not match: re-export the asset")
+        else:
+            idx = np.arange(n, dtype=np.int64)
+        count = idx.shape[0]
+        if (mode == 4 and count % 3) or (mode in (5, 6) and count < 3) or count == 0:
+            fail(self.path, where, f"{count} vertex indices do not make {MODE_NAMES[mode]} "
+                 "(TRIANGLES needs a non-zero multiple of 3, strips and fans at least 3)", _FIX)
+        tris = triangle_list(idx, mode)
+        arrays = {"positions": positions}
+        if tangents is not None:
+            arrays["tangents"] = np.asarray(tangents, np.float64)
+        for s, uv in texcoords.items():
+            arrays[f"uv{s}"] = uv
+        if color is not None:
+            arrays["color"] = color
+        flat = normals is None
+        unwelded = False
+        if flat:
+            # The spec: flat normals, and the file's tangents are ignored.
+            arrays.pop("tangents", None)
+            arrays = {k: v[tris.ravel()] for k, v in arrays.items()}
+            normals = np.repeat(face_normals(positions, tris), 3, axis=0)
+            tris = np.arange(3 * tris.shape[0], dtype=np.int64).reshape(-1, 3)
+            unwelded = True
+        arrays["normals"] = normalize_rows(np.asarray(normals, np.float64))
+        generated = False
+        if "tangents" not in arrays and material.needs_tangents:
+            generated, tris = self._generate_tangents(arrays, tris, material, where, unwelded)
+            if generated:
+                keys = list(arrays)
+                welded, tris = weld([arrays[k] for k in keys], tris)
+                arrays = dict(zip(keys, welded))
+        return _Shape(
+            positions=arrays["positions"],
+            normals=arrays["normals"],
+            tris=tris,
+            tangents=arrays.get("tangents"),
+            texcoords={s: np.ascontiguousarray(arrays[f"uv{s}"], np.float32) for s in (0, 1) if f"uv{s}" in arrays},
+            color=None if "color" not in arrays else np.ascontiguousarray(arrays["color"], np.float32),
+            flat_normals=flat,
+            generated_tangents=generated,
+        )
+
+    def _generate_tangents(self, arrays, tris, material, where, unwelded):
+        """MikkTSpace tangents (object space) into arrays['tangents'], unwelding arrays first.
+
+        Returns (whether tangents were made, the triangles)."""
+        ref = next((material.textures[r] for r in ("normal", "clearcoat_normal", "anisotropy") if r in material.textures), None)
+        s = ref.texcoord if ref is not None else 0
+        if f"uv{s}" not in arrays:
+            self.notes.append(f"{where}: material {material.name!r} needs tangents but the primitive has neither "
+                              f"TANGENT nor TEXCOORD_{s} to generate them from; tangents are left out")
+            return False, tris
+        try:
+            from .mikktspace import mikktspace_tangents
+        except ModuleNotFoundError as e:
+            if e.name != f"{__package__}.mikktspace":
+                raise
+            self.notes.append(f"{where}: tangents are needed but the MikkTSpace generator "
+                              f"({__package__}.mikktspace) is not available; tangents are left out")
+            return False, tris
+        if not unwelded:
+            corners = tris.ravel()
+            for k in list(arrays):
+                arrays[k] = arrays[k][corners]
+            tris = np.arange(corners.size, dtype=np.int64).reshape(-1, 3)
+        t = np.asarray(mikktspace_tangents(
+            np.asarray(arrays["positions"], np.float32), np.asarray(arrays["normals"], np.float32),
+            np.asarray(arrays[f"uv{s}"], np.float32), np.asarray(tris, np.int32)), np.float64)
+        if t.shape != (arrays["positions"].shape[0], 4):
+            raise RuntimeError(f"mikktspace_tangents returned shape {t.shape}, expected "
+                               f"({arrays['positions'].shape[0]}, 4) per corner")
+        arrays["tangents"] = t
+        return True, tris
+
+    # -- cameras and lights -----------------------------------------------------------------------
+    def _camera(self, node_index, node, world, where):
+        cameras = self.gltf.cameras or []
+        c = get(node, "camera")
+        if not isinstance(c, int) or not 0 <= c < len(cameras):
+            fail(self.path, where, f"camera {c!r} does not exist (the file has {len(cameras)})", _FIX)
+        cam = cameras[c]
+        kind = get(cam, "type")
+        name = get(cam, "name", "")
+        if kind == "perspective":
+            pp = get(cam, "perspective")
+            if pp is None or get(pp, "yfov") is None or get(pp, "znear") is None:
+                fail(self.path, f"camera {c}", "perspective camera without yfov/znear", _FIX)
+            self.cameras.append(GltfCamera(
+                type=kind, world_matrix=world.copy(), camera=c, node=node_index, name=name,
+                yfov=float(get(pp, "yfov")), aspect_ratio=None if get(pp, "aspectRatio") is None else float(get(pp, "aspectRatio")),
+                znear=float(get(pp, "znear")), zfar=float(get(pp, "zfar", math.inf))))
+        elif kind == "orthographic":
+            op = get(cam, "orthographic")
+            if op is None or any(get(op, k) is None for k in ("xmag", "ymag", "znear", "zfar")):
+                fail(self.path, f"camera {c}", "orthographic camera without xmag/ymag/znear/zfar", _FIX)
+            self.cameras.append(GltfCamera(
+                type=kind, world_matrix=world.copy(), camera=c, node=node_index, name=name,
+                xmag=float(get(op, "xmag")), ymag=float(get(op, "ymag")),
+                znear=float(get(op, "znear")), zfar=float(get(op, "zfar"))))
+        else:
+            fail(self.path, f"camera {c}", f"type {kind!r} is neither 'perspective' nor 'orthographic'", _FIX)
+
+    def _light(self, node_index, li, world, where):
+        ext = (get(self.gltf, "extensions", {}) or {}).get("KHR_lights_punctual") or {}
+        lights = get(ext, "lights", []) or []
+        if not isinstance(li, int) or not 0 <= li < len(lights):
+            fail(self.path, f"{where}: KHR_lights_punctual", f"light {li!r} does not exist (the file has {len(lights)})", _FIX)
+        light = lights[li]
+        kind = get(light, "type")
+        if kind not in ("directional", "point", "spot"):
+            fail(self.path, f"KHR_lights_punctual light {li}", f"type {kind!r} is not directional, point or spot", _FIX)
+        color = np.asarray(get(light, "color", (1.0, 1.0, 1.0)), np.float64)
+        if color.shape != (3,):
+            fail(self.path, f"KHR_lights_punctual light {li}", f"color {color.tolist()} is not 3 numbers", _FIX)
+        direction = normalize_rows((world[:3, :3] @ np.array([0.0, 0.0, -1.0]))[None])[0]
+        inner = outer = None
+        if kind == "spot":
+            spot = get(light, "spot", {}) or {}
+            inner = float(get(spot, "innerConeAngle", 0.0))
+            outer = float(get(spot, "outerConeAngle", math.pi / 4))
+        self.lights.append(GltfLight(
+            type=kind, color=color, intensity=float(get(light, "intensity", 1.0)),
+            range=float(get(light, "range", math.inf)), position=world[:3, 3].copy(), direction=direction,
+            light=li, node=node_index, name=get(light, "name", ""),
+            inner_cone_angle=inner, outer_cone_angle=outer))
+
+
+def load_gltf(path, *, scene: int | None = None, lazy_images: bool = False) -> GltfAsset:
+    """Load a glTF 2.0 asset (.gltf with external or data: URIs, or .glb) flattened to world space.
+
+    Args:
+        path: the .gltf or .glb file.
+        scene: index of the scene to load; default the file's `scene`, else scene 0 (a file
+            without scenes: all root nodes).
+        lazy_images: leave images undecoded until `GltfImage.pixels` is read (default: decode the
+            images that materials use now, so that a broken image fails the load).
+
+    Returns:
+        `GltfAsset`: one `GltfPrimitive` per (node, mesh primitive) of the scene, in world space
+        (see its docstring); materials (plus the spec's default material when needed), images,
+        KHR_lights_punctual lights and cameras.
+
+    Raises:
+        InputError: unreadable/malformed files, missing buffer or image files, accessors outside
+        their buffer, indices outside the vertex range, point/line primitives, unsupported image
+        types, and extensionsRequired the loader does not implement (`SUPPORTED_EXTENSIONS`, all
+        named in one error). Nothing is returned half-loaded.
+
+    Warns (one `UserWarning` per kind, listed in `GltfAsset.warnings`): extensionsUsed that are
+    ignored; skins, morph targets and animations (the static pose/base shape is loaded); texture
+    slots without a decodable image; tangents that cannot be generated.
+    """
+    path = Path(path)
+    loader = _Loader(path, scene, lazy_images)
+    try:
+        asset = loader.run()
+    except InputError:
+        raise
+    except (TypeError, KeyError, IndexError, AttributeError, ValueError) as e:
+        raise InputError(f"glTF file {str(path)!r}: malformed content ({type(e).__name__}: {e}). Fix: {_FIX}") from e
+    for note in asset.warnings:
+        warnings.warn(f"{path.name}: {note}", UserWarning, stacklevel=2)
+    return asset
