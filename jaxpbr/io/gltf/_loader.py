@@ -405,9 +405,16 @@ class _Loader:
             for k in list(arrays):
                 arrays[k] = arrays[k][corners]
             tris = np.arange(corners.size, dtype=np.int64).reshape(-1, 3)
-        t = np.asarray(mikktspace_tangents(
-            np.asarray(arrays["positions"], np.float32), np.asarray(arrays["normals"], np.float32),
-            np.asarray(arrays[f"uv{s}"], np.float32), np.asarray(tris, np.int32)), np.float64)
+        # The generator takes an unwelded triangle soup (corner k of triangle t at row 3t + k, glTF
+        # texcoords as stored) and returns glTF-convention tangents per corner.
+        try:
+            t = np.asarray(mikktspace_tangents(
+                np.asarray(arrays["positions"], np.float32), np.asarray(arrays["normals"], np.float32),
+                np.asarray(arrays[f"uv{s}"], np.float32)), np.float64)
+        except InputError as e:
+            fail(self.path, where, f"MikkTSpace tangents cannot be made ({e})", _FIX)
+        except Exception as e:  # a generator bug, not bad input: keep it distinguishable
+            raise RuntimeError(f"{self.path}: {where}: mikktspace_tangents failed: {e}") from e
         if t.shape != (arrays["positions"].shape[0], 4):
             raise RuntimeError(f"mikktspace_tangents returned shape {t.shape}, expected "
                                f"({arrays['positions'].shape[0]}, 4) per corner")
