@@ -73,6 +73,7 @@ linear part, the uv derivatives.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -81,7 +82,7 @@ import numpy as np
 
 from .. import color
 from .._interp import lerp, lerp2, split_coordinate
-from .._numerics import as_float, eps, safe_div, unpack3, vcross, vdot
+from .._numerics import as_float, eps, safe_div, safe_sqrt, unpack3, vcross, vdot
 from .._pytree import Pytree, leaf, static
 from ..errors import InputError
 
@@ -183,6 +184,15 @@ def build_mips(level0, num_levels: int | None = None) -> tuple:
     n = full if num_levels is None else int(num_levels)
     if not 1 <= n <= full:
         raise ValueError(f"num_levels must be in [1, {full}] for a {H}x{W} texture, got {num_levels}")
+    return _build_mips(level0, n, False)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _build_mips(level0, n: int, srgb: bool) -> tuple:
+    # One compiled program per (shape, dtype, n, srgb): called eagerly, the ~10 ops per level
+    # would otherwise each be dispatched (and compiled once) on their own; inlined under jit.
+    if srgb:
+        level0 = _decode_srgb(level0)
     levels = [level0]
     for _ in range(1, n):
         levels.append(_halve_axis(_halve_axis(levels[-1], -3), -2))
@@ -310,10 +320,12 @@ class Texture(Pytree):
         x = _as_texels(img, dtype)
         if x.ndim != 3:
             raise ValueError(f"Texture.from_image expects an (H, W) or (H, W, C) image, got shape {jnp.shape(img)}")
-        if srgb:
-            x = _decode_srgb(x)
+        full = mip_count(x.shape[0], x.shape[1])
+        n = full if num_levels is None else int(num_levels)
+        if not 1 <= n <= full:
+            raise ValueError(f"num_levels must be in [1, {full}] for a {x.shape[0]}x{x.shape[1]} texture, got {num_levels}")
         return cls(
-            levels=build_mips(x, num_levels),
+            levels=_build_mips(x, n, bool(srgb)),
             wrap_s=wrap_s,
             wrap_t=wrap_t,
             mag_filter=mag_filter,
@@ -507,7 +519,7 @@ def footprint(tex: Texture, duv_dx, duv_dy) -> Footprint:
     """The LOD, anisotropic tap count and major axis of the footprint spanned by duv_dx, duv_dy
     (..., 2) (uv per pixel), by `tex`'s level-0 size and max_anisotropy (module docstring, step 2)."""
     _, dx, dy = _broadcast_inputs(jnp.zeros((2,)), duv_dx, duv_dy)
-    return _footprint(tex, dx, dy)
+    return jax.jit(_footprint)(tex, dx, dy)
 
 
 def _footprint(tex: Texture, dx, dy) -> Footprint:
@@ -538,6 +550,12 @@ def sample(tex: Texture, uv, duv_dx=None, duv_dy=None, *, lod_bias=0.0):
     LOD (GL's texture LOD bias). Shapes broadcast; jit / vmap / grad friendly (no Python loops
     over pixels, static shapes). See the module docstring for the exact rules."""
     uv, dx, dy = _broadcast_inputs(uv, duv_dx, duv_dy)
+    return _sample(tex, uv, dx, dy, jnp.asarray(lod_bias, uv.dtype))
+
+
+@jax.jit
+def _sample(tex: Texture, uv, dx, dy, lod_bias):
+    # jitted for eager callers (one program per sampler, shapes and dtypes; inlined under jit)
     fp = _footprint(tex, dx, dy)
     lam = fp.lod + lod_bias
     p = _pack(tex)
@@ -563,7 +581,12 @@ def sample_lod(tex: Texture, uv, lod):
     lod = jnp.asarray(lod, uv.dtype)
     shape = jnp.broadcast_shapes(uv.shape[:-1], lod.shape)
     uv = jnp.broadcast_to(uv, shape + (2,))
-    return _filtered(tex, _pack(tex), uv[..., 0], uv[..., 1], jnp.broadcast_to(lod, shape))
+    return _sample_lod(tex, uv, jnp.broadcast_to(lod, shape))
+
+
+@jax.jit
+def _sample_lod(tex: Texture, uv, lod):
+    return _filtered(tex, _pack(tex), uv[..., 0], uv[..., 1], lod)
 
 
 # ------------------------------------------------------------------------------------------
@@ -648,7 +671,7 @@ def uv_derivatives_on_triangle(
     nn_s = jnp.where(ok_tri, nn, 1.0)
     # grazing clamp of D . n (double where: no division by ~0 anywhere)
     dn = vdot(D, n)
-    lim = min_cos * jnp.sqrt(vdot(D, D) * nn)
+    lim = min_cos * safe_sqrt(vdot(D, D) * nn)  # safe: sqrt'(0) = inf would give 0 * inf = NaN
     sgn = jnp.where(dn < 0, -1.0, 1.0)
     dn = jnp.where(jnp.abs(dn) >= lim, dn, sgn * lim)
     dn = jnp.where(dn == 0, 1.0, dn)  # D = 0 or n = 0 (the latter masked below)
