@@ -944,3 +944,34 @@ def test_trimesh_exported_glb(tmp_path):
         face = np.cross(ours[:, 1] - ours[:, 0], ours[:, 2] - ours[:, 0])
         assert np.all(np.einsum("ij,ij->i", face, ours.mean(axis=1) - centre) > 0)
         np.testing.assert_allclose(prim.normals[prim.indices[:, 0]], unit(face), atol=1e-5)
+
+
+def test_ext_mesh_gpu_instancing(tmp_path):
+    """Each instance is node world @ T @ R @ S (ROTATION as normalized SHORT quaternions)."""
+    b = _minimal()
+    b.used("EXT_mesh_gpu_instancing", required=["EXT_mesh_gpu_instancing"])
+    q = 23170  # round(32767 * sqrt(1/2)): a 90-degree turn about z once normalized
+    attrs = {"TRANSLATION": b.accessor(np.float32([[0, 0, 0], [10, 0, 0], [0, 10, 0]]), FLOAT, "VEC3"),
+             "ROTATION": b.accessor(np.int16([[0, 0, 0, 32767], [0, 0, q, q], [0, 0, 0, 32767]]), SHORT, "VEC4",
+                                    normalized=True),
+             "SCALE": b.accessor(np.float32([[1, 1, 1], [1, 1, 1], [2, 2, 2]]), FLOAT, "VEC3")}
+    b.doc["nodes"][0].update({"translation": [0, 0, 5], "extensions": {"EXT_mesh_gpu_instancing": {"attributes": attrs}}})
+    path = b.write(tmp_path / "inst.gltf")
+    assert_valid(path)
+    prims = load_gltf(path).primitives
+    assert [p.instance for p in prims] == [0, 1, 2]
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    for p, m in zip(prims, (T(0, 0, 5), T(0, 0, 5) @ T(10, 0, 0) @ Rz(math.pi / 2), T(0, 0, 5) @ T(0, 10, 0) @ S(2, 2, 2))):
+        np.testing.assert_allclose(p.positions, apply(m, tri), atol=1e-6)
+        np.testing.assert_allclose(p.world_matrix, m, atol=1e-9)
+
+
+def test_no_scenes_loads_root_nodes(tmp_path):
+    b = _minimal()
+    del b.doc["scenes"]
+    b.doc["nodes"][0]["children"] = [1]
+    b.add("nodes", {"mesh": 0, "translation": [0, 0, 1]})
+    path = b.write(tmp_path / "noscene.gltf")
+    assert_valid(path)
+    asset = load_gltf(path)
+    assert asset.scene is None and [p.node for p in asset.primitives] == [0, 1]

@@ -27,6 +27,7 @@ SUPPORTED_EXTENSIONS = (
     "KHR_texture_transform",
     "KHR_lights_punctual",
     "KHR_mesh_quantization",
+    "EXT_mesh_gpu_instancing",
 )
 
 _FLOATISH = (5120, 5121, 5122, 5123, 5126)  # FLOAT, or integers read as (normalized) numbers
@@ -234,6 +235,41 @@ class _Loader:
         if not isinstance(m, int) or not 0 <= m < len(meshes):
             fail(self.path, where, f"mesh {m!r} does not exist (the file has {len(meshes)})", _FIX)
         mesh = meshes[m]
+        inst = (get(node, "extensions", {}) or {}).get("EXT_mesh_gpu_instancing")
+        if inst is None:
+            self._emit(node_index, m, mesh, world, None)
+            return
+        for k, local in enumerate(self._instance_matrices(get(inst, "attributes", {}) or {}, where)):
+            self._emit(node_index, m, mesh, world @ local, k)
+
+    def _instance_matrices(self, attrs, where) -> np.ndarray:
+        """(N, 4, 4) EXT_mesh_gpu_instancing transforms T @ R @ S, one per instance."""
+        where = f"{where}: EXT_mesh_gpu_instancing"
+        cols = {}
+        for name, atype, comps in (("TRANSLATION", "VEC3", (5126,)), ("ROTATION", "VEC4", (5126, 5120, 5122)),
+                                   ("SCALE", "VEC3", (5126,))):
+            if attrs.get(name) is not None:
+                cols[name] = np.asarray(self.buffers.accessor(attrs[name], f"{where} {name}", allowed_types=(atype,),
+                                                              allowed_components=comps), np.float64)
+        counts = {v.shape[0] for v in cols.values()}
+        if len(counts) != 1:
+            fail(self.path, where, "needs TRANSLATION, ROTATION or SCALE accessors, all of the same count", _FIX)
+        n = counts.pop()
+        out = np.tile(np.eye(4), (n, 1, 1))
+        if "ROTATION" in cols:
+            x, y, z, w = normalize_rows(cols["ROTATION"]).T
+            out[:, :3, :3] = np.stack([
+                np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+                np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+                np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], axis=1)
+        if "SCALE" in cols:
+            out[:, :3, :3] *= cols["SCALE"][:, None, :]
+        if "TRANSLATION" in cols:
+            out[:, :3, 3] = cols["TRANSLATION"]
+        return out
+
+    def _emit(self, node_index, m, mesh, world, instance):
+        """The primitives of mesh m placed by `world`: appended to self.primitives."""
         a = world[:3, :3]
         det = float(np.linalg.det(a))
         sign = 1.0 if det >= 0 else -1.0
@@ -265,7 +301,8 @@ class _Loader:
                 node=node_index,
                 mesh=m,
                 primitive=p,
-                name=f"{mesh_name}/{p}",
+                name=f"{mesh_name}/{p}" + ("" if instance is None else f"#{instance}"),
+                instance=instance,
                 world_matrix=world.copy(),
                 tangents=tangents,
                 texcoord_0=shape.texcoords.get(0),

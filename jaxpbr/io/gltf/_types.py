@@ -197,7 +197,9 @@ class GltfPrimitive:
         color_0: (V, 4) float32 or None (RGB data gets alpha 1); linear.
         material: index into `GltfAsset.materials`.
         node, mesh, primitive: where it comes from (node index, mesh index, index in the mesh).
-        name: 'mesh name/primitive index'.
+        instance: the EXT_mesh_gpu_instancing instance (world_matrix includes its transform), or
+            None for a node without instancing.
+        name: 'mesh name/primitive index' (+ '#instance').
         world_matrix: (4, 4) float64 node-to-world matrix.
         flat_normals: the normals were generated (flat); generated_tangents: the tangents were.
     """
@@ -217,6 +219,7 @@ class GltfPrimitive:
     color_0: np.ndarray | None = None
     flat_normals: bool = False
     generated_tangents: bool = False
+    instance: int | None = None
 
     @property
     def num_vertices(self) -> int:
