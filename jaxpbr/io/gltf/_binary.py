@@ -12,7 +12,7 @@ import numpy as np
 
 from ...errors import InputError
 
-__all__ = ["Buffers", "fail", "resolve_uri", "read_uri"]
+__all__ = ["Buffers", "fail", "read_uri", "resolve_uri"]
 
 #: componentType -> little-endian NumPy dtype.
 COMPONENT_TYPES = {
@@ -57,7 +57,7 @@ def get(obj, key, default=None):
     return default if value is None else value
 
 
-_DATA_URI = re.compile(r"^data:(?P<mime>[^;,]*)(?P<params>(;[^;,]*)*?),(?P<data>.*)$", re.S)
+_DATA_URI = re.compile(r"^data:(?P<mime>[^;,]*)(?P<params>(;[^;,]*)*?),(?P<data>.*)$", re.DOTALL)
 
 
 def resolve_uri(uri: str, base: Path):

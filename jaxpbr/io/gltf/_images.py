@@ -11,7 +11,7 @@ import numpy as np
 from ._binary import fail, get, read_uri, resolve_uri
 from ._types import GltfImage
 
-__all__ = ["make_images", "SUPPORTED_MIME_TYPES"]
+__all__ = ["SUPPORTED_MIME_TYPES", "make_images"]
 
 SUPPORTED_MIME_TYPES = ("image/png", "image/jpeg")
 _SUFFIX = {"image/png": ".png", "image/jpeg": ".jpg"}

@@ -13,12 +13,19 @@ import numpy as np
 
 from ...errors import InputError
 from ._binary import Buffers, fail, get
-from ._geometry import MODE_NAMES, face_normals, node_matrix, normalize_rows, triangle_list, weld
+from ._geometry import (
+    MODE_NAMES,
+    face_normals,
+    node_matrix,
+    normalize_rows,
+    triangle_list,
+    weld,
+)
 from ._images import make_images
 from ._materials import MATERIAL_EXTENSIONS, MaterialReader
 from ._types import GltfAsset, GltfCamera, GltfLight, GltfMaterial, GltfPrimitive
 
-__all__ = ["load_gltf", "SUPPORTED_EXTENSIONS"]
+__all__ = ["SUPPORTED_EXTENSIONS", "load_gltf"]
 
 #: The extensions `load_gltf` implements; others in extensionsRequired are refused, others in
 #: extensionsUsed are ignored with a warning.
@@ -358,6 +365,10 @@ class _Loader:
             if uv is not None:
                 texcoords[s] = np.asarray(uv, np.float32)
         color = self._attribute(attrs, "COLOR_0", where, ("VEC3", "VEC4"), (5121, 5123, 5126))
+        for name, arr in (("NORMAL", normals), ("TANGENT", tangents), ("COLOR_0", color)):
+            if arr is not None and arr.dtype.kind != "f":
+                fail(self.path, f"{where} {name} (accessor {attrs[name]})",
+                     "is an integer accessor without normalized: true (glTF needs FLOAT or normalized integers)", _FIX)
         for name, arr in (("NORMAL", normals), ("TANGENT", tangents), ("COLOR_0", color),
                           *((f"TEXCOORD_{s}", uv) for s, uv in texcoords.items())):
             if arr is not None and arr.shape[0] != n:

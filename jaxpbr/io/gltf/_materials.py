@@ -10,7 +10,7 @@ import numpy as np
 from ._binary import fail, get
 from ._types import GltfMaterial, GltfSampler, GltfTextureRef
 
-__all__ = ["MaterialReader", "MATERIAL_EXTENSIONS", "texture_transform_matrix"]
+__all__ = ["MATERIAL_EXTENSIONS", "MaterialReader", "texture_transform_matrix"]
 
 WRAP = {10497: "repeat", 33071: "clamp", 33648: "mirror"}
 MAG_FILTER = {9728: "nearest", 9729: "linear"}

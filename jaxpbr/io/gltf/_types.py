@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "TEXTURE_CHANNELS",
     "GltfAsset",
     "GltfCamera",
     "GltfImage",
@@ -17,7 +18,6 @@ __all__ = [
     "GltfPrimitive",
     "GltfSampler",
     "GltfTextureRef",
-    "TEXTURE_CHANNELS",
 ]
 
 #: Which channels of each texture role carry what (glTF 2.0 and the KHR_materials_* READMEs); the
