@@ -97,8 +97,8 @@ def test_asset_cache_on_disk_round_trip(disk_assets, monkeypatch):
     assert files == ["irradiance", "prefilter"]
     # A new process (memory cache empty) loads the maps instead of computing them.
     renderer.ASSETS.clear()
-    monkeypatch.setattr(jp.specular, "prefilter", lambda *a, **k: pytest.fail("prefilter recomputed"))
-    monkeypatch.setattr(jp.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance recomputed"))
+    monkeypatch.setattr(jp.ibl.specular, "prefilter", lambda *a, **k: pytest.fail("prefilter recomputed"))
+    monkeypatch.setattr(jp.ibl.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance recomputed"))
     again = np.asarray(jp.render(_scene(env)))
     np.testing.assert_array_equal(again, first)
     assert renderer.ASSETS.stats["prefilter"]["disk"] == 1 and renderer.ASSETS.stats["irradiance"]["disk"] == 1

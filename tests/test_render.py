@@ -302,8 +302,8 @@ def _primitives(scene, **options):
 
 def test_plan_no_lights_no_environment_traces_neither(monkeypatch):
     calls = []
-    monkeypatch.setattr(jp.diffuse, "irradiance", lambda *a, **k: calls.append("irr"))
-    monkeypatch.setattr(jp.specular, "prefilter", lambda *a, **k: calls.append("pre"))
+    monkeypatch.setattr(jp.ibl.diffuse, "irradiance", lambda *a, **k: calls.append("irr"))
+    monkeypatch.setattr(jp.ibl.specular, "prefilter", lambda *a, **k: calls.append("pre"))
     scene = jp.Scene(camera=jp.Camera(width=8, height=6), objects=sphere_grid(2, 2))
     p, text = _primitives(scene)
     assert not p.direct and not p.ibl and p.prefilter_levels == 0
@@ -335,8 +335,8 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
         seen["levels"] = out.num_levels
         return out
 
-    monkeypatch.setattr(jp.specular, "prefilter", spy_pre)
-    monkeypatch.setattr(jp.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance computed for metals"))
+    monkeypatch.setattr(jp.ibl.specular, "prefilter", spy_pre)
+    monkeypatch.setattr(jp.ibl.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance computed for metals"))
     R.ASSETS.clear()
     img = np.asarray(jp.render(scene, options=ss))
     assert seen["levels"] == 3 and np.isfinite(img).all()
@@ -398,7 +398,7 @@ def test_environment_rotation_rotates_the_lighting():
     [
         (lambda: jp.Scene(objects=[jp.Sphere()]), "needs a Camera"),
         (lambda: jp.Scene(camera=jp.Camera()), "needs objects"),
-        (lambda: jp.Scene(camera=jp.Camera(), objects=["ball"]), "Sphere or Plane"),
+        (lambda: jp.Scene(camera=jp.Camera(), objects=["ball"]), "Sphere, Plane or Mesh"),
         (lambda: jp.Scene(camera=jp.Camera(), objects=[jp.Sphere()], lights=[1.0]), "PointLight"),
         (lambda: jp.Sphere(radius=-1.0), "radius must be > 0"),
         (lambda: jp.Sphere(material="gold"), "Material or TexturedMaterial"),

@@ -1,4 +1,4 @@
-"""`jaxpbr render`: render the demo or a TOML scene file to PNG (and EXR)."""
+"""`jaxpbr render`: render the demo, a TOML scene file or a glTF 2.0 asset to PNG (and EXR)."""
 
 from __future__ import annotations
 
@@ -36,9 +36,9 @@ def add_command(sub) -> None:
         description="Render a scene to linear HDR, tone-map it and write a PNG (and an EXR with --hdr). "
         "Without SCENE: the demo, a 7x7 sphere grid (metallic by row, roughness 0..1 by column) under a "
         "procedural sky with a bright sun, plus four point lights. SCENE is a TOML scene description "
-        "(see docs/scene_format.md).",
+        "(see docs/scene_format.md) or a glTF 2.0 asset (.gltf, .glb; see docs/gltf.md).",
     )
-    r.add_argument("scene", nargs="?", default=None, help="scene description (.toml); default: the demo")
+    r.add_argument("scene", nargs="?", default=None, help="scene description (.toml) or glTF asset (.gltf, .glb); default: the demo")
     r.add_argument("-o", "--output", default="jaxpbr_demo.png", help="output PNG path (default: %(default)s)")
     r.add_argument("--width", type=positive_int_arg, default=None, help="image width (default: 1280, or the scene's)")
     r.add_argument("--height", type=positive_int_arg, default=None, help="image height (default: 720, or the scene's)")
@@ -62,6 +62,12 @@ def add_command(sub) -> None:
     r.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth (default: %(default)s)")
     r.add_argument("--hdr", action="store_true", help="also write the linear HDR image as EXR next to the PNG")
     r.add_argument("--no-environment", action="store_true", help="demo only: leave out the sky (no IBL)")
+    g = r.add_argument_group("glTF assets")
+    g.add_argument("--environment", default=None, metavar="FILE", help="glTF: environment lighting and background: an equirect .hdr/.exr panorama or procedural:sky (default: none)")
+    g.add_argument("--environment-intensity", type=_finite_float_arg, default=1.0, help="glTF: multiplier of the environment (default: %(default)s)")
+    g.add_argument("--camera-position", type=_vec3_arg, default=None, metavar="X,Y,Z", help="glTF: camera position (default: the asset's first camera, else a framing of its bounds)")
+    g.add_argument("--camera-target", type=_vec3_arg, default=None, metavar="X,Y,Z", help="glTF: the point the camera looks at (default: the centre of the asset's bounds)")
+    g.add_argument("--fov-y", type=_finite_float_arg, default=None, metavar="DEG", help="glTF: vertical field of view in degrees (default: the asset camera's, else 45)")
     r.add_argument("--no-lights", action="store_true", help="demo only: leave out the point lights")
     r.set_defaults(func=cmd_render)
 
@@ -113,6 +119,59 @@ def _display(hdr, ev, *, tonemap: str, encoding: str):
     return color.encode(color.tonemap(color.exposure(hdr, ev), tonemap), encoding)
 
 
+def _vec3_arg(text: str) -> tuple[float, float, float]:
+    """argparse type: three finite numbers separated by commas."""
+    parts = text.split(",")
+    try:
+        vals = tuple(float(x) for x in parts)
+    except ValueError:
+        vals = ()
+    if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
+        raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}")
+    return vals
+
+
+def _gltf_scene(args):
+    """The scene of a glTF asset with the command line's environment and camera."""
+    import warnings
+
+    from ..ibl.cubeio import load_environment
+    from ..io.gltf import read_gltf
+    from ..rendering.gltf_scene import frame_bounds, scene_from_asset
+    from ..rendering.scene import Camera, Environment
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        asset = read_gltf(args.scene)
+    for w in caught:
+        print(f"jaxpbr: warning: {w.message}")
+    W, H = args.width or 1280, args.height or 720
+    env = None
+    if args.environment is not None:
+        env = Environment(radiance=load_environment(args.environment), intensity=args.environment_intensity)
+    cam = None
+    if args.camera_position is not None or args.camera_target is not None or args.fov_y is not None or not asset.cameras:
+        pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], fov_y_deg=args.fov_y or 45.0, aspect=W / H)
+        first = next((c for c in asset.cameras if c.type == "perspective"), None)
+        if first is not None and args.camera_position is None and args.camera_target is None:
+            pos, tgt = first.position, first.position + first.forward
+        cam = Camera(
+            position=tuple(args.camera_position or pos), target=tuple(args.camera_target or tgt),
+            fov_y_deg=args.fov_y or (math.degrees(first.yfov) if first is not None else 45.0),
+            width=W, height=H, supersample=args.supersample or 1,
+        )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gs = scene_from_asset(asset, camera=cam, width=W, height=H, environment=env)
+    for note in gs.notes:
+        print(f"jaxpbr: note: {note}")
+    scene = gs.scene
+    if cam is None and args.supersample:
+        scene = scene.replace(camera=scene.camera.replace(supersample=args.supersample))
+    s = asset.summary()
+    return scene, f"glTF {Path(args.scene).name}: {s['triangles']} triangles, {s['materials']} materials"
+
+
 def cmd_render(args) -> int:
     out = Path(args.output)
     with OutputSet() as outs:
@@ -136,9 +195,17 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         options: dict = {}
         description = "demo: 7x7 sphere grid (metallic by row, roughness 0..1 by column), procedural sky + sun"
         description += ", 4 point lights" if not args.no_lights else ""
+    elif Path(args.scene).suffix.lower() in (".gltf", ".glb"):
+        if args.no_lights or args.no_environment:
+            raise CLIError("--no-lights/--no-environment apply to the demo only; a glTF asset has no environment unless --environment is given")
+        scene, description = _gltf_scene(args)
+        options = {}
     else:
         if args.no_lights or args.no_environment:
             raise CLIError("--no-lights/--no-environment apply to the demo only; edit the scene file instead")
+        gltf_flags = [f for f, v in (("--environment", args.environment), ("--camera-position", args.camera_position), ("--camera-target", args.camera_target), ("--fov-y", args.fov_y)) if v is not None]
+        if gltf_flags:
+            raise CLIError(f"{', '.join(gltf_flags)} apply to glTF assets (.gltf, .glb); a scene file sets its own environment and camera")
         loaded = load_scene(args.scene)
         scene, options, display_opts = loaded.scene, dict(loaded.options), dict(loaded.output)
         if scene.camera is not None and (args.width or args.height or args.supersample):

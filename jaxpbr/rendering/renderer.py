@@ -67,13 +67,17 @@ from ..shading.layered import emission_soa
 from ..shading.lights import shade_direct
 from ..shading.lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
 from ..shading.material import EXTENSIONS, Material
+from . import texture
+from .mesh import Mesh, cast, concat_meshes, mesh_surface
 from .scene import (
     Environment,
     Plane,
     Scene,
     Sphere,
     TexturedMaterial,
+    TextureSlot,
     apply_extension_textures,
+    texels,
     intersect_plane,
     intersect_sphere,
     primary_rays,
@@ -251,7 +255,7 @@ def _material_ranges(m) -> tuple[float, float, bool]:
         f = m.factors
         r = _bound(f.roughness, "max", 1.0)
         met = _bound(f.metallic, "min", 0.0)
-        mr = m.metallic_roughness_texture
+        mr = texels(m.metallic_roughness_texture) if m.metallic_roughness_texture is not None else None
         if mr is not None:
             r *= _bound(mr, "max", 1.0, channel=1)
             met *= _bound(mr, "min", 0.0, channel=2)
@@ -787,33 +791,50 @@ def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
     return p, n, (u, v), tangent
 
 
-def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None, aniso_t=None):
+def _lookup(x, *, uv, uv1, duv, dtype):
+    """Samples (..., C) of a material texture: a `TextureSlot` filtered by its footprint (its
+    texture-coordinate set, KHR_texture_transform, mips, sampler), a plain array bilinearly."""
+    if not isinstance(x, TextureSlot):
+        return sample_texture(jnp.asarray(x, dtype), uv[0], uv[1])
+    s = x.texcoord
+    st = jnp.stack(uv if s == 0 or uv1 is None else uv1, -1)
+    if duv is None:
+        dx = dy = jnp.zeros_like(st)
+    else:
+        dx, dy = duv[s]
+    if x.transform is not None:
+        st, dx, dy = texture.apply_texture_transform(jnp.asarray(x.transform, dtype), st, dx, dy)
+    return texture.sample(_cast_floats(x.texture, dtype), st, dx, dy)
+
+
+def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None, aniso_t=None, tangent_w=None, uv1=None, duv=None):
     """Override the gathered constant material (and normal) on the pixels of textured object k;
     with the extension textures (`scene.apply_extension_textures`) also the clear-coat normal and
     the anisotropy direction. Returns (material, normal, coat normal | None, anisotropy direction
     | None); the surface tangent itself is left as it is (normal maps are in its frame)."""
     u, v = uv
     base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
+    lookup = functools.partial(_lookup, uv=uv, uv1=uv1, duv=duv, dtype=dtype)
     if True:
         tm = objects[k].material
         f = tm.factors
         sel = idx == k
         if tm.base_color_texture is not None:
-            tex = sample_texture(jnp.asarray(tm.base_color_texture, dtype)[..., :3], u, v)
+            tex = lookup(tm.base_color_texture)[..., :3]
             base = jnp.where(sel[..., None], jnp.asarray(f.base_color, dtype) * tex, base)
         if tm.metallic_roughness_texture is not None:
-            tex = sample_texture(jnp.asarray(tm.metallic_roughness_texture, dtype)[..., 1:3], u, v)
+            tex = lookup(tm.metallic_roughness_texture)[..., 1:3]
             rough = jnp.where(sel, jnp.asarray(f.roughness, dtype) * tex[..., 0], rough)
             metallic = jnp.where(sel, jnp.asarray(f.metallic, dtype) * tex[..., 1], metallic)
         if tm.occlusion_texture is not None:
-            tex = sample_texture(jnp.asarray(tm.occlusion_texture, dtype)[..., :1], u, v)
+            tex = lookup(tm.occlusion_texture)[..., :1]
             occ = jnp.where(sel, jnp.asarray(f.occlusion, dtype) * tex[..., 0], occ)
         if tm.emissive_texture is not None:
-            tex = sample_texture(jnp.asarray(tm.emissive_texture, dtype)[..., :3], u, v)
+            tex = lookup(tm.emissive_texture)[..., :3]
             emis = jnp.where(sel[..., None], jnp.asarray(f.emissive, dtype) * tex, emis)
         if tm.extension_textures:
             m = evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis)
-            m, cn, tan_k = apply_extension_textures(tm, m, u, v, sel, n, tangent, dtype=dtype)
+            m, cn, tan_k = apply_extension_textures(tm, m, u, v, sel, n, tangent, dtype=dtype, lookup=lookup)
             base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
             if cn is not None:
                 prev = n if coat_n is None else coat_n
@@ -822,13 +843,15 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=N
                 prev = tangent if aniso_t is None else aniso_t
                 aniso_t = tuple(jnp.where(sel, tan_k[i], prev[i]) for i in range(3))
         if tm.normal_texture is not None:
-            tex = sample_texture(jnp.asarray(tm.normal_texture, dtype)[..., :3], u, v)
+            tex = lookup(tm.normal_texture)[..., :3]
             s = jnp.asarray(tm.normal_scale, dtype)
             tx, ty, tz = (2.0 * tex[..., 0] - 1.0) * s, (2.0 * tex[..., 1] - 1.0) * s, 2.0 * tex[..., 2] - 1.0
-            # Gram-Schmidt T against the geometric normal, B = N x T (glTF handedness +1).
+            # Gram-Schmidt T against the normal, B = w (N x T) (glTF; w = +1 off meshes).
             tn = vdot(tangent, n)
             T = vnormalize(tuple(tangent[i] - tn * n[i] for i in range(3)))
             B = vcross(n, T)
+            if tangent_w is not None:
+                B = tuple(tangent_w * c for c in B)
             pert = vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
             n = tuple(jnp.where(sel, pert[i], n[i]) for i in range(3))
     return evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n, coat_n, aniso_t
@@ -935,23 +958,73 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
             hit=gb.hit,
             ray=tuple(-c for c in view),
         )
-    o, d = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
-    o, d = unpack3(o), unpack3(d)
+    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    o, d = unpack3(o_px), unpack3(d_px)
     objects = scene.objects
-    t, idx, hit = _cast(objects, o, d, dtype)
     ext = p_plan.extensions
     need_uv = bool(p_plan.textured) or "anisotropy" in ext
-    pos, n, uv, tangent = _surface(objects, o, d, t, idx, dtype, need_uv)
+    analytic = [k for k, ob in enumerate(objects) if not isinstance(ob, Mesh)]
+    meshes = [k for k, ob in enumerate(objects) if isinstance(ob, Mesh)]
+    tw = None
+    if analytic:
+        sub = [objects[k] for k in analytic]
+        t, idx, hit = _cast(sub, o, d, dtype)
+        pos, n, uv, tangent = _surface(sub, o, d, t, idx, dtype, need_uv)
+        idx = jnp.asarray(analytic, jnp.int32)[idx] if len(analytic) < len(objects) else idx
+    if meshes:
+        arrays = concat_meshes([objects[k] for k in meshes], dtype)
+        prim = cast(arrays, o_px, d_px)
+        ddir = _ray_differentials(scene.camera, d, dtype) if need_uv else None
+        ms = mesh_surface(arrays, prim, o, d, need_uv=need_uv, ddir=ddir)
+        on_mesh = prim >= 0
+        idx_m = jnp.asarray(meshes, jnp.int32)[ms["object"]]
+        if analytic:
+            on_mesh = on_mesh & (~hit | (ms["t"] < t))
+            pick = lambda a, b: tuple(jnp.where(on_mesh, a[i], b[i]) for i in range(len(a)))  # noqa: E731
+            t, idx, hit = jnp.where(on_mesh, ms["t"], t), jnp.where(on_mesh, idx_m, idx), hit | on_mesh
+            pos, n = pick(ms["pos"], pos), pick(ms["n"], n)
+            if need_uv:
+                uv, tangent = pick(ms["uv"], uv), pick(ms["tangent"], tangent)
+                tw = jnp.where(on_mesh, ms["tangent_w"], 1.0)
+                uv1 = pick(ms["uv1"], uv)
+                duv = tuple(tuple(jnp.where(on_mesh[..., None], a, 0.0) for a in ms["duv"][s]) for s in (0, 1))
+        else:
+            t, idx, hit = ms["t"], idx_m, on_mesh
+            pos, n = ms["pos"], ms["n"]
+            if need_uv:
+                uv, tangent, tw, uv1, duv = ms["uv"], ms["tangent"], ms["tangent_w"], ms["uv1"], ms["duv"]
     m = _gather_material(_stack_materials(objects, dtype, ext), idx)
+    if meshes and "color" in ms:
+        # COLOR_0 multiplies the base colour (glTF); 1 on other objects.
+        rgb = jnp.where(on_mesh[..., None], ms["color"][..., :3], 1.0)
+        m = evolve(m, base_color=m.base_color * rgb)
     g = dict(pos=pos, n=n, view=tuple(-c for c in d), m=m, hit=hit, ray=d)
     if need_uv:
         g.update(idx=idx, uv=uv, tangent=tangent)
+        if tw is not None:
+            g.update(tangent_w=tw, uv1=uv1, duv=duv)
     if "volume" in ext:
         # Sphere radius per pixel (0 on planes): the volume's path is the sphere's chord.
         radii = jnp.asarray([float(0.0) if isinstance(ob, Plane) else 1.0 for ob in objects], dtype)
         rad = jnp.stack([jnp.asarray(ob.radius if isinstance(ob, Sphere) else 0.0, dtype) for ob in objects]) * radii
         g["radius"] = rad[idx] if len(objects) > 1 else jnp.broadcast_to(rad[0], idx.shape)
     return g
+
+
+def _ray_differentials(cam, d, dtype):
+    """dD/dx, dD/dy (Vec3s) of the pinhole camera's unit ray directions d per pixel (Igehy 1999):
+    the unnormalised direction f + x r + y u moves by (2 tan(fov/2)/H) r per column and
+    -(2 tan(fov/2)/H) u per row, and has length 1/(D.f); dD = (dd - D (D.dd)) / |d|."""
+    from .scene import camera_basis
+
+    _, f, r, u = camera_basis(cam, dtype)
+    k = 2.0 * jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2) / cam.height
+    inv_len = vdot(d, f)  # 1/|d|
+    out = []
+    for dd in (tuple(k * c for c in r), tuple(-k * c for c in u)):
+        dn = vdot(d, dd)
+        out.append(tuple((dd[i] - d[i] * dn) * inv_len for i in range(3)))
+    return tuple(out)
 
 
 def _volume_inputs(g, m: Material, dtype):
@@ -987,7 +1060,7 @@ def _volume_inputs(g, m: Material, dtype):
 def _texture(scene: Scene, k: int, opts: RenderOptions, g):
     m, n, coat_n, aniso_t = _apply_texture(
         scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype), g.get("coat_n"),
-        g.get("aniso_t"),
+        g.get("aniso_t"), g.get("tangent_w"), g.get("uv1"), g.get("duv"),
     )
     out = {**g, "m": m, "n": n}
     if coat_n is not None:
@@ -1073,7 +1146,7 @@ def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: s
             for f in fields_of(m):
                 x = getattr(m, f.name)
                 if f.name.endswith("_texture") and x is not None:
-                    textures[id(x)] = np.shape(x)
+                    textures[id(x)] = np.shape(texels(x))
     parts = _memory.render_bytes(W, H, textures.values())
     parts = {("Camera.width/height" if k == "width/height" else "the textures' resolution" if k == "textures" else k): v for k, v in parts.items()}
     env = scene.environment

@@ -1,0 +1,242 @@
+"""glTF 2.0 assets as scenes: `load_gltf(path, ...)` -> a `Scene` that `jaxpbr.render` draws.
+
+The file is read by `jaxpbr.io.gltf.read_gltf` (NumPy, world space); here its primitives become
+`Mesh` objects (one per material: every primitive of a material shares one mesh), its materials
+`Material` / `TexturedMaterial` objects (the same classes and validation as scenes built by hand
+or from TOML), its KHR_lights_punctual lights jaxpbr lights (same units: candela, lux), and a
+camera is chosen: the one given, else the asset's first camera, else a framing of its bounds.
+
+Textures become `TextureSlot`s: a mip-mapped `Texture` with the file's sampler (wrap and filter
+modes), the texture-coordinate set and the KHR_texture_transform of the slot; colour textures
+(base colour, emissive, sheen colour, specular colour) are decoded from sRGB before filtering,
+data textures are filtered as stored, and the occlusion texture carries its strength
+(1 + strength (R - 1)). What the scene does not reproduce is listed in `GltfScene.notes` and warned
+once (alpha modes MASK and BLEND are drawn opaque; orthographic cameras are framed instead).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.gltf import GltfAsset, GltfMaterial, read_gltf
+from ..shading.lights import DirectionalLight, PointLight, SpotLight
+from ..shading.material import Material
+from .mesh import Mesh
+from .scene import Camera, Scene, TexturedMaterial, TextureSlot
+from .texture import Texture
+
+__all__ = ["GltfScene", "load_gltf", "frame_bounds", "scene_from_asset"]
+
+#: glTF texture role -> TexturedMaterial field (and the channels it reads are the glTF ones).
+_TEXTURE_FIELDS = {
+    "base_color": "base_color_texture",
+    "metallic_roughness": "metallic_roughness_texture",
+    "occlusion": "occlusion_texture",
+    "normal": "normal_texture",
+    "emissive": "emissive_texture",
+    "clearcoat": "clearcoat_texture",
+    "clearcoat_roughness": "clearcoat_roughness_texture",
+    "clearcoat_normal": "clearcoat_normal_texture",
+    "sheen_color": "sheen_color_texture",
+    "sheen_roughness": "sheen_roughness_texture",
+    "specular": "specular_texture",
+    "specular_color": "specular_color_texture",
+    "anisotropy": "anisotropy_texture",
+    "transmission": "transmission_texture",
+    "thickness": "thickness_texture",
+}
+
+
+@dataclass(eq=False)
+class GltfScene:
+    """A glTF asset ready to render: `scene` (a `jaxpbr.Scene`), the `asset` it came from
+    (`jaxpbr.io.gltf.GltfAsset`), and `notes`: what of the asset the scene does not reproduce."""
+
+    scene: Scene
+    asset: GltfAsset
+    notes: tuple[str, ...] = field(default=())
+
+
+def frame_bounds(lo, hi, *, fov_y_deg: float = 45.0, aspect: float = 16 / 9, direction=(0.45, 0.35, 1.0)) -> Camera:
+    """A camera looking at the centre of the box [lo, hi] from `direction` (towards the camera),
+    far enough that the box's bounding sphere fills the smaller field of view with a 5 % margin."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    c = 0.5 * (lo + hi)
+    r = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
+    half = math.radians(fov_y_deg) / 2
+    half = min(half, math.atan(math.tan(half) * aspect))
+    dist = 1.05 * r / math.sin(half)
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    return c + dist * d, c
+
+
+def _texture_slot(asset: GltfAsset, mat: GltfMaterial, role: str) -> TextureSlot:
+    """The material slot of a glTF texture: its image as a mip-mapped `Texture` (sRGB-decoded for
+    colour roles, before filtering), its sampler, texture-coordinate set and transform."""
+    ref = mat.textures[role]
+    px = np.asarray(asset.images[ref.image].pixels, np.float32)
+    if px.shape[-1] == 1:
+        px = np.repeat(px, 3, -1)
+    elif px.shape[-1] == 2:  # luminance + alpha
+        px = np.concatenate([np.repeat(px[..., :1], 3, -1), px[..., 1:]], -1)
+    if role in ("sheen_roughness", "specular") and px.shape[-1] == 3:
+        px = np.concatenate([px, np.ones_like(px[..., :1])], -1)  # read from A: an opaque image's A is 1
+    if role == "occlusion" and ref.strength != 1.0:
+        # occlusion = 1 + strength (R - 1): linear in R, so it commutes with the filtering.
+        px = 1.0 + np.float32(ref.strength) * (px - 1.0)
+    s = ref.sampler
+    tex = Texture.from_image(
+        px, srgb=ref.colorspace == "srgb", wrap_s=s.wrap_s, wrap_t=s.wrap_t, mag_filter=s.mag_filter,
+        min_filter=s.min_filter,
+    )
+    transform = np.asarray(ref.transform, np.float32) if ref.has_transform else None
+    return TextureSlot(texture=tex, texcoord=int(ref.texcoord), transform=transform)
+
+
+def material_from_gltf(asset: GltfAsset, mat: GltfMaterial, notes: set):
+    """The jaxpbr material of a glTF material: `Material(**factors)`, or a `TexturedMaterial`
+    holding it and the textures (linear, decoded)."""
+    factors = Material(**mat.factors)
+    if mat.alpha_mode != "OPAQUE":
+        notes.add(f"alphaMode {mat.alpha_mode} is drawn opaque")
+    if not mat.textures:
+        return factors
+    tex = {}
+    for role in mat.textures:
+        name = _TEXTURE_FIELDS.get(role)
+        if name is None:
+            continue
+        tex[name] = _texture_slot(asset, mat, role)
+    if "normal" in mat.textures:
+        tex["normal_scale"] = float(mat.textures["normal"].scale)
+    if "clearcoat_normal" in mat.textures:
+        tex["clearcoat_normal_scale"] = float(mat.textures["clearcoat_normal"].scale)
+    return TexturedMaterial(factors=factors, **tex)
+
+
+def _concat(prims, name, width, fill):
+    arrs = [getattr(p, name) for p in prims]
+    if all(a is None for a in arrs):
+        return None
+    return np.concatenate([
+        np.asarray(a, np.float32) if a is not None else np.broadcast_to(np.float32(fill), (p.num_vertices, width))
+        for a, p in zip(arrs, prims)
+    ])
+
+
+def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
+    """One Mesh per material of the asset's primitives (world space)."""
+    by_mat: dict[int, list] = {}
+    for p in asset.primitives:
+        by_mat.setdefault(p.material, []).append(p)
+    meshes = []
+    for mi, prims in by_mat.items():
+        gm = asset.materials[mi]
+        offs = np.cumsum([0] + [p.num_vertices for p in prims])
+        tris = np.concatenate([np.asarray(p.indices, np.int32) + int(offs[k]) for k, p in enumerate(prims)])
+        meshes.append(Mesh(
+            positions=np.concatenate([np.asarray(p.positions, np.float32) for p in prims]),
+            triangles=tris,
+            normals=_concat(prims, "normals", 3, (0.0, 0.0, 1.0)),
+            texcoords=_concat(prims, "texcoord_0", 2, (0.0, 0.0)),
+            texcoords1=_concat(prims, "texcoord_1", 2, (0.0, 0.0)),
+            tangents=_concat(prims, "tangents", 4, (1.0, 0.0, 0.0, 1.0)),
+            colors=_concat(prims, "color_0", 4, (1.0, 1.0, 1.0, 1.0)),
+            material=material_from_gltf(asset, gm, notes),
+            double_sided=gm.double_sided,
+        ))
+    return meshes
+
+
+def lights_from_asset(asset: GltfAsset) -> list:
+    out = []
+    for lt in asset.lights:
+        rng = None if not math.isfinite(lt.range) else float(lt.range)
+        color = tuple(float(c) for c in lt.color)
+        if lt.type == "directional":
+            out.append(DirectionalLight(direction=tuple(lt.direction), color=color, intensity=float(lt.intensity)))
+        elif lt.type == "point":
+            out.append(PointLight(tuple(lt.position), color=color, intensity=float(lt.intensity), range=rng))
+        else:
+            out.append(SpotLight(
+                tuple(lt.position), tuple(lt.direction), color=color, intensity=float(lt.intensity),
+                inner_cone_angle=float(lt.inner_cone_angle), outer_cone_angle=float(lt.outer_cone_angle), range=rng,
+            ))
+    return out
+
+
+def scene_from_asset(
+    asset: GltfAsset,
+    *,
+    camera: Camera | None = None,
+    width: int = 1280,
+    height: int = 720,
+    environment=None,
+    lights=(),
+    asset_lights: bool = True,
+    background=(0.0, 0.0, 0.0),
+) -> GltfScene:
+    """The `GltfScene` of a loaded asset; see `load_gltf`."""
+    if not asset.primitives:
+        raise InputError(f"glTF file {str(asset.path)!r} has no triangle geometry in the scene loaded; pick another scene (scene=N)")
+    notes: set[str] = set()
+    meshes = meshes_from_asset(asset, notes)
+    if camera is None:
+        cam = next((c for c in asset.cameras if c.type == "perspective"), None)
+        if cam is not None:
+            aspect = width / height
+            camera = Camera(
+                position=tuple(cam.position), target=tuple(cam.position + cam.forward), up=tuple(cam.up),
+                fov_y_deg=math.degrees(cam.yfov), width=width, height=height,
+            )
+            if cam.aspect_ratio is not None and abs(cam.aspect_ratio - aspect) > 1e-3:
+                notes.add(f"the camera's aspectRatio {cam.aspect_ratio:.4g} differs from the image's {aspect:.4g}: the vertical field of view is kept")
+        else:
+            if asset.cameras:
+                notes.add("orthographic cameras are not supported: the asset is framed automatically")
+            pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], aspect=width / height)
+            camera = Camera(position=tuple(pos), target=tuple(tgt), fov_y_deg=45.0, width=width, height=height)
+    all_lights = (lights_from_asset(asset) if asset_lights else []) + list(lights)
+    scene = Scene(camera=camera, objects=tuple(meshes), lights=tuple(all_lights), environment=environment, background=background)
+    notes = tuple(sorted(notes))
+    if notes:
+        warnings.warn(f"{Path(asset.path).name}: " + "; ".join(notes), UserWarning, stacklevel=3)
+    return GltfScene(scene=scene, asset=asset, notes=notes)
+
+
+def load_gltf(
+    path,
+    *,
+    scene: int | None = None,
+    camera: Camera | None = None,
+    width: int = 1280,
+    height: int = 720,
+    environment=None,
+    lights=(),
+    asset_lights: bool = True,
+    background=(0.0, 0.0, 0.0),
+) -> Scene:
+    """A glTF 2.0 asset (.gltf or .glb) as a `Scene` that `jaxpbr.render` draws.
+
+    scene: which scene of the file (default: the file's default scene).
+    camera: a `Camera`; default the asset's first perspective camera (with width x height), else
+        a camera framing the asset's bounds from the front-right, above.
+    environment: an `Environment` (image-based lighting and background) or None.
+    lights: extra lights added to the asset's own KHR_lights_punctual lights (`asset_lights=False`
+        leaves those out).
+    The asset itself (materials, images, counts) is `jaxpbr.io.gltf.read_gltf(path)`;
+    `scene_from_asset` builds the scene from one already read and also returns what the scene
+    does not reproduce (`GltfScene.notes`, also warned).
+    """
+    asset = read_gltf(path, scene=scene)
+    return scene_from_asset(
+        asset, camera=camera, width=width, height=height, environment=environment, lights=lights,
+        asset_lights=asset_lights, background=background,
+    ).scene

@@ -1,0 +1,389 @@
+"""Triangle meshes in a `Scene`: the `Mesh` object, visibility by a ray engine on the host, and the
+surface of mesh pixels computed in JAX.
+
+Visibility (which triangle a ray sees first) is a discrete choice with no derivative. It runs in a
+ray engine (`jaxpbr.rendering.visibility`: Embree on the CPU, a JAX BVH elsewhere) reached from
+inside the compiled geometry stage through `jax.pure_callback`, on rays whose gradient is stopped.
+Everything after it is JAX: the hit triangle's vertices are gathered, the ray is intersected with
+that triangle again (Moller-Trumbore) for the distance and barycentrics, and the vertex attributes
+are interpolated. Image gradients therefore flow to vertex positions, normals, texture
+coordinates, materials, lights and the camera (the interior of each triangle; not the motion of
+silhouette edges, which needs edge sampling).
+
+The ray engine's acceleration structure is built on the host once per mesh content (positions
+and triangles, hashed) and kept in a small cache; the callback receives the vertices as
+arguments, so a second mesh of the same sizes reuses the compiled programs, and meshes of other
+sizes recompile the geometry stage only (the shading stages see per-pixel arrays).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._numerics import is_concrete, safe_div, small_sq, vcross, vdot, vnormalize
+from .._pytree import Pytree, leaf, static, subtree
+from ..shading.material import Material
+from .textured import TexturedMaterial
+
+__all__ = ["Mesh", "mesh_bounds"]
+
+
+def _int_array(name: str, x, shape_tail: tuple[int, ...]) -> Any:
+    if not is_concrete(x):
+        return x
+    a = np.asarray(x)
+    if a.dtype.kind not in "iu":
+        raise TypeError(f"{name} must hold integer vertex indices, got dtype {a.dtype}")
+    if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail:
+        raise ValueError(f"{name} must have shape (T, {', '.join(map(str, shape_tail))}), got {a.shape}")
+    return np.ascontiguousarray(a, np.int32)
+
+
+def _float_rows(name: str, x, width: int, rows: int | None) -> Any:
+    if x is None:
+        return None
+    if not is_concrete(x):
+        return x
+    a = np.asarray(x)
+    if a.ndim != 2 or a.shape[1] != width or (rows is not None and a.shape[0] != rows):
+        want = f"({rows if rows is not None else 'V'}, {width})"
+        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or Inf")
+    return jnp.asarray(a) if isinstance(x, jax.Array) else np.asarray(a, np.float32 if a.dtype != np.float64 else np.float64)
+
+
+class Mesh(Pytree):
+    """A triangle mesh in world space with one material.
+
+    positions: (V, 3) vertex positions (world space).
+    triangles: (T, 3) integer vertex indices, counter-clockwise seen from the front.
+    normals: (V, 3) vertex normals, or None for flat shading (each triangle's own normal).
+    texcoords: (V, 2) TEXCOORD_0 in glTF's convention (origin at the image's top-left, v down).
+    texcoords1: (V, 2) TEXCOORD_1 (read by textures whose `texcoord` is 1).
+    tangents: (V, 4) xyz tangent and w = +-1, the bitangent's sign: B = w (N x T) (glTF).
+    colors: (V, 4) COLOR_0, linear RGBA; RGB multiplies the base colour.
+    material: Material or TexturedMaterial.
+    double_sided: back faces are seen (with reversed normals, as glTF specifies); otherwise a
+        ray passes through the back of a triangle (static).
+
+    A glTF asset becomes one Mesh per material (`jaxpbr.load_gltf`); a scene may mix meshes with
+    spheres and planes.
+    """
+
+    positions: Any = leaf(rank=2)
+    triangles: Any = leaf(rank=2)
+    normals: Any = leaf(None, rank=2)
+    texcoords: Any = leaf(None, rank=2)
+    texcoords1: Any = leaf(None, rank=2)
+    tangents: Any = leaf(None, rank=2)
+    colors: Any = leaf(None, rank=2)
+    material: Any = subtree(default_factory=Material)
+    double_sided: bool = static(False)
+
+    def _validate(self) -> None:
+        if not isinstance(self.material, (Material, TexturedMaterial)):
+            raise TypeError(f"Mesh.material must be a Material or TexturedMaterial, got {type(self.material).__name__}")
+        pos = _float_rows("Mesh.positions", self.positions, 3, None)
+        V = int(np.shape(pos)[0])
+        tri = _int_array("Mesh.triangles", self.triangles, (3,))
+        if np.shape(tri)[0] == 0 or V == 0:
+            raise ValueError("a Mesh needs at least one triangle and three vertices")
+        if is_concrete(tri):
+            lo, hi = int(tri.min()), int(tri.max())
+            if lo < 0 or hi >= V:
+                raise ValueError(
+                    f"Mesh.triangles index vertex {lo if lo < 0 else hi}, outside the {V} vertices of Mesh.positions"
+                )
+        self._set(
+            positions=pos,
+            triangles=tri,
+            normals=_float_rows("Mesh.normals", self.normals, 3, V),
+            texcoords=_float_rows("Mesh.texcoords", self.texcoords, 2, V),
+            texcoords1=_float_rows("Mesh.texcoords1", self.texcoords1, 2, V),
+            tangents=_float_rows("Mesh.tangents", self.tangents, 4, V),
+            colors=_float_rows("Mesh.colors", self.colors, 4, V),
+            double_sided=bool(self.double_sided),
+        )
+
+    @property
+    def num_triangles(self) -> int:
+        return int(np.shape(self.triangles)[0])
+
+    @property
+    def num_vertices(self) -> int:
+        return int(np.shape(self.positions)[0])
+
+
+def mesh_bounds(meshes) -> tuple[np.ndarray, np.ndarray]:
+    """(lower, upper) corners of the world-space box around the meshes' vertices (host)."""
+    pts = np.concatenate([np.asarray(m.positions, np.float64).reshape(-1, 3) for m in meshes])
+    return pts.min(0), pts.max(0)
+
+
+# ------------------------------------------------------------------------------------------
+# Visibility on the host: one acceleration structure per content
+# ------------------------------------------------------------------------------------------
+
+
+class _Accels:
+    """Acceleration structures by content digest (a small LRU: building one costs far more than
+    hashing the arrays, ~30 ms for a million triangles)."""
+
+    def __init__(self, capacity: int = 4):
+        self.capacity = capacity
+        self.entries: OrderedDict[bytes, Any] = OrderedDict()
+        self.lock = threading.Lock()
+        self.builds = 0  # counted by tests: one build per mesh content
+
+    def get(self, vertices: np.ndarray, triangles: np.ndarray, backend: str):
+        h = hashlib.blake2b(digest_size=20)
+        h.update(backend.encode())
+        h.update(np.int64(vertices.shape + triangles.shape).tobytes())
+        h.update(vertices.tobytes())
+        h.update(triangles.tobytes())
+        digest = h.digest()
+        with self.lock:
+            if digest in self.entries:
+                self.entries.move_to_end(digest)
+                return self.entries[digest]
+        from .visibility import TriangleAccel
+
+        accel = TriangleAccel.build(vertices, triangles, backend=backend)
+        with self.lock:
+            self.builds += 1
+            self.entries[digest] = accel
+            while len(self.entries) > self.capacity:
+                self.entries.popitem(last=False)
+        return accel
+
+
+ACCELS = _Accels()
+
+#: Most continuations of a ray through culled back faces before it is declared a miss.
+MAX_CULLED_HITS = 16
+
+
+def _host_cast(vertices, triangles, cull_back, o, d):
+    """The primitive (int32, -1 = miss) each ray o + t d sees first on the host: front faces, and
+    back faces of double-sided meshes; a ray continues through the back of a single-sided triangle."""
+    vertices = np.ascontiguousarray(vertices, np.float32)
+    triangles = np.ascontiguousarray(triangles, np.int32)
+    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax")
+    cull_back = np.asarray(cull_back, bool)
+    shape = np.shape(o)[:-1]
+    o = np.asarray(o, np.float32).reshape(-1, 3)
+    d = np.asarray(d, np.float32).reshape(-1, 3)
+    n = o.shape[0]
+    prim = np.full(n, -1, np.int32)
+    todo = np.arange(n)
+    tnear = np.zeros(n, np.float32)
+    ignore = np.full(n, -1, np.int32)
+    face_normal = None
+    for _ in range(MAX_CULLED_HITS + 1):
+        if todo.size == 0:
+            break
+        hits = accel.intersect(o[todo], d[todo], tnear=tnear[todo], ignore_prim=ignore[todo])
+        p = np.asarray(hits.prim, np.int32)
+        t = np.asarray(hits.t, np.float32)
+        hit = p >= 0
+        back = np.zeros_like(hit)
+        if hit.any() and cull_back.any():
+            if face_normal is None:
+                e1 = vertices[triangles[:, 1]] - vertices[triangles[:, 0]]
+                e2 = vertices[triangles[:, 2]] - vertices[triangles[:, 0]]
+                face_normal = np.cross(e1, e2)
+            ph = p[hit]
+            back[hit] = cull_back[ph] & (np.einsum("ij,ij->i", face_normal[ph], d[todo[hit]]) > 0)
+        done = ~back
+        prim[todo[done]] = np.where(hit[done], p[done], -1)
+        again = todo[back]
+        tnear[again] = t[back]
+        ignore[again] = p[back]
+        todo = again
+    return prim.reshape(shape)
+
+
+def _embree() -> bool:
+    try:
+        import embreex  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def cast(arrays, o, d):
+    """The primitive id (int32, -1 = miss) each ray (..., 3) sees first, from inside a trace:
+    `jax.pure_callback` to the host ray engine. Rays and vertices are passed with their gradients
+    stopped (visibility has none)."""
+    o = jax.lax.stop_gradient(o).astype(jnp.float32)
+    d = jax.lax.stop_gradient(d).astype(jnp.float32)
+    verts = jax.lax.stop_gradient(arrays["positions"]).astype(jnp.float32)
+    out = jax.ShapeDtypeStruct(o.shape[:-1], jnp.int32)
+    return jax.pure_callback(
+        _host_cast, out, verts, arrays["triangles"], arrays["cull_back"], o, d, vmap_method="sequential"
+    )
+
+
+# ------------------------------------------------------------------------------------------
+# Mesh pixels in JAX
+# ------------------------------------------------------------------------------------------
+
+
+def concat_meshes(meshes, dtype):
+    """Every mesh's arrays concatenated (traced-friendly: offsets come from static shapes):
+    dict with positions (V, 3), triangles (T, 3) int32, and the optional attributes filled with
+    neutral values for meshes that lack them (None when no mesh has them), plus `flat` (T,) bool
+    for triangles of meshes without normals and `tri_object` (T,) int32 (index into `meshes`)."""
+    out = {}
+    offs = np.cumsum([0] + [m.num_vertices for m in meshes])
+    out["positions"] = jnp.concatenate([jnp.asarray(m.positions, dtype) for m in meshes])
+    out["triangles"] = jnp.concatenate([jnp.asarray(m.triangles, jnp.int32) + int(offs[k]) for k, m in enumerate(meshes)])
+    fills = {"normals": (0.0, 0.0, 1.0), "texcoords": (0.0, 0.0), "texcoords1": (0.0, 0.0), "tangents": (1.0, 0.0, 0.0, 1.0), "colors": (1.0, 1.0, 1.0, 1.0)}
+    for name, fill in fills.items():
+        if all(getattr(m, name) is None for m in meshes):
+            out[name] = None
+            continue
+        out[name] = jnp.concatenate([
+            jnp.asarray(getattr(m, name), dtype) if getattr(m, name) is not None
+            else jnp.broadcast_to(jnp.asarray(fill, dtype), (m.num_vertices, len(fill)))
+            for m in meshes
+        ])
+    out["flat"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, m.normals is None) for m in meshes]))
+    out["tri_object"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, k, np.int32) for k, m in enumerate(meshes)]))
+    out["cull_back"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, not m.double_sided) for m in meshes]))
+    return out
+
+
+def triangle_hit(v0, v1, v2, o, d):
+    """Distance and barycentrics (t, b1, b2) of rays o + t d on the planes of triangles v0 v1 v2
+    (Vec3s, Moller-Trumbore), differentiable in every input. The ray is known to hit the triangle
+    (the ray engine said so); the determinant is floored only to keep a degenerate triangle finite."""
+    e1 = tuple(v1[i] - v0[i] for i in range(3))
+    e2 = tuple(v2[i] - v0[i] for i in range(3))
+    p = vcross(d, e2)
+    det = vdot(e1, p)
+    ok = det * det > small_sq(det.dtype)
+    s = tuple(o[i] - v0[i] for i in range(3))
+    q = vcross(s, e1)
+    b1 = safe_div(vdot(s, p), det, ok)
+    b2 = safe_div(vdot(d, q), det, ok)
+    t = safe_div(vdot(e2, q), det, ok)
+    return t, b1, b2
+
+
+def _gather3(a, idx, k):
+    return tuple(a[:, i][idx[..., k]] for i in range(a.shape[1]))
+
+
+def mesh_surface(arrays, prim, o, d, *, need_uv: bool, ddir=None):
+    """Surface of mesh pixels hit by primitive `prim` (..., int32, >= 0 where used):
+
+    returns dict t, pos, n (shading normal, facing the viewer on double-sided back faces),
+    ng (geometric normal, same side), object (index into the meshes), and when need_uv: uv, uv1,
+    tangent (Vec3) and tangent_w (the bitangent sign), duv: per texture-coordinate set (0, 1) the
+    screen derivatives (duv/dx, duv/dy), each (..., 2), from the ray differentials `ddir` =
+    (dD/dx, dD/dy) (zero without them); colour (RGBA) when the meshes have colours.
+    """
+    p = jnp.maximum(prim, 0)
+    tri = arrays["triangles"][p]  # (..., 3)
+    P = arrays["positions"]
+    v = [tuple(P[:, i][tri[..., k]] for i in range(3)) for k in range(3)]
+    t, b1, b2 = triangle_hit(v[0], v[1], v[2], o, d)
+    b0 = 1.0 - b1 - b2
+    w = (b0, b1, b2)
+    pos = tuple(o[i] + t * d[i] for i in range(3))
+    e1 = tuple(v[1][i] - v[0][i] for i in range(3))
+    e2 = tuple(v[2][i] - v[0][i] for i in range(3))
+    ng = vnormalize(vcross(e1, e2))
+    back = vdot(ng, d) > 0  # only double-sided meshes show back faces: glTF reverses the normals
+    sign = jnp.where(back, -1.0, 1.0)
+    ng = tuple(sign * c for c in ng)
+    if arrays["normals"] is not None:
+        N = arrays["normals"]
+        ns = tuple(sum(w[k] * N[:, i][tri[..., k]] for k in range(3)) for i in range(3))
+        ns = vnormalize(tuple(sign * c for c in ns))
+        flat = arrays["flat"][p]
+        n = tuple(jnp.where(flat, ng[i], ns[i]) for i in range(3))
+    else:
+        n = ng
+    out = dict(t=t, pos=pos, n=n, ng=ng, object=arrays["tri_object"][p])
+    if arrays["colors"] is not None:
+        C = arrays["colors"]
+        out["color"] = jnp.stack([sum(w[k] * C[:, i][tri[..., k]] for k in range(3)) for i in range(4)], -1)
+    if not need_uv:
+        return out
+    uvs = []
+    for name in ("texcoords", "texcoords1"):
+        if arrays[name] is None:
+            uvs.append(None)
+            continue
+        T = arrays[name]
+        uvs.append(tuple(sum(w[k] * T[:, i][tri[..., k]] for k in range(3)) for i in range(2)))
+    zero = jnp.zeros_like(t)
+    out["uv"] = uvs[0] if uvs[0] is not None else (zero, zero)
+    out["uv1"] = uvs[1] if uvs[1] is not None else out["uv"]
+    duv = []
+    for name in ("texcoords", "texcoords1"):
+        if ddir is None or arrays[name] is None:
+            duv.append((jnp.zeros(t.shape + (2,), t.dtype),) * 2)
+            continue
+        from .texture import uv_derivatives_on_triangle
+
+        Tc = arrays[name]
+        corners = [jnp.stack([Tc[:, i][tri[..., k]] for i in range(2)], -1) for k in range(3)]
+        _, dx, dy = uv_derivatives_on_triangle(
+            *(jnp.stack(v[k], -1) for k in range(3)), *corners, jnp.stack(o, -1), jnp.stack(d, -1),
+            jnp.stack(ddir[0], -1), jnp.stack(ddir[1], -1),
+        )
+        duv.append((dx, dy))
+    if arrays["texcoords1"] is None:
+        duv[1] = duv[0]
+    out["duv"] = tuple(duv)
+    if arrays["tangents"] is not None:
+        Tg = arrays["tangents"]
+        tan = tuple(sum(w[k] * Tg[:, i][tri[..., k]] for k in range(3)) for i in range(3))
+        tw = jnp.where(Tg[:, 3][tri[..., 0]] < 0, -1.0, 1.0)
+    else:
+        tan, tw = _uv_tangent(v, arrays, tri, n)
+    # Double-sided back faces: the normal was reversed; the tangent frame keeps T and flips B by
+    # flipping the sign (B = w N x T with N reversed already reverses B: keep w).
+    out["tangent"] = tan
+    out["tangent_w"] = tw
+    return out
+
+
+def _uv_tangent(v, arrays, tri, n):
+    """Per-triangle tangent dP/du (and the bitangent sign) from TEXCOORD_0, for meshes without
+    TANGENT (anisotropy directions; normal maps get MikkTSpace tangents from the loader)."""
+    if arrays["texcoords"] is None:
+        from .._numerics import orthonormal_frame
+
+        t, _ = orthonormal_frame(n)
+        return t, jnp.ones_like(n[0])
+    T = arrays["texcoords"]
+    uv = [tuple(T[:, i][tri[..., k]] for i in range(2)) for k in range(3)]
+    du1, dv1 = uv[1][0] - uv[0][0], uv[1][1] - uv[0][1]
+    du2, dv2 = uv[2][0] - uv[0][0], uv[2][1] - uv[0][1]
+    e1 = tuple(v[1][i] - v[0][i] for i in range(3))
+    e2 = tuple(v[2][i] - v[0][i] for i in range(3))
+    det = du1 * dv2 - du2 * dv1
+    ok = det * det > small_sq(det.dtype)
+    tan = tuple(safe_div(dv2 * e1[i] - dv1 * e2[i], det, ok) for i in range(3))
+    bit = tuple(safe_div(du1 * e2[i] - du2 * e1[i], det, ok) for i in range(3))
+    # glTF's v runs down the image and a normal map's +Y points up it: the bitangent
+    # B = w (N x T) points along -dP/dv, so w = +1 where N x T already does.
+    nt = vcross(n, tan)
+    w = jnp.where(vdot(nt, bit) < 0, 1.0, -1.0)
+    from .._numerics import orthonormal_frame
+
+    fallback, _ = orthonormal_frame(n)
+    tan = tuple(jnp.where(ok, tan[i], fallback[i]) for i in range(3))
+    return tan, jnp.where(ok, w, 1.0)
