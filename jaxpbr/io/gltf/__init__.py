@@ -22,6 +22,10 @@ from ._types import (
     GltfTextureRef,
 )
 
+#: The same function under the name the scene layer (`jaxpbr.rendering.gltf_scene`) imports; its own
+#: `load_gltf` there builds a renderable scene from this asset.
+read_gltf = load_gltf
+
 __all__ = [
     "SUPPORTED_EXTENSIONS",
     "TEXTURE_CHANNELS",
@@ -34,5 +38,6 @@ __all__ = [
     "GltfSampler",
     "GltfTextureRef",
     "load_gltf",
+    "read_gltf",
     "texture_transform_matrix",
 ]
