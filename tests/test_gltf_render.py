@@ -19,7 +19,7 @@ from jaxpbr.rendering import renderer as R
 from jaxpbr.rendering.gltf_scene import load_gltf, scene_from_asset
 from jaxpbr.rendering.mesh import Mesh
 
-from .gltf_writer import Writer, uv_sphere
+from gltf_writer import Writer, uv_sphere
 
 pytest.importorskip("embreex")
 
@@ -148,23 +148,23 @@ def test_gradients_reach_material_vertices_and_lights():
     derivative matches a central difference (float64)."""
     P, N, UV, T = uv_sphere(16, 32)
     cam = _camera(24, 24, pos=(0.0, 0.5, 4.0))
-    with jax.experimental.enable_x64():
-        P64 = jnp.asarray(P, jnp.float64)
+    # float64 (the suite runs with jax_enable_x64, tests/conftest.py)
+    P64 = jnp.asarray(P, jnp.float64)
 
-        def loss(r, dy, k):
-            m = jp.Material(base_color=(0.8, 0.6, 0.4), metallic=0.0, roughness=r)
-            mesh = Mesh(positions=P64.at[:, 1].add(dy), triangles=T, normals=N, material=m)
-            light = jp.DirectionalLight(direction=(-0.4, -0.6, -0.7), intensity=k)
-            img = jp.render(jp.Scene(camera=cam, objects=[mesh], lights=[light]), dtype="float64")
-            return jnp.sum(img)
+    def loss(r, dy, k):
+        m = jp.Material(base_color=(0.8, 0.6, 0.4), metallic=0.0, roughness=r)
+        mesh = Mesh(positions=P64.at[:, 1].add(dy), triangles=T, normals=N, material=m)
+        light = jp.DirectionalLight(direction=(-0.4, -0.6, -0.7), intensity=k)
+        img = jp.render(jp.Scene(camera=cam, objects=[mesh], lights=[light]), dtype="float64")
+        return jnp.sum(img)
 
-        g = jax.grad(loss, argnums=(0, 1, 2))(0.5, 0.0, 3.0)
-        assert all(np.isfinite(float(x)) for x in g)
-        assert abs(float(g[1])) > 0  # the surface moves with its vertices
-        h = 1e-5
-        fd = (loss(0.5 + h, 0.0, 3.0) - loss(0.5 - h, 0.0, 3.0)) / (2 * h)
-        np.testing.assert_allclose(float(g[0]), float(fd), rtol=1e-5)
-        np.testing.assert_allclose(float(g[2]), float(loss(0.5, 0.0, 3.0)) / 3.0, rtol=1e-9)  # linear in k
+    g = jax.grad(loss, argnums=(0, 1, 2))(0.5, 0.0, 3.0)
+    assert all(np.isfinite(float(x)) for x in g)
+    assert abs(float(g[1])) > 0  # the surface moves with its vertices
+    h = 1e-5
+    fd = (loss(0.5 + h, 0.0, 3.0) - loss(0.5 - h, 0.0, 3.0)) / (2 * h)
+    np.testing.assert_allclose(float(g[0]), float(fd), rtol=1e-5)
+    np.testing.assert_allclose(float(g[2]), float(loss(0.5, 0.0, 3.0)) / 3.0, rtol=1e-9)  # linear in k
 
 
 def test_meshes_of_other_sizes_reuse_the_shading_programs():
@@ -191,7 +191,7 @@ def test_meshes_of_other_sizes_reuse_the_shading_programs():
 def test_mesh_and_spheres_in_one_scene_occlude_each_other():
     """A sphere in front of a quad hides it and the quad hides a sphere behind it."""
     pos, tri, uv, nrm = _quad(size=3.0)
-    pos = pos[:, [0, 2, 1]] * np.float32([1, 1, -1])  # stand the quad up, facing +Z
+    pos = pos[:, [0, 2, 1]] * np.float32([1, -1, 1])  # rotated +90 degrees about X: facing +Z
     nrm = np.tile(np.float32([0, 0, 1]), (4, 1))
     red = jp.Material(base_color=(0.9, 0.1, 0.1), metallic=0.0, roughness=0.5)
     blue = jp.Material(base_color=(0.1, 0.1, 0.9), metallic=0.0, roughness=0.5)
@@ -218,3 +218,103 @@ def test_scene_from_asset_reports_what_it_leaves_out(tmp_path):
     with pytest.warns(UserWarning, match="BLEND"):
         gs = scene_from_asset(read_gltf(path), width=8, height=8)
     assert any("BLEND" in n for n in gs.notes)
+
+
+# ------------------------------------------------------------------------------------------
+# Shadows
+# ------------------------------------------------------------------------------------------
+
+
+def _shadow_scene(analytic: bool, light, shadows=None):
+    """A sphere (radius 0.5 at height 1) above a ground quad, seen from above at an angle."""
+    red = jp.Material(base_color=(0.8, 0.3, 0.3), metallic=0.0, roughness=0.6)
+    grey = jp.Material(base_color=(0.7, 0.7, 0.7), metallic=0.0, roughness=0.8)
+    if analytic:
+        objs = [jp.Plane(point=(0, 0, 0), normal=(0, 1, 0), material=grey), jp.Sphere(center=(0, 1, 0), radius=0.5, material=red)]
+    else:
+        pos, tri, uv, nrm = _quad(size=40.0)
+        P, N, UV, T = uv_sphere(48, 96, radius=0.5)
+        objs = [Mesh(positions=pos, triangles=tri, normals=nrm, material=grey),
+                Mesh(positions=P + np.float32([0, 1, 0]), triangles=T, normals=N, material=red)]
+    cam = jp.Camera(position=(0.0, 6.0, 4.0), target=(0.0, 0.0, 0.0), fov_y_deg=40.0, width=64, height=48)
+    return jp.Scene(camera=cam, objects=objs, lights=[light]), cam
+
+
+def _ground_shadow_oracle(cam, light_dir, centre=(0, 1, 0), radius=0.5):
+    """Per pixel: (on the ground and not on the sphere, shadowed by the sphere) in closed form."""
+    o, d = (np.asarray(x, np.float64) for x in jp.rendering.scene.primary_rays(cam, dtype=jnp.float64))
+    c = np.asarray(centre, np.float64)
+    # The sphere hides the ground where the primary ray meets it.
+    oc = o - c
+    b = np.sum(oc * d, -1)
+    on_sphere = (b * b - (np.sum(oc * oc, -1) - radius**2)) > 0
+    t = -o[..., 1] / d[..., 1]
+    p = o + t[..., None] * d
+    l = -np.asarray(light_dir, np.float64) / np.linalg.norm(light_dir)
+    cp = c - p
+    along = cp @ l
+    dist2 = np.sum(cp * cp, -1) - along**2
+    shadowed = (along > 0) & (dist2 < radius**2)
+    # Distance to the shadow's edge in the ground plane, to leave out pixels the edge crosses.
+    return (t > 0) & ~on_sphere, shadowed, np.abs(np.sqrt(dist2) - radius)
+
+
+@pytest.mark.parametrize("analytic", [False, True], ids=["meshes", "sphere+plane"])
+def test_directional_shadow_matches_the_closed_form(analytic):
+    light_dir = (-0.5, -1.0, -0.3)
+    light = jp.DirectionalLight(direction=light_dir, intensity=3.0)
+    scene, cam = _shadow_scene(analytic, light)
+    lit = np.asarray(jp.render(scene, shadows=False))
+    img = np.asarray(jp.render(scene, shadows=True))
+    ground, shadowed, edge = _ground_shadow_oracle(cam, light_dir)
+    clear = ground & (edge > 0.04)  # a few pixels' footprint away from the shadow's edge
+    assert (clear & shadowed).sum() > 20 and (clear & ~shadowed).sum() > 500
+    np.testing.assert_array_equal(img[clear & shadowed], 0.0)  # no ambient, no environment
+    np.testing.assert_allclose(img[clear & ~shadowed], lit[clear & ~shadowed], rtol=1e-6)
+
+
+def test_point_light_shadow_and_no_self_shadowing():
+    """A point light above the sphere: the ground under it is dark, and the sphere's lit side
+    (geometric normal facing the light) is never shadowed by itself (no acne)."""
+    light = jp.PointLight((0.3, 3.0, 0.2), intensity=20.0)
+    scene, cam = _shadow_scene(False, light)
+    lit = np.asarray(jp.render(scene, shadows=False))
+    img = np.asarray(jp.render(scene, shadows=True))
+    # Directly below the sphere along the light ray: the ground point under the light through the
+    # sphere's centre is shadowed.
+    o, d = (np.asarray(x) for x in jp.rendering.scene.primary_rays(cam, dtype=jnp.float64))
+    lp, c = np.array([0.3, 3.0, 0.2]), np.array([0.0, 1.0, 0.0])
+    g = lp + (c - lp) * (lp[1] / (lp[1] - c[1]))  # where the ray light -> centre meets y = 0
+    t = -o[..., 1] / d[..., 1]
+    p = o + t[..., None] * d
+    k = np.unravel_index(np.argmin(np.sum((p - g) ** 2, -1)), t.shape)
+    assert lit[k].sum() > 0 and img[k].sum() == 0.0
+    # On the sphere: pixels whose (smooth) normal faces the light by more than the tessellation's
+    # deviation are unchanged.
+    oc = o - c
+    b = np.sum(oc * d, -1)
+    disc = b * b - (np.sum(oc * oc, -1) - 0.25)
+    hit = disc > 0
+    ts = -b - np.sqrt(np.maximum(disc, 0))
+    q = o + ts[..., None] * d
+    nrm = (q - c) / 0.5
+    to_l = lp - q
+    facing = np.sum(nrm * to_l, -1) / np.linalg.norm(to_l, axis=-1) > 0.1
+    sel = hit & facing
+    assert sel.sum() > 50
+    np.testing.assert_allclose(img[sel], lit[sel], rtol=1e-6)
+
+
+def test_extracted_sun_casts_shadows():
+    """Under the procedural sky, the sun split out of the environment casts the sphere's shadow on
+    the ground; the rest of the ground is lit as without shadows."""
+    env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(32))
+    scene, cam = _shadow_scene(False, jp.PointLight((0, 50, 0), intensity=0.0))
+    scene = scene.replace(environment=env, lights=())
+    plan = R.plan(scene)
+    assert plan.env_lights >= 1 and plan.shadows
+    lit = np.asarray(jp.render(scene, shadows=False))
+    img = np.asarray(jp.render(scene))
+    darker = (img.sum(-1) < 0.8 * lit.sum(-1))
+    assert darker.sum() > 10  # the sun's shadow
+    assert (img.sum(-1) <= lit.sum(-1) * (1 + 1e-5) + 1e-7).all()  # shadows only remove light

@@ -69,6 +69,7 @@ from ..shading.lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
 from ..shading.material import EXTENSIONS, Material
 from . import texture
 from .mesh import Mesh, cast, concat_meshes, mesh_surface
+from .shadows import shadow_visibility
 from .scene import (
     Environment,
     Plane,
@@ -129,6 +130,10 @@ class RenderOptions:
         lights and the residual with the split sum (default True; the split sum alone is off by
         30-60 % on metals under a sun, issue 11). Once per environment content (cached). An
         environment with given maps uses its own `lights` (None: nothing is split).
+    shadows: shadow rays from every lit pixel towards each light and each sun split out of the
+        environment (`jaxpbr.rendering.shadows`; hard-edged). None (default): on for scenes with
+        meshes (glTF assets), off for scenes of spheres and planes only; True / False force it.
+        Image-based lighting itself is not shadowed (the materials' occlusion textures darken it).
     """
 
     model: str = "gltf"
@@ -142,6 +147,7 @@ class RenderOptions:
     mapping: str = "linear"
     dtype: str = "float32"
     extract_lights: bool = True
+    shadows: bool | None = None
 
     @property
     def compensates(self) -> bool:
@@ -188,6 +194,7 @@ class RenderPlan:
     env_lights: int = 0  # disc lights split out of the environment (shaded analytically)
     extensions: tuple[str, ...] = ()  # glTF material extensions some material uses (traced code)
     charlie_size: int = 0  # face size of the Charlie-prefiltered cube (sheen under IBL), 0: none
+    shadows: bool = False  # shadow rays towards the lights and the extracted suns
 
     def describe(self) -> str:
         parts = [
@@ -201,6 +208,8 @@ class RenderPlan:
         ]
         if self.env_lights:
             parts.append(f"{self.env_lights} sun(s) split out of the environment as disc light(s)")
+        if self.shadows:
+            parts.append("shadows")
         if self.extensions:
             parts.append("material extensions: " + ", ".join(self.extensions))
         if self.charlie_size:
@@ -333,7 +342,12 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
         charlie_size = _charlie_size(env) if "sheen" in extensions else 0
     else:
         size, M, levels, diffuse, n_env_lights, charlie_size = 0, 0, 0, False, 0, 0
+    objects = () if scene.gbuffer is not None else scene.objects
+    has_mesh = any(isinstance(ob, Mesh) for ob in objects)
+    shadows = opts.shadows if opts.shadows is not None else has_mesh
+    shadows = bool(shadows and objects and (len(scene.lights) > 0 or n_env_lights > 0))
     return RenderPlan(
+        shadows=shadows,
         direct=len(scene.lights) > 0,
         ibl=ibl,
         ibl_diffuse=bool(ibl and diffuse),
@@ -878,6 +892,8 @@ def _shade_direct(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g):
         lights = _cast_floats(list(scene.lights), dtype)
         kw = _layer_kwargs(g, m, dtype) if p_plan.extensions else {}
         kw.pop("transmit_direction", None)
+        if "vis" in g:
+            kw["visibility"] = g["vis"]
         return shade_direct(pack3(pos), pack3(n), pack3(view), m, lights, model=opts.model, ambient=scene.ambient, smith=opts.smith, **kw)
     out = None
     if scene.ambient:
@@ -886,6 +902,12 @@ def _shade_direct(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g):
         e = emission_soa(m, g["n"], g["view"], g.get("coat_n"))
         out = e if out is None else out + e
     return out
+
+
+def _mesh_arrays(scene: Scene, dtype):
+    """The scene's meshes concatenated (`mesh.concat_meshes`), or None without meshes."""
+    meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
+    return concat_meshes(meshes, dtype) if meshes else None
 
 
 def _layer_kwargs(g, m: Material, dtype) -> dict:
@@ -929,9 +951,11 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
             zero = jnp.zeros_like(n_e)
             kw.pop("transmit_direction", None)
             sheen_kw.pop("charlie", None)
+            if "vis_env" in g:
+                kw["visibility"] = g["vis_env"]
             ibl = ibl + shade_direct(zero, n_e, v_e, dark, ls, model=opts.model, smith=opts.smith, disc_lights=True, **kw, **sheen_kw)
             if opts.compensates:
-                ibl = ibl + disc_multiscatter(n_e, v_e, m, lut, ls)
+                ibl = ibl + disc_multiscatter(n_e, v_e, m, lut, ls, kw.get("visibility"))
         ibl = jnp.asarray(env.intensity, dtype) * ibl
         out = ibl if out is None else out + ibl
     if out is None:
@@ -970,6 +994,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
         sub = [objects[k] for k in analytic]
         t, idx, hit = _cast(sub, o, d, dtype)
         pos, n, uv, tangent = _surface(sub, o, d, t, idx, dtype, need_uv)
+        n_an = n
         idx = jnp.asarray(analytic, jnp.int32)[idx] if len(analytic) < len(objects) else idx
     if meshes:
         arrays = concat_meshes([objects[k] for k in meshes], dtype)
@@ -993,12 +1018,20 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
             pos, n = ms["pos"], ms["n"]
             if need_uv:
                 uv, tangent, tw, uv1, duv = ms["uv"], ms["tangent"], ms["tangent_w"], ms["uv1"], ms["duv"]
+    if p_plan.shadows:
+        # The geometric normal (before normal maps): shadow rays leave the surface along it.
+        ng = n if not meshes else (ms["ng"] if not analytic else tuple(jnp.where(on_mesh, ms["ng"][i], n_an[i]) for i in range(3)))
     m = _gather_material(_stack_materials(objects, dtype, ext), idx)
     if meshes and "color" in ms:
         # COLOR_0 multiplies the base colour (glTF); 1 on other objects.
         rgb = jnp.where(on_mesh[..., None], ms["color"][..., :3], 1.0)
         m = evolve(m, base_color=m.base_color * rgb)
     g = dict(pos=pos, n=n, view=tuple(-c for c in d), m=m, hit=hit, ray=d)
+    if p_plan.shadows:
+        g["ng"] = ng
+        if p_plan.direct:
+            lights = _cast_floats(list(scene.lights), dtype)
+            g["vis"] = shadow_visibility(objects, arrays if meshes else None, pos, ng, lights, dtype)
     if need_uv:
         g.update(idx=idx, uv=uv, tangent=tangent)
         if tw is not None:
@@ -1081,14 +1114,42 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     expanded away before fusion). Under an outer jit/vmap the stages inline into one program.
     """
     g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset)
+    # The later stages see the pixels, not the meshes' arrays: meshes of other sizes reuse them.
+    lean = _lean(scene)
     for k in p_plan.textured:
-        g = (_texture_jit if staged else _texture)(scene, k, opts, g)
-    direct = (_shade_direct_jit if staged else _shade_direct)(scene, p_plan, opts, g)
+        g = (_texture_jit if staged else _texture)(lean, k, opts, g)
+    direct = (_shade_direct_jit if staged else _shade_direct)(lean, p_plan, opts, g)
     if callable(assets):  # staged: assets still being computed on another thread
         assets = assets()
-    return (_shade_rest_jit if staged else _shade_rest)(scene, assets, p_plan, opts, g, direct)
+    if p_plan.shadows and p_plan.env_lights:
+        g = {**g, "vis_env": (_sun_shadows_jit if staged else _sun_shadows)(scene, opts, g, assets[3])}
+    return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
 
 
+def _lean(scene: Scene) -> Scene:
+    """The scene with its meshes' geometry left out (their materials kept): what the shading
+    stages read."""
+    if scene.gbuffer is not None or not any(isinstance(ob, Mesh) for ob in scene.objects):
+        return scene
+    objs = tuple(
+        unchecked(Mesh, **{f.name: (getattr(ob, f.name) if f.static or f.name == "material" else None) for f in fields_of(Mesh)})
+        if isinstance(ob, Mesh) else ob
+        for ob in scene.objects
+    )
+    return evolve(scene, objects=objs)
+
+
+def _sun_shadows(scene: Scene, opts: RenderOptions, g, env_lights):
+    """(H, W, L) visibility of the suns split out of the environment (world directions: the
+    environment's frame turned by +rotation)."""
+    dtype = jnp.dtype(opts.dtype)
+    rot = jnp.asarray(scene.environment.rotation, dtype)
+    ls = _cast_floats(list(env_lights), dtype)
+    to_sun = [_rotate_y(tuple(-jnp.asarray(s.direction, dtype)[i] for i in range(3)), rot) for s in ls]
+    return shadow_visibility(scene.objects, _mesh_arrays(scene, dtype), g["pos"], g["ng"], to_sun, dtype, directions_only=True)
+
+
+_sun_shadows_jit = jax.jit(_sun_shadows, static_argnums=(1,))
 _geometry_jit = jax.jit(_geometry, static_argnums=(1, 2))
 _texture_jit = jax.jit(_texture, static_argnums=(1, 2))
 _shade_direct_jit = jax.jit(_shade_direct, static_argnums=(1, 2))

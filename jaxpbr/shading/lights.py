@@ -342,6 +342,7 @@ def shade_direct(
     coat_normal=None,
     volume_distance=None,
     sheen_lut=None,
+    visibility=None,
     **brdf_options,
 ) -> jax.Array:
     """Outgoing radiance from punctual and disc lights: `sum_i f_r(v, l_i) E_i max(n.l_i, 0)
@@ -378,6 +379,9 @@ def shade_direct(
         albedo table (default the shipped 128^2 one, `jaxpbr.shading.sheen_lut()`). A Material with
         extensions is shaded by the layered BSDF (model "gltf" only); one without by the core
         model, bit for bit as before.
+      visibility: optional (..., L) factors in [0, 1], one per light in the order of `lights`
+        (a LightSet's lights in its order): the fraction of each light that reaches the point
+        (shadows; `jaxpbr.render` computes it with shadow rays). Default: every light visible.
     """
     unknown = set(brdf_options) - {"smith", "diffuse", "shader_epsilon"}
     if unknown:
@@ -409,6 +413,19 @@ def shade_direct(
         disc_items = []
     point_items = [x for x in items if not any(x is y for y in disc_items)]
     groups = [(pack_lights(g), disc) for g, disc in ((point_items, False), (disc_items, True)) if g]
+    group_vis = [None] * len(groups)
+    if visibility is not None:
+        # Each group's columns of `visibility` (input order -> the group's packed order).
+        sizes = [_pack_one(x).num_lights for x in items]
+        offs = np.cumsum([0] + sizes)
+        cols = {id(x): np.arange(offs[k], offs[k + 1]) for k, x in enumerate(items)}
+        vis = jnp.asarray(visibility)
+        if vis.shape[-1] != offs[-1]:
+            raise ValueError(f"visibility has {vis.shape[-1]} columns for {offs[-1]} lights")
+        group_vis = [
+            vis[..., np.concatenate([cols[id(x)] for x in g])]
+            for g in (point_items, disc_items) if g
+        ]
     batch_shape("shade_direct", ("p", p, 1), ("n", n, 1), ("v", v, 1), material=m)
     p3 = unpack3(p)
     n3 = vnormalize(unpack3(n))
@@ -490,19 +507,29 @@ def shade_direct(
     def add(a: Vec3, b: Vec3) -> Vec3:
         return tuple(x + y for x, y in zip(a, b))
 
+    def seen(c: Vec3, w) -> Vec3:
+        return c if w is None else tuple(x * w for x in c)
+
     out = None
-    for ls, disc in groups:
+    for (ls, disc), gv in zip(groups, group_vis):
         take = lambda i, ls=ls: jax.tree_util.tree_map(lambda x: x[i], ls)  # noqa: E731
+        col = lambda i, gv=gv: None if gv is None else gv[..., i]  # noqa: E731
         num = ls.num_lights
-        acc = one(take(0), disc)
+        acc = seen(one(take(0), disc), col(0))
         if num <= UNROLL_MAX_LIGHTS:
             for i in range(1, num):
-                acc = add(acc, one(take(i), disc))
+                acc = add(acc, seen(one(take(i), disc), col(i)))
         else:
             shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in acc))
             acc = tuple(jnp.broadcast_to(c, shape) for c in acc)
             rest = jax.tree_util.tree_map(lambda x: x[1:], ls)
-            acc, _ = jax.lax.scan(lambda a, light, disc=disc: (add(a, one(light, disc)), None), acc, rest)
+            if gv is None:
+                acc, _ = jax.lax.scan(lambda a, light, disc=disc: (add(a, one(light, disc)), None), acc, rest)
+            else:
+                vrest = jnp.moveaxis(gv[..., 1:], -1, 0)
+                acc, _ = jax.lax.scan(
+                    lambda a, xs, disc=disc: (add(a, seen(one(xs[0], disc), xs[1])), None), acc, (rest, vrest)
+                )
         out = acc if out is None else add(out, acc)
 
     if not (isinstance(ambient, (int, float)) and ambient == 0):  # static zero: no ambient code
