@@ -51,7 +51,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpbr._interp import bilinear
-from jaxpbr.rendering.texture import Texture, pinhole_ray_differentials, sample, uv_derivatives_on_triangle
+from jaxpbr.rendering.texture import (
+    Texture,
+    pinhole_ray_differentials,
+    sample,
+    uv_derivatives_on_triangle,
+)
 
 TEX = 512  # texels per side
 SQUARE = 64  # texels per checker square
@@ -93,7 +98,9 @@ def _G(r):
 
 def _box_S(s, w):
     """Average of S over [s - w/2, s + w/2] (w > 0 texels), exact."""
-    F = lambda x: _G(np.mod(x - 0.5, 2 * SQUARE))  # noqa: E731  (S has zero mean: F is periodic)
+    def F(x):  # an antiderivative of S; S has zero mean, so F is periodic
+        return _G(np.mod(x - 0.5, 2 * SQUARE))
+
     return (F(s + w / 2) - F(s - w / 2)) / w
 
 

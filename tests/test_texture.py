@@ -123,15 +123,32 @@ def test_wrap_modes_at_and_beyond_borders_match_gl(filt):
     # power-of-two sizes: the dyadic sample points (texel centres, borders, midpoints) are exact
     img = RNG.rand(4, 8, 2)
     k = np.arange(-40, 57)
-    u = np.concatenate([k / 16.0, RNG.uniform(-3, 4, 60)])
-    v = np.concatenate([k[::-1] / 8.0, RNG.uniform(-3, 4, 60)])
+    # u - floor(u) rounds to exactly 1 for a tiny negative u (the index after the last texel)
+    edge = np.array([-1e-20, 1.0 - 1e-17, -2.0 - 1e-17])
+    u = np.concatenate([k / 16.0, RNG.uniform(-3, 4, 57), edge])
+    v = np.concatenate([k[::-1] / 8.0, RNG.uniform(-3, 4, 57), [0.3, 0.6, 0.1]])
     uv = np.stack([u, v], -1)
     # every mode on each axis, next to each other mode (one compiled program per sampler)
     for ws, wt in (("repeat", "clamp"), ("clamp", "mirror"), ("mirror", "repeat")):
         if True:
             tex = tex_of(img, wrap_s=ws, wrap_t=wt, mag_filter=filt, max_anisotropy=1)
             got = np.asarray(T.sample(tex, uv))
-            np.testing.assert_allclose(got, gl_sample(img, u, v, ws, wt, filt), atol=1e-12, err_msg=f"{ws}/{wt}")
+            want = gl_sample(img, u, v, ws, wt, filt)
+            if filt == "nearest":  # on a texel border (to rounding) either side is right
+                other = gl_sample(img, u[-3:] + 1e-9, v[-3:], ws, wt, filt)
+                want[-3:] = np.where(np.isclose(got[-3:], other, rtol=0, atol=0), other, want[-3:])
+            np.testing.assert_allclose(got, want, atol=1e-12, err_msg=f"{ws}/{wt}")
+
+
+def test_wrap_index_pairs_on_the_reduced_range():
+    # the sampler wraps (i0, i0 + 1) by compare/select on the range a reduced coordinate gives
+    cases = [(mode, n, period) for mode, period in (("repeat", 1), ("mirror", 2), ("clamp", 1)) for n in (1, 2, 3, 8)]
+    i0 = np.arange(-1, 18)
+    pairs = jax.jit(lambda i: [T._wrap_pair(i, n, mode) for mode, n, _ in cases])(jnp.asarray(i0))
+    for (mode, n, period), (a, b) in zip(cases, pairs):
+        r = i0 <= period * n  # i0 in [-1, period n]
+        np.testing.assert_array_equal(np.asarray(a)[r], gl_wrap(i0[r], n, mode), err_msg=f"{mode} {n}")
+        np.testing.assert_array_equal(np.asarray(b)[r], gl_wrap(i0[r] + 1, n, mode), err_msg=f"{mode} {n}")
 
 
 def test_wrap_applies_at_every_level():
@@ -417,12 +434,13 @@ def test_ray_differentials_finite_on_grazing_and_degenerate_triangles():
 
     vg = jax.jit(jax.value_and_grad(f, argnums=(0, 1, 2), has_aux=True))
     for tri in (P, np.stack([P[0], P[1], P[1]]), np.stack([P[0], P[0], P[0]]), np.stack([P[0], P[1], 2 * P[1]])):
-        (val, out), grads = vg(tri, o, d)
+        (_val, out), grads = vg(tri, o, d)
         for x in jax.tree_util.tree_leaves((out, grads)):
             assert np.all(np.isfinite(x)), tri
     _, (uv, dudx, dudy) = jax.jit(f)(np.stack([P[0], P[1], P[1]]), o, d)  # degenerate: uv0, no footprint
     np.testing.assert_array_equal(uv, np.broadcast_to(UV[0], (3, 2)))
     np.testing.assert_array_equal(dudx, 0.0)
+    np.testing.assert_array_equal(dudy, 0.0)
 
 
 def test_khr_texture_transform_examples_and_derivatives():
@@ -450,11 +468,11 @@ def test_khr_texture_transform_examples_and_derivatives():
 
 
 def test_gltf_sampler_enums():
-    assert T.sampler_from_gltf(None) == dict(
-        wrap_s="repeat", wrap_t="repeat", mag_filter="linear", min_filter="linear_mipmap_linear"
-    )
+    assert T.sampler_from_gltf(None) == {
+        "wrap_s": "repeat", "wrap_t": "repeat", "mag_filter": "linear", "min_filter": "linear_mipmap_linear"
+    }
     s = T.sampler_from_gltf({"magFilter": 9728, "minFilter": 9986, "wrapS": 33071, "wrapT": 33648})
-    assert s == dict(wrap_s="clamp", wrap_t="mirror", mag_filter="nearest", min_filter="nearest_mipmap_linear")
+    assert s == {"wrap_s": "clamp", "wrap_t": "mirror", "mag_filter": "nearest", "min_filter": "nearest_mipmap_linear"}
     for enum, name in T.GLTF_MIN_FILTERS.items():
         assert T.Texture.from_gltf(np.zeros((4, 4, 3)), {"minFilter": enum}, srgb=False).min_filter == name
     with pytest.raises(InputError, match="minFilter"):

@@ -46,8 +46,10 @@ OpenGL 4.6 §8.14 with EXT_texture_filter_anisotropic's footprint rule:
    the N equal segments of the major axis: offsets ((k + 1/2) / N - 1/2) * major, k = 0..N-1, each
    weighted 1/N (N boxes of width P_max / N tile the footprint; the extension's i / (N+1) spacing
    leaves the ends under-covered). A tap is a complete trilinear (or whatever min_filter says)
-   lookup at lambda. N is static-bounded: all K taps are evaluated, the ones past N with weight 0
-   (no data-dependent shapes under jit).
+   lookup at lambda. N is static-bounded: all K taps are evaluated (a `lax.scan` over K), the
+   ones past N with weight 0 (no data-dependent shapes under jit), so a lookup costs K trilinear
+   lookups whatever the footprint (a GPU pays for N); measured on a 256^2 grazing-plane frame
+   (XLA:CPU) K = 16 costs ~2.3x trilinear (examples/texture_aliasing.py).
 3. lambda <= 0: magnification, mag_filter on level 0. lambda > 0: min_filter; for the mip-mapped
    ones lambda is clamped to [0, q] (q = last level); *_mipmap_nearest takes level
    ceil(lambda + 1/2) - 1 (0 for lambda <= 1/2), *_mipmap_linear blends floor(lambda) and the next
@@ -56,6 +58,8 @@ OpenGL 4.6 §8.14 with EXT_texture_filter_anisotropic's footprint rule:
    Before that, the coordinate is reduced by whole periods (repeat: u - floor u; mirror: u - 2
    floor(u / 2); clamp: clipped to [-1, 2]), which keeps texel positions exact for large repeating
    uv and int32 indices in range for huge ones.
+
+NaN or infinite uv give NaN (no out-of-range reads: every index is wrapped or clamped).
 
 Derivatives: the result is differentiable in the texels (through the pyramid: `Texture.from_image`
 is traceable, so differentiate a function that builds the texture) and in uv (through the bilinear
@@ -88,15 +92,15 @@ from ..errors import InputError
 
 __all__ = [
     "DEFAULT_MAX_ANISOTROPY",
-    "Footprint",
     "GLTF_MAG_FILTERS",
     "GLTF_MIN_FILTERS",
     "GLTF_WRAP_MODES",
     "LOD_MIN",
     "MAG_FILTERS",
     "MIN_FILTERS",
-    "Texture",
     "WRAP_MODES",
+    "Footprint",
+    "Texture",
     "apply_texture_transform",
     "build_mips",
     "footprint",
@@ -286,10 +290,12 @@ class Texture(Pytree):
         mag = _choice("mag_filter", self.mag_filter, MAG_FILTERS)
         mn = _choice("min_filter", self.min_filter, MIN_FILTERS)
         K = self.max_anisotropy
-        if isinstance(K, bool) or not isinstance(K, (int, np.integer)) or not 1 <= K <= 64:
+        if isinstance(K, bool) or not isinstance(K, (int, np.integer)):
+            raise TypeError(f"Texture.max_anisotropy must be an integer in [1, 64], got {K!r}")
+        if not 1 <= K <= 64:
             raise ValueError(f"Texture.max_anisotropy must be an integer in [1, 64], got {K!r}")
         if not isinstance(self.srgb, (bool, np.bool_)):
-            raise ValueError(f"Texture.srgb must be a bool, got {self.srgb!r}")
+            raise TypeError(f"Texture.srgb must be a bool, got {self.srgb!r}")
         self._set(
             levels=levels, wrap_s=wrap_s, wrap_t=wrap_t, mag_filter=mag, min_filter=mn,
             max_anisotropy=int(K), srgb=bool(self.srgb),
@@ -309,7 +315,7 @@ class Texture(Pytree):
         max_anisotropy: int = DEFAULT_MAX_ANISOTROPY,
         num_levels: int | None = None,
         dtype=None,
-    ) -> "Texture":
+    ) -> Texture:
         """A texture from an (H, W) or (H, W, C) image: floats as given, uint8 / uint16 as code
         value / max. srgb=True (colour textures): decoded to linear (`jaxpbr.color.srgb_decode`,
         alpha excepted) before the pyramid is built; srgb=False (data textures): as stored. The
@@ -337,7 +343,7 @@ class Texture(Pytree):
     @classmethod
     def from_gltf(
         cls, img, sampler: dict | None = None, *, srgb: bool, max_anisotropy: int = DEFAULT_MAX_ANISOTROPY, **kwargs
-    ) -> "Texture":
+    ) -> Texture:
         """A texture from an image and a glTF `sampler` object (the JSON dict, or None for the
         default sampler): see `sampler_from_gltf`. Other keywords go to `from_image`."""
         return cls.from_image(img, srgb=srgb, max_anisotropy=max_anisotropy, **sampler_from_gltf(sampler), **kwargs)
@@ -382,12 +388,12 @@ def sampler_from_gltf(sampler: dict | None) -> dict:
                 f"glTF sampler {key}={value!r} is not a valid enum; expected one of {sorted(table)}"
             ) from None
 
-    return dict(
-        wrap_s=look("wrapS", GLTF_WRAP_MODES, "repeat"),
-        wrap_t=look("wrapT", GLTF_WRAP_MODES, "repeat"),
-        mag_filter=look("magFilter", GLTF_MAG_FILTERS, "linear"),
-        min_filter=look("minFilter", GLTF_MIN_FILTERS, "linear_mipmap_linear"),
-    )
+    return {
+        "wrap_s": look("wrapS", GLTF_WRAP_MODES, "repeat"),
+        "wrap_t": look("wrapT", GLTF_WRAP_MODES, "repeat"),
+        "mag_filter": look("magFilter", GLTF_MAG_FILTERS, "linear"),
+        "min_filter": look("minFilter", GLTF_MIN_FILTERS, "linear_mipmap_linear"),
+    }
 
 
 # ------------------------------------------------------------------------------------------
