@@ -33,7 +33,11 @@ from .shading.lights import (
 )
 from .shading.lut import compute_brdf_lut, lut_lookup, lut_reference
 from .shading.material import Material
+from .rendering.gltf_scene import load_gltf
+from .rendering.mesh import Mesh
 from .rendering.renderer import RenderOptions, bake, render, render_batch
+from .rendering.texture import Texture
+from .rendering.textured import TextureSlot
 from .rendering.scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
 from .shading.shipped_luts import brdf_lut
 from .ibl.specular import prefilter, prefilter_reference, roughness_to_lod
@@ -50,6 +54,10 @@ __all__ = [
     "Cubemap",
     "Environment",
     "GBuffer",
+    "Mesh",
+    "Texture",
+    "TextureSlot",
+    "load_gltf",
     "Plane",
     "RenderOptions",
     "Scene",

@@ -59,6 +59,8 @@ OPTION_NAMES = frozenset(
 #: Positional parameters that are data, or the one leading size/name the documentation passes
 #: positionally. Keyed by "<module>.<qualname>" of the definition.
 DATA = {
+    # the glTF sampler object is data read from the file, like the image
+    "jaxpbr.rendering.texture.Texture.from_gltf": ("sampler",),
     # arrays of the formula, not switches
     "jaxpbr.shading.brdf_terms.d_ggx": ("sin2_h",),
     "jaxpbr.shading.brdf_terms.fresnel_mix": ("f0",),

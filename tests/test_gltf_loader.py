@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from jaxpbr.errors import InputError
-from jaxpbr.io.gltf import GltfAsset, load_gltf
+from jaxpbr.io.gltf import GltfAsset, read_gltf
 
 FLOAT, BYTE, UBYTE, SHORT, USHORT, UINT = 5126, 5120, 5121, 5122, 5123, 5125
 _NP = {FLOAT: "<f4", BYTE: "<i1", UBYTE: "<u1", SHORT: "<i2", USHORT: "<u2", UINT: "<u4"}
@@ -126,7 +126,9 @@ def png_bytes(pixels: np.ndarray) -> bytes:
 # ---------------------------------------------------------------------------------------------
 # The Khronos validator (run when node and the gltf-validator package are there)
 # ---------------------------------------------------------------------------------------------
-_VALIDATOR = Path(os.environ.get("JAXPBR_GLTF_VALIDATOR", "/work/nodetools/node_modules/gltf-validator"))
+# The Khronos glTF Validator (npm package gltf-validator): JAXPBR_GLTF_VALIDATOR, else the
+# checkout's node_modules (`npm install --no-save gltf-validator`, as .ci/run does).
+_VALIDATOR = Path(os.environ.get("JAXPBR_GLTF_VALIDATOR", Path(__file__).resolve().parent.parent / "node_modules" / "gltf-validator"))
 _VALIDATE_JS = r"""
 const fs = require('fs'); const path = require('path');
 const validator = require(process.argv[1]);
@@ -279,7 +281,7 @@ def hierarchy(tmp_path_factory):
 
 
 def test_hierarchy_world_positions_closed_form(hierarchy):
-    asset = load_gltf(hierarchy)
+    asset = read_gltf(hierarchy)
     assert isinstance(asset, GltfAsset) and asset.scene == 0
     assert [p.node for p in asset.primitives] == [0, 1, 2]
     pos = cube_arrays()[0]
@@ -296,7 +298,7 @@ def test_hierarchy_world_positions_closed_form(hierarchy):
 
 def test_hierarchy_normals_winding_and_tangents(hierarchy):
     """Outward normals, counter-clockwise fronts (also under the mirror), bitangent = A @ v."""
-    asset = load_gltf(hierarchy)
+    asset = read_gltf(hierarchy)
     bit = cube_arrays()[4]
     for prim, m in zip(asset.primitives, (M_ROOT, M_MATRIX, M_MIRROR)):
         p = prim.positions.astype(np.float64)
@@ -317,11 +319,11 @@ def test_hierarchy_normals_winding_and_tangents(hierarchy):
 
 
 def test_hierarchy_other_scene_and_bad_scene(hierarchy):
-    asset = load_gltf(hierarchy, scene=1)
+    asset = read_gltf(hierarchy, scene=1)
     assert [p.node for p in asset.primitives] == [3]
     np.testing.assert_allclose(asset.primitives[0].positions, cube_arrays()[0] + (100, 0, 0), atol=1e-6)
     with pytest.raises(InputError, match="scene 5 does not exist"):
-        load_gltf(hierarchy, scene=5)
+        read_gltf(hierarchy, scene=5)
 
 
 def test_hierarchy_against_trimesh(hierarchy):
@@ -332,7 +334,7 @@ def test_hierarchy_against_trimesh(hierarchy):
         transform, geom = scene.graph[node]
         mesh = scene.geometry[geom]
         theirs.append((apply(transform, mesh.vertices), len(mesh.faces)))
-    ours = load_gltf(hierarchy).primitives
+    ours = read_gltf(hierarchy).primitives
     assert sorted(n for _, n in theirs) == sorted(p.num_triangles for p in ours)
 
     def key(v):
@@ -368,7 +370,7 @@ def test_strip_and_fan(tmp_path):
     b.add("scenes", {"nodes": [0, 1]})
     path = b.write(tmp_path / "topo.gltf")
     assert_valid(path)
-    s, f = load_gltf(path).primitives
+    s, f = read_gltf(path).primitives
     np.testing.assert_array_equal(s.indices, [[0, 1, 2], [1, 3, 2], [2, 3, 4], [3, 5, 4]])
     np.testing.assert_array_equal(f.indices, [[1, 2, 0], [2, 3, 0], [3, 4, 0]])
     for prim in (s, f):  # every triangle is counter-clockwise seen from +z
@@ -387,7 +389,7 @@ def test_points_and_lines_refused(tmp_path, mode, name):
     if mode == 1:
         assert_valid(path)
     with pytest.raises(InputError) as e:
-        load_gltf(path)
+        read_gltf(path)
     assert "'wire'" in str(e.value) and "primitive 0" in str(e.value) and name in str(e.value)
     assert "mode5.gltf" not in str(e.value) and f"mode{mode}.gltf" in str(e.value)
 
@@ -427,7 +429,7 @@ def test_sparse_accessors_and_normalized_attributes(tmp_path):
     path = b.write(tmp_path / "sparse.gltf", mode="data")
     assert_valid(path)
     assert "data:application/octet-stream;base64," in path.read_text()
-    (prim,) = load_gltf(path).primitives
+    (prim,) = read_gltf(path).primitives
     np.testing.assert_array_equal(prim.positions, final)
     np.testing.assert_allclose(prim.texcoord_0, uv_raw / 65535.0, rtol=1e-6)
     np.testing.assert_array_equal(prim.texcoord_1, [[0, 0], [0, 0], [0.25, 0.5], [0, 0]])
@@ -462,7 +464,7 @@ def test_position_component_types(tmp_path, ctype, normalized):
     b.add("scenes", {"nodes": [0]})
     path = b.write(tmp_path / "q.glb", mode="glb")
     assert_valid(path)
-    (prim,) = load_gltf(path).primitives
+    (prim,) = read_gltf(path).primitives
     np.testing.assert_allclose(prim.positions, 0.5 * expect, rtol=1e-6)
     np.testing.assert_array_equal(prim.normals, [[0, 0, 1]] * 3)
     if ctype == BYTE and normalized:
@@ -479,7 +481,7 @@ def test_normalized_byte_clamp_in_normals(tmp_path):
     b.add("scenes", {"nodes": [0]})
     path = b.write(tmp_path / "n.gltf")
     assert_valid(path)
-    (prim,) = load_gltf(path).primitives
+    (prim,) = read_gltf(path).primitives
     np.testing.assert_array_equal(prim.normals, [[0, 0, -1]] * 3)
     np.testing.assert_array_equal(prim.indices, [[0, 1, 2]])  # non-indexed: 0..V-1
 
@@ -497,7 +499,7 @@ def test_flat_normals_when_missing(tmp_path):
     b.add("scenes", {"nodes": [0]})
     path = b.write(tmp_path / "tet.gltf")
     assert_valid(path)
-    (prim,) = load_gltf(path).primitives
+    (prim,) = read_gltf(path).primitives
     assert prim.flat_normals and prim.tangents is None
     assert prim.positions.shape == (12, 3)
     np.testing.assert_array_equal(prim.indices, np.arange(12).reshape(4, 3))
@@ -584,7 +586,7 @@ def materials_file(tmp_path_factory):
 def _load_quiet(path, **kw):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return load_gltf(path, **kw)
+        return read_gltf(path, **kw)
 
 
 def test_material_factors(materials_file):
@@ -672,7 +674,7 @@ def test_images_decoded_once_as_encoded_values(materials_file):
 
 def test_ignored_extension_warned_once(materials_file):
     with pytest.warns(UserWarning) as record:
-        asset = load_gltf(materials_file)
+        asset = read_gltf(materials_file)
     msgs = [str(w.message) for w in record if "KHR_materials_unlit" in str(w.message)]
     assert len(msgs) == 1 and "extensionsUsed" in msgs[0]
     assert any("KHR_materials_unlit" in w for w in asset.warnings)
@@ -698,7 +700,7 @@ def test_external_png_and_jpeg(tmp_path):
     b.add("scenes", {"nodes": [0]})
     path = b.write(tmp_path / "ext.gltf")
     assert_valid(path)
-    asset = load_gltf(path)
+    asset = read_gltf(path)
     png, jpeg = asset.images
     assert png.mime_type == "image/png" and jpeg.mime_type == "image/jpeg"
     np.testing.assert_allclose(png.pixels, _IMG[:, :, :3] / 255.0, rtol=1e-6)
@@ -731,7 +733,7 @@ def test_lights_and_cameras(tmp_path):
     b.add("scenes", {"nodes": [0, 1, 3, 4]})
     path = b.write(tmp_path / "lights.gltf")
     assert_valid(path)
-    asset = load_gltf(path)
+    asset = read_gltf(path)
     assert asset.primitives == [] and asset.bounds is None
     spot, point, sun = asset.lights
     assert (spot.type, spot.name, spot.intensity, spot.range) == ("spot", "spot", 10.0, 20.0)
@@ -774,7 +776,7 @@ def test_required_extensions_refused_in_one_error(tmp_path):
     path = b.write(tmp_path / "req.gltf")
     assert_valid(path)
     with pytest.raises(InputError) as e:
-        load_gltf(path)
+        read_gltf(path)
     msg = str(e.value)
     assert "EXT_jaxpbr_alpha" in msg and "EXT_jaxpbr_beta" in msg and "extensionsRequired" in msg
     assert "KHR_materials_ior, KHR" not in msg.split("supported")[0]  # the supported one is not named as missing
@@ -786,7 +788,7 @@ def test_used_extensions_ignored_with_one_warning(tmp_path):
     b.used("EXT_jaxpbr_alpha", "KHR_materials_variants")
     path = b.write(tmp_path / "used.gltf")
     with pytest.warns(UserWarning, match="EXT_jaxpbr_alpha, KHR_materials_variants") as record:
-        asset = load_gltf(path)
+        asset = read_gltf(path)
     assert len([w for w in record if "extensionsUsed" in str(w.message)]) == 1
     assert asset.primitives[0].flat_normals
 
@@ -808,7 +810,7 @@ def test_skins_morphs_animations_warned(tmp_path):
     path = b.write(tmp_path / "anim.gltf")
     assert_valid(path)
     with pytest.warns(UserWarning) as record:
-        asset = load_gltf(path)
+        asset = read_gltf(path)
     msgs = [str(w.message) for w in record]
     assert len([m for m in msgs if "morph targets" in m]) == 1 and "mesh 0" in asset.warnings[-1] + " ".join(msgs)
     assert len([m for m in msgs if "animations" in m]) == 1
@@ -824,7 +826,7 @@ def test_missing_buffer_file(tmp_path):
     path = _bad(tmp_path)
     (tmp_path / "bad.bin").unlink()
     with pytest.raises(InputError, match=r"bad\.gltf.*buffer 0.*bad\.bin.*not found.*Fix"):
-        load_gltf(path)
+        read_gltf(path)
 
 
 def test_accessor_outside_its_buffer(tmp_path):
@@ -833,12 +835,12 @@ def test_accessor_outside_its_buffer(tmp_path):
     doc["accessors"][0]["count"] = 4
     path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match=r"mesh 0 \('tri'\) primitive 0 POSITION \(accessor 0\).*bufferView 0"):
-        load_gltf(path)
+        read_gltf(path)
     doc["accessors"][0]["count"] = 3
     doc["bufferViews"][0]["byteLength"] = 400
     path.write_text(json.dumps(doc))
     with pytest.raises(InputError, match=r"bufferView 0.*\[0, 400\).*36 bytes"):
-        load_gltf(path)
+        read_gltf(path)
 
 
 def test_index_out_of_range(tmp_path):
@@ -846,25 +848,25 @@ def test_index_out_of_range(tmp_path):
     b.doc["meshes"][0]["primitives"][0]["indices"] = b.accessor(np.uint8([0, 1, 9]), UBYTE, "SCALAR")
     path = b.write(tmp_path / "idx.gltf")
     with pytest.raises(InputError, match=r"'tri'.*index 9.*3 elements"):
-        load_gltf(path)
+        read_gltf(path)
 
 
 def test_bad_json_truncated_glb_and_missing_file(tmp_path):
     (tmp_path / "broken.gltf").write_text('{"asset": {"version": "2.0"}, "nodes": [')
     with pytest.raises(InputError, match=r"broken\.gltf.*JSON"):
-        load_gltf(tmp_path / "broken.gltf")
+        read_gltf(tmp_path / "broken.gltf")
     glb = _minimal().write(tmp_path / "t.glb", mode="glb")
     data = glb.read_bytes()
     (tmp_path / "cut.glb").write_bytes(data[: len(data) - 8])
     with pytest.raises(InputError, match=r"cut\.glb.*truncated"):
-        load_gltf(tmp_path / "cut.glb")
+        read_gltf(tmp_path / "cut.glb")
     with pytest.raises(InputError, match="not found"):
-        load_gltf(tmp_path / "nothing.gltf")
+        read_gltf(tmp_path / "nothing.gltf")
     doc = json.loads((_bad(tmp_path, "v1.gltf")).read_text())
     doc["asset"]["version"] = "1.0"
     (tmp_path / "v1.gltf").write_text(json.dumps(doc))
     with pytest.raises(InputError, match="only glTF 2"):
-        load_gltf(tmp_path / "v1.gltf")
+        read_gltf(tmp_path / "v1.gltf")
 
 
 def test_node_cycle_refused(tmp_path):
@@ -873,7 +875,7 @@ def test_node_cycle_refused(tmp_path):
     b.add("nodes", {"children": [0]})
     path = b.write(tmp_path / "cycle.gltf")
     with pytest.raises(InputError, match="cycle"):
-        load_gltf(path)
+        read_gltf(path)
 
 
 def test_unsupported_image_type(tmp_path):
@@ -885,8 +887,8 @@ def test_unsupported_image_type(tmp_path):
     b.doc["meshes"][0]["primitives"][0]["material"] = 0
     path = b.write(tmp_path / "webp.gltf")
     with pytest.raises(InputError, match=r"image 0 \('pic'\).*image/webp.*PNG or JPEG"):
-        load_gltf(path)
-    assert len(load_gltf(path, lazy_images=True).images) == 1  # refused only when decoded
+        read_gltf(path)
+    assert len(read_gltf(path, lazy_images=True).images) == 1  # refused only when decoded
 
 
 # ---------------------------------------------------------------------------------------------
@@ -903,7 +905,7 @@ def test_generated_tangents(tmp_path):
     b.add("scenes", {"nodes": [0]})
     path = b.write(tmp_path / "mikk.gltf")
     assert_valid(path)
-    (prim,) = load_gltf(path).primitives
+    (prim,) = read_gltf(path).primitives
     assert prim.generated_tangents and prim.tangents.shape == (prim.num_vertices, 4)
     # u grows along object +x, i.e. world -x under the mirror.
     np.testing.assert_allclose(prim.tangents[:, :3], np.tile([-1.0, 0, 0], (prim.num_vertices, 1)), atol=1e-5)
@@ -925,7 +927,7 @@ def test_trimesh_exported_glb(tmp_path):
     path = tmp_path / "trimesh.glb"
     scene.export(path)
     assert_valid(path)
-    asset = load_gltf(path)
+    asset = read_gltf(path)
     assert "trimesh" in asset.generator
     assert len(asset.primitives) == 3
     expected = {}
@@ -958,7 +960,7 @@ def test_ext_mesh_gpu_instancing(tmp_path):
     b.doc["nodes"][0].update({"translation": [0, 0, 5], "extensions": {"EXT_mesh_gpu_instancing": {"attributes": attrs}}})
     path = b.write(tmp_path / "inst.gltf")
     assert_valid(path)
-    prims = load_gltf(path).primitives
+    prims = read_gltf(path).primitives
     assert [p.instance for p in prims] == [0, 1, 2]
     tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
     for p, m in zip(prims, (T(0, 0, 5), T(0, 0, 5) @ T(10, 0, 0) @ Rz(math.pi / 2), T(0, 0, 5) @ T(0, 10, 0) @ S(2, 2, 2))):
@@ -973,7 +975,7 @@ def test_no_scenes_loads_root_nodes(tmp_path):
     b.add("nodes", {"mesh": 0, "translation": [0, 0, 1]})
     path = b.write(tmp_path / "noscene.gltf")
     assert_valid(path)
-    asset = load_gltf(path)
+    asset = read_gltf(path)
     assert asset.scene is None and [p.node for p in asset.primitives] == [0, 1]
 
 
@@ -983,4 +985,4 @@ def test_integer_colour_must_be_normalized(tmp_path):
                                                                               UBYTE, "VEC4")
     path = b.write(tmp_path / "colour.gltf")
     with pytest.raises(InputError, match=r"'tri'.*COLOR_0 \(accessor 1\).*normalized"):
-        load_gltf(path)
+        read_gltf(path)

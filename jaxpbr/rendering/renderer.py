@@ -955,7 +955,7 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
                 kw["visibility"] = g["vis_env"]
             ibl = ibl + shade_direct(zero, n_e, v_e, dark, ls, model=opts.model, smith=opts.smith, disc_lights=True, **kw, **sheen_kw)
             if opts.compensates:
-                ibl = ibl + disc_multiscatter(n_e, v_e, m, lut, ls, kw.get("visibility"))
+                ibl = ibl + disc_multiscatter(n_e, v_e, m, lut, ls, visibility=kw.get("visibility"))
         ibl = jnp.asarray(env.intensity, dtype) * ibl
         out = ibl if out is None else out + ibl
     if out is None:

@@ -107,7 +107,7 @@ def multiscatter_weight(nov, m: Material, lut) -> jax.Array:
     return fms_d + (fms_m - fms_d) * metallic
 
 
-def disc_multiscatter(n, v, m: Material, lut, suns, visibility=None) -> jax.Array:
+def disc_multiscatter(n, v, m: Material, lut, suns, *, visibility=None) -> jax.Array:
     """The multiple-scattering compensation of disc lights split out of an environment: FmsEms
     (`multiscatter_weight`) times their irradiance / pi at n, as `shade_ibl(multiscatter=True)`
     gives the residual environment's, so splitting a sun out leaves the compensation unchanged (up

@@ -1,14 +1,14 @@
-"""glTF 2.0 loader: `load_gltf(path)` -> `GltfAsset`, a scene flattened to world space in NumPy.
+"""glTF 2.0 loader: `read_gltf(path)` -> `GltfAsset`, a scene flattened to world space in NumPy.
 
 Reads .gltf (external .bin/images, data: URIs) and .glb with pygltflib for the JSON and the GLB
 container; accessors (all component types, normalized integers, byteStride, sparse, no
 bufferView) are decoded in NumPy. Materials map onto `jaxpbr.Material` keyword arguments
 (`GltfMaterial.factors`) plus texture slots (`GltfTextureRef`); images are decoded with
 OpenImageIO to float32 arrays of the encoded values. KHR_lights_punctual lights and cameras come
-with world transforms. See `load_gltf` for what is supported, refused and ignored.
+with world transforms. See `read_gltf` for what is supported, refused and ignored.
 """
 
-from ._loader import SUPPORTED_EXTENSIONS, load_gltf
+from ._loader import SUPPORTED_EXTENSIONS, read_gltf
 from ._materials import texture_transform_matrix
 from ._types import (
     TEXTURE_CHANNELS,
@@ -22,9 +22,6 @@ from ._types import (
     GltfTextureRef,
 )
 
-#: The same function under the name the scene layer (`jaxpbr.rendering.gltf_scene`) imports; its own
-#: `load_gltf` there builds a renderable scene from this asset.
-read_gltf = load_gltf
 
 __all__ = [
     "SUPPORTED_EXTENSIONS",
@@ -37,7 +34,6 @@ __all__ = [
     "GltfPrimitive",
     "GltfSampler",
     "GltfTextureRef",
-    "load_gltf",
     "read_gltf",
     "texture_transform_matrix",
 ]

@@ -1,4 +1,4 @@
-"""`load_gltf`: a glTF 2.0 file (.gltf or .glb) -> `GltfAsset` flattened to world space."""
+"""`read_gltf`: a glTF 2.0 file (.gltf or .glb) -> `GltfAsset` flattened to world space."""
 
 from __future__ import annotations
 
@@ -25,9 +25,9 @@ from ._images import make_images
 from ._materials import MATERIAL_EXTENSIONS, MaterialReader
 from ._types import GltfAsset, GltfCamera, GltfLight, GltfMaterial, GltfPrimitive
 
-__all__ = ["SUPPORTED_EXTENSIONS", "load_gltf"]
+__all__ = ["SUPPORTED_EXTENSIONS", "read_gltf"]
 
-#: The extensions `load_gltf` implements; others in extensionsRequired are refused, others in
+#: The extensions `read_gltf` implements; others in extensionsRequired are refused, others in
 #: extensionsUsed are ignored with a warning.
 SUPPORTED_EXTENSIONS = (
     *MATERIAL_EXTENSIONS,
@@ -522,7 +522,7 @@ class _Loader:
             inner_cone_angle=inner, outer_cone_angle=outer))
 
 
-def load_gltf(path, *, scene: int | None = None, lazy_images: bool = False) -> GltfAsset:
+def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False) -> GltfAsset:
     """Load a glTF 2.0 asset (.gltf with external or data: URIs, or .glb) flattened to world space.
 
     Args:

@@ -144,7 +144,7 @@ class GltfMaterial:
 class GltfImage:
     """An image of the file, decoded on first access of `pixels` (and only once).
 
-    `load_gltf` decodes the images that materials use before it returns (so a bad image fails the
+    `read_gltf` decodes the images that materials use before it returns (so a bad image fails the
     load), unless it was called with `lazy_images=True`.
 
     Attributes:
@@ -304,7 +304,7 @@ class GltfCamera:
 
 @dataclass(eq=False)
 class GltfAsset:
-    """A loaded glTF 2.0 scene, flattened to world space (see `load_gltf`).
+    """A loaded glTF 2.0 scene, flattened to world space (see `read_gltf`).
 
     Fields:
         path: the file read.
@@ -317,7 +317,7 @@ class GltfAsset:
         lights: list of `GltfLight`; cameras: list of `GltfCamera` (scene traversal order).
         bounds: (2, 3) float64 world AABB [min, max] of all positions, None without geometry.
         extensions_used: the file's extensionsUsed.
-        warnings: the messages `load_gltf` warned (ignored extensions and features).
+        warnings: the messages `read_gltf` warned (ignored extensions and features).
     """
 
     path: Path
