@@ -18,8 +18,8 @@ Conventions
     - an even axis n -> n/2: the 2-tap box (a + b) / 2;
     - an odd axis n = 2m + 1 -> m: the *polyphase 3-tap box*. Output texel i covers the input
       interval [i n/m, (i+1) n/m) (n/m = 2 + 1/m texels wide); its exact box average weights the
-      three input texels 2i, 2i+1, 2i+2 by ((m - i), m, (i + 1)) / (2m + 1) (NVIDIA, "Non-Power-
-      of-Two Mipmapping", 2005). Weights sum to 1 and every input texel's weights over the outputs
+      three input texels 2i, 2i+1, 2i+2 by ((m - i), m, (i + 1)) / (2m + 1) (Guthe and Heckbert,
+      "Non-Power-of-Two Mipmap Creation", NVIDIA technical report TR-01838-001, 2003). Weights sum to 1 and every input texel's weights over the outputs
       sum to m/n, so the mean is preserved exactly (up to rounding), unlike the common
       "drop the last row" 2x2 box, which shifts the image and loses a texel row per level. For
       n = 3 it is the plain 3-tap box (1/3, 1/3, 1/3).
@@ -31,8 +31,8 @@ Conventions
   `MAG_FILTERS`, min_filter in `MIN_FILTERS` (glTF 9728, 9729, 9984..9987), max_anisotropy (the
   most taps along the footprint's major axis; 1 = isotropic trilinear). A glTF sampler without
   minFilter / magFilter gets 'linear_mipmap_linear' / 'linear' (the spec leaves the choice to the
-  implementation; this is what engines and the glTF Sample Viewer use, and the only choice that
-  does not alias under minification).
+  implementation; it is a common engine default, and the only min filter that neither aliases
+  under minification nor shows mip-level seams).
 
 Sampling (`sample`)
 -------------------
