@@ -173,7 +173,8 @@ MAX_CULLED_HITS = 16
 
 def _host_cast(vertices, triangles, cull_back, o, d):
     """The primitive (int32, -1 = miss) each ray o + t d sees first on the host: front faces, and
-    back faces of double-sided meshes; a ray continues through the back of a single-sided triangle."""
+    back faces of double-sided meshes; a ray continues through the back of a single-sided triangle
+    (`TriangleAccel.intersect` continuation: the next hit after (t, prim) in the engine's order)."""
     vertices = np.ascontiguousarray(vertices, np.float32)
     triangles = np.ascontiguousarray(triangles, np.int32)
     accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax")
@@ -190,7 +191,7 @@ def _host_cast(vertices, triangles, cull_back, o, d):
     for _ in range(MAX_CULLED_HITS + 1):
         if todo.size == 0:
             break
-        hits = accel.intersect(o[todo], d[todo], tnear=tnear[todo], ignore_prim=ignore[todo])
+        hits = accel.intersect(o[todo], d[todo], tnear=tnear[todo], after_prim=ignore[todo])
         p = np.asarray(hits.prim, np.int32)
         t = np.asarray(hits.t, np.float32)
         hit = p >= 0

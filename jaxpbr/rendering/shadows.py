@@ -8,9 +8,9 @@ penumbra of a sun, 0.27 degrees, is under a pixel at the distances of most scene
 Spheres and planes are intersected in JAX; meshes by the host ray engine's occlusion query
 (`jax.pure_callback`, as primary visibility). Shadow rays start at the surface point moved off the
 surface along the geometric normal, on the light's side, by the float-aware offset of Waechter and
-Binder ("A Fast and Robust Method for Avoiding Self-Intersection", Ray Tracing Gems, ch. 6): a few
-units in the last place of the point's coordinates, so that neither a tiny object nor a far one
-self-shadows, in float32 and float64. Visibility has no derivative (the blocked/unblocked choice);
+Binder (`visibility.offset_ray_origin`: 256 float32 units in the last place of each coordinate),
+so that neither a tiny object nor a far one self-shadows; the rays are float32, the ray engine's
+precision, also in float64 renders. Visibility has no derivative (the blocked/unblocked choice);
 the gradient of a shadowed image flows through the lit pixels' shading.
 """
 
@@ -24,35 +24,9 @@ from .._numerics import vdot, vnormalize
 from ..shading.lights import pack_lights
 from .mesh import ACCELS, Mesh, _embree
 from .scene import Plane, Sphere, intersect_plane, intersect_sphere
+from .visibility import offset_ray_origin
 
-__all__ = ["offset_ray_origin", "shadow_visibility"]
-
-# Waechter & Binder's constants for float32: origin within 1/32 of the scene origin is offset by a
-# fixed amount, elsewhere by int_scale units in the last place.
-_ORIGIN = 1.0 / 32.0
-_FLOAT_SCALE = 1.0 / 65536.0
-_INT_SCALE = 256.0
-
-
-def offset_ray_origin(p, ng):
-    """p moved off its surface along the unit geometric normal ng (Vec3s, pointing to where the
-    ray goes): each coordinate by `_INT_SCALE` ulps in ng's direction (bit arithmetic on the float),
-    or by `_FLOAT_SCALE * ng` near the origin where ulps are tiny. Float32 and float64 alike (the
-    integer offset scales with the mantissa: 2^29 more ulps per unit in float64)."""
-    dtype = p[0].dtype
-    if dtype == jnp.float64:
-        itype, scale = jnp.int64, _INT_SCALE * 2.0**29
-    else:
-        itype, scale = jnp.int32, _INT_SCALE
-    out = []
-    for i in range(3):
-        x, n = p[i], ng[i]
-        k = jnp.round(scale * n).astype(itype)
-        bits = jax.lax.bitcast_convert_type(x, itype)
-        moved = jax.lax.bitcast_convert_type(bits + jnp.where(x < 0, -k, k), dtype)
-        out.append(jnp.where(jnp.abs(x) < _ORIGIN, x + _FLOAT_SCALE * n, moved))
-    return tuple(jax.lax.stop_gradient(c) for c in out)
-
+__all__ = ["shadow_visibility"]
 
 def _host_occluded(vertices, triangles, o, d, tfar):
     vertices = np.ascontiguousarray(vertices, np.float32)
@@ -61,7 +35,7 @@ def _host_occluded(vertices, triangles, o, d, tfar):
     shape = np.shape(o)[:-1]
     hit = accel.occluded(
         np.asarray(o, np.float32).reshape(-1, 3), np.asarray(d, np.float32).reshape(-1, 3),
-        np.asarray(tfar, np.float32).reshape(-1),
+        tnear=0.0, tfar=np.asarray(tfar, np.float32).reshape(-1),
     )
     return np.asarray(hit, bool).reshape(shape)
 
@@ -114,7 +88,9 @@ def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_onl
     out = []
     for l, dist in dirs:
         side = jnp.where(vdot(ng, l) < 0, -1.0, 1.0)
-        o = offset_ray_origin(pos, tuple(side * c for c in ng))
+        # Rays are traced in float32 (the ray engine's precision): the offset is float32's.
+        o32 = offset_ray_origin(jax.lax.stop_gradient(jnp.stack(pos, -1)), jax.lax.stop_gradient(jnp.stack(tuple(side * c for c in ng), -1)))
+        o = tuple(o32[..., i].astype(dtype) for i in range(3))
         l = tuple(jax.lax.stop_gradient(c) for c in l)
         big = jnp.asarray(jnp.finfo(dtype).max, dtype)
         tfar = jnp.broadcast_to(big if dist is None else jnp.minimum(jax.lax.stop_gradient(dist), big), pos[0].shape)
@@ -122,6 +98,6 @@ def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_onl
         tfar = tfar * (1 - 8 * jnp.finfo(dtype).eps)
         blocked = _analytic_occluded(analytic, o, l, tfar, dtype) if analytic else jnp.zeros(pos[0].shape, bool)
         if arrays is not None:
-            blocked = blocked | _mesh_occluded(arrays, jnp.stack(o, -1), jnp.stack(l, -1), tfar)
+            blocked = blocked | _mesh_occluded(arrays, o32, jnp.stack(l, -1), tfar)
         out.append(jnp.where(blocked, 0.0, 1.0).astype(dtype))
     return jnp.stack(out, -1)
