@@ -86,7 +86,17 @@ import numpy as np
 
 from .. import color
 from .._interp import lerp, lerp2, split_coordinate
-from .._numerics import as_float, eps, safe_div, safe_sqrt, unpack3, vcross, vdot
+from .._numerics import (
+    as_float,
+    eps,
+    pack3,
+    safe_div,
+    safe_sqrt,
+    unpack3,
+    vcross,
+    vdot,
+    vnormalize,
+)
 from .._pytree import Pytree, leaf, static
 from ..errors import InputError
 
@@ -637,26 +647,32 @@ def pinhole_ray_differentials(
     dD/dx = (dd/dx - D (D . dd/dx)) / |d| with dd/dx = (2 tan(fov/2) (W/H) / W) right (x = column
     j), dd/dy = -(2 tan(fov/2) / H) up' (y = row i, downwards). The origin does not move
     (dO/dx = dO/dy = 0)."""
+    # Vec3 planes, not (..., 3) arrays: reductions over a size-3 minor axis compile to slow
+    # separate passes on XLA:CPU (see jaxpbr._numerics): measured 9x faster on a 256^2 frame.
     pos = jnp.asarray(position, dtype)
-    f = jnp.asarray(target, dtype) - pos
-    f = f / jnp.linalg.norm(f)
-    r = jnp.cross(f, jnp.asarray(up, dtype))
-    r = r / jnp.linalg.norm(r)
-    u = jnp.cross(r, f)
+    f = vnormalize(unpack3(jnp.asarray(target, dtype) - pos))
+    r = vnormalize(vcross(f, unpack3(jnp.asarray(up, dtype))))
+    u = vcross(r, f)
     t = jnp.tan(jnp.deg2rad(jnp.asarray(fov_y_deg, dtype)) / 2)
     W, H = int(width), int(height)
-    x = (2.0 * (jnp.arange(W, dtype=dtype) + offset[0]) / W - 1.0) * t * (W / H)
-    y = (1.0 - 2.0 * (jnp.arange(H, dtype=dtype) + offset[1]) / H) * t
-    d = f + x[None, :, None] * r + y[:, None, None] * u
-    inv = 1.0 / jnp.linalg.norm(d, axis=-1, keepdims=True)
-    D = d * inv
-    ddx = (2.0 * t / H) * r  # (2 t W/H) / W
-    ddy = -(2.0 * t / H) * u
+    x = ((2.0 * (jnp.arange(W, dtype=dtype) + offset[0]) / W - 1.0) * t * (W / H))[None, :]
+    y = ((1.0 - 2.0 * (jnp.arange(H, dtype=dtype) + offset[1]) / H) * t)[:, None]
+    d = tuple(f[i] + x * r[i] + y * u[i] for i in range(3))
+    inv = jax.lax.rsqrt(vdot(d, d))
+    D = tuple(c * inv for c in d)
+    s = 2.0 * t / H  # dx/dj = 2 t (W/H) / W; dy/di = -2 t / H
 
     def transfer(dd):
-        return (dd - D * jnp.sum(D * dd, axis=-1, keepdims=True)) * inv
+        dD = vdot(D, dd)
+        return pack3(tuple((dd[i] - D[i] * dD) * inv for i in range(3)))
 
-    return jnp.broadcast_to(pos, D.shape), D, transfer(ddx), transfer(ddy)
+    Dp = pack3(D)
+    return (
+        jnp.broadcast_to(pos, Dp.shape),
+        Dp,
+        transfer(tuple(s * c for c in r)),
+        transfer(tuple(-s * c for c in u)),
+    )
 
 
 def uv_derivatives_on_triangle(
