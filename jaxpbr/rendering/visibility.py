@@ -1,0 +1,630 @@
+"""Ray/triangle-mesh visibility: closest hits, occlusion, ray continuation, shadow-ray offsets.
+
+`TriangleAccel.build(vertices, triangles, backend=...)` builds an acceleration structure once on the
+host; `intersect` gives per ray the triangle id, barycentrics and distance of the first hit,
+`occluded` answers shadow rays, `first_k_hits` lists the k first hits (for blended layers), and
+`offset_ray_origin` moves a surface point off its surface for secondary rays.
+
+Backends
+--------
+* ``"embree"`` (embreex, CPU): NumPy in, NumPy out. embree proposes the nearest triangle in float32;
+  the reported hit is then decided on the host by the same float32 watertight test as the JAX
+  backend (`bvh.watertight_test`), so both backends share one definition of a hit and of t. The
+  refinement also resolves near-ties exactly (see "Hit order"): when the proposal's hit lies within
+  `tol` of its edges, when its triangle has non-adjacent triangles within `tol` (coplanar copies,
+  interpenetrating parts; found at build time by a grid broad phase), or when the watertight test
+  rejects the proposal, the neighbouring triangles are tested as well. tol = 2^-19 (|o| + S) in
+  world units (S: the mesh's largest coordinate; embree's t was measured within 2e-7 of that scale).
+  embreex traces one ray at a time with the GIL released; rays are split over `os.cpu_count()`
+  threads. embreex has no tnear, so tnear > 0 moves the origin to o + tnear d (float32).
+* ``"jax"``: the NumPy-built BVH of `jaxpbr.rendering.bvh`, traversed in JAX (jit-compiled, any JAX
+  device): jnp in, jnp out. `intersect_bvh` & co. are the tracer-friendly functions underneath.
+* ``"auto"``: embree when embreex imports and JAX's default backend is the CPU, else jax.
+
+Both backends report the same triangle ids (rows of `triangles`); zero-area triangles are never hit.
+
+Precision
+---------
+Rays are traced in float32 (origins and directions are rounded to float32). t is the float32 value
+of the watertight test (relative error a few 1e-7 for origins not much farther than the mesh's
+size), the canonical key of the hit order. Barycentrics (b1, b2 of vertices 1 and 2, clamped into
+the triangle) are recomputed for the winning triangle by Moller-Trumbore from the caller's rays:
+in float64 on the embree path; on the JAX path in the dtype of the origins (float64 when they are
+float64 and jax_enable_x64 is on, else float32, where their error is about
+1e-7 |o - v0| / (edge length * |cos incidence|), i.e. 1e-5 and more for distant, grazing rays).
+
+Hit order and ray continuation (alpha MASK, BLEND)
+--------------------------------------------------
+The hits along a ray are ordered by (t, triangle id). `intersect(o, d, tnear=t_prev,
+after_prim=prim_prev)` returns the first hit after the previous one in that order, and never the
+previous triangle again. Chained, it visits every triangle on the ray exactly once, nearest first:
+two coplanar overlapping triangles (equal t) are both reported, the smaller id first; a ray passing
+exactly through a shared edge reports every triangle whose watertight test it passes there (one or
+both; renderers blending layers may want to merge consecutive hits with equal t on adjacent
+triangles). The origin and direction must stay bit-identical between the calls (do not move the
+origin to the previous hit). `first_k_hits` is this loop. With after_prim = -1 (the default) the
+result is the plain closest hit in [tnear, tfar].
+
+Shadow rays
+-----------
+`occluded(o, d, tnear, tfar)` is True when some triangle is hit with tnear <= t <= tfar. For shadow
+rays leaving a surface, start from `offset_ray_origin(p, n_geom)` (Waechter & Binder, Ray Tracing
+Gems ch. 6) with the geometric normal flipped to the side the ray leaves on, tnear = 0, and tfar a
+little short of the light (e.g. (1 - 1e-4) * distance).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxpbr.errors import InputError
+
+from . import bvh as _bvh
+from .bvh import (
+    BVH,
+    Hits,
+    build_bvh,
+    first_k_hits_bvh,
+    intersect_bvh,
+    occluded_bvh,
+    pad_rays,
+)
+
+__all__ = [
+    "BVH",
+    "Hits",
+    "TriangleAccel",
+    "build_bvh",
+    "embree_available",
+    "first_k_hits_bvh",
+    "first_k_hits_jax",
+    "intersect_bvh",
+    "intersect_jax",
+    "occluded_bvh",
+    "occluded_jax",
+    "offset_ray_origin",
+]
+
+F32 = np.float32
+#: Near-tie tolerance of the embree refinement, relative to |origin| + the mesh's largest coordinate.
+TIE_TOL = 2.0**-19
+_NONE = np.iinfo(np.int32).max
+
+intersect_jax = jax.jit(intersect_bvh, static_argnames=("lanes",))
+occluded_jax = jax.jit(occluded_bvh, static_argnames=("lanes",))
+first_k_hits_jax = jax.jit(first_k_hits_bvh, static_argnames=("k", "lanes"))
+intersect_jax.__doc__ = "jax.jit(intersect_bvh): " + (intersect_bvh.__doc__ or "")
+occluded_jax.__doc__ = "jax.jit(occluded_bvh): " + (occluded_bvh.__doc__ or "")
+first_k_hits_jax.__doc__ = "jax.jit(first_k_hits_bvh): " + (first_k_hits_bvh.__doc__ or "")
+
+
+def embree_available() -> bool:
+    """Whether embreex imports."""
+    try:
+        import embreex.mesh_construction
+        import embreex.rtcore_scene  # noqa: F401
+    except Exception:  # noqa: BLE001 (ImportError, or a broken binary wheel)
+        return False
+    return True
+
+
+# --------------------------------------------------------------------------------------------------
+# offset_ray_origin
+
+
+def offset_ray_origin(p, n):
+    """Move surface points p (..., 3) off their surface along the geometric normal n (..., 3), as
+    Waechter & Binder, "A Fast and Robust Method for Avoiding Self-Intersection" (Ray Tracing Gems,
+    ch. 6): each coordinate is nudged by int(256 n_i) float32 ulps (an offset that scales with the
+    coordinate's magnitude, so it covers the rounding error of a computed hit point anywhere in the
+    scene), and coordinates with |p_i| < 1/32 (where ulps get too small) by n_i / 65536 instead.
+    n must point to the side the new ray leaves on (flip it for transmission) and be unit length.
+    Float32 in and out; NumPy in -> NumPy out, jax in -> jax out (jit-friendly)."""
+    if isinstance(p, jax.Array) or isinstance(n, jax.Array):
+        xp, p, n = jnp, jnp.asarray(p, jnp.float32), jnp.asarray(n, jnp.float32)
+
+        def as_int(x):
+            return jax.lax.bitcast_convert_type(x, jnp.int32)
+
+        def as_float(i):
+            return jax.lax.bitcast_convert_type(i, jnp.float32)
+
+    else:
+        xp, p, n = np, np.asarray(p, F32), np.asarray(n, F32)
+
+        def as_int(x):
+            return np.ascontiguousarray(x).view(np.int32)
+
+        def as_float(i):
+            return np.ascontiguousarray(i).view(F32)
+
+    origin, float_scale, int_scale = 1.0 / 32.0, 1.0 / 65536.0, 256.0
+    of_i = (n * F32(int_scale)).astype(np.int32)  # truncates towards zero, like the C cast
+    p_i = as_float(as_int(p) + xp.where(p < 0, -of_i, of_i))
+    return xp.where(xp.abs(p) < F32(origin), p + F32(float_scale) * n, p_i).astype(F32)
+
+
+# --------------------------------------------------------------------------------------------------
+# the embree backend
+
+
+def _weld(v: np.ndarray) -> np.ndarray:
+    """Vertex ids merged by exact float32 position (so that seams split by index still count as
+    adjacent): (V,) int64."""
+    key = np.ascontiguousarray(v.astype(F32)).view(np.dtype((np.void, 12))).reshape(-1)
+    _, inv = np.unique(key, return_inverse=True)
+    return inv.reshape(-1)
+
+
+def _csr(keys: np.ndarray, values: np.ndarray, n: int):
+    """(offsets (n+1,), values sorted by key)."""
+    order = np.argsort(keys, kind="stable")
+    offs = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(keys, minlength=n), out=offs[1:])
+    return offs, values[order]
+
+
+def _gather_lists(offs, vals, which):
+    """Concatenated CSR lists of `which` (m,): (owner index into which (k,), values (k,))."""
+    starts, counts = offs[which], offs[which + 1] - offs[which]
+    owner = np.repeat(np.arange(which.size), counts)
+    first = np.cumsum(counts) - counts
+    pos = starts[owner] + (np.arange(owner.size) - first[owner])
+    return owner, vals[pos]
+
+
+def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 << 22) -> np.ndarray:
+    """Pairs (i, j), i < j, of triangles that share no (welded) vertex and come within about `tol`
+    of each other: coplanar overlapping copies, interpenetrating or touching parts. A superset:
+    boxes grown by tol overlap, each triangle reaches the other's plane within tol, and coplanar
+    pairs are not separated in their plane by more than 2 tol. Candidates come from a hierarchical
+    uniform grid: a triangle lives on the level whose cells (h0 2^level) are at least its size, and
+    is paired with the triangles of its own level or finer that share a cell with it."""
+    n = len(tri)
+    if n < 2:
+        return np.zeros((0, 2), np.int64)
+    lo = tri.min(1) - tol
+    hi = tri.max(1) + tol
+    ext = (hi - lo).max(1)
+    h0 = max(float(np.median(ext)), 1e-30)
+    level = np.maximum(0, np.ceil(np.log2(np.maximum(ext / h0, 1.0)))).astype(np.int64)
+    found = []
+
+    def keep_pairs(i, j):
+        ok = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), 1)
+        i, j = i[ok], j[ok]
+        ok = ~(welded[i][:, :, None] == welded[j][:, None, :]).any((1, 2)) & (i != j)
+        i, j = i[ok], j[ok]
+        ok = _reaches_plane(tri[i], tri[j], tol) & _reaches_plane(tri[j], tri[i], tol)
+        ok &= _not_separated_in_plane(tri[i], tri[j], tol)
+        if ok.any():
+            found.append(np.sort(np.stack([i[ok], j[ok]], 1), 1))
+
+    for lev in range(int(level.max()) + 1):
+        members = np.nonzero(level <= lev)[0]
+        own = level[members] == lev
+        if not own.any():
+            continue
+        h = h0 * 2.0**lev
+        ilo = np.floor(lo[members] / h).astype(np.int64)
+        ihi = np.floor(hi[members] / h).astype(np.int64)
+        span = ihi - ilo + 1
+        tri_of, local = _expand(span.prod(1))
+        sx, sy = span[tri_of, 0], span[tri_of, 1]
+        cell = np.stack([ilo[tri_of, 0] + local % sx, ilo[tri_of, 1] + (local // sx) % sy, ilo[tri_of, 2] + local // (sx * sy)], 1)
+        cell -= cell.min(0)
+        dims = cell.max(0) + 1
+        key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+        is_own = own[tri_of]
+        order = np.lexsort((~is_own, key))  # per cell: this level's triangles first
+        key, tri_of, is_own = key[order], tri_of[order], is_own[order]
+        run_end = np.r_[np.nonzero(np.diff(key))[0] + 1, key.size]
+        end_of = np.repeat(run_end, np.diff(np.r_[0, run_end]))
+        first = np.nonzero(is_own)[0]  # pair each own entry with the later entries of its cell
+        cnt = end_of[first] - first - 1
+        # in chunks of about `chunk` pairs
+        cum = np.cumsum(cnt)
+        start = 0
+        while start < first.size:
+            stop = int(np.searchsorted(cum, (cum[start - 1] if start else 0) + chunk, "right"))
+            stop = max(stop, start + 1)
+            f, c = first[start:stop], cnt[start:stop]
+            src, off = _expand(c)
+            a = f[src]
+            b = a + 1 + off
+            keep_pairs(members[tri_of[a]], members[tri_of[b]])
+            start = stop
+    if not found:
+        return np.zeros((0, 2), np.int64)
+    return np.unique(np.concatenate(found), axis=0)
+
+
+def _expand(counts):
+    """For counts (m,): (owner (sum,), index within the owner's run (sum,))."""
+    counts = np.asarray(counts, np.int64)
+    owner = np.repeat(np.arange(counts.size), counts)
+    first = np.cumsum(counts) - counts
+    return owner, np.arange(owner.size) - first[owner]
+
+
+def _unit_normals(t):
+    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    return nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def _reaches_plane(a, b, tol):
+    """b's vertices are not all on one side of a's plane by more than tol."""
+    nrm = _unit_normals(a)
+    s = np.einsum("nk,nvk->nv", nrm, b - a[:, :1])
+    return ~((s > tol).all(1) | (s < -tol).all(1))
+
+
+def _not_separated_in_plane(a, b, tol):
+    """Separating-axis test in a's plane with the six edge normals of the two projected
+    triangles (only decisive for coplanar pairs; True means 'maybe within tol')."""
+    nrm = _unit_normals(a)
+    drop = np.argmax(np.abs(nrm), 1)
+    keep = np.array([[1, 2], [0, 2], [0, 1]])[drop]  # (n, 2)
+    pa = np.take_along_axis(a, keep[:, None, :], 2)
+    pb = np.take_along_axis(b, keep[:, None, :], 2)
+    sep = np.zeros(len(a), bool)
+    for tri in (pa, pb):
+        for e in range(3):
+            d = tri[:, (e + 1) % 3] - tri[:, e]
+            ax = np.stack([-d[:, 1], d[:, 0]], 1)
+            ln = np.linalg.norm(ax, axis=1, keepdims=True)
+            ax = ax / np.where(ln > 0, ln, 1)
+            qa = np.einsum("nk,nvk->nv", ax, pa)
+            qb = np.einsum("nk,nvk->nv", ax, pb)
+            # the projection shrinks distances by at most the cosine of the normal with the
+            # dropped axis (>= 1/sqrt 3): scale tol up accordingly
+            sep |= (qa.min(1) > qb.max(1) + 2 * tol) | (qb.min(1) > qa.max(1) + 2 * tol)
+    return ~sep
+
+
+class _EmbreeBackend:
+    def __init__(self, vertices, triangles, threads=None):
+        from embreex.mesh_construction import TriangleMesh
+        from embreex.rtcore_scene import EmbreeScene
+
+        v, f = _bvh._as_mesh(vertices, triangles)
+        self.n_tri = len(f)
+        self.tri = v[f]  # (T, 3, 3) float32, caller's order
+        valid = _bvh.valid_triangles(self.tri)
+        self.ids = np.nonzero(valid)[0].astype(np.int32)  # embree primID -> triangle id
+        self.scene = EmbreeScene()
+        if self.ids.size:
+            TriangleMesh(self.scene, v, f[self.ids].astype(np.int32))
+        # commit now (embreex commits on the first query; queries then run concurrently)
+        self.scene.run(np.zeros((1, 3), F32), np.ones((1, 3), F32), dists=np.ones(1, F32))
+        used = self.tri[self.ids].reshape(-1, 3) if self.ids.size else np.zeros((1, 3), F32)
+        self.scale = float(np.abs(used).max()) if self.ids.size else 1.0
+        self.threads = int(threads or os.cpu_count() or 1)
+        self._pool = None
+        self._lock = threading.Lock()
+        t64 = self.tri.astype(np.float64)
+        # altitudes (distance of each vertex from the opposite edge) for the near-edge test
+        area2 = np.linalg.norm(np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0]), axis=1)
+        edge = np.stack([np.linalg.norm(t64[:, (i + 2) % 3] - t64[:, (i + 1) % 3], axis=1) for i in range(3)], 1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.alt = np.where(edge > 0, area2[:, None] / edge, 0.0)
+        # adjacency by welded vertex, and the near pairs that share no vertex
+        welded = _weld(self.tri.reshape(-1, 3)).reshape(-1, 3)
+        nv = int(welded.max()) + 1 if welded.size else 0
+        corner_tri = np.repeat(np.arange(self.n_tri), 3)
+        corner_ok = np.repeat(valid, 3)
+        self.welded = welded
+        self.v2t = _csr(welded.reshape(-1)[corner_ok], corner_tri[corner_ok], nv)
+        tol_build = TIE_TOL * 4.0 * self.scale
+        pairs = self.ids[_near_pairs(t64[self.ids], welded[self.ids], tol_build)]
+        both = np.concatenate([pairs, pairs[:, ::-1]]) if pairs.size else np.zeros((0, 2), np.int64)
+        self.near = _csr(both[:, 0], both[:, 1], self.n_tri)
+        self.flagged = np.diff(self.near[0]) > 0
+        self.n_near_pairs = len(pairs)
+
+    # -- embree calls ------------------------------------------------------------------------------
+    def _pool_get(self):
+        with self._lock:
+            if self._pool is None and self.threads > 1:
+                self._pool = ThreadPoolExecutor(self.threads)
+            return self._pool
+
+    def _run(self, o32, d32, tfar32, query):
+        n = len(o32)
+        if n == 0:
+            return np.zeros(0, np.int32), np.zeros(0, F32)
+        o32, d32 = np.ascontiguousarray(o32, F32), np.ascontiguousarray(d32, F32)
+        tf = np.ascontiguousarray(tfar32, F32).copy()  # embreex writes the hit distance into it
+
+        def one(a, b):
+            if query == "OCCLUDED":
+                return self.scene.run(o32[a:b], d32[a:b], dists=tf[a:b], query="OCCLUDED"), None
+            r = self.scene.run(o32[a:b], d32[a:b], dists=tf[a:b], output=True)
+            return r["primID"], r["tfar"]
+
+        pool = self._pool_get()
+        if pool is None or n < 4096:
+            parts = [one(0, n)]
+        else:
+            m = self.threads * 4
+            cuts = np.linspace(0, n, m + 1).astype(int)
+            parts = list(pool.map(lambda ab: one(*ab), itertools.pairwise(cuts)))
+        prim = np.concatenate([p[0] for p in parts])
+        if query == "OCCLUDED":
+            return prim == 0, None
+        return prim, np.concatenate([p[1] for p in parts])
+
+    # -- the exact refinement ------------------------------------------------------------------------
+    def _test(self, o32, d32, setup, ray, cand):
+        """Watertight test of (ray[i], cand[i]) pairs: (hit, t, b0, b1, b2) float32 (bary for the
+        near-edge test only)."""
+        s = tuple(x[ray] for x in setup)
+        tri = self.tri[cand]
+        kx, ky, kz, sx, sy, sz, ok = s
+        o = o32[ray]
+
+        def rel(p):
+            q0, q1, q2 = p[:, 0] - o[:, 0], p[:, 1] - o[:, 1], p[:, 2] - o[:, 2]
+            return tuple(_bvh._pick(q0, q1, q2, k, np) for k in (kx, ky, kz))
+
+        with np.errstate(all="ignore"):
+            hit, t, u, v, w, det = _bvh._woop_core(rel(tri[:, 0]), rel(tri[:, 1]), rel(tri[:, 2]), sx, sy, sz, np)
+            return hit & ok, t, u / det, v / det, w / det
+
+    def _near_edge(self, cand, b0, b1, b2, tol_abs):
+        dist = np.stack([b0, b1, b2], 1) * self.alt[cand]
+        return (dist <= tol_abs[:, None]).any(1)
+
+    def _adjacent(self, tris):
+        """Triangles sharing a welded vertex with each of `tris` (m,): (owner, candidate)."""
+        offs, vals = self.v2t
+        corners = self.welded[tris].reshape(-1)
+        owner3 = np.repeat(np.arange(tris.size), 3)
+        own, cand = _gather_lists(offs, vals, corners)
+        return owner3[own], cand
+
+    def _flagged_near(self, tris):
+        offs, vals = self.near
+        return _gather_lists(offs, vals, tris)
+
+    @staticmethod
+    def _update(best_t, best_p, ray, t, p, ok):
+        """Lexicographic (t, id) minimum of the valid candidates into best (in place)."""
+        ray, t, p = ray[ok], t[ok], p[ok]
+        if ray.size == 0:
+            return
+        order = np.lexsort((p, t, ray))
+        ray, t, p = ray[order], t[order], p[order]
+        first = np.r_[True, ray[1:] != ray[:-1]]
+        ray, t, p = ray[first], t[first], p[first]
+        better = (t < best_t[ray]) | ((t == best_t[ray]) & (p < best_p[ray]))
+        best_t[ray[better]] = t[better]
+        best_p[ray[better]] = p[better]
+
+    def closest(self, o64, d64, tnear, tfar, after, max_rounds=64):
+        """Canonical closest hit (see the module docstring): (t float32, prim int32 or _NONE)."""
+        n = len(o64)
+        o32, d32 = o64.astype(F32), d64.astype(F32)
+        setup = _bvh.ray_setup(d32, np)
+        dn = np.linalg.norm(d32.astype(np.float64), axis=1)
+        dn = np.where(dn > 0, dn, 1.0)
+        tol_abs = TIE_TOL * (self.scale + np.linalg.norm(o32.astype(np.float64), axis=1))
+        tol_t = tol_abs / dn
+        tn32, tf32 = tnear.astype(F32), tfar.astype(F32)
+        best_t = np.full(n, np.inf, F32)
+        best_p = np.full(n, _NONE, np.int64)
+
+        def consider(ray, cand):
+            hit, t, *_ = self._test(o32, d32, setup, ray, cand)
+            ok = hit & (t >= tn32[ray]) & (t <= tf32[ray]) & (cand != after[ray])
+            ok &= (t > tn32[ray]) | (cand > after[ray])
+            self._update(best_t, best_p, ray, t, cand, ok)
+
+        s = tnear.astype(np.float64).copy()
+        cont = np.nonzero(after >= 0)[0]
+        if cont.size:  # the hits tied with the previous one are its neighbours: test them directly
+            prev = after[cont]
+            consider(cont, prev)  # (rejected by cand != after; gives nothing, kept for clarity)
+            own, cand = self._flagged_near(prev)
+            consider(cont[own], cand)
+            hit, t, b0, b1, b2 = self._test(o32, d32, setup, cont, prev)
+            edge = self._near_edge(prev, b0, b1, b2, tol_abs[cont]) | ~hit
+            e = cont[edge]
+            if e.size:
+                own, cand = self._adjacent(after[e])
+                consider(e[own], cand)
+            s[cont] += tol_t[cont]
+        active = np.arange(n)
+        for _ in range(max_rounds):
+            if active.size == 0:
+                break
+            sa = s[active]
+            shift = np.where(sa != 0, sa, 0.0)
+            org = (o64[active] + shift[:, None] * d64[active]).astype(F32)
+            span = (tfar[active].astype(np.float64) - shift).astype(F32)
+            span = np.where(np.isnan(span), F32(-1), span)
+            pid, te = self._run(org, d32[active], np.maximum(span, F32(0)), "INTERSECT")
+            hitm = (pid >= 0) & (span >= 0)
+            ray = active[hitm]
+            prop = self.ids[pid[hitm]] if ray.size else np.zeros(0, np.int64)
+            t_ref = sa[hitm] + te[hitm].astype(np.float64)
+            hit, t, b0, b1, b2 = self._test(o32, d32, setup, ray, prop)
+            ok = hit & (t >= tn32[ray]) & (t <= tf32[ray]) & (prop != after[ray])
+            ok &= (t > tn32[ray]) | (prop > after[ray])
+            self._update(best_t, best_p, ray, t, prop, ok)
+            refine = ~ok | self.flagged[prop] | self._near_edge(prop, b0, b1, b2, tol_abs[ray])
+            r = np.nonzero(refine)[0]
+            if r.size:
+                own, cand = self._flagged_near(prop[r])
+                consider(ray[r[own]], cand)
+                own, cand = self._adjacent(prop[r])
+                consider(ray[r[own]], cand)
+            done = best_t[ray].astype(np.float64) <= t_ref + tol_t[ray]
+            again = ray[~done]
+            s[again] = t_ref[~done] + tol_t[again]
+            active = again
+        return best_t, best_p
+
+    def barycentrics(self, o64, d64, prim):
+        hit = prim != _NONE
+        b1 = np.zeros(len(prim))
+        b2 = np.zeros(len(prim))
+        if hit.any():
+            tri = self.tri[prim[hit]].astype(np.float64)
+            b1[hit], b2[hit] = _bvh.barycentrics(o64[hit], d64[hit], tri[:, 0], tri[:, 1], tri[:, 2], np)
+        return b1, b2
+
+    def intersect(self, o64, d64, tnear, tfar, after):
+        t, p = self.closest(o64, d64, tnear, tfar, after)
+        b1, b2 = self.barycentrics(o64, d64, p)
+        miss = p == _NONE
+        return Hits(np.where(miss, np.inf, t).astype(F32), np.where(miss, -1, p).astype(np.int32), b1, b2)
+
+    def occluded(self, o64, d64, tnear, tfar):
+        shift = tnear.astype(np.float64)
+        org = (o64 + shift[:, None] * d64).astype(F32)
+        span = (tfar.astype(np.float64) - shift).astype(F32)
+        ok = span >= 0
+        occ, _ = self._run(org, d64.astype(F32), np.where(ok, span, F32(0)), "OCCLUDED")
+        return occ & ok
+
+
+# --------------------------------------------------------------------------------------------------
+# the public class
+
+
+def _host_rays(origins, directions, tnear, tfar, after):
+    o = np.asarray(origins, np.float64)
+    d = np.asarray(directions, np.float64)
+    if o.shape[-1:] != (3,) or d.shape[-1:] != (3,):
+        raise InputError(f"origins and directions must be (..., 3), got {o.shape} and {d.shape}")
+    shape = np.broadcast_shapes(o.shape, d.shape)[:-1]
+    n = int(np.prod(shape, dtype=np.int64))
+    o = np.broadcast_to(o, shape + (3,)).reshape(n, 3)
+    d = np.broadcast_to(d, shape + (3,)).reshape(n, 3)
+    tn = np.broadcast_to(np.asarray(tnear, np.float64), shape).reshape(n)
+    tf = np.broadcast_to(np.asarray(tfar, np.float64), shape).reshape(n)
+    af = np.broadcast_to(np.asarray(after, np.int64), shape).reshape(n)
+    return shape, o, d, tn, tf, af
+
+
+class TriangleAccel:
+    """Visibility queries against one triangle mesh (see the module docstring).
+
+    Build with `TriangleAccel.build(vertices, triangles, backend="auto" | "embree" | "jax")`.
+    Attributes: `backend` ("embree" or "jax"), `num_triangles`, and for the jax backend `bvh` (the
+    device-resident `BVH` to pass to the jitted `intersect_jax` / `occluded_jax` / `first_k_hits_jax`
+    inside a renderer's own jit)."""
+
+    def __init__(self, backend: str, impl, num_triangles: int, lanes: int = _bvh.DEFAULT_LANES):
+        self.backend = backend
+        self._impl = impl
+        self.num_triangles = num_triangles
+        self.lanes = lanes
+
+    @classmethod
+    def build(cls, vertices, triangles, *, backend: str = "auto", leaf_size: int = 4, lanes: int = _bvh.DEFAULT_LANES, threads: int | None = None) -> TriangleAccel:
+        """Build on the host. vertices (V, 3) float, triangles (T, 3) int. backend: "auto" (embree
+        if importable and JAX runs on the CPU, else jax), "embree" or "jax". leaf_size and lanes
+        tune the jax backend (triangles per BVH leaf; rays in flight), threads the embree one."""
+        if backend not in ("auto", "embree", "jax"):
+            raise InputError(f"backend must be 'auto', 'embree' or 'jax', got {backend!r}")
+        if backend == "auto":
+            backend = "embree" if (jax.default_backend() == "cpu" and embree_available()) else "jax"
+        n_tri = int(np.shape(triangles)[0]) if np.ndim(triangles) == 2 else 0
+        if backend == "embree":
+            if not embree_available():
+                raise InputError("backend='embree' needs the embreex package (pip install embreex)")
+            return cls("embree", _EmbreeBackend(vertices, triangles, threads), n_tri, lanes)
+        bvh = build_bvh(vertices, triangles, leaf_size=leaf_size).to_device()
+        return cls("jax", bvh, n_tri, lanes)
+
+    @property
+    def bvh(self) -> BVH:
+        if self.backend != "jax":
+            raise AttributeError("only the jax backend has a BVH")
+        return self._impl
+
+    # The jax backend pads the ray count to a power-of-two bucket (at least 1024) so that the
+    # traversal compiles once per bucket; the padding rays have a zero direction and end at once.
+    def _jax_call(self, fn, shape, arrays, **kw):
+        n = int(np.prod(shape, dtype=np.int64))
+        m = pad_rays(n)
+        flat = {}
+        for name, (a, tail) in arrays.items():
+            a = jnp.broadcast_to(jnp.asarray(a), shape + tail).reshape((n,) + tail)
+            flat[name] = jnp.pad(a, [(0, m - n)] + [(0, 0)] * len(tail))
+        out = fn(self._impl, **flat, lanes=min(self.lanes, m), **kw)
+        return jax.tree.map(lambda x: x[:n].reshape(shape + x.shape[1:]), out)
+
+    @staticmethod
+    def _shape(origins, directions):
+        so, sd = np.shape(origins), np.shape(directions)
+        if so[-1:] != (3,) or sd[-1:] != (3,):
+            raise InputError(f"origins and directions must be (..., 3), got {so} and {sd}")
+        return tuple(np.broadcast_shapes(so, sd)[:-1])
+
+    def intersect(self, origins, directions, tnear=0.0, tfar=np.inf, after_prim=-1) -> Hits:
+        """Closest hits: Hits(t, prim, b1, b2) of shape (...) for rays (..., 3). A triangle hit
+        (t, id) counts when tnear <= t <= tfar, id != after_prim and (t, id) > (tnear, after_prim);
+        the least (t, id) wins. after_prim = -1: the plain closest hit in [tnear, tfar]; the
+        previous hit's (t, prim): the next hit along the same ray (continuation)."""
+        if self.backend == "embree":
+            shape, o, d, tn, tf, af = _host_rays(origins, directions, tnear, tfar, after_prim)
+            h = self._impl.intersect(o, d, tn, tf, af)
+            return Hits(*(x.reshape(shape) for x in h))
+        shape = self._shape(origins, directions)
+        o = jnp.asarray(origins)
+        dt = o.dtype if jnp.issubdtype(o.dtype, jnp.floating) else jnp.float32
+        return self._jax_call(
+            intersect_jax,
+            shape,
+            {"origins": (jnp.asarray(origins, dt), (3,)), "directions": (jnp.asarray(directions, dt), (3,)), "tnear": (tnear, ()), "tfar": (tfar, ()), "after_prim": (after_prim, ())},
+        )
+
+    def occluded(self, origins, directions, tnear=0.0, tfar=np.inf):
+        """Shadow rays: bool (...), True when a triangle is hit with tnear <= t <= tfar.
+        (embree: embree's own float32 any-hit test, which can differ from `intersect` for hits
+        within float32 rounding of tnear/tfar or exactly on an edge.)"""
+        if self.backend == "embree":
+            shape, o, d, tn, tf, _ = _host_rays(origins, directions, tnear, tfar, -1)
+            return self._impl.occluded(o, d, tn, tf).reshape(shape)
+        shape = self._shape(origins, directions)
+        return self._jax_call(occluded_jax, shape, {"origins": (origins, (3,)), "directions": (directions, (3,)), "tnear": (tnear, ()), "tfar": (tfar, ())})
+
+    def first_k_hits(self, origins, directions, k: int, tnear=0.0, tfar=np.inf) -> Hits:
+        """The k first hits per ray in (t, id) order: Hits of shape (..., k); missing layers have
+        t = inf, prim = -1, b1 = b2 = 0. Every triangle on the ray is reported once."""
+        k = int(k)
+        if self.backend == "embree":
+            shape, o, d, tn, tf, af = _host_rays(origins, directions, tnear, tfar, -1)
+            n = len(o)
+            out = [np.full((n, k), np.inf, F32), np.full((n, k), -1, np.int32), np.zeros((n, k)), np.zeros((n, k))]
+            live = np.arange(n)
+            t_prev, p_prev = tn.copy(), af.copy()
+            for i in range(k):
+                if live.size == 0:
+                    break
+                h = self._impl.intersect(o[live], d[live], t_prev[live], tf[live], p_prev[live])
+                for j, x in enumerate(h):
+                    out[j][live, i] = x
+                t_prev[live] = h.t
+                p_prev[live] = h.prim
+                live = live[h.prim >= 0]
+            return Hits(*(x.reshape(shape + (k,)) for x in out))
+        shape = self._shape(origins, directions)
+        o = jnp.asarray(origins)
+        dt = o.dtype if jnp.issubdtype(o.dtype, jnp.floating) else jnp.float32
+        return self._jax_call(
+            first_k_hits_jax,
+            shape,
+            {"origins": (jnp.asarray(origins, dt), (3,)), "directions": (jnp.asarray(directions, dt), (3,)), "tnear": (tnear, ()), "tfar": (tfar, ())},
+            k=k,
+        )
