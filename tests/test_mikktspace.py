@@ -6,7 +6,7 @@ npm package `mikktspace` (donmccurdy/mikktspace-wasm, the generator glTF-Transfo
 texcoords as given and returns its own w; glTF-Transform negates w before storing TANGENT (glTF v
 points down the image), which is what `mikktspace_tangents` returns by default. The comparison runs
 when `node` and the package are there ($JAXPBR_MIKKTSPACE_JS, default
-/work/nodetools/node_modules/mikktspace) and is skipped otherwise; the property tests need neither.
+the checkout's node_modules/mikktspace, as .ci/run installs it) and is skipped otherwise; the property tests need neither.
 
 Measured agreement (the reference's tangent projected onto the tangent plane, the angle to ours;
 w compared after the glTF negation), on this suite's meshes:
@@ -173,7 +173,7 @@ DEFAULT_BOUND = (1e-4, 0)
 # ---------------------------------------------------------------------------------------------
 # the reference, through node
 # ---------------------------------------------------------------------------------------------
-_PACKAGE = Path(os.environ.get("JAXPBR_MIKKTSPACE_JS", "/work/nodetools/node_modules/mikktspace"))
+_PACKAGE = Path(os.environ.get("JAXPBR_MIKKTSPACE_JS", Path(__file__).resolve().parent.parent / "node_modules" / "mikktspace"))
 _NODE = shutil.which("node")
 _HAVE_REFERENCE = _NODE is not None and (_PACKAGE / "package.json").is_file()
 needs_reference = pytest.mark.skipif(
