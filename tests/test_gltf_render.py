@@ -207,17 +207,21 @@ def test_mesh_and_spheres_in_one_scene_occlude_each_other():
     assert edge[0] > edge[2]  # the quad hides the sphere behind it
 
 
-def test_scene_from_asset_reports_what_it_leaves_out(tmp_path):
+def test_asset_alpha_modes_reach_the_meshes(tmp_path):
+    """alphaMode, alphaCutoff and baseColorFactor's alpha of the file end up on the Mesh."""
     w = Writer()
-    m = w.material(alphaMode="BLEND", pbrMetallicRoughness={"baseColorFactor": [1, 1, 1, 0.5]})
     pos, tri, uv, nrm = _quad()
-    w.node(mesh=w.mesh(pos, tri, normals=nrm, material=m))
-    path = w.save(tmp_path / "blend.glb")
+    m1 = w.material(alphaMode="BLEND", pbrMetallicRoughness={"baseColorFactor": [1, 1, 1, 0.5]})
+    m2 = w.material(alphaMode="MASK", alphaCutoff=0.25, pbrMetallicRoughness={"baseColorFactor": [1, 1, 1, 0.8]})
+    w.node(mesh=w.mesh(pos, tri, normals=nrm, material=m1))
+    w.node(mesh=w.mesh(pos + np.float32([0, 1, 0]), tri, normals=nrm, material=m2))
+    path = w.save(tmp_path / "alpha.glb")
     from jaxpbr.io.gltf import read_gltf
 
-    with pytest.warns(UserWarning, match="BLEND"):
-        gs = scene_from_asset(read_gltf(path), width=8, height=8)
-    assert any("BLEND" in n for n in gs.notes)
+    gs = scene_from_asset(read_gltf(path), width=8, height=8)
+    got = sorted((m.alpha_mode, m.alpha_cutoff, float(m.alpha)) for m in gs.scene.objects)
+    assert got == [("BLEND", 0.5, 0.5), ("MASK", 0.25, pytest.approx(0.8))]
+    assert R.plan(gs.scene).blend_layers > 1
 
 
 # ------------------------------------------------------------------------------------------
@@ -318,3 +322,83 @@ def test_extracted_sun_casts_shadows():
     darker = (img.sum(-1) < 0.8 * lit.sum(-1))
     assert darker.sum() > 10  # the sun's shadow
     assert (img.sum(-1) <= lit.sum(-1) * (1 + 1e-5) + 1e-7).all()  # shadows only remove light
+
+
+# ------------------------------------------------------------------------------------------
+# Alpha: MASK cut-outs and BLEND layers
+# ------------------------------------------------------------------------------------------
+
+
+def _wall(z, size=3.0, **kw):
+    """A quad standing at depth z, facing +Z (towards the camera), uv (0,0) at its top-left."""
+    s = size / 2
+    pos = np.array([[-s, s, z], [s, s, z], [s, -s, z], [-s, -s, z]], np.float32)
+    tri = np.array([[0, 2, 1], [0, 3, 2]], np.int32)
+    uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (4, 1))
+    return Mesh(positions=pos, triangles=tri, normals=nrm, texcoords=uv, **kw)
+
+
+_FRONT = jp.Camera(position=(0, 0, 5), target=(0, 0, 0), fov_y_deg=30.0, width=32, height=32)
+_LIGHT = jp.DirectionalLight(direction=(0.2, -0.3, -1.0), intensity=3.0)
+_BACK = jp.Sphere(center=(0, 0, -1.5), radius=1.2, material=jp.Material(base_color=(0.2, 0.3, 0.9), metallic=0.0, roughness=0.5))
+_GREEN = jp.Material(base_color=(0.2, 0.8, 0.2), metallic=0.0, roughness=0.5)
+
+
+def _draw(*objs, **kw):
+    return np.asarray(jp.render(jp.Scene(camera=_FRONT, objects=list(objs), lights=[_LIGHT], background=(0.05, 0.05, 0.1)), **kw))
+
+
+def test_mask_cuts_out_by_the_alpha_cutoff():
+    """MASK: alpha below the cutoff is not there (the sphere behind shows and nothing is shadowed),
+    at or above it the surface is opaque; a texture's A cuts out the texels it covers."""
+    behind = _draw(_BACK)
+    opaque = _draw(_wall(0.5, material=_GREEN), _BACK)
+    np.testing.assert_allclose(_draw(_wall(0.5, material=_GREEN, alpha_mode="MASK", alpha=0.3), _BACK), behind, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(_draw(_wall(0.5, material=_GREEN, alpha_mode="MASK", alpha=0.7), _BACK), opaque, rtol=1e-6, atol=1e-7)
+    # Left half of the texture transparent, right half opaque (A = 0 / 1), sampled at level 0.
+    rgba = np.ones((8, 8, 4), np.float32)
+    rgba[:, :4, 3] = 0.0
+    tm = jp.TexturedMaterial(factors=_GREEN, base_color_texture=rgba)
+    img = _draw(_wall(0.5, material=tm, alpha_mode="MASK"), _BACK)
+    x = np.arange(32)
+    cols_left, cols_right = x < 12, x > 19  # the wall spans the image; its middle column is 16
+    np.testing.assert_allclose(img[:, cols_left], behind[:, cols_left], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(img[:, cols_right], opaque[:, cols_right], rtol=1e-6, atol=1e-7)
+
+
+def test_blend_composites_layers_front_to_back():
+    """BLEND: C = a1 C1 + (1 - a1) a2 C2 + (1 - a1)(1 - a2) C_behind, each C the surface drawn
+    opaque on its own (shadows off: blended surfaces cast none, opaque stand-ins would)."""
+    a1, a2 = 0.4, 0.7
+    red = jp.Material(base_color=(0.9, 0.2, 0.1), metallic=0.0, roughness=0.5)
+    w1 = lambda **k: _wall(0.8, size=2.0, material=red, **k)  # noqa: E731
+    w2 = lambda **k: _wall(0.2, size=3.0, material=_GREEN, **k)  # noqa: E731
+    c1 = _draw(w1(), _BACK, shadows=False)
+    c2 = _draw(w2(), _BACK, shadows=False)
+    cb = _draw(_BACK, shadows=False)
+    got = _draw(w1(alpha_mode="BLEND", alpha=a1), w2(alpha_mode="BLEND", alpha=a2), _BACK, shadows=False)
+    # Pixels covered by both walls (the inner one spans the centre), by the outer one only, by none.
+    both = (c1 != cb).any(-1) & (c2 != cb).any(-1)
+    only2 = ~(c1 != cb).any(-1) & (c2 != cb).any(-1)
+    assert both.sum() > 100 and only2.sum() > 50
+    want = a1 * c1 + (1 - a1) * a2 * c2 + (1 - a1) * (1 - a2) * cb
+    np.testing.assert_allclose(got[both], want[both], rtol=1e-5, atol=1e-6)
+    want2 = a2 * c2 + (1 - a2) * cb
+    np.testing.assert_allclose(got[only2], want2[only2], rtol=1e-5, atol=1e-6)
+
+
+def test_cut_out_and_blended_surfaces_cast_no_shadows():
+    """A MASK wall below its cutoff and a BLEND wall between the light and the sphere leave the
+    sphere lit as without them; an opaque wall shadows it."""
+    light = jp.DirectionalLight(direction=(0.0, 0.0, -1.0), intensity=3.0)
+    scene = lambda *o: np.asarray(jp.render(jp.Scene(camera=jp.Camera(position=(3, 0, 4), target=(0, 0, -1.5), fov_y_deg=40.0, width=32, height=32), objects=list(o), lights=[light])))  # noqa: E731
+    alone = scene(_BACK, _wall(0.5, size=0.001, material=_GREEN))  # a speck: keeps the scene a mesh scene
+    for w in (_wall(3.0, material=_GREEN, alpha_mode="MASK", alpha=0.2), _wall(3.0, material=_GREEN, alpha_mode="BLEND", alpha=0.5)):
+        img = scene(_BACK, w)
+        sphere_px = (alone != 0.0).any(-1) & (img != 0.0).any(-1)
+        assert sphere_px.sum() > 50
+    opaque = scene(_BACK, _wall(3.0, material=_GREEN))
+    masked = scene(_BACK, _wall(3.0, material=_GREEN, alpha_mode="MASK", alpha=0.2))
+    assert opaque.sum() < 0.5 * masked.sum()
+    np.testing.assert_allclose(masked, alone, rtol=1e-6, atol=1e-7)

@@ -11,7 +11,8 @@ modes), the texture-coordinate set and the KHR_texture_transform of the slot; co
 (base colour, emissive, sheen colour, specular colour) are decoded from sRGB before filtering,
 data textures are filtered as stored, and the occlusion texture carries its strength
 (1 + strength (R - 1)). What the scene does not reproduce is listed in `GltfScene.notes` and warned
-once (alpha modes MASK and BLEND are drawn opaque; orthographic cameras are framed instead).
+once (orthographic cameras are framed instead). alphaMode, alphaCutoff and baseColorFactor's alpha
+go to the `Mesh` (MASK cut-outs in visibility and shadows, BLEND layers composited).
 """
 
 from __future__ import annotations
@@ -104,8 +105,6 @@ def material_from_gltf(asset: GltfAsset, mat: GltfMaterial, notes: set):
     """The jaxpbr material of a glTF material: `Material(**factors)`, or a `TexturedMaterial`
     holding it and the textures (linear, decoded)."""
     factors = Material(**mat.factors)
-    if mat.alpha_mode != "OPAQUE":
-        notes.add(f"alphaMode {mat.alpha_mode} is drawn opaque")
     if not mat.textures:
         return factors
     tex = {}
@@ -151,6 +150,9 @@ def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
             colors=_concat(prims, "color_0", 4, (1.0, 1.0, 1.0, 1.0)),
             material=material_from_gltf(asset, gm, notes),
             double_sided=gm.double_sided,
+            alpha_mode=gm.alpha_mode,
+            alpha_cutoff=gm.alpha_cutoff,
+            alpha=float(gm.base_color_alpha),
         ))
     return meshes
 

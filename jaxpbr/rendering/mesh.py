@@ -18,6 +18,7 @@ sizes recompile the geometry stage only (the shading stages see per-pixel arrays
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import threading
 from collections import OrderedDict
@@ -27,12 +28,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._numerics import is_concrete, safe_div, small_sq, vcross, vdot, vnormalize
+from .._numerics import as_float, is_concrete, safe_div, small_sq, vcross, vdot, vnormalize
 from .._pytree import Pytree, leaf, static, subtree
 from ..shading.material import Material
 from .textured import TexturedMaterial
 
-__all__ = ["Mesh", "mesh_bounds"]
+__all__ = ["ALPHA_MODES", "MAX_BLEND_LAYERS", "Mesh", "mesh_bounds"]
+
+#: glTF alphaMode values.
+ALPHA_MODES = ("OPAQUE", "MASK", "BLEND")
+#: Most surfaces composited per pixel in a scene with BLEND meshes (the nearest first; the rest of
+#: the ray behind the last one is not seen). Each layer costs one more shading of the image.
+MAX_BLEND_LAYERS = 4
 
 
 def _int_array(name: str, x, shape_tail: tuple[int, ...]) -> Any:
@@ -73,6 +80,13 @@ class Mesh(Pytree):
     material: Material or TexturedMaterial.
     double_sided: back faces are seen (with reversed normals, as glTF specifies); otherwise a
         ray passes through the back of a triangle (static).
+    alpha_mode: glTF alphaMode (static): "OPAQUE"; "MASK": rays pass through the points whose
+        alpha is below `alpha_cutoff` (they are neither seen nor cast shadows); "BLEND": the
+        surface is composited over what lies behind it with its alpha (up to `MAX_BLEND_LAYERS`
+        layers per pixel, nearest first; blended surfaces cast no shadows).
+    alpha_cutoff: the MASK threshold (static, glTF default 0.5).
+    alpha: baseColorFactor's alpha; the alpha of a point is alpha x the base colour texture's A
+        (when it has 4 channels) x COLOR_0's A.
 
     A glTF asset becomes one Mesh per material (`jaxpbr.load_gltf`); a scene may mix meshes with
     spheres and planes.
@@ -87,6 +101,9 @@ class Mesh(Pytree):
     colors: Any = leaf(None, rank=2)
     material: Any = subtree(default_factory=Material)
     double_sided: bool = static(False)
+    alpha_mode: str = static("OPAQUE")
+    alpha_cutoff: float = static(0.5)
+    alpha: Any = leaf(1.0)
 
     def _validate(self) -> None:
         if not isinstance(self.material, (Material, TexturedMaterial)):
@@ -112,6 +129,15 @@ class Mesh(Pytree):
             colors=_float_rows("Mesh.colors", self.colors, 4, V),
             double_sided=bool(self.double_sided),
         )
+        if self.alpha_mode not in ALPHA_MODES:
+            raise ValueError(f"Mesh.alpha_mode must be one of {ALPHA_MODES} (glTF alphaMode), got {self.alpha_mode!r}")
+        cutoff = float(self.alpha_cutoff)
+        if not 0.0 <= cutoff <= 1.0:
+            raise ValueError(f"Mesh.alpha_cutoff must be in [0, 1], got {cutoff}")
+        alpha = as_float(self.alpha)
+        if is_concrete(alpha) and not (np.ndim(alpha) == 0 and 0.0 <= float(alpha) <= 1.0):
+            raise ValueError(f"Mesh.alpha must be a number in [0, 1] (baseColorFactor's alpha), got {alpha}")
+        self._set(alpha_cutoff=cutoff, alpha=alpha)
 
     @property
     def num_triangles(self) -> int:
@@ -171,10 +197,12 @@ ACCELS = _Accels()
 MAX_CULLED_HITS = 16
 
 
-def _host_cast(vertices, triangles, cull_back, o, d):
-    """The primitive (int32, -1 = miss) each ray o + t d sees first on the host: front faces, and
-    back faces of double-sided meshes; a ray continues through the back of a single-sided triangle
-    (`TriangleAccel.intersect` continuation: the next hit after (t, prim) in the engine's order)."""
+def _host_cast(vertices, triangles, cull_back, o, d, alpha=None, layers: int = 1):
+    """The primitives (int32, -1 = miss) each ray o + t d sees on the host, nearest first, (..., layers)
+    (or (...) for one layer): front faces, and back faces of double-sided meshes; a ray continues
+    through the back of a single-sided triangle and through MASK cut-outs (alpha < cutoff), and past
+    BLEND surfaces to the next layer (`TriangleAccel.intersect` continuation: the next hit after
+    (t, prim) in the engine's order)."""
     vertices = np.ascontiguousarray(vertices, np.float32)
     triangles = np.ascontiguousarray(triangles, np.int32)
     accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax")
@@ -183,33 +211,50 @@ def _host_cast(vertices, triangles, cull_back, o, d):
     o = np.asarray(o, np.float32).reshape(-1, 3)
     d = np.asarray(d, np.float32).reshape(-1, 3)
     n = o.shape[0]
-    prim = np.full(n, -1, np.int32)
+    prim = np.full((n, layers), -1, np.int32)
+    count = np.zeros(n, np.int64)
     todo = np.arange(n)
     tnear = np.zeros(n, np.float32)
-    ignore = np.full(n, -1, np.int32)
+    after = np.full(n, -1, np.int32)
     face_normal = None
-    for _ in range(MAX_CULLED_HITS + 1):
+    for _ in range(MAX_CULLED_HITS + layers):
         if todo.size == 0:
             break
-        hits = accel.intersect(o[todo], d[todo], tnear=tnear[todo], after_prim=ignore[todo])
+        hits = accel.intersect(o[todo], d[todo], tnear=tnear[todo], after_prim=after[todo])
         p = np.asarray(hits.prim, np.int32)
         t = np.asarray(hits.t, np.float32)
         hit = p >= 0
-        back = np.zeros_like(hit)
+        skip = np.zeros_like(hit)
         if hit.any() and cull_back.any():
             if face_normal is None:
                 e1 = vertices[triangles[:, 1]] - vertices[triangles[:, 0]]
                 e2 = vertices[triangles[:, 2]] - vertices[triangles[:, 0]]
                 face_normal = np.cross(e1, e2)
             ph = p[hit]
-            back[hit] = cull_back[ph] & (np.einsum("ij,ij->i", face_normal[ph], d[todo[hit]]) > 0)
-        done = ~back
-        prim[todo[done]] = np.where(hit[done], p[done], -1)
-        again = todo[back]
-        tnear[again] = t[back]
-        ignore[again] = p[back]
-        todo = again
-    return prim.reshape(shape)
+            skip[hit] = cull_back[ph] & (np.einsum("ij,ij->i", face_normal[ph], d[todo[hit]]) > 0)
+        blend = np.zeros_like(hit)
+        if alpha is not None and hit.any():
+            tri_mesh = np.asarray(alpha["tri_mesh"])
+            mesh = tri_mesh[np.maximum(p, 0)]
+            mode, a = host_alpha(alpha, triangles, p, np.asarray(hits.b1), np.asarray(hits.b2))
+            skip |= hit & (mode == 1) & (a < np.asarray(alpha["cutoff"])[mesh])
+            # A ray through the edge shared by two triangles of one blended surface meets both at
+            # the same distance: one layer, not two.
+            prev = after[todo]
+            same = (prev >= 0) & (tri_mesh[np.maximum(prev, 0)] == mesh) & (np.abs(t - tnear[todo]) <= 1e-6 * np.maximum(1.0, np.abs(t)))
+            skip |= hit & (mode == 2) & same & (count[todo] > 0)
+            blend = hit & (mode == 2) & ~skip
+        keep = ~skip
+        rows = todo[keep]
+        prim[rows, count[rows]] = np.where(hit[keep], p[keep], -1)
+        count[rows] += 1
+        # Go on past skipped surfaces, and past blended ones while layers are left.
+        again = skip | (blend & (count[todo] < layers))
+        nxt = todo[again]
+        tnear[nxt] = t[again]
+        after[nxt] = p[again]
+        todo = nxt
+    return prim.reshape(shape + ((layers,) if layers > 1 else ()))
 
 
 def _embree() -> bool:
@@ -220,16 +265,19 @@ def _embree() -> bool:
     return True
 
 
-def cast(arrays, o, d):
-    """The primitive id (int32, -1 = miss) each ray (..., 3) sees first, from inside a trace:
-    `jax.pure_callback` to the host ray engine. Rays and vertices are passed with their gradients
-    stopped (visibility has none)."""
+def cast(arrays, o, d, *, layers: int = 1):
+    """The primitive ids (int32, -1 = miss) each ray (..., 3) sees, from inside a trace:
+    `jax.pure_callback` to the host ray engine, (...) or with layers > 1 the nearest `layers`
+    surfaces (..., layers) (BLEND). Rays and vertices are passed with their gradients stopped
+    (visibility has none)."""
     o = jax.lax.stop_gradient(o).astype(jnp.float32)
     d = jax.lax.stop_gradient(d).astype(jnp.float32)
     verts = jax.lax.stop_gradient(arrays["positions"]).astype(jnp.float32)
-    out = jax.ShapeDtypeStruct(o.shape[:-1], jnp.int32)
+    alpha = jax.lax.stop_gradient(arrays["alpha"]) if arrays["alpha"] is not None else None
+    out = jax.ShapeDtypeStruct(o.shape[:-1] + ((layers,) if layers > 1 else ()), jnp.int32)
     return jax.pure_callback(
-        _host_cast, out, verts, arrays["triangles"], arrays["cull_back"], o, d, vmap_method="sequential"
+        functools.partial(_host_cast, layers=layers), out, verts, arrays["triangles"], arrays["cull_back"], o, d, alpha,
+        vmap_method="sequential",
     )
 
 
@@ -260,7 +308,101 @@ def concat_meshes(meshes, dtype):
     out["flat"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, m.normals is None) for m in meshes]))
     out["tri_object"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, k, np.int32) for k, m in enumerate(meshes)]))
     out["cull_back"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, not m.double_sided) for m in meshes]))
+    out["alpha"] = _alpha_arrays(meshes, out, dtype) if any(m.alpha_mode != "OPAQUE" for m in meshes) else None
     return out
+
+
+_WRAPS = {"repeat": 0, "clamp": 1, "mirror": 2}
+
+
+def _alpha_arrays(meshes, arrays, dtype):
+    """What the host needs to evaluate alpha at a hit (MASK cut-outs, BLEND layers): per mesh the
+    mode (0 opaque, 1 mask, 2 blend), cutoff, factor, the base colour texture's alpha (level 0;
+    a 1x1 of ones without one), its texture-coordinate set, wrap modes and transform; per vertex the
+    texture coordinates and COLOR_0's alpha."""
+    from .textured import TexturedMaterial, TextureSlot
+
+    mode, cutoff, factor, tset, wrap, xform, tex = [], [], [], [], [], [], []
+    for m in meshes:
+        mode.append(ALPHA_MODES.index(m.alpha_mode))
+        cutoff.append(m.alpha_cutoff)
+        factor.append(jnp.asarray(m.alpha, dtype))
+        bc = m.material.base_color_texture if isinstance(m.material, TexturedMaterial) else None
+        img, s, w, x = None, 0, (0, 0), np.eye(3)
+        if isinstance(bc, TextureSlot):
+            lv = bc.texture.levels[0]
+            img = lv[..., 3] if lv.shape[-1] == 4 else None
+            s = bc.texcoord
+            w = (_WRAPS[bc.texture.wrap_s], _WRAPS[bc.texture.wrap_t])
+            x = bc.transform if bc.transform is not None else np.eye(3)
+        elif bc is not None and np.shape(bc)[-1] == 4:
+            img = jnp.asarray(bc)[..., 3]
+        tex.append(jnp.asarray(img, dtype) if img is not None else jnp.ones((1, 1), dtype))
+        tset.append(s)
+        wrap.append(w)
+        xform.append(jnp.asarray(x, dtype))
+    V = arrays["positions"].shape[0]
+    zeros2 = jnp.zeros((V, 2), dtype)
+    return dict(
+        mode=jnp.asarray(mode, jnp.int32), cutoff=jnp.asarray(cutoff, dtype), factor=jnp.stack(factor),
+        texcoord=jnp.asarray(tset, jnp.int32), wrap=jnp.asarray(wrap, jnp.int32), transform=jnp.stack(xform),
+        textures=tuple(tex),
+        uv0=arrays["texcoords"] if arrays["texcoords"] is not None else zeros2,
+        uv1=arrays["texcoords1"] if arrays["texcoords1"] is not None else zeros2,
+        color_a=arrays["colors"][:, 3] if arrays["colors"] is not None else jnp.ones((V,), dtype),
+        tri_mesh=arrays["tri_object"],
+    )
+
+
+def _wrap_host(x, n, mode):
+    if mode == 1:
+        return np.clip(x, 0, n - 1)
+    if mode == 2:
+        period = 2 * n
+        y = np.mod(x, period)
+        return np.where(y >= n, period - 1 - y, y)
+    return np.mod(x, n)
+
+
+def host_alpha(alpha, triangles, prim, b1, b2):
+    """(mode, alpha) at hits (prim >= 0, barycentrics b1, b2) on the host, NumPy: the glTF alpha
+    factor x the base colour texture's A (bilinear, level 0, the texture's wrap modes and
+    transform) x the interpolated COLOR_0 A."""
+    a = {k: (np.asarray(v) if not isinstance(v, tuple) else v) for k, v in alpha.items()}
+    p = np.maximum(prim, 0)
+    mesh = a["tri_mesh"][p]
+    mode = np.where(prim >= 0, a["mode"][mesh], 0)
+    out = np.ones(prim.shape, np.float64)
+    sel = mode > 0
+    if not sel.any():
+        return mode, out
+    ps, ms = p[sel], mesh[sel]
+    w = np.stack([1.0 - b1[sel] - b2[sel], b1[sel], b2[sel]], -1)
+    tri = triangles[ps]
+    ca = np.sum(w * a["color_a"][tri], -1)
+    val = a["factor"][ms] * ca
+    for k in np.unique(ms):
+        rows = ms == k
+        img = np.asarray(a["textures"][k], np.float64)
+        if img.shape == (1, 1) and img[0, 0] == 1.0:
+            continue
+        uvs = a["uv0"] if a["texcoord"][k] == 0 else a["uv1"]
+        uv = np.sum(w[rows][..., None] * uvs[tri[rows]], 1)
+        M = a["transform"][k]
+        u = M[0, 0] * uv[:, 0] + M[0, 1] * uv[:, 1] + M[0, 2]
+        v = M[1, 0] * uv[:, 0] + M[1, 1] * uv[:, 1] + M[1, 2]
+        H, W = img.shape
+        x, y = u * W - 0.5, v * H - 0.5
+        x0, y0 = np.floor(x), np.floor(y)
+        fx, fy = x - x0, y - y0
+        ws, wt = a["wrap"][k]
+        xi = [_wrap_host(x0.astype(np.int64) + i, W, ws) for i in (0, 1)]
+        yi = [_wrap_host(y0.astype(np.int64) + i, H, wt) for i in (0, 1)]
+        s = ((1 - fx) * (1 - fy) * img[yi[0], xi[0]] + fx * (1 - fy) * img[yi[0], xi[1]]
+             + (1 - fx) * fy * img[yi[1], xi[0]] + fx * fy * img[yi[1], xi[1]])
+        val[rows] = val[rows] * s
+    out[sel] = val
+    return mode, out
 
 
 def triangle_hit(v0, v1, v2, o, d):

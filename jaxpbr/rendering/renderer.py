@@ -68,7 +68,7 @@ from ..shading.lights import shade_direct
 from ..shading.lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
 from ..shading.material import EXTENSIONS, Material
 from . import texture
-from .mesh import Mesh, cast, concat_meshes, mesh_surface
+from .mesh import MAX_BLEND_LAYERS, Mesh, cast, concat_meshes, mesh_surface
 from .shadows import shadow_visibility
 from .scene import (
     Environment,
@@ -88,6 +88,7 @@ from .scene import (
 __all__ = [
     "ASSETS",
     "bake",
+    "gbuffer",
     "RenderOptions",
     "RenderPlan",
     "plan",
@@ -195,6 +196,7 @@ class RenderPlan:
     extensions: tuple[str, ...] = ()  # glTF material extensions some material uses (traced code)
     charlie_size: int = 0  # face size of the Charlie-prefiltered cube (sheen under IBL), 0: none
     shadows: bool = False  # shadow rays towards the lights and the extracted suns
+    blend_layers: int = 1  # surfaces composited per pixel (> 1 with BLEND meshes)
 
     def describe(self) -> str:
         parts = [
@@ -346,7 +348,9 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
     has_mesh = any(isinstance(ob, Mesh) for ob in objects)
     shadows = opts.shadows if opts.shadows is not None else has_mesh
     shadows = bool(shadows and objects and (len(scene.lights) > 0 or n_env_lights > 0))
+    blend = any(isinstance(ob, Mesh) and ob.alpha_mode == "BLEND" for ob in objects)
     return RenderPlan(
+        blend_layers=MAX_BLEND_LAYERS if blend else 1,
         shadows=shadows,
         direct=len(scene.lights) > 0,
         ibl=ibl,
@@ -821,7 +825,7 @@ def _lookup(x, *, uv, uv1, duv, dtype):
     return texture.sample(_cast_floats(x.texture, dtype), st, dx, dy)
 
 
-def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None, aniso_t=None, tangent_w=None, uv1=None, duv=None):
+def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None, aniso_t=None, tangent_w=None, uv1=None, duv=None, alpha=None):
     """Override the gathered constant material (and normal) on the pixels of textured object k;
     with the extension textures (`scene.apply_extension_textures`) also the clear-coat normal and
     the anisotropy direction. Returns (material, normal, coat normal | None, anisotropy direction
@@ -834,7 +838,10 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=N
         f = tm.factors
         sel = idx == k
         if tm.base_color_texture is not None:
-            tex = lookup(tm.base_color_texture)[..., :3]
+            tex4 = lookup(tm.base_color_texture)
+            if alpha is not None and tex4.shape[-1] == 4 and getattr(objects[k], "alpha_mode", "OPAQUE") == "BLEND":
+                alpha = jnp.where(sel, alpha * tex4[..., 3], alpha)
+            tex = tex4[..., :3]
             base = jnp.where(sel[..., None], jnp.asarray(f.base_color, dtype) * tex, base)
         if tm.metallic_roughness_texture is not None:
             tex = lookup(tm.metallic_roughness_texture)[..., 1:3]
@@ -868,7 +875,7 @@ def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=N
                 B = tuple(tangent_w * c for c in B)
             pert = vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
             n = tuple(jnp.where(sel, pert[i], n[i]) for i in range(3))
-    return evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n, coat_n, aniso_t
+    return evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n, coat_n, aniso_t, alpha
 
 
 def _cast_floats(tree, dtype):
@@ -968,7 +975,7 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     return jnp.where(hit[..., None], out, bg)
 
 
-def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
+def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim=None):
     """G-buffer of the scene (dict of Vec3 / arrays), before textures."""
     dtype = jnp.dtype(opts.dtype)
     if scene.gbuffer is not None:
@@ -998,7 +1005,8 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
         idx = jnp.asarray(analytic, jnp.int32)[idx] if len(analytic) < len(objects) else idx
     if meshes:
         arrays = concat_meshes([objects[k] for k in meshes], dtype)
-        prim = cast(arrays, o_px, d_px)
+        if prim is None:  # (BLEND layers pass the layer's primitives, cast once for all layers)
+            prim = cast(arrays, o_px, d_px)
         ddir = _ray_differentials(scene.camera, d, dtype) if need_uv else None
         ms = mesh_surface(arrays, prim, o, d, need_uv=need_uv, ddir=ddir)
         on_mesh = prim >= 0
@@ -1027,6 +1035,14 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
         rgb = jnp.where(on_mesh[..., None], ms["color"][..., :3], 1.0)
         m = evolve(m, base_color=m.base_color * rgb)
     g = dict(pos=pos, n=n, view=tuple(-c for c in d), m=m, hit=hit, ray=d)
+    if p_plan.blend_layers > 1:
+        # Coverage of the layer: a BLEND mesh's alpha factor x COLOR_0's A (the base colour
+        # texture's A multiplies it in the texture stage); 1 on everything else.
+        blend_k = jnp.asarray([isinstance(ob, Mesh) and ob.alpha_mode == "BLEND" for ob in objects])[idx]
+        a = jnp.stack([jnp.asarray(ob.alpha if isinstance(ob, Mesh) else 1.0, dtype) for ob in objects])[idx]
+        if "color" in ms:
+            a = a * jnp.where(on_mesh, ms["color"][..., 3], 1.0)
+        g["alpha"] = jnp.where(hit & blend_k, a, 1.0)
     if p_plan.shadows:
         g["ng"] = ng
         if p_plan.direct:
@@ -1091,11 +1107,13 @@ def _volume_inputs(g, m: Material, dtype):
 
 
 def _texture(scene: Scene, k: int, opts: RenderOptions, g):
-    m, n, coat_n, aniso_t = _apply_texture(
+    m, n, coat_n, aniso_t, alpha = _apply_texture(
         scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype), g.get("coat_n"),
-        g.get("aniso_t"), g.get("tangent_w"), g.get("uv1"), g.get("duv"),
+        g.get("aniso_t"), g.get("tangent_w"), g.get("uv1"), g.get("duv"), g.get("alpha"),
     )
     out = {**g, "m": m, "n": n}
+    if alpha is not None:
+        out["alpha"] = alpha
     if coat_n is not None:
         out["coat_n"] = coat_n
     if aniso_t is not None:
@@ -1113,7 +1131,40 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     slower with two normal-mapped objects; `lax.optimization_barrier` does not prevent it (it is
     expanded away before fusion). Under an outer jit/vmap the stages inline into one program.
     """
+    if p_plan.blend_layers > 1:
+        return _blended_pass(scene, assets, p_plan, opts, offset, staged)
     g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset)
+    return _shade_pass(scene, assets, p_plan, opts, g, staged)
+
+
+def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool):
+    """BLEND meshes: the nearest `blend_layers` surfaces of each pixel (cast once), each shaded as
+    an image of its own by the same compiled stages, composited front to back with their alpha
+    (C = sum_k a_k prod_{j<k} (1 - a_j) C_k; an opaque surface or the background ends the pixel)."""
+    prims = (_layer_prims_jit if staged else _layer_prims)(scene, p_plan, opts, offset)
+    out, keep = None, None
+    for k in range(p_plan.blend_layers):
+        g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset, prims[..., k])
+        c = _shade_pass(scene, assets, p_plan, opts, g, staged)
+        a = g["alpha"][..., None]
+        if k == p_plan.blend_layers - 1:
+            a = jnp.ones_like(a)  # the last layer covers what is left
+        out = a * c if out is None else out + keep * a * c
+        keep = (1.0 - a) if keep is None else keep * (1.0 - a)
+    return out
+
+
+def _layer_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
+    dtype = jnp.dtype(opts.dtype)
+    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    return cast(_mesh_arrays(scene, dtype), o_px, d_px, layers=p_plan.blend_layers)
+
+
+_layer_prims_jit = jax.jit(_layer_prims, static_argnums=(1, 2))
+
+
+def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool):
+    """Textures, direct lighting and IBL + background of the G-buffer `g`."""
     # The later stages see the pixels, not the meshes' arrays: meshes of other sizes reuse them.
     lean = _lean(scene)
     for k in p_plan.textured:
@@ -1617,3 +1668,34 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
 @functools.partial(jax.jit, static_argnames=("n",))
 def _take_chunk(b, start, *, n):
     return jax.tree_util.tree_map(lambda x: jax.lax.dynamic_slice_in_dim(x, start, n), b)
+
+
+# ------------------------------------------------------------------------------------------
+# G-buffer
+# ------------------------------------------------------------------------------------------
+
+
+@keyword_only("options")
+def gbuffer(scene: Scene, *, options: RenderOptions | None = None, **overrides):
+    """The G-buffer `render` shades: one sample at each pixel centre of the camera (its
+    `supersample` is not used), materials after textures, COLOR_0 and normal maps -> `GBuffer`
+    with (H, W) / (H, W, 3) leaves in the options' dtype: hit, position, normal (the shading
+    normal), view (unit, towards the camera) and a per-pixel `Material` (the extension fields of
+    the groups some object uses, the others None). Off the surfaces (hit False) the values are
+    undefined. A scene given as a G-buffer returns its own. Lights and environment are not read
+    (nothing is precomputed); options as for `render` (only dtype matters)."""
+    from .scene import GBuffer
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"gbuffer expects a jaxpbr.Scene, got {type(scene).__name__}")
+    opts = _options(options, overrides, "gbuffer")
+    if scene.gbuffer is not None:
+        return scene.gbuffer
+    bare = evolve(scene, lights=(), environment=None, camera=evolve(scene.camera, supersample=1))
+    p = plan(bare, options=opts)
+    dtype = jnp.dtype(opts.dtype)
+    g = _geometry_jit(bare, p, opts, jax.device_put(np.asarray((0.5, 0.5), dtype)))
+    lean = _lean(bare)
+    for k in p.textured:
+        g = _texture_jit(lean, k, opts, g)
+    return GBuffer(hit=g["hit"], position=pack3(g["pos"]), normal=pack3(g["n"]), view=pack3(g["view"]), material=g["m"])

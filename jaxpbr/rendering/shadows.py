@@ -22,32 +22,55 @@ import numpy as np
 
 from .._numerics import vdot, vnormalize
 from ..shading.lights import pack_lights
-from .mesh import ACCELS, Mesh, _embree
+from .mesh import ACCELS, MAX_CULLED_HITS, Mesh, _embree, host_alpha
 from .scene import Plane, Sphere, intersect_plane, intersect_sphere
 from .visibility import offset_ray_origin
 
 __all__ = ["shadow_visibility"]
 
-def _host_occluded(vertices, triangles, o, d, tfar):
+def _host_occluded(vertices, triangles, o, d, tfar, alpha=None):
     vertices = np.ascontiguousarray(vertices, np.float32)
     triangles = np.ascontiguousarray(triangles, np.int32)
     accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax")
     shape = np.shape(o)[:-1]
-    hit = accel.occluded(
-        np.asarray(o, np.float32).reshape(-1, 3), np.asarray(d, np.float32).reshape(-1, 3),
-        tnear=0.0, tfar=np.asarray(tfar, np.float32).reshape(-1),
-    )
-    return np.asarray(hit, bool).reshape(shape)
+    o = np.asarray(o, np.float32).reshape(-1, 3)
+    d = np.asarray(d, np.float32).reshape(-1, 3)
+    tfar = np.asarray(tfar, np.float32).reshape(-1)
+    if alpha is None:
+        return np.asarray(accel.occluded(o, d, tnear=0.0, tfar=tfar), bool).reshape(shape)
+    # Cut-outs (MASK below the cutoff) and blended surfaces let the light through: walk the hits.
+    blocked = np.zeros(len(o), bool)
+    todo = np.arange(len(o))
+    tnear = np.zeros(len(o), np.float32)
+    after = np.full(len(o), -1, np.int32)
+    cutoff = np.asarray(alpha["cutoff"])
+    tri_mesh = np.asarray(alpha["tri_mesh"])
+    for _ in range(MAX_CULLED_HITS + 1):
+        if todo.size == 0:
+            break
+        h = accel.intersect(o[todo], d[todo], tnear=tnear[todo], tfar=tfar[todo], after_prim=after[todo])
+        p = np.asarray(h.prim, np.int32)
+        hit = p >= 0
+        mode, a = host_alpha(alpha, triangles, p, np.asarray(h.b1), np.asarray(h.b2))
+        through = hit & ((mode == 2) | ((mode == 1) & (a < cutoff[tri_mesh[np.maximum(p, 0)]])))
+        blocked[todo[hit & ~through]] = True
+        nxt = todo[through]
+        tnear[nxt] = np.asarray(h.t, np.float32)[through]
+        after[nxt] = p[through]
+        todo = nxt
+    return blocked.reshape(shape)
 
 
 def _mesh_occluded(arrays, o, d, tfar):
-    """(...,) bool: the segment o + t d, 0 < t < tfar, meets a mesh triangle (either face)."""
+    """(...,) bool: the segment o + t d, 0 < t < tfar, meets an opaque point of a mesh triangle
+    (either face; MASK cut-outs and BLEND surfaces let the light through)."""
     o = jax.lax.stop_gradient(o).astype(jnp.float32)
     d = jax.lax.stop_gradient(d).astype(jnp.float32)
     tfar = jax.lax.stop_gradient(tfar).astype(jnp.float32)
     verts = jax.lax.stop_gradient(arrays["positions"]).astype(jnp.float32)
+    alpha = jax.lax.stop_gradient(arrays["alpha"]) if arrays["alpha"] is not None else None
     out = jax.ShapeDtypeStruct(o.shape[:-1], jnp.bool_)
-    return jax.pure_callback(_host_occluded, out, verts, arrays["triangles"], o, d, tfar, vmap_method="sequential")
+    return jax.pure_callback(_host_occluded, out, verts, arrays["triangles"], o, d, tfar, alpha, vmap_method="sequential")
 
 
 def _analytic_occluded(objects, o, d, tfar, dtype):
