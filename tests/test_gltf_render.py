@@ -448,3 +448,52 @@ def test_render_batch_over_cameras_and_materials_with_meshes():
     for k in range(2):
         one = np.asarray(jp.render(scene.replace(objects=[scene.objects[0].replace(material=mat.replace(base_color=tuple(colours[k])))])))
         np.testing.assert_allclose(imgs[k], one, rtol=1e-5, atol=1e-6)
+
+
+def test_aovs_against_closed_forms(tmp_path):
+    """Depth, normal, position, mask, ids of a quad mesh and a sphere, against the closed-form ray
+    casts; the command line writes them as EXR layers that read back equal."""
+    from jaxpbr.io import image
+    from jaxpbr.rendering.aovs import aovs
+
+    pos, tri, uv, nrm = _quad(size=40.0)
+    grey = jp.Material(base_color=(0.25, 0.5, 0.75), metallic=0.0, roughness=0.5)
+    cam = _camera(40, 30, pos=(0.0, 3.0, 5.0))
+    ball = jp.Sphere(center=(0.0, 0.5, 0.0), radius=0.5, material=grey)
+    scene = jp.Scene(camera=cam, objects=[ball, Mesh(positions=pos, triangles=tri, normals=nrm, material=grey)], lights=[SUN])
+    a = aovs(scene)
+    o, d = (np.asarray(x, np.float64) for x in jp.rendering.scene.primary_rays(cam, dtype=jnp.float64))
+    fwd = -np.asarray(cam.position, np.float64) / np.linalg.norm(cam.position)
+    t_plane = -o[..., 1] / d[..., 1]
+    oc = o - np.array([0.0, 0.5, 0.0])
+    b = np.sum(oc * d, -1)
+    disc = b * b - (np.sum(oc * oc, -1) - 0.25)
+    on_ball = disc > 1e-3
+    t_ball = -b - np.sqrt(np.maximum(disc, 0))
+    on_plane = ~on_ball & (t_plane > 0) & (np.abs(o + t_plane[..., None] * d)[..., [0, 2]].max(-1) < 20)
+    np.testing.assert_array_equal(a["mask"][on_ball | on_plane], 1.0)
+    np.testing.assert_array_equal(a["object_id"][on_ball], 0.0)
+    np.testing.assert_array_equal(a["object_id"][on_plane], 1.0)
+    assert set(np.unique(a["primitive_id"][on_plane])) <= {0.0, 1.0}
+    np.testing.assert_array_equal(a["primitive_id"][on_ball], -1.0)
+    np.testing.assert_allclose(a["distance"][on_plane], t_plane[on_plane], rtol=1e-5)
+    np.testing.assert_allclose(a["depth"][on_plane], (t_plane[..., None] * d @ fwd)[on_plane], rtol=1e-5)
+    np.testing.assert_allclose(a["normal"][on_plane], np.broadcast_to([0, 1, 0], a["normal"][on_plane].shape), atol=1e-6)
+    q = o + t_ball[..., None] * d
+    np.testing.assert_allclose(a["position"][on_ball], q[on_ball], atol=2e-5)
+    np.testing.assert_allclose(a["base_color"][on_plane], np.broadcast_to([0.25, 0.5, 0.75], a["base_color"][on_plane].shape), rtol=1e-6)
+    # The command line: the same values as EXR layers.
+    w = Writer()
+    m = w.material(pbrMetallicRoughness={"baseColorFactor": [0.25, 0.5, 0.75, 1.0], "metallicFactor": 0.0})
+    w.node(mesh=w.mesh(pos, tri, normals=nrm, material=m))
+    path = w.save(tmp_path / "floor.glb")
+    from jaxpbr.cli import main
+
+    out = tmp_path / "floor.png"
+    assert main(["render", str(path), "-o", str(out), "--width", "40", "--height", "30", "--camera-position", "0,3,5",
+                 "--camera-target", "0,0,0", "--fov-y", "45", "--aov", "depth,normal,primitive_id"]) == 0
+    z = image.read(out.with_suffix(".exr"), channels=["Z"])[..., 0]
+    ny = image.read(out.with_suffix(".exr"), channels=["N.Y"])[..., 0]
+    ref = aovs(load_gltf(path, camera=jp.Camera(position=(0, 3, 5), target=(0, 0, 0), fov_y_deg=45.0, width=40, height=30)))
+    np.testing.assert_array_equal(z, ref["depth"])
+    np.testing.assert_array_equal(ny, ref["normal"][..., 1])

@@ -61,6 +61,7 @@ def add_command(sub) -> None:
     )
     r.add_argument("--bits", type=int, choices=(8, 16), default=8, help="PNG bit depth (default: %(default)s)")
     r.add_argument("--hdr", action="store_true", help="also write the linear HDR image as EXR next to the PNG")
+    r.add_argument("--aov", default=None, metavar="LIST", help="also write arbitrary output variables as layers of the EXR (implies --hdr): comma-separated from depth, distance, normal, position, base_color, mask, object_id, primitive_id, or 'all' (docs/gltf.md)")
     r.add_argument("--no-environment", action="store_true", help="demo only: leave out the sky (no IBL)")
     g = r.add_argument_group("glTF assets")
     g.add_argument("--environment", default=None, metavar="FILE", help="glTF: environment lighting and background: an equirect .hdr/.exr panorama or procedural:sky (default: none)")
@@ -172,7 +173,22 @@ def _gltf_scene(args):
     return scene, f"glTF {Path(args.scene).name}: {s['triangles']} triangles, {s['materials']} materials"
 
 
+def _aov_names(text: str | None) -> tuple[str, ...]:
+    from ..rendering.aovs import AOVS
+
+    if text is None:
+        return ()
+    names = tuple(AOVS) if text.strip() == "all" else tuple(n.strip() for n in text.split(",") if n.strip())
+    bad = [n for n in names if n not in AOVS]
+    if bad or not names:
+        raise CLIError(f"--aov: unknown AOV(s) {bad or [text]}; choose from {', '.join(AOVS)} or 'all'")
+    return names
+
+
 def cmd_render(args) -> int:
+    args.aov = _aov_names(args.aov)
+    if args.aov:
+        args.hdr = True
     out = Path(args.output)
     with OutputSet() as outs:
         _check_output_path(outs, out, args.hdr)
@@ -271,7 +287,18 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         exr = out.with_suffix(".exr")
         hdr_meta = {k: v for k, v in metadata.items() if k not in ("jaxpbr:tonemap", "jaxpbr:encoding", "jaxpbr:exposure_ev")}
         hdr_meta["jaxpbr:content"] = "linear scene-referred radiance, Rec.709 primaries"
+        layers = {}
+        if args.aov:
+            from ..rendering.aovs import AOVS, aovs
+
+            values = aovs(scene, args.aov, options=opts)
+            for name in args.aov:
+                chans, what = AOVS[name]
+                v = values[name]
+                for i, ch in enumerate(chans):
+                    layers[ch] = v if v.ndim == 2 else v[..., i]
+                hdr_meta[f"jaxpbr:aov:{name}"] = f"{', '.join(chans)}: {what}"
         outs.add(exr)
-        image.write(exr, hdr, metadata=hdr_meta)  # a failure here removes the PNG too
-        print(f"wrote {exr} (linear HDR, float32)")
+        image.write(exr, hdr, metadata=hdr_meta, layers=layers)  # a failure here removes the PNG too
+        print(f"wrote {exr} (linear HDR, float32{'; AOVs ' + ', '.join(args.aov) if args.aov else ''})")
     return 0

@@ -322,7 +322,7 @@ def _read_oiio(path: Path, ext: str):
 # ----------------------------------------------------------------------------------------------------- write
 
 
-def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", encoded=False) -> None:
+def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", encoded=False, layers=None) -> None:
     """Write an image atomically; the extension picks the format.
 
     Args:
@@ -344,6 +344,9 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", enco
       encoded: ``.png`` only: the values already carry the transfer function ``encoding`` (e.g. applied on the
         device with :func:`jaxpbr.color.encode`, in the same program as the tone map): they are written as given
         and the file is tagged for ``encoding``.
+      layers: ``.exr`` only: more channels, ``{name: (H, W) array}`` with EXR channel names (``"Z"``,
+        ``"N.X"``, ``"albedo.R"``, ...), written as float32 beside the image's own channels (e.g. the AOVs of
+        :mod:`jaxpbr.rendering.aovs`); finite values, the image's height and width.
 
     Raises:
       ValueError: bad shape, channel count, dtype, NaN/Inf or out-of-range values, bad options or metadata.
@@ -363,8 +366,17 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", enco
         raise ValueError(f"half=True only applies to .exr files; {str(path)!r} is a {ext} file")
 
     arr = _validated_image(img)
+    if layers and ext != ".exr":
+        raise ValueError(f"layers= only applies to .exr files; {str(path)!r} is a {ext} file")
     if ext == ".exr":
         payload = _exr_payload(arr, half)
+        for name, layer in (layers or {}).items():
+            a = np.asarray(layer)
+            if a.shape != arr.shape[:2] or not np.all(np.isfinite(a)):
+                raise ValueError(f"layer {name!r} must be a finite (H, W) = {arr.shape[:2]} array, got shape {a.shape}")
+            if name in payload or name in ("R", "G", "B", "A", "Y"):
+                raise ValueError(f"layer {name!r} would replace one of the image's own channels; name it differently")
+            payload[name] = np.ascontiguousarray(a, np.float32)
         header = _exr_metadata(metadata)
         writer = lambda tmp: _write_exr(tmp, payload, header)  # noqa: E731
     elif ext == ".hdr":

@@ -1034,7 +1034,9 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         # COLOR_0 multiplies the base colour (glTF); 1 on other objects.
         rgb = jnp.where(on_mesh[..., None], ms["color"][..., :3], 1.0)
         m = evolve(m, base_color=m.base_color * rgb)
-    g = dict(pos=pos, n=n, view=tuple(-c for c in d), m=m, hit=hit, ray=d)
+    g = dict(pos=pos, n=n, view=tuple(-c for c in d), m=m, hit=hit, ray=d, t=t, idx=idx)
+    if meshes:
+        g["prim"] = jnp.where(on_mesh, prim, -1)
     if p_plan.blend_layers > 1:
         # Coverage of the layer: a BLEND mesh's alpha factor x COLOR_0's A (the base colour
         # texture's A multiplies it in the texture stage); 1 on everything else.

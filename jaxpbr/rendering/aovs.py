@@ -1,0 +1,70 @@
+"""Arbitrary output variables (AOVs) for datasets: per-pixel depth, normal, base colour, coverage,
+object and primitive ids of a scene, from the same geometry and texture stages `render` runs.
+
+AOVs are taken at the pixel centres (no supersampling, no blending: the nearest surface), in world
+space, and are not differentiated (they are labels). `jaxpbr render --aov ...` writes them as
+layers of the EXR next to the image.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._numerics import vdot
+from .renderer import RenderOptions, _geometry_jit, _lean, _options, _texture_jit, plan
+from .scene import Scene, camera_basis
+
+__all__ = ["AOVS", "aovs"]
+
+#: The AOVs: name -> (EXR channel names, what they hold).
+AOVS: dict[str, tuple[tuple[str, ...], str]] = {
+    "depth": (("Z",), "camera-space depth: distance along the viewing axis (0 where nothing is hit)"),
+    "distance": (("distance.Y",), "distance from the camera along the ray (0 where nothing is hit)"),
+    "normal": (("N.X", "N.Y", "N.Z"), "world-space shading normal, after normal maps, facing the viewer (0 off surfaces)"),
+    "position": (("P.X", "P.Y", "P.Z"), "world-space position of the surface (0 off surfaces)"),
+    "base_color": (("albedo.R", "albedo.G", "albedo.B"), "linear base colour after textures and vertex colours"),
+    "mask": (("mask.Y",), "1 where a surface is hit, 0 on the background"),
+    "object_id": (("object_id.Y",), "index of the object in Scene.objects, -1 on the background"),
+    "primitive_id": (("primitive_id.Y",), "triangle index within the scene's meshes (in Scene.objects order), -1 elsewhere"),
+}
+
+
+def aovs(scene: Scene, names=tuple(AOVS), *, options: RenderOptions | None = None, **overrides) -> dict[str, np.ndarray]:
+    """The AOVs `names` (keys of `AOVS`) of a scene with a camera, as float32 NumPy arrays (H, W) or
+    (H, W, 3). Ids are exact integers in float32 (up to 2^24)."""
+    unknown = [n for n in names if n not in AOVS]
+    if unknown:
+        raise ValueError(f"unknown AOV(s) {unknown}; available: {list(AOVS)}")
+    if scene.gbuffer is not None:
+        raise ValueError("aovs needs a scene with a camera and objects, not a G-buffer")
+    opts = _options(options, overrides, "aovs")
+    p = plan(scene, options=opts)
+    dtype = jnp.dtype(opts.dtype)
+    g = _geometry_jit(scene, p, opts, jnp.asarray((0.5, 0.5), dtype))
+    if "base_color" in names or "normal" in names:
+        lean = _lean(scene)
+        for k in p.textured:
+            g = _texture_jit(lean, k, opts, g)
+    hit = g["hit"]
+    out = {}
+    zero = lambda x: jnp.where(hit, x, 0.0)  # noqa: E731
+    if "depth" in names:
+        _, fwd, _, _ = camera_basis(scene.camera, dtype)
+        out["depth"] = zero(g["t"] * vdot(g["ray"], fwd))
+    if "distance" in names:
+        out["distance"] = zero(g["t"])
+    if "normal" in names:
+        out["normal"] = jnp.stack([zero(c) for c in g["n"]], -1)
+    if "position" in names:
+        out["position"] = jnp.stack([zero(c) for c in g["pos"]], -1)
+    if "base_color" in names:
+        out["base_color"] = jnp.where(hit[..., None], g["m"].base_color, 0.0)
+    if "mask" in names:
+        out["mask"] = hit.astype(dtype)
+    if "object_id" in names:
+        out["object_id"] = jnp.where(hit, g["idx"], -1).astype(dtype)
+    if "primitive_id" in names:
+        prim = g.get("prim")
+        out["primitive_id"] = (jnp.full(hit.shape, -1, dtype) if prim is None else jnp.where(hit, prim, -1).astype(dtype))
+    return {k: np.asarray(v, np.float32) for k, v in out.items()}
