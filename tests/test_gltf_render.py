@@ -497,3 +497,32 @@ def test_aovs_against_closed_forms(tmp_path):
     ref = aovs(load_gltf(path, camera=jp.Camera(position=(0, 3, 5), target=(0, 0, 0), fov_y_deg=45.0, width=40, height=30)))
     np.testing.assert_array_equal(z, ref["depth"])
     np.testing.assert_array_equal(ny, ref["normal"][..., 1])
+
+
+def test_toml_scene_includes_a_gltf_asset(tmp_path):
+    """[[objects]] type = "gltf": the asset's meshes and lights join the scene file's objects; the
+    render equals the same scene built in Python; a missing file is one error naming the key."""
+    from jaxpbr.cli.scene_file import load_scene
+    from jaxpbr.errors import InputError
+
+    w = Writer()
+    m = w.material(pbrMetallicRoughness={"baseColorFactor": [0.7, 0.7, 0.7, 1.0], "metallicFactor": 0.0})
+    pos, tri, uv, nrm = _quad(size=6.0)
+    w.node(mesh=w.mesh(pos, tri, normals=nrm, material=m))
+    lt = w.light(type="point", intensity=30.0)
+    w.node(translation=[1.0, 2.0, 0.5], extensions={"KHR_lights_punctual": {"light": lt}})
+    w.save(tmp_path / "floor.glb")
+    toml = tmp_path / "s.toml"
+    toml.write_text(
+        '[camera]\nposition = [0.0, 3.0, 4.0]\ntarget = [0.0, 0.0, 0.0]\nwidth = 24\nheight = 16\n'
+        '[[objects]]\ntype = "gltf"\npath = "floor.glb"\n'
+        '[[objects]]\ntype = "sphere"\ncenter = [0.0, 0.5, 0.0]\nradius = 0.5\n'
+    )
+    sf = load_scene(toml)
+    assert len(sf.scene.objects) == 2 and len(sf.scene.lights) == 1
+    built = load_gltf(tmp_path / "floor.glb", camera=sf.scene.camera)
+    ref = jp.Scene(camera=sf.scene.camera, objects=[*built.objects, jp.Sphere(center=(0, 0.5, 0), radius=0.5)], lights=built.lights)
+    np.testing.assert_allclose(np.asarray(jp.render(sf.scene)), np.asarray(jp.render(ref)), rtol=1e-6, atol=1e-7)
+    toml.write_text('[camera]\nposition = [0.0, 3.0, 4.0]\n[[objects]]\ntype = "gltf"\npath = "nope.glb"\n')
+    with pytest.raises(InputError, match=r"objects\[0\]\.path"):
+        load_scene(toml)

@@ -345,7 +345,7 @@ ERRORS = {
     "unknown_material_none": (SPHERE + 'material = "gold"\n',
                               ["objects[0].material: unknown material 'gold': no [materials.*] are defined"]),
     "inline_material_error": (SPHERE + "material = { metallic = 2.0 }\n", ["objects[0].material.metallic: must be <= 1, got 2"]),
-    "missing_object_type": ("[[objects]]\nradius = 1.0\n", ['objects[0]: missing key "type"', 'type = "sphere" or "plane"']),
+    "missing_object_type": ("[[objects]]\nradius = 1.0\n", ['objects[0]: missing key "type"', 'type = "sphere", "plane" or "gltf"']),
     "unknown_object_type": ('[[objects]]\ntype = "spher"\n', ["objects[0].type: unknown value 'spher'", "did you mean 'sphere'?"]),
     "no_objects": ("[camera]\nwidth = 10\n", ["objects: the scene has no objects; add at least one [[objects]]"]),
     "missing_texture": (GOLD + 'base_color_texture = "tex/albedo.png"\n' + SPHERE,

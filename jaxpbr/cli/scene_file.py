@@ -118,6 +118,7 @@ _MATERIAL = (
 _OBJECTS = {
     "sphere": ("type", "center", "radius", "material"),
     "plane": ("type", "point", "normal", "tangent", "uv_scale", "material"),
+    "gltf": ("type", "path", "scene", "lights"),
 }
 # Keys that live in another table: a targeted hint beats a spelling suggestion.
 _MOVED = {
@@ -397,7 +398,9 @@ class _Loader:
         ambient = self.number(world.get("ambient", 0.0), "scene.ambient", lo=0.0)
         lights = self.lights(doc.get("lights", []))
         materials = self.materials(self.table(doc.get("materials", {}), "materials"))
+        self.asset_lights: list = []
         objects = self.objects(doc.get("objects", []), materials)
+        lights = tuple(lights) + tuple(self.asset_lights)
         env = None
         if "environment" in doc:
             env = self.environment(self.table(doc["environment"], "environment"), options)
@@ -677,15 +680,18 @@ class _Loader:
         if not isinstance(arr, list):
             self.fail("objects", f"expected an array of tables ([[objects]]), got {_type_name(arr)}")
         if not arr:
-            self.fail("objects", 'the scene has no objects; add at least one [[objects]] with type = "sphere" or "plane"')
+            self.fail("objects", 'the scene has no objects; add at least one [[objects]] with type = "sphere", "plane" or "gltf"')
         out = []
         for i, t in enumerate(arr):
             path = f"objects[{i}]"
             t = self.table(t, path, "a table ([[objects]])")
             if "type" not in t:
-                self.fail(path, 'missing key "type"; add type = "sphere" or "plane"')
+                self.fail(path, 'missing key "type"; add type = "sphere", "plane" or "gltf"')
             kind = self.choice(t["type"], f"{path}.type", tuple(_OBJECTS))
             self.check_keys(t, _OBJECTS[kind], path, f"a {kind}")
+            if kind == "gltf":
+                out.extend(self.gltf(t, path))
+                continue
             kw: dict = {}
             if "material" in t:
                 kw["material"] = self.object_material(t["material"], f"{path}.material", materials)
@@ -706,6 +712,29 @@ class _Loader:
                     kw["uv_scale"] = self.number(t["uv_scale"], f"{path}.uv_scale", lo=0.0, open_lo=True)
                 out.append(self.build(path, Plane, **kw))
         return tuple(out)
+
+    def gltf(self, t: dict, path: str) -> list:
+        """The meshes of a glTF asset (world space, its own materials), and its lights when
+        `lights` (default true) -- the same conversion as `jaxpbr.load_gltf`."""
+        from ..io.gltf import read_gltf
+        from ..rendering.gltf_scene import lights_from_asset, meshes_from_asset
+
+        if "path" not in t:
+            self.fail(path, 'missing key "path"; add path = "model.glb" (relative to the scene file)')
+        f = self.file(t["path"], f"{path}.path")
+        which = None
+        if "scene" in t:
+            which = int(self.number(t["scene"], f"{path}.scene", lo=0.0))
+        try:
+            asset = read_gltf(f, scene=which)
+        except InputError as e:
+            self.fail(f"{path}.path", str(e))
+        if not asset.primitives:
+            self.fail(f"{path}.path", f"{f.name} has no triangle geometry in the scene loaded; pick another scene (scene = N)")
+        meshes = meshes_from_asset(asset, set())
+        if self.boolean(t.get("lights", True), f"{path}.lights"):
+            self.asset_lights.extend(lights_from_asset(asset))
+        return meshes
 
     def object_material(self, x, path: str, materials: dict):
         if isinstance(x, dict):
