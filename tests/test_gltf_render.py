@@ -526,3 +526,33 @@ def test_toml_scene_includes_a_gltf_asset(tmp_path):
     toml.write_text('[camera]\nposition = [0.0, 3.0, 4.0]\n[[objects]]\ntype = "gltf"\npath = "nope.glb"\n')
     with pytest.raises(InputError, match=r"objects\[0\]\.path"):
         load_scene(toml)
+
+
+@pytest.mark.parametrize("tilt", [(0.5, 0.0), (0.0, 0.5)], ids=["x", "y"])
+def test_normal_map_without_tangents_uses_mikktspace_frame(tmp_path, tilt):
+    """A floor quad with a constant normal map and no TANGENT: the loader generates MikkTSpace
+    tangents and the shading normal is T x + B y + N z with T = dP/du = +X and, since v grows
+    along +Z here and a normal map's +Y points up the image (decreasing v), B = -Z. The oracle is
+    the same floor without a map, its vertex normals set to that normal."""
+    x, y = tilt
+    z = math.sqrt(1 - x * x - y * y)
+    code = np.round((np.array([x, y, z]) + 1) / 2 * 255) / 255  # what the 8-bit PNG stores
+    nt = 2 * code - 1
+    w = Writer()
+    tex = w.image_png(np.broadcast_to(code, (4, 4, 3)).copy())
+    m = w.material(normalTexture={"index": tex}, pbrMetallicRoughness={"baseColorFactor": [0.8, 0.8, 0.8, 1], "metallicFactor": 0.0, "roughnessFactor": 0.4})
+    pos, tri, _, nrm = _quad(size=4.0)
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)  # u along +X, v along +Z
+    w.node(mesh=w.mesh(pos, tri, normals=nrm, uv=uv, material=m))
+    path = w.save(tmp_path / "bumpy.glb")
+    light = jp.PointLight((1.0, 2.0, 1.5), intensity=10.0)
+    cam = _camera(32, 24, pos=(0.2, 3.0, 2.5))
+    img = np.asarray(jp.render(load_gltf(path, camera=cam, lights=[light])))
+    n_world = np.array([nt[0], nt[2], -nt[1]])  # T = +X, N = +Y, B = -Z
+    n_world = (n_world / np.linalg.norm(n_world)).astype(np.float32)
+    mat = jp.Material(base_color=(0.8, 0.8, 0.8), metallic=0.0, roughness=0.4)
+    ref_mesh = Mesh(positions=pos, triangles=tri, normals=np.tile(n_world, (4, 1)), material=mat)
+    ref = np.asarray(jp.render(jp.Scene(camera=cam, objects=[ref_mesh], lights=[light])))
+    covered = ref.sum(-1) > 0
+    assert covered.sum() > 300
+    np.testing.assert_allclose(img[covered], ref[covered], rtol=2e-4, atol=1e-6)
