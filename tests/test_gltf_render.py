@@ -556,3 +556,59 @@ def test_normal_map_without_tangents_uses_mikktspace_frame(tmp_path, tilt):
     covered = ref.sum(-1) > 0
     assert covered.sum() > 300
     np.testing.assert_allclose(img[covered], ref[covered], rtol=2e-4, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_gradients_reach_texels_and_environment_texels():
+    """d image / d (a base-colour texel of a mip-mapped slot, an environment texel): finite and equal
+    to central differences (float64)."""
+    P, N, UV, T = uv_sphere(12, 24)
+    cam = _camera(16, 16, pos=(0.0, 0.3, 3.5))
+    tex0 = np.full((8, 8, 3), 0.5)
+    env0 = np.asarray(jp.envs.sky_with_sun_cubemap(8).levels[0], np.float64)
+
+    def loss(tex, env_level):
+        slot = jp.TextureSlot(texture=jp.Texture.from_image(tex, srgb=False))
+        tm = jp.TexturedMaterial(factors=jp.Material(metallic=0.0, roughness=0.6), base_color_texture=slot)
+        mesh = Mesh(positions=P, triangles=T, normals=N, texcoords=UV, material=tm)
+        env = jp.Environment(radiance=jp.Cubemap(env_level), show_background=False)
+        scene = jp.Scene(camera=cam, objects=[mesh], environment=env)
+        return jnp.sum(jp.render(scene, dtype="float64", extract_lights=False, prefilter_samples=64))
+
+    g_tex, g_env = jax.grad(loss, argnums=(0, 1))(jnp.asarray(tex0), jnp.asarray(env0))
+    assert np.all(np.isfinite(np.asarray(g_tex))) and np.all(np.isfinite(np.asarray(g_env)))
+    h = 1e-4
+    for idx in [(3, 2, 0), (6, 5, 1)]:  # texels on the visible side
+        e = np.zeros_like(tex0)
+        e[idx] = h
+        fd = (loss(jnp.asarray(tex0 + e), jnp.asarray(env0)) - loss(jnp.asarray(tex0 - e), jnp.asarray(env0))) / (2 * h)
+        np.testing.assert_allclose(float(g_tex[idx]), float(fd), rtol=1e-5, atol=1e-9)
+    k = np.unravel_index(np.argmax(np.abs(np.asarray(g_env))), env0.shape)
+    e = np.zeros_like(env0)
+    e[k] = h
+    fd = (loss(jnp.asarray(tex0), jnp.asarray(env0 + e)) - loss(jnp.asarray(tex0), jnp.asarray(env0 - e))) / (2 * h)
+    np.testing.assert_allclose(float(g_env[k]), float(fd), rtol=1e-5)
+    assert abs(float(g_env[k])) > 0
+
+
+def test_gradient_of_a_texel_under_a_light_matches_central_differences():
+    """The fast companion of the slow test above: a base-colour texel of a mip-mapped slot on a
+    mesh under a directional light (float64)."""
+    P, N, UV, T = uv_sphere(12, 24)
+    cam = _camera(16, 16, pos=(0.0, 0.3, 3.5))
+    tex0 = np.full((8, 8, 3), 0.5)
+
+    def loss(tex):
+        slot = jp.TextureSlot(texture=jp.Texture.from_image(tex, srgb=True))
+        tm = jp.TexturedMaterial(factors=jp.Material(metallic=0.0, roughness=0.6), base_color_texture=slot)
+        mesh = Mesh(positions=P, triangles=T, normals=N, texcoords=UV, material=tm)
+        return jnp.sum(jp.render(jp.Scene(camera=cam, objects=[mesh], lights=[SUN]), dtype="float64"))
+
+    g = np.asarray(jax.grad(loss)(jnp.asarray(tex0)))
+    assert np.all(np.isfinite(g))
+    idx = np.unravel_index(np.argmax(np.abs(g)), g.shape)
+    h = 1e-5
+    e = np.zeros_like(tex0)
+    e[idx] = h
+    fd = (loss(jnp.asarray(tex0 + e)) - loss(jnp.asarray(tex0 - e))) / (2 * h)
+    np.testing.assert_allclose(g[idx], float(fd), rtol=1e-5)
