@@ -396,10 +396,14 @@ def _next_pow2(x: int) -> int:
     return 1 << max(0, int(x) - 1).bit_length()
 
 
-def build_bvh(vertices, triangles, *, leaf_size: int = 4, bins: int = 16, bucket: bool = True) -> BVH:
+def build_bvh(vertices, triangles, *, leaf_size: int = 4, bins: int = 16, bucket: bool = True, min_triangles: int = 0) -> BVH:
     """Build the BVH of a triangle mesh on the host (NumPy arrays in the result; `BVH.to_device`
-    or any jnp operation moves them). vertices (V, 3) float, triangles (T, 3) int (rows are the
-    triangle ids reported by the traversal). Zero-area and non-finite triangles are left out."""
+    moves them). vertices (V, 3) float, triangles (T, 3) int (rows are the triangle ids reported
+    by the traversal). Zero-area and non-finite triangles are left out.
+
+    bucket: pad the node and triangle arrays to powers of two (at least `min_triangles`) and the
+    stack to a multiple of 16 (at least 32), so that meshes of similar size share one compiled
+    traversal; pass the largest mesh's size as min_triangles to give all meshes the same shapes."""
     if not 1 <= leaf_size <= 64:
         raise InputError(f"leaf_size must be in [1, 64], got {leaf_size}")
     v, f = _as_mesh(vertices, triangles)
@@ -436,10 +440,10 @@ def build_bvh(vertices, triangles, *, leaf_size: int = 4, bins: int = 16, bucket
         lo32 = np.nextafter(lo_c.astype(F32), F32(-np.inf))
         hi32 = np.nextafter(hi_c.astype(F32), F32(np.inf))
     n_tri = len(ids)
-    m_pad = _next_pow2(m) if bucket else m
-    t_pad = _next_pow2(n_tri + leaf_size) if bucket else n_tri + leaf_size
+    m_pad = _next_pow2(max(m, min_triangles)) if bucket else m
+    t_pad = _next_pow2(max(n_tri, min_triangles) + leaf_size) if bucket else n_tri + leaf_size
     stack = depth + 2
-    stack = -(-stack // 16) * 16 if bucket else stack
+    stack = max(32, -(-stack // 16) * 16) if bucket else stack
 
     def pad(a, rows, fill):
         out = np.full((rows,) + a.shape[1:], fill, a.dtype)
@@ -671,16 +675,21 @@ def first_k_hits_bvh(bvh: BVH, origins, directions, k: int, tnear=0.0, tfar=np.i
     if n == 0 or k == 0:
         z = jnp.zeros(shape + (k,), jnp.float32)
         return Hits(z + jnp.inf, jnp.zeros(shape + (k,), jnp.int32) - 1, z, z)
-    layers = []
-    t_prev, p_prev = tn, af
-    for _ in range(int(k)):
-        # a ray that has run out of hits gets an empty range (tfar = -inf): it ends at the root
+    rays_f, rays_i = _ray_consts(o, d, tn, tf, af)
+
+    def layer(carry, _):
+        # one trace per layer, continuing from the previous hit's (t, id); a ray that has run out
+        # of hits gets an empty range (tfar = -inf): it ends at the root
+        t_prev, p_prev = carry
         done = p_prev == _NONE
-        tf_i = jnp.where(done, -jnp.inf, tf)
-        t, p, row = _trace(bvh, *_ray_consts(o, d, t_prev, tf_i, jnp.where(done, -1, p_prev)), lanes, False)
-        layers.append(_hits(bvh, ob, db, t, p, row))
-        t_prev, p_prev = t, p
-    return Hits(*(jnp.stack(x, -1).reshape(shape + (k,)) for x in zip(*layers)))
+        f = rays_f.at[:, 12].set(t_prev).at[:, 13].set(jnp.where(done, -jnp.inf, rays_f[:, 13]))
+        i = rays_i.at[:, 3].set(jnp.where(done, -1, p_prev))
+        t, p, row = _trace(bvh, f, i, lanes, False)
+        return (t, p), (t, p, row)
+
+    _, (t, p, row) = jax.lax.scan(layer, (tn, af), None, length=int(k))  # (k, N) each
+    h = _hits(bvh, jnp.tile(ob, (int(k), 1)), jnp.tile(db, (int(k), 1)), t.reshape(-1), p.reshape(-1), row.reshape(-1))
+    return Hits(*(jnp.moveaxis(x.reshape((int(k), n)), 0, -1).reshape(shape + (int(k),)) for x in h))
 
 
 def pad_rays(n: int, minimum: int = 1024) -> int:

@@ -181,10 +181,13 @@ def _gather_lists(offs, vals, which):
 
 
 def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 << 22) -> np.ndarray:
-    """Pairs (i, j), i < j, of triangles that share no (welded) vertex and come within about `tol`
-    of each other: coplanar overlapping copies, interpenetrating or touching parts. A superset:
-    boxes grown by tol overlap, each triangle reaches the other's plane within tol, and coplanar
-    pairs are not separated in their plane by more than 2 tol. Candidates come from a hierarchical
+    """Pairs (i, j), i < j, of triangles that come within about `tol` of each other away from the
+    vertices they share: interpenetrating or touching parts, coplanar overlapping copies. A superset
+    for pairs without a shared (welded) vertex: boxes grown by tol overlap, each triangle reaches
+    the other's plane within tol, and in the plane no edge axis separates them by more than 2 tol.
+    Pairs sharing a vertex must be coplanar within tol and overlap by more than tol in the plane
+    (a duplicate, a fold); edge neighbours are handled by the near-edge test instead. (Triangles
+    that share a vertex and cross elsewhere at an angle are not found.) Candidates come from a hierarchical
     uniform grid: a triangle lives on the level whose cells (h0 2^level) are at least its size, and
     is paired with the triangles of its own level or finer that share a cell with it."""
     n = len(tri)
@@ -193,19 +196,55 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
     lo = tri.min(1) - tol
     hi = tri.max(1) + tol
     ext = (hi - lo).max(1)
-    h0 = max(float(np.median(ext)), 1e-30)
+    h0 = max(0.5 * float(np.median(ext)), 1e-30)
     level = np.maximum(0, np.ceil(np.log2(np.maximum(ext / h0, 1.0)))).astype(np.int64)
     found = []
 
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(nrm, axis=1)
+    nrm /= area2[:, None]
+    plane_d = np.einsum("nk,nk->n", nrm, tri[:, 0])
+    longest = np.sqrt(((tri - np.roll(tri, 1, axis=1)) ** 2).sum(2)).max(1)
+    alt = area2 / longest  # the smallest altitude
+    flat = tri.reshape(-1, 9)
+
+    def dist(a, b):  # signed distances of b's vertices from a's plane: (m, 3)
+        pb, na = flat[b], nrm[a]
+        return np.stack([(pb[:, 3 * v : 3 * v + 3] * na).sum(1) for v in range(3)], 1) - plane_d[a][:, None]
+
+    lo32 = [np.nextafter(lo[:, a].astype(F32), F32(-np.inf)) for a in range(3)]
+    hi32 = [np.nextafter(hi[:, a].astype(F32), F32(np.inf)) for a in range(3)]
+    welded = welded.astype(np.int32)
+
     def keep_pairs(i, j):
-        ok = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), 1)
-        i, j = i[ok], j[ok]
-        ok = ~(welded[i][:, :, None] == welded[j][:, None, :]).any((1, 2)) & (i != j)
-        i, j = i[ok], j[ok]
-        ok = _reaches_plane(tri[i], tri[j], tol) & _reaches_plane(tri[j], tri[i], tol)
-        ok &= _not_separated_in_plane(tri[i], tri[j], tol)
-        if ok.any():
-            found.append(np.sort(np.stack([i[ok], j[ok]], 1), 1))
+        i, j = i.astype(np.int32), j.astype(np.int32)
+        for a in range(3):  # box overlap, one axis at a time (compacting as it goes)
+            ok = (lo32[a][i] <= hi32[a][j]) & (lo32[a][j] <= hi32[a][i])
+            i, j = i[ok], j[ok]
+        wi, wj = welded[i], welded[j]
+        shared = np.zeros(i.size, bool)
+        for a in range(3):
+            for b in range(3):
+                shared |= wi[:, a] == wj[:, b]
+        # triangles sharing a vertex meet there anyway: they count only when they also overlap
+        # in a common plane (a duplicate, a fold): coplanar within tol, overlapping by > tol.
+        # Cheap prefilter: coplanar within tol needs sin(angle between normals) <= ~2 tol / altitude
+        cosn = np.abs((nrm[i] * nrm[j]).sum(1))
+        lim = np.minimum(1.0, 4.0 * tol / np.minimum(alt[i], alt[j]))
+        maybe = ~shared | (1.0 - cosn * cosn <= lim * lim)
+        i, j, shared = i[maybe], j[maybe], shared[maybe]
+        dij, dji = dist(i, j), dist(j, i)
+        coplanar = (np.abs(dij) <= tol).all(1) & (np.abs(dji) <= tol).all(1)
+
+        def reaches(dd):
+            return ~((dd > tol).all(1) | (dd < -tol).all(1))
+
+        near = np.where(shared, coplanar, reaches(dij) & reaches(dji))
+        i, j, shared = i[near], j[near], shared[near]
+        if i.size:
+            near = _not_separated_in_plane(tri[i], tri[j], np.where(shared, -tol, 2 * tol))
+            if near.any():
+                found.append(np.sort(np.stack([i[near], j[near]], 1), 1))
 
     for lev in range(int(level.max()) + 1):
         members = np.nonzero(level <= lev)[0]
@@ -254,22 +293,11 @@ def _expand(counts):
     return owner, np.arange(owner.size) - first[owner]
 
 
-def _unit_normals(t):
-    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    return nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-
-
-def _reaches_plane(a, b, tol):
-    """b's vertices are not all on one side of a's plane by more than tol."""
-    nrm = _unit_normals(a)
-    s = np.einsum("nk,nvk->nv", nrm, b - a[:, :1])
-    return ~((s > tol).all(1) | (s < -tol).all(1))
-
-
-def _not_separated_in_plane(a, b, tol):
+def _not_separated_in_plane(a, b, margin):
     """Separating-axis test in a's plane with the six edge normals of the two projected
-    triangles (only decisive for coplanar pairs; True means 'maybe within tol')."""
-    nrm = _unit_normals(a)
+    triangles (only decisive for coplanar pairs): True unless some axis separates them by more
+    than `margin` (per pair; a negative margin asks for an overlap of at least -margin)."""
+    nrm = np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])
     drop = np.argmax(np.abs(nrm), 1)
     keep = np.array([[1, 2], [0, 2], [0, 1]])[drop]  # (n, 2)
     pa = np.take_along_axis(a, keep[:, None, :], 2)
@@ -283,9 +311,9 @@ def _not_separated_in_plane(a, b, tol):
             ax = ax / np.where(ln > 0, ln, 1)
             qa = np.einsum("nk,nvk->nv", ax, pa)
             qb = np.einsum("nk,nvk->nv", ax, pb)
-            # the projection shrinks distances by at most the cosine of the normal with the
-            # dropped axis (>= 1/sqrt 3): scale tol up accordingly
-            sep |= (qa.min(1) > qb.max(1) + 2 * tol) | (qb.min(1) > qa.max(1) + 2 * tol)
+            # (projecting along the dominant axis of a's normal shrinks distances by at most
+            # 1/sqrt 3 in a direction; the margins are generous enough for a superset)
+            sep |= (qa.min(1) > qb.max(1) + margin) | (qb.min(1) > qa.max(1) + margin)
     return ~sep
 
 
@@ -448,7 +476,8 @@ class _EmbreeBackend:
             sa = s[active]
             shift = np.where(sa != 0, sa, 0.0)
             org = (o64[active] + shift[:, None] * d64[active]).astype(F32)
-            span = (tfar[active].astype(np.float64) - shift).astype(F32)
+            with np.errstate(invalid="ignore"):
+                span = (tfar[active].astype(np.float64) - shift).astype(F32)
             span = np.where(np.isnan(span), F32(-1), span)
             pid, te = self._run(org, d32[active], np.maximum(span, F32(0)), "INTERSECT")
             hitm = (pid >= 0) & (span >= 0)
@@ -530,10 +559,22 @@ class TriangleAccel:
         self.lanes = lanes
 
     @classmethod
-    def build(cls, vertices, triangles, *, backend: str = "auto", leaf_size: int = 4, lanes: int = _bvh.DEFAULT_LANES, threads: int | None = None) -> TriangleAccel:
+    def build(
+        cls,
+        vertices,
+        triangles,
+        *,
+        backend: str = "auto",
+        leaf_size: int = 4,
+        lanes: int = _bvh.DEFAULT_LANES,
+        min_triangles: int = 0,
+        threads: int | None = None,
+    ) -> TriangleAccel:
         """Build on the host. vertices (V, 3) float, triangles (T, 3) int. backend: "auto" (embree
-        if importable and JAX runs on the CPU, else jax), "embree" or "jax". leaf_size and lanes
-        tune the jax backend (triangles per BVH leaf; rays in flight), threads the embree one."""
+        if importable and JAX runs on the CPU, else jax), "embree" or "jax". leaf_size, lanes and
+        min_triangles tune the jax backend (triangles per BVH leaf; rays in flight; pad the BVH
+        arrays as for this many triangles so that several meshes share one compiled traversal),
+        threads the embree one (default: os.cpu_count())."""
         if backend not in ("auto", "embree", "jax"):
             raise InputError(f"backend must be 'auto', 'embree' or 'jax', got {backend!r}")
         if backend == "auto":
@@ -543,7 +584,7 @@ class TriangleAccel:
             if not embree_available():
                 raise InputError("backend='embree' needs the embreex package (pip install embreex)")
             return cls("embree", _EmbreeBackend(vertices, triangles, threads), n_tri, lanes)
-        bvh = build_bvh(vertices, triangles, leaf_size=leaf_size).to_device()
+        bvh = build_bvh(vertices, triangles, leaf_size=leaf_size, min_triangles=min_triangles).to_device()
         return cls("jax", bvh, n_tri, lanes)
 
     @property
@@ -555,14 +596,23 @@ class TriangleAccel:
     # The jax backend pads the ray count to a power-of-two bucket (at least 1024) so that the
     # traversal compiles once per bucket; the padding rays have a zero direction and end at once.
     def _jax_call(self, fn, shape, arrays, **kw):
+        """arrays: name -> (value, trailing shape, dtype). Everything is cast to a definite
+        (strong) dtype, so Python scalars and arrays hit the same compiled program."""
         n = int(np.prod(shape, dtype=np.int64))
         m = pad_rays(n)
         flat = {}
-        for name, (a, tail) in arrays.items():
-            a = jnp.broadcast_to(jnp.asarray(a), shape + tail).reshape((n,) + tail)
+        for name, (a, tail, dt) in arrays.items():
+            a = jnp.broadcast_to(jnp.asarray(a).astype(dt), shape + tail).reshape((n,) + tail)
             flat[name] = jnp.pad(a, [(0, m - n)] + [(0, 0)] * len(tail))
         out = fn(self._impl, **flat, lanes=min(self.lanes, m), **kw)
         return jax.tree.map(lambda x: x[:n].reshape(shape + x.shape[1:]), out)
+
+    @staticmethod
+    def _ray_dtype(origins, directions):
+        """float64 when either is float64 (and x64 is on), else float32: the barycentrics' dtype."""
+        dts = [np.result_type(x) if not isinstance(x, jax.Array) else x.dtype for x in (origins, directions)]
+        wide = any(np.dtype(dt) == np.float64 for dt in dts)
+        return jnp.float64 if wide and jax.config.jax_enable_x64 else jnp.float32
 
     @staticmethod
     def _shape(origins, directions):
@@ -581,13 +631,10 @@ class TriangleAccel:
             h = self._impl.intersect(o, d, tn, tf, af)
             return Hits(*(x.reshape(shape) for x in h))
         shape = self._shape(origins, directions)
-        o = jnp.asarray(origins)
-        dt = o.dtype if jnp.issubdtype(o.dtype, jnp.floating) else jnp.float32
-        return self._jax_call(
-            intersect_jax,
-            shape,
-            {"origins": (jnp.asarray(origins, dt), (3,)), "directions": (jnp.asarray(directions, dt), (3,)), "tnear": (tnear, ()), "tfar": (tfar, ()), "after_prim": (after_prim, ())},
-        )
+        dt = self._ray_dtype(origins, directions)
+        args = {"origins": (origins, (3,), dt), "directions": (directions, (3,), dt)}
+        args.update(tnear=(tnear, (), jnp.float32), tfar=(tfar, (), jnp.float32), after_prim=(after_prim, (), jnp.int32))
+        return self._jax_call(intersect_jax, shape, args)
 
     def occluded(self, origins, directions, tnear=0.0, tfar=np.inf):
         """Shadow rays: bool (...), True when a triangle is hit with tnear <= t <= tfar.
@@ -597,7 +644,9 @@ class TriangleAccel:
             shape, o, d, tn, tf, _ = _host_rays(origins, directions, tnear, tfar, -1)
             return self._impl.occluded(o, d, tn, tf).reshape(shape)
         shape = self._shape(origins, directions)
-        return self._jax_call(occluded_jax, shape, {"origins": (origins, (3,)), "directions": (directions, (3,)), "tnear": (tnear, ()), "tfar": (tfar, ())})
+        args = {"origins": (origins, (3,), jnp.float32), "directions": (directions, (3,), jnp.float32)}
+        args.update(tnear=(tnear, (), jnp.float32), tfar=(tfar, (), jnp.float32))
+        return self._jax_call(occluded_jax, shape, args)
 
     def first_k_hits(self, origins, directions, k: int, tnear=0.0, tfar=np.inf) -> Hits:
         """The k first hits per ray in (t, id) order: Hits of shape (..., k); missing layers have
@@ -620,11 +669,7 @@ class TriangleAccel:
                 live = live[h.prim >= 0]
             return Hits(*(x.reshape(shape + (k,)) for x in out))
         shape = self._shape(origins, directions)
-        o = jnp.asarray(origins)
-        dt = o.dtype if jnp.issubdtype(o.dtype, jnp.floating) else jnp.float32
-        return self._jax_call(
-            first_k_hits_jax,
-            shape,
-            {"origins": (jnp.asarray(origins, dt), (3,)), "directions": (jnp.asarray(directions, dt), (3,)), "tnear": (tnear, ()), "tfar": (tfar, ())},
-            k=k,
-        )
+        dt = self._ray_dtype(origins, directions)
+        args = {"origins": (origins, (3,), dt), "directions": (directions, (3,), dt)}
+        args.update(tnear=(tnear, (), jnp.float32), tfar=(tfar, (), jnp.float32))
+        return self._jax_call(first_k_hits_jax, shape, args, k=k)

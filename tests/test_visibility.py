@@ -1,0 +1,481 @@
+"""Triangle-mesh visibility (jaxpbr.rendering.visibility): both backends against a float64
+brute-force Moller-Trumbore loop over all triangles, closed-form cases, occlusion, ray continuation
+through stacked and coplanar layers, shadow-ray offsets, and what the JAX traversal compiles.
+
+Every JAX BVH here is padded to the same shapes (min_triangles=_CAP) and every ray batch to one
+bucket, so the traversal compiles once per query kind (intersect, occluded, first_k_hits)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import jax
+import jax.numpy as jnp
+
+from jaxpbr.errors import InputError
+from jaxpbr.rendering import bvh as bvh_mod
+from jaxpbr.rendering.visibility import (
+    TriangleAccel,
+    build_bvh,
+    embree_available,
+    intersect_jax,
+    offset_ray_origin,
+)
+
+_CAP = 1024  # BVH arrays padded as for this many triangles: one compiled traversal for all meshes
+BACKENDS = ["jax"] + (["embree"] if embree_available() else [])
+backends = pytest.mark.parametrize("backend", BACKENDS)
+
+
+def _accel(v, f, backend):
+    return TriangleAccel.build(v, f, backend=backend, min_triangles=_CAP)
+
+
+# --------------------------------------------------------------------------------------------------
+# meshes and the oracle
+
+
+def icosphere(sub=2, radius=1.0, center=(0.0, 0.0, 0.0)):
+    t = (1 + 5**0.5) / 2
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(sub):
+        cache = {}
+        verts = list(v)
+
+        def mid(a, b):
+            key = (min(a, b), max(a, b))
+            if key not in cache:
+                m = verts[a] + verts[b]
+                verts.append(m / np.linalg.norm(m))
+                cache[key] = len(verts) - 1
+            return cache[key]
+
+        nf = []
+        for a, b, c in f:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            nf += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+        v, f = np.array(verts), np.array(nf)
+    return v * radius + np.asarray(center), f
+
+
+def cube():
+    v = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1], [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return v, f
+
+
+def soup(n=200, seed=3):
+    rng = np.random.default_rng(seed)
+    c = rng.uniform(-1, 1, (n, 1, 3))
+    v = (c + rng.normal(scale=0.25, size=(n, 3, 3))).reshape(-1, 3)
+    return v, np.arange(3 * n).reshape(n, 3)
+
+
+MESHES = {"icosphere": icosphere(2), "soup": soup(), "cube": cube()}
+
+
+def brute_all(v, f, o, d):
+    """t (N, T) of every triangle hit (inf where missed), float64 Moller-Trumbore with closed
+    barycentric intervals, on the float32-rounded mesh and rays; and b1, b2 (N, T)."""
+    tri = np.asarray(v, np.float32).astype(np.float64)[f]
+    o = np.asarray(o, np.float32).astype(np.float64)[:, None]
+    d = np.asarray(d, np.float32).astype(np.float64)[:, None]
+    v0, e1, e2 = tri[None, :, 0], (tri[:, 1] - tri[:, 0])[None], (tri[:, 2] - tri[:, 0])[None]
+    p = np.cross(d, e2)
+    det = (e1 * p).sum(-1)
+    with np.errstate(all="ignore"):
+        s = o - v0
+        b1 = (s * p).sum(-1) / det
+        q = np.cross(s, e1)
+        b2 = (d * q).sum(-1) / det
+        t = (e2 * q).sum(-1) / det
+    ok = (det != 0) & (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1) & (t >= 0)
+    return np.where(ok, t, np.inf), b1, b2
+
+
+def rays_at(v, n, seed, spread=3.0):
+    rng = np.random.default_rng(seed)
+    o = rng.normal(size=(n, 3))
+    o = spread * o / np.linalg.norm(o, axis=1, keepdims=True)
+    target = v[rng.integers(0, len(v), n)] * rng.uniform(0.0, 0.9, (n, 1)) + rng.normal(scale=0.05, size=(n, 3))
+    return o, target - o
+
+
+def check_against_brute(h, v, f, o, d, rtol_t=1e-5, tol_b=1e-5):
+    """prim exact unless the brute force sees another triangle within a tie of the best t (edges,
+    crossings); t relative, barycentrics absolute."""
+    t_all, b1_all, b2_all = brute_all(v, f, o, d)
+    best = t_all.min(1)
+    t, prim, b1, b2 = (np.asarray(x) for x in h)
+    hit = np.isfinite(best)
+    assert np.array_equal(prim >= 0, hit)
+    rows = np.nonzero(hit)[0]
+    p = prim[rows]
+    tie = np.abs(t_all[rows, p] - best[rows]) <= 1e-6 * best[rows]
+    assert tie.all(), "a reported triangle that is not (one of) the nearest"
+    np.testing.assert_allclose(t[rows], best[rows], rtol=rtol_t)
+    np.testing.assert_allclose(b1[rows], b1_all[rows, p], atol=tol_b)
+    np.testing.assert_allclose(b2[rows], b2_all[rows, p], atol=tol_b)
+    exact = (t_all[rows] <= best[rows, None] * (1 + 1e-6)).sum(1) == 1
+    assert np.array_equal(p[exact], np.argmin(t_all[rows], 1)[exact])
+    return hit.mean()
+
+
+# --------------------------------------------------------------------------------------------------
+# against brute force
+
+
+@backends
+@pytest.mark.parametrize("mesh", list(MESHES))
+def test_against_brute_force(mesh, backend):
+    v, f = MESHES[mesh]
+    o, d = rays_at(v, 300, seed=len(mesh))
+    acc = _accel(v, f, backend)
+    frac = check_against_brute(acc.intersect(o, d), v, f, o, d)
+    assert frac > 0.5
+
+
+def test_backends_agree():
+    if "embree" not in BACKENDS:
+        pytest.skip("embreex not installed")
+    v, f = MESHES["soup"]
+    o, d = rays_at(v, 1000, seed=7, spread=2.0)
+    he = _accel(v, f, "embree").intersect(o, d)
+    hj = _accel(v, f, "jax").intersect(o, d)
+    assert np.array_equal(he.prim, np.asarray(hj.prim))
+    np.testing.assert_allclose(he.t, np.asarray(hj.t), rtol=1e-6)
+    np.testing.assert_allclose(he.b1, np.asarray(hj.b1), atol=1e-9)
+
+
+# --------------------------------------------------------------------------------------------------
+# closed forms
+
+
+def unit_quad(z=0.0):
+    v = np.array([[0, 0, z], [1, 0, z], [1, 1, z], [0, 1, z]], float)
+    return v, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+@backends
+def test_unit_quad_closed_form(backend):
+    v, f = unit_quad()
+    acc = _accel(v, f, backend)
+    g = (np.arange(16) + 0.3) / 16.0
+    x, y = [a.ravel() for a in np.meshgrid(g, g + 0.01)]
+    keep = np.abs(x - y) > 1e-3  # off the diagonal (there both triangles are at the same t)
+    x, y = x[keep], y[keep]
+    for d in ([0.0, 0.0, -1.0], [0.3, -0.2, -1.0]):
+        d = np.broadcast_to(np.array(d), (x.size, 3))
+        s = 2.5
+        o = np.stack([x, y, np.zeros_like(x)], 1) - s * d
+        h = acc.intersect(o, d)
+        lower = y < x  # triangle 0: p = b1 v1 + b2 v2 -> (b1 + b2, b2); triangle 1: (b1, b1 + b2)
+        np.testing.assert_array_equal(np.asarray(h.prim), np.where(lower, 0, 1))
+        np.testing.assert_allclose(np.asarray(h.t), s, rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(h.b1), np.where(lower, x - y, x), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(h.b2), np.where(lower, y, y - x), atol=1e-6)
+
+
+@backends
+@pytest.mark.parametrize("mesh", ["icosphere", "cube"])
+def test_inside_a_closed_mesh_every_ray_hits(mesh, backend):
+    """Including rays aimed exactly at vertices and edge midpoints (watertightness)."""
+    v, f = MESHES[mesh]
+    rng = np.random.default_rng(1)
+    n = 300
+    o = rng.normal(size=(n, 3))
+    o *= rng.uniform(0, 0.5, (n, 1)) / np.linalg.norm(o, axis=1, keepdims=True)
+    d = rng.normal(size=(n, 3))
+    tri = v[f]
+    aims = np.concatenate([v, 0.5 * (tri[:, 0] + tri[:, 1])])  # vertices, edge midpoints
+    o = np.concatenate([o, np.zeros((len(aims), 3))])
+    d = np.concatenate([d, aims])
+    h = _accel(v, f, backend).intersect(o, d)
+    assert (np.asarray(h.prim) >= 0).all()
+    assert (np.asarray(h.t) > 0).all() and np.isfinite(np.asarray(h.t)).all()
+
+
+@backends
+def test_rays_parallel_to_a_triangle_miss(backend):
+    v, f = unit_quad()
+    acc = _accel(v, f, backend)
+    o = np.array([[-1.0, 0.5, 0.0], [-1.0, 0.5, 1e-3], [0.5, -1.0, -1e-3], [-1, -1, 0.0]])
+    d = np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]])
+    h = acc.intersect(o, d)
+    assert (np.asarray(h.prim) == -1).all() and np.isinf(np.asarray(h.t)).all()
+    assert not np.asarray(acc.occluded(o, d)).any()
+
+
+@backends
+def test_degenerate_triangles_are_never_hit(backend):
+    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [0, 0, 1], [np.nan, 0, 0], [0, 0, 5], [1, 0, 5], [0, 1, 5]], float)
+    f = np.array([[0, 1, 2], [0, 0, 3], [3, 3, 3], [0, 5, 4], [6, 7, 8], [0, 2, 1]])  # only 4 is proper
+    acc = _accel(v, f, backend)
+    aims = np.array([[0.5, 0, 0], [1.5, 0, 0], [0, 0.5, 0], [0, 1, 0], [0, 0, 0.5], [0.2, 0.2, 5]])
+    o = np.concatenate([aims + [0, 0, 1], aims + [0, 1, 0], aims + [1, 0, 0]])
+    d = np.concatenate([np.tile([0, 0, -1.0], (6, 1)), np.tile([0, -1.0, 0], (6, 1)), np.tile([-1.0, 0, 0], (6, 1))])
+    h = acc.intersect(o, d)
+    prim = np.asarray(h.prim)
+    assert set(prim.tolist()) <= {-1, 4}
+    assert prim[5] == 4
+    for x in h:
+        assert not np.isnan(np.asarray(x, float)).any()
+
+
+# --------------------------------------------------------------------------------------------------
+# occlusion and ranges
+
+
+@backends
+def test_occluded_matches_intersect(backend):
+    v, f = MESHES["soup"]
+    o, d = rays_at(v, 600, seed=11, spread=2.0)
+    rng = np.random.default_rng(2)
+    acc = _accel(v, f, backend)
+    first = np.asarray(acc.intersect(o, d).t)
+    tfar = np.where(np.isfinite(first), first, 5.0) * rng.uniform(0.5, 1.5, len(o))
+    tnear = rng.uniform(0, 0.3, len(o)) * tfar
+    h = acc.intersect(o, d, tnear=tnear, tfar=tfar)
+    occ = np.asarray(acc.occluded(o, d, tnear=tnear, tfar=tfar))
+    expect = np.asarray(h.prim) >= 0
+    t_all = brute_all(v, f, o, d)[0]
+    near_edge = np.any(np.abs(t_all - tfar[:, None]) <= 1e-5 * tfar[:, None], 1)
+    near_edge |= np.any(np.abs(t_all - tnear[:, None]) <= 1e-5 * tfar[:, None], 1)
+    assert np.array_equal(occ[~near_edge], expect[~near_edge])
+    if backend == "jax":
+        assert np.array_equal(occ, expect)
+    # the range: what intersect found lies in [tnear, tfar] and nothing nearer in it
+    t = np.asarray(h.t)
+    assert (t[expect] >= tnear[expect]).all() and (t[expect] <= tfar[expect]).all()
+    inside = np.where((t_all >= tnear[:, None]) & (t_all <= tfar[:, None]), t_all, np.inf).min(1)
+    np.testing.assert_allclose(t[expect], inside[expect], rtol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------------
+# continuation
+
+
+def layers():
+    """Five parallel unit quads at z = 0..4 (triangles 0-9), a copy of the z = 2 quad with its own
+    vertices (10, 11) and a larger quad in the same plane (12, 13)."""
+    parts = [unit_quad(z) for z in range(5)] + [unit_quad(2.0)]
+    big = np.array([[-0.5, -0.5, 2], [1.5, -0.5, 2], [1.5, 1.5, 2], [-0.5, 1.5, 2]], float)
+    parts.append((big, np.array([[0, 1, 2], [0, 2, 3]])))
+    vs, fs, off = [], [], 0
+    for v, f in parts:
+        vs.append(v)
+        fs.append(f + off)
+        off += len(v)
+    return np.concatenate(vs), np.concatenate(fs)
+
+
+@backends
+def test_first_k_hits_through_stacked_and_coplanar_layers(backend):
+    """Documented behaviour: every triangle on the ray once, in (t, id) order; coplanar overlapping
+    triangles (equal t) are all reported, the smaller id first."""
+    v, f = layers()
+    acc = _accel(v, f, backend)
+    rng = np.random.default_rng(5)
+    n = 200
+    xy = rng.uniform(0.05, 0.95, (n, 2))
+    xy = xy[np.abs(xy[:, 0] - xy[:, 1]) > 0.05]  # off the quads' diagonals
+    n = len(xy)
+    slope = np.where(np.arange(n)[:, None] % 2 == 0, 0.0, rng.uniform(-0.01, 0.01, (n, 2)))
+    o = np.c_[xy + 6.0 * slope, np.full(n, 6.0)]
+    d = np.c_[-slope, -np.ones(n)]
+    h = acc.first_k_hits(o, d, 8)
+    prim, t = np.asarray(h.prim), np.asarray(h.t)
+    t_all = brute_all(v, f, o, d)[0]
+    for i in range(n):
+        got = prim[i][prim[i] >= 0]
+        assert len(got) == len(set(got.tolist())), "a layer reported twice"
+        assert set(got.tolist()) == set(np.nonzero(np.isfinite(t_all[i]))[0].tolist()), "a layer lost"
+        assert len(got) == 7  # z = 4, 3, three at z = 2, 1, 0
+        key = list(zip(t[i][: len(got)].tolist(), got.tolist()))
+        assert key == sorted(key)
+    # the coplanar ones: exactly equal t for the vertical rays, then by id
+    vert = np.arange(n) % 2 == 0
+    assert (t[vert, 2] == t[vert, 3]).all() and (t[vert, 3] == t[vert, 4]).all()
+    assert (np.diff(prim[vert, 2:5], axis=1) > 0).all()
+    # the same by hand: intersect(tnear = previous t, after_prim = previous id)
+    tn, after = np.zeros(n), np.full(n, -1)
+    for i in range(8):
+        hh = acc.intersect(o, d, tnear=tn, after_prim=after)
+        assert np.array_equal(np.asarray(hh.prim), prim[:, i])
+        tn = np.where(np.asarray(hh.prim) >= 0, np.asarray(hh.t), np.inf)
+        after = np.asarray(hh.prim)
+
+
+@backends
+def test_continuation_on_a_closed_mesh_gives_entry_and_exit(backend):
+    v, f = MESHES["icosphere"]
+    o, d = rays_at(v, 300, seed=4)
+    acc = _accel(v, f, backend)
+    h = acc.first_k_hits(o, d, 8)
+    prim = np.asarray(h.prim)
+    t_all = brute_all(v, f, o, d)[0]
+    n_hits = np.isfinite(t_all).sum(1)
+    got = (prim >= 0).sum(1)
+    # a ray through a shared edge may report both triangles there: allow it, but never lose one
+    assert (got >= n_hits).all()
+    assert (prim[:, 2][n_hits == 2] == -1).mean() > 0.95
+
+
+# --------------------------------------------------------------------------------------------------
+# shadow rays
+
+
+@backends
+@pytest.mark.parametrize("center", [(0.0, 0.0, 0.0), (100.0, -50.0, 20.0)])
+def test_offset_shadow_rays_never_self_shadow_on_the_lit_side(center, backend):
+    v, f = icosphere(3, radius=1.0, center=center)
+    v = v.astype(np.float32)
+    acc = _accel(v, f, backend)
+    rng = np.random.default_rng(9)
+    n = 1000
+    tri = v[f]
+    ti = rng.integers(0, len(f), n)
+    b = rng.dirichlet([1, 1, 1], n).astype(np.float32)
+    p = (b[:, :1] * tri[ti, 0] + b[:, 1:2] * tri[ti, 1] + b[:, 2:] * tri[ti, 2]).astype(np.float32)
+    ng = np.cross(tri[ti, 1] - tri[ti, 0], tri[ti, 2] - tri[ti, 0]).astype(np.float64)
+    ng /= np.linalg.norm(ng, axis=1, keepdims=True)
+    ng *= np.sign(np.einsum("nk,nk->n", ng, p - np.asarray(center)))[:, None]  # outward
+    light = rng.normal(size=(n, 3))
+    light /= np.linalg.norm(light, axis=1, keepdims=True)
+    c = np.einsum("nk,nk->n", light, ng)
+    light -= 2 * np.minimum(c, 0)[:, None] * ng  # the lit side, down to grazing
+    grazing = np.argsort(np.abs(c))[: n // 10]
+    light[grazing] = light[grazing] - (np.einsum("nk,nk->n", light[grazing], ng[grazing]) - 1e-3)[:, None] * ng[grazing]
+    origin = offset_ray_origin(p, ng.astype(np.float32))
+    assert origin.dtype == np.float32 and np.abs(origin - p).max() > 0
+    assert not np.asarray(acc.occluded(origin, light)).any()
+    # without the offset the test has teeth: about half the rays start below their surface
+    assert np.asarray(acc.occluded(p, light)).mean() > 0.2
+
+
+def test_offset_ray_origin_numpy_and_jax_agree():
+    rng = np.random.default_rng(0)
+    p = (rng.normal(size=(1000, 3)) * 10.0 ** rng.uniform(-3, 3, (1000, 1))).astype(np.float32)
+    n = rng.normal(size=(1000, 3)).astype(np.float32)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    a = offset_ray_origin(p, n)
+    b = jax.jit(offset_ray_origin)(jnp.asarray(p), jnp.asarray(n))
+    assert isinstance(a, np.ndarray) and isinstance(b, jax.Array)
+    np.testing.assert_array_equal(a, np.asarray(b))
+    # each coordinate moves along the normal's sign (or not at all where int(256 n) = 0)
+    step = np.sign(a.astype(np.float64) - p)
+    assert (step[step != 0] == np.sign(n)[step != 0]).all()
+
+
+# --------------------------------------------------------------------------------------------------
+# the JAX traversal: compilation, tracing, precision
+
+
+def test_same_shapes_do_not_recompile():
+    """The traversal is compiled per (ray count, BVH array shapes): meshes built with the same
+    min_triangles share it, and TriangleAccel pads ray counts to power-of-two buckets."""
+    v1, f1 = MESHES["icosphere"]
+    v2, f2 = MESHES["soup"]
+    a1, a2 = _accel(v1, f1, "jax"), _accel(v2, f2, "jax")
+    assert jax.tree.map(np.shape, tuple(a1.bvh)) == jax.tree.map(np.shape, tuple(a2.bvh))
+    o, d = rays_at(v1, 300, seed=1)
+    a1.intersect(o, d)
+    size = intersect_jax._cache_size()
+    a2.intersect(o[:200], d[:200])
+    a1.intersect(o[:17], d[:17])
+    assert intersect_jax._cache_size() == size
+
+
+def test_intersect_bvh_traces_inside_jit_and_vmap():
+    """The functions under TriangleAccel are tracer-friendly: inside a caller's jit (float32 rays
+    give float32 results) and under vmap."""
+    v, f = MESHES["cube"]
+    bvh = build_bvh(v, f).to_device()
+    o, d = rays_at(v, 64, seed=2)
+    o, d = o.astype(np.float32), d.astype(np.float32)
+    t_all = brute_all(v, f, o, d)[0]
+
+    @jax.jit
+    def render(bvh, o, d):
+        h = bvh_mod.intersect_bvh(bvh, o, d, lanes=16)
+        batched = jax.vmap(lambda oo, dd: bvh_mod.intersect_bvh(bvh, oo, dd, lanes=16).prim)
+        return h, jnp.where(h.prim >= 0, h.t, 0.0), batched(o.reshape(4, 16, 3), d.reshape(4, 16, 3))
+
+    h, depth, batched = render(bvh, o, d)
+    assert h.b1.dtype == jnp.float32 and h.t.dtype == jnp.float32 and h.prim.dtype == jnp.int32
+    np.testing.assert_allclose(np.asarray(depth), np.where(np.isfinite(t_all.min(1)), t_all.min(1), 0), rtol=1e-5)
+    np.testing.assert_array_equal(np.asarray(batched).ravel(), np.asarray(h.prim))
+
+
+def test_watertight_test_is_antisymmetric_under_xla():
+    """The edge functions negate exactly when an edge is walked backwards, in NumPy and compiled
+    (XLA contracts a*b - c*d into an FMA; the formulation must survive it)."""
+    rng = np.random.default_rng(0)
+    n = 20000
+    o = rng.normal(size=(n, 3)).astype(np.float32)
+    d = rng.normal(size=(n, 3)).astype(np.float32)
+    a, b, c = (rng.normal(size=(n, 3)).astype(np.float32) for _ in range(3))
+
+    def both(o, d, a, b, c, xp):
+        s = bvh_mod.ray_setup(d, xp)
+        h1, t1, *_ = bvh_mod.watertight_test(o, s, a, b, c, xp)
+        h2, t2, *_ = bvh_mod.watertight_test(o, s, b, a, c, xp)  # same triangle, reversed winding
+        return h1, h2, t1, t2
+
+    for res in (both(o, d, a, b, c, np), jax.jit(lambda *x: both(*x, jnp))(o, d, a, b, c)):
+        h1, h2, t1, t2 = (np.asarray(x) for x in res)
+        assert np.array_equal(h1, h2)
+        np.testing.assert_array_equal(t1[h1], t2[h1])
+
+
+# --------------------------------------------------------------------------------------------------
+# API
+
+
+def test_auto_backend_and_errors():
+    v, f = MESHES["cube"]
+    acc = TriangleAccel.build(v, f)
+    expect = "embree" if (embree_available() and jax.default_backend() == "cpu") else "jax"
+    assert acc.backend == expect
+    with pytest.raises(InputError):
+        TriangleAccel.build(v, f, backend="optix")
+    with pytest.raises(InputError):
+        TriangleAccel.build(v[:, :2], f)
+    with pytest.raises(InputError):
+        TriangleAccel.build(v, f + 100)
+    with pytest.raises(InputError):
+        acc.intersect(np.zeros((3, 2)), np.ones((3, 2)))
+
+
+@backends
+def test_batch_shapes_and_empty_queries(backend):
+    v, f = MESHES["cube"]
+    acc = _accel(v, f, backend)
+    o = np.zeros((4, 5, 3))
+    d = np.broadcast_to([1.0, 0.2, 0.1], (4, 5, 3))
+    h = acc.intersect(o, d)
+    assert np.shape(h.t) == (4, 5) and (np.asarray(h.prim) >= 0).all()
+    assert np.shape(acc.occluded(o, d)) == (4, 5)
+    assert np.shape(acc.first_k_hits(o, d, 8).prim) == (4, 5, 8)
+    assert np.shape(acc.intersect(np.zeros((0, 3)), np.zeros((0, 3))).t) == (0,)
+
+
+# --------------------------------------------------------------------------------------------------
+# larger
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_large_mesh_against_brute_force(backend):
+    v, f = icosphere(5)  # 20480 triangles
+    o, d = rays_at(v, 400, seed=21)
+    acc = TriangleAccel.build(v, f, backend=backend)
+    check_against_brute(acc.intersect(o, d), v, f, o, d)
+    h = acc.first_k_hits(o, d, 2)
+    t_all = brute_all(v, f, o, d)[0]
+    srt = np.sort(t_all, 1)[:, :2]
+    got = np.asarray(h.t)
+    np.testing.assert_allclose(np.where(np.isfinite(srt), srt, 0), np.where(np.isfinite(got), got, 0), rtol=1e-5)
