@@ -11,8 +11,16 @@ v = +Z, position = n) under an environment plus a point and a directional light:
 
 Per material: mean relative error sum|diff| / sum ref over the disc (all channels), the largest
 per-pixel relative error (per pixel sum_c |diff| / sum_c ref), the same two for the IBL term alone,
-and the run times. Outputs: a Markdown table, a JSON of the numbers and a PNG of the per-pixel
-relative-error images (the PNG needs matplotlib: `pip install 'jaxpbr[report]'`).
+the IBL term by part (diffuse, specular, energy models; per-pixel relative luminance error
+statistics in the JSON) and the run times. Outputs: a Markdown table, a JSON of the numbers and a
+PNG of the per-pixel relative-error images (the PNG needs matplotlib: `pip install 'jaxpbr[report]'`).
+
+`asset_report` (`jaxpbr report render ASSET --environment FILE`) measures the same on the pixels of
+a glTF asset: its G-buffer (`jaxpbr.rendering.renderer.gbuffer`, materials after textures) is
+shaded by the same split sum and by the reference (a fixed random subset of pixels when there are
+many), IBL only; per part, the mean and percentiles of the per-pixel relative luminance error.
+Both paths share the precomputes and split sum (`_SplitSum`), the measurement (`_measure`) and
+the parts (`_ibl_parts`).
 """
 
 from __future__ import annotations
@@ -30,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._validate import positive_int
+from ..conventions import luminance
 from ..errors import InputError
 from ..ibl import envs
 from ..ibl import extract as _extract
@@ -45,10 +54,14 @@ from ..ibl.reference_render import (
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..ibl.specular import prefilter
 from ..io.atomic import OutputSet, atomic_write
+from ..rendering import renderer as _renderer
+from ..rendering.gltf_scene import load_gltf
+from ..rendering.scene import Environment, Scene
 from ..shading import lights as _lights
 from ..shading.material import Material
 from ..shading.shipped_luts import brdf_lut
 from ._common import (
+    CLIError,
     have_matplotlib,
     positive_int_arg,
     require_environment,
@@ -56,7 +69,7 @@ from ._common import (
 )
 from .timing import time_calls
 
-__all__ = ["DEFAULT_EXTENSION_ROUGHNESS", "DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "EXTENSION_ROWS", "add_command", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
+__all__ = ["DEFAULT_ASSET_PIXELS", "DEFAULT_EXTENSION_ROUGHNESS", "DEFAULT_METALLIC", "DEFAULT_ROUGHNESS", "EXTENSION_ROWS", "PARTS", "add_command", "asset_report", "default_lights", "markdown", "plot", "render_report", "sphere_gbuffer", "write_report"]
 
 DEFAULT_ROUGHNESS = (0.05, 0.15, 0.3, 0.5, 0.75, 1.0)
 DEFAULT_METALLIC = (0.0, 1.0)
@@ -124,44 +137,194 @@ def _bias(test, ref) -> float:
     return float((test - ref).sum() / max(np.abs(ref).sum(), 1e-300))
 
 
-def _ibl_parts(split_sum, furnace, terms, r, metallic, base_color, ibl, ref_ibl) -> dict:
-    """The IBL term's error by part and by energy model, for one material.
+def _part_stats(test, ref) -> dict:
+    """One part's error, test against ref (N, 3): the mean relative error over all pixels and
+    channels (sum |diff| / sum ref, the tables' "mean rel. error"), and the per-pixel relative
+    luminance error |Y(test) - Y(ref)| / Y(ref) over the pixels where the part is present
+    (Y(ref) above 1e-9 of its largest value): mean, median, 90th and 99th percentile, largest, the
+    signed luminance bias sum(Y(test) - Y(ref)) / sum Y(ref), that pixel count and the mean
+    reference luminance over them (ref_lum_mean)."""
+    yt, yr = luminance(np.asarray(test, np.float64)), luminance(np.asarray(ref, np.float64))
+    on = yr > 1e-9 * float(yr.max(initial=0.0))
+    e = np.abs(yt - yr)[on] / yr[on]
+    q = np.percentile(e, (50, 90, 99)) if e.size else (np.nan,) * 3
+    return dict(
+        mean_rel_error=_errors(test, ref)[0],
+        lum_mean=float(e.mean()) if e.size else float("nan"),
+        lum_p50=float(q[0]), lum_p90=float(q[1]), lum_p99=float(q[2]),
+        lum_max=float(e.max(initial=0.0)) if e.size else float("nan"),
+        lum_bias=float((yt - yr).sum() / max(yr.sum(), 1e-300)),
+        pixels=int(on.sum()),
+        ref_lum_mean=float(yr[on].mean()) if e.size else float("nan"),
+    )
 
-    * bias: signed relative error of the IBL term (single scattering, the reference's model);
-    * dielectrics (metallic 0): the diffuse and specular parts apart. The split sum is linear in
-      base colour there, so the specular part is the IBL term at base colour 0 and the diffuse part
-      the difference to base colour 1; the reference's are its F0 LA + LB and Ld sums;
+
+#: The parts of the IBL term each report measures (keys of a row's "parts"), in table order.
+PARTS = {
+    "ibl": "IBL, single scattering (the reference's model)",
+    "diffuse": "diffuse part",
+    "specular": "specular part",
+    "single_scatter_furnace_normalised": "single scattering, furnace-normalised",
+    "multi_scatter_furnace_normalised": "multiple scattering, furnace-normalised",
+    "multi_scatter": "IBL, multiple scattering (`render`'s default for glTF)",
+}
+
+
+def _ibl_parts(ss, p32, n32, v32, m32, m64, terms, ibl, ref_ibl) -> dict:
+    """The IBL term's error by part and by energy model, for per-pixel (or uniform) materials.
+
+    * ibl: the IBL term (single scattering, the reference's model);
+    * diffuse / specular: the two lobes apart. The glTF BRDF is linear in the diffuse colour
+      (1 - metallic) base at fixed F0, so the specular part is the term of the same F0 without
+      diffuse colour (base_color = F0, metallic = 1) and the diffuse part the rest; the
+      reference's are its own (1 - metallic) base Ld and F0 LA + LB sums (`reference_render`).
+      A part absent from every pixel (the diffuse part of metals) is left out;
     * energy models: the IBL term divided per pixel by the same model's white-furnace response (which
       removes the choice of energy compensation and leaves what the environment contributes), the
       single-scattering split sum and the multiple-scattering one (`multiscatter=True`, the renderer's
       default for glTF) each against the reference divided by its own furnace response. The
       reference's furnace is the LUT's single-scattering albedo (F0 A + B + (1 - metallic) base
-      0.96 (1 - C)): the split sum under L = 1 is exact but for the LUT, converged to ~1e-5.
+      0.96 (1 - C)): the split sum under L = 1 is exact but for the LUT, converged to ~1e-5;
+    * multi_scatter: the multiple-scattering IBL term itself against the (single-scattering)
+      reference: the error of what `render` draws, the energy model's difference included.
+    Returns the flat keys of the sphere tables (ibl_bias, ibl_diffuse_mean_rel_error, ...) and
+    "parts": {part: `_part_stats`}.
     """
-    f32 = jnp.float32
 
-    def mat(base):
-        return Material(base_color=jnp.asarray(base, f32), metallic=jnp.asarray(metallic, f32), roughness=jnp.asarray(r, f32))
+    def run(m_, ms=False):
+        return np.asarray(ss.run(p32, n32, v32, m_, multiscatter=ms)[1], np.float64)
 
+    def furnace(m_, ms):
+        return np.asarray(ss.furnace(n32, v32, m_, ms), np.float64)
+
+    t = np.asarray(terms, np.float64)
+    ref_d = reference_ibl_from_terms(t * np.array([1.0, 0.0, 0.0])[:, None], m64)
+    ref_s = reference_ibl_from_terms(t * np.array([0.0, 1.0, 1.0])[:, None], m64)
+    spec = m32.replace(base_color=m32.f0(), metallic=jnp.ones_like(m32.metallic))
+    ss_s = run(spec)
+    ss_d = ibl - ss_s
+    ref_norm = ref_ibl / furnace(m32, False)
+    multi = run(m32, True)
+    parts = dict(ibl=_part_stats(ibl, ref_ibl))
     out = dict(ibl_bias=_bias(ibl, ref_ibl))
-    if metallic == 0.0:
-        with jax.enable_x64(True):
-            zero = Material(base_color=jnp.zeros(3), metallic=jnp.float64(0.0), roughness=jnp.float64(r))
-            one = Material(base_color=jnp.ones(3), metallic=jnp.float64(0.0), roughness=jnp.float64(r))
-        ref_s = reference_ibl_from_terms(terms, zero)
-        ref_d = reference_ibl_from_terms(terms, one) - ref_s
-        ss_s = split_sum(mat((0.0, 0.0, 0.0)))
-        ss_d = split_sum(mat((1.0, 1.0, 1.0))) - ss_s
-        out.update(
-            ibl_diffuse_mean_rel_error=_errors(ss_d, ref_d)[0], ibl_diffuse_bias=_bias(ss_d, ref_d),
-            ibl_specular_mean_rel_error=_errors(ss_s, ref_s)[0], ibl_specular_bias=_bias(ss_s, ref_s),
-        )
-    m = mat(base_color)
-    ref_norm = ref_ibl / furnace(m, False)
-    for name, ms in (("single", False), ("multi", True)):
-        test = (ibl if not ms else split_sum(m, True)) / furnace(m, ms)
-        out[f"ibl_{name}_scatter_furnace_normalised_error"] = _errors(test, ref_norm)[0]
+    for name, test, ref in (("diffuse", ss_d, ref_d), ("specular", ss_s, ref_s)):
+        if np.abs(ref).sum() > 0:
+            parts[name] = _part_stats(test, ref)
+            out[f"ibl_{name}_mean_rel_error"] = parts[name]["mean_rel_error"]
+            out[f"ibl_{name}_bias"] = _bias(test, ref)
+    for name, test in (("single", ibl), ("multi", multi)):
+        key = f"{name}_scatter_furnace_normalised"
+        parts[key] = _part_stats(test / furnace(m32, name == "multi"), ref_norm)
+        out[f"ibl_{key}_error"] = parts[key]["mean_rel_error"]
+    parts["multi_scatter"] = _part_stats(multi, ref_ibl)
+    out["parts"] = parts
     return out
+
+
+@functools.partial(jax.jit, static_argnames=("multiscatter",))
+def _split_sum(p_, n_, v_, m_, irr_, pre_, lut_, lights_, discs_, multiscatter=False):
+    """(direct + IBL, IBL) by the split sum. "IBL" = what the environment contributes: the split
+    sum of the (residual) environment plus its extracted disc lights (emission added once, by the
+    lights' term; none without lights), with the multiple-scattering compensation of both when
+    asked (as `render` does)."""
+    ibl = shade_ibl(n_, v_, m_, irr_, pre_, lut_, multiscatter=multiscatter)
+    if discs_ is not None:
+        dark = m_.replace(emissive=jnp.zeros_like(m_.emissive))
+        ibl = ibl + _lights.shade_direct(p_, n_, v_, dark, discs_, disc_lights=True)
+        if multiscatter:
+            ibl = ibl + disc_multiscatter(n_, v_, m_, lut_, discs_)
+    if not lights_:
+        return ibl, ibl
+    return _lights.shade_direct(p_, n_, v_, m_, lights_) + ibl, ibl
+
+
+@functools.partial(jax.jit, static_argnames=("multiscatter",))
+def _furnace(n_, v_, m_, irr1, pre1, lut_, multiscatter=False):
+    """The split sum's white-furnace response (L = 1 everywhere): what each energy model's IBL
+    term is divided by in the furnace-normalised parts."""
+    return shade_ibl(n_, v_, m_, irr1, pre1, lut_, multiscatter=multiscatter)
+
+
+class _SplitSum:
+    """The split sum as the reports run it: the environment's precomputes (once, float32 as users
+    run them; dominant lights extracted first when asked, as `render` does), then `run` (jitted
+    `_split_sum`) and `furnace` on G-buffer pixels."""
+
+    def __init__(self, env: Cubemap, lights, *, extract_lights: bool, irradiance_size: int, prefilter_size, lut_size: int):
+        t0 = time.perf_counter()
+        lights = list(lights) if isinstance(lights, (list, tuple)) else [lights]
+        ss_env, self.extracted, discs = env, [], []
+        if extract_lights:
+            ex = _extract.extract_lights(env)
+            ss_env, self.extracted, discs = ex.residual, ex.info["lights"], list(ex.lights)
+        self.ss_env = ss_env
+        self.lut = brdf_lut(lut_size)
+        self.irr = irradiance(ss_env, irradiance_size)
+        self.pre = prefilter(ss_env, prefilter_size)
+        jax.block_until_ready((self.lut, self.irr.levels, self.pre.levels))
+        self.precompute_s = time.perf_counter() - t0
+        f32 = jnp.float32
+        self.lights32 = _lights_as(lights, f32)
+        self.discs32 = _lights_as(discs, f32) if discs else None
+        ones = lambda c: Cubemap(tuple(jnp.ones_like(x) for x in c.levels), c.metadata)  # noqa: E731
+        self._irr1, self._pre1 = ones(self.irr), ones(self.pre)
+        self.description = (
+            ("environment split into " + (f"{len(self.extracted)} disc light(s) + residual; " if self.extracted else "no disc light (none found); ") if extract_lights else "")
+            + f"float32 shade_direct + shade_ibl (gltf), irradiance {irradiance_size}^2 exact, prefilter {self.pre.face_size}^2 x {self.pre.num_levels} mips (FIS defaults), BRDF LUT {lut_size}^2"
+        )
+
+    def run(self, p, n, v, m, multiscatter: bool = False):
+        return _split_sum(p, n, v, m, self.irr, self.pre, self.lut, self.lights32, self.discs32, multiscatter=multiscatter)
+
+    def furnace(self, n, v, m, multiscatter: bool):
+        return _furnace(n, v, m, self._irr1, self._pre1, self.lut, multiscatter=multiscatter)
+
+    def log_setup(self, log) -> None:
+        for x in self.extracted:
+            log(f"  extracted a disc light: radius {x['angular_radius_deg']:.2f} deg, {100 * x['power_share']:.1f} % of the environment's power")
+        log(f"  precompute (LUT {self.lut.shape[0]}^2, irradiance {self.irr.face_size}^2, prefilter {self.pre.face_size}^2 x {self.pre.num_levels} mips): {self.precompute_s:.2f} s")
+
+
+def _measure(ss: _SplitSum, p, n, v, m32, m64, terms, *, reference_direct=None, repeats: int) -> tuple[dict, np.ndarray, float, dict]:
+    """Split sum against the reference on one set of G-buffer pixels (p, n, v float32 (N, 3), the
+    material in float32 and float64, the reference's environment sums `terms` of these pixels):
+    the split sum timed (best of `repeats` jitted calls after a warm-up), the reference's radiance
+    (`reference_ibl_from_terms` + `reference_direct()`, the float64 direct lighting, if any).
+    Returns (row: errors of the whole and of the IBL term, the IBL parts (`_ibl_parts`), the IBL
+    share and split_sum_s; per-pixel relative error of the whole (N,); seconds of the reference's
+    part after the terms; the IBL terms {"split_sum", "reference"} (N, 3) float64)."""
+    (tot, ibl), timing = time_calls(lambda: ss.run(p, n, v, m32), rounds=repeats)
+    tot, ibl = np.asarray(tot, np.float64), np.asarray(ibl, np.float64)
+    t0 = time.perf_counter()
+    ref_ibl = reference_ibl_from_terms(terms, m64)
+    ref = ref_ibl if reference_direct is None else ref_ibl + reference_direct()
+    ref_s = time.perf_counter() - t0
+    mean, mx, per_pixel = _errors(tot, ref)
+    ibl_mean, ibl_max, _ = _errors(ibl, ref_ibl)
+    row = dict(
+        mean_rel_error=mean,
+        max_pixel_rel_error=mx,
+        ibl_mean_rel_error=ibl_mean,
+        ibl_max_pixel_rel_error=ibl_max,
+        ibl_share_of_radiance=float(np.abs(ref_ibl).sum() / max(np.abs(ref).sum(), 1e-300)),
+        **_ibl_parts(ss, p, n, v, m32, m64, terms, ibl, ref_ibl),
+        split_sum_s=timing.best,
+    )
+    return row, per_pixel, ref_s, dict(split_sum=ibl, reference=ref_ibl)
+
+
+def _environment(env, face_size: int, env_name: str | None):
+    """(float32 level-0 Cubemap, its name) from None (the procedural sky + sun), a path /
+    "procedural:sky" or a Cubemap."""
+    if isinstance(env, (str, Path)):
+        env_name = env_name or str(env)
+        env = load_environment([str(env)], face_size)
+    elif env is None:
+        env_name = env_name or "procedural sky+sun"
+        env = envs.sky_with_sun_cubemap(face_size)
+    elif not isinstance(env, Cubemap):
+        raise TypeError(f"env must be None, a path or a Cubemap, got {type(env).__name__}")
+    return Cubemap((jnp.asarray(env.levels[0], jnp.float32),), env.metadata), env_name or "environment"
 
 
 def render_report(
@@ -200,16 +363,7 @@ def render_report(
     Returns a dict: "config", "precompute_s", "materials" (one dict of numbers per material),
     "images" (per-material per-pixel relative error (P, P), NaN off the disc; not JSON).
     """
-    if isinstance(env, (str, Path)):
-        env_name = env_name or str(env)
-        env = load_environment([str(env)], face_size)
-    elif env is None:
-        env_name = env_name or "procedural sky+sun"
-        env = envs.sky_with_sun_cubemap(face_size)
-    elif not isinstance(env, Cubemap):
-        raise TypeError(f"env must be None, a path or a Cubemap, got {type(env).__name__}")
-    env_name = env_name or "environment"
-    env = Cubemap((jnp.asarray(env.levels[0], jnp.float32),), env.metadata)
+    env, env_name = _environment(env, face_size, env_name)
     roughness = [float(r) for r in roughness]
     metallic = [float(m) for m in metallic]
     if not roughness or not metallic:
@@ -243,44 +397,10 @@ def render_report(
     log(f"render report: {len(roughness)} x {len(metallic)} materials, {pixels}^2 px ({len(n)} on the sphere), {env_name} at {env.face_size}^2")
 
     # ---- precompute (once), float32 as users run it
-    t0 = time.perf_counter()
-    ss_env, ss_lights, extracted = env, list(lights) if isinstance(lights, (list, tuple)) else [lights], []
-    if extract_lights:
-        ex = _extract.extract_lights(env)
-        ss_env, extracted = ex.residual, ex.info["lights"]
-        ss_lights = ss_lights + list(ex.lights)
-    lut = brdf_lut(lut_size)
-    irr = irradiance(ss_env, irradiance_size)
-    pre = prefilter(ss_env, prefilter_size)
-    jax.block_until_ready((lut, irr.levels, pre.levels))
-    precompute_s = time.perf_counter() - t0
-    for x in extracted:
-        log(f"  extracted a disc light: radius {x['angular_radius_deg']:.2f} deg, {100 * x['power_share']:.1f} % of the environment's power")
-    log(f"  precompute (LUT {lut_size}^2, irradiance {irradiance_size}^2, prefilter {pre.face_size}^2 x {pre.num_levels} mips): {precompute_s:.2f} s")
-
+    ss = _SplitSum(env, lights, extract_lights=extract_lights, irradiance_size=irradiance_size, prefilter_size=prefilter_size, lut_size=lut_size)
+    ss.log_setup(log)
     f32 = jnp.float32
     n32, v32, p32 = (jnp.asarray(a, f32) for a in (n, v, p))
-    lights32 = _lights_as(ss_lights[: len(ss_lights) - len(extracted)], f32)
-    discs32 = _lights_as(ss_lights[len(ss_lights) - len(extracted):], f32) if extracted else None
-
-    @functools.partial(jax.jit, static_argnames=("multiscatter",))
-    def split_sum(p_, n_, v_, m_, irr_, pre_, lut_, lights_, discs_, multiscatter=False):
-        # "IBL" = what the environment contributes: the split sum of the (residual) environment
-        # plus its extracted disc lights (emission added once, by the scene lights' term), with
-        # the multiple-scattering compensation of both when asked (as `render` does).
-        ibl = shade_ibl(n_, v_, m_, irr_, pre_, lut_, multiscatter=multiscatter)
-        if discs_ is not None:
-            dark = m_.replace(emissive=jnp.zeros_like(m_.emissive))
-            ibl = ibl + _lights.shade_direct(p_, n_, v_, dark, discs_, disc_lights=True)
-            if multiscatter:
-                ibl = ibl + disc_multiscatter(n_, v_, m_, lut_, discs_)
-        return _lights.shade_direct(p_, n_, v_, m_, lights_) + ibl, ibl
-
-    # The white furnace (L = 1 everywhere) of the split sum: the per-pixel response each energy
-    # model divides by in the energy-model columns.
-    ones = lambda c: Cubemap(tuple(jnp.ones_like(x) for x in c.levels), c.metadata)  # noqa: E731
-    irr1, pre1 = ones(irr), ones(pre)
-    furnace = jax.jit(lambda n_, v_, m_, ms: shade_ibl(n_, v_, m_, irr1, pre1, lut, multiscatter=ms), static_argnums=3)
 
     def material(r, m, dtype):
         return Material(base_color=jnp.asarray(base_color, dtype), metallic=jnp.asarray(m, dtype), roughness=jnp.asarray(r, dtype))
@@ -296,48 +416,27 @@ def render_report(
         terms = reference_ibl_terms(n, v, r, env)
         terms_s = time.perf_counter() - t0
         for m in metallic:
-            m32 = material(r, m, f32)
-            (tot, ibl), timing = time_calls(lambda: split_sum(p32, n32, v32, m32, irr, pre, lut, lights32, discs32), rounds=repeats)
-            ss_s = timing.best
-            tot, ibl = np.asarray(tot, np.float64), np.asarray(ibl, np.float64)
-            t0 = time.perf_counter()
             with jax.enable_x64(True):
                 m64 = material(r, m, jnp.float64)
-                ref_direct = np.asarray(direct64(m64))
-            ref_ibl = reference_ibl_from_terms(terms, m64)
-            ref = ref_direct + ref_ibl
-            ref_s = terms_s + time.perf_counter() - t0
-            mean, mx, per_pixel = _errors(tot, ref)
-            ibl_mean, ibl_max, _ = _errors(ibl, ref_ibl)
-            parts = _ibl_parts(lambda m_, ms=False: np.asarray(split_sum(p32, n32, v32, m_, irr, pre, lut, lights32, discs32, multiscatter=ms)[1], np.float64),
-                               lambda m_, ms: np.asarray(furnace(n32, v32, m_, ms), np.float64), terms, r, m, base_color, ibl, ref_ibl)
+
+            def direct(m64=m64):
+                with jax.enable_x64(True):
+                    return np.asarray(direct64(m64))
+
+            row, per_pixel, rest_s, _ = _measure(ss, p32, n32, v32, material(r, m, f32), m64, terms, reference_direct=direct, repeats=repeats)
+            ref_s = terms_s + rest_s
             img = np.full(mask.shape, np.nan)
             img[mask] = per_pixel
             images[(r, m)] = img
             worst = int(np.argmax(per_pixel))
-            rows.append(
-                dict(
-                    roughness=r,
-                    metallic=m,
-                    mean_rel_error=mean,
-                    max_pixel_rel_error=mx,
-                    worst_pixel_n_dot_v=float(n[worst, 2]),
-                    ibl_mean_rel_error=ibl_mean,
-                    ibl_max_pixel_rel_error=ibl_max,
-                    ibl_share_of_radiance=float(np.abs(ref_ibl).sum() / np.abs(ref).sum()),
-                    **parts,
-                    split_sum_s=ss_s,
-                    reference_s=ref_s,
-                    reference_ibl_shared_s=terms_s,
-                )
-            )
+            rows.append(dict(roughness=r, metallic=m, worst_pixel_n_dot_v=float(n[worst, 2]), **row, reference_s=ref_s, reference_ibl_shared_s=terms_s))
             log(
-                f"  r={r:g} metallic={m:g}: mean {100 * mean:.2f} %, max pixel {100 * mx:.1f} %, IBL mean {100 * ibl_mean:.2f} %; "
-                f"split sum {1e3 * ss_s:.2f} ms, reference {ref_s:.1f} s"
+                f"  r={r:g} metallic={m:g}: mean {100 * row['mean_rel_error']:.2f} %, max pixel {100 * row['max_pixel_rel_error']:.1f} %, "
+                f"IBL mean {100 * row['ibl_mean_rel_error']:.2f} %; split sum {1e3 * row['split_sum_s']:.2f} ms, reference {ref_s:.1f} s"
             )
     ext_rows = _extension_rows(
-        extensions, extension_roughness, base_color=base_color, env=env, ss_env=ss_env, n=n, v=v, p=p, mask=mask,
-        lights=lights, lights32=lights32, discs32=discs32, irr=irr, pre=pre, lut=lut, repeats=repeats, log=log,
+        extensions, extension_roughness, base_color=base_color, env=env, ss_env=ss.ss_env, n=n, v=v, p=p, mask=mask,
+        lights=lights, lights32=ss.lights32, discs32=ss.discs32, irr=ss.irr, pre=ss.pre, lut=ss.lut, repeats=repeats, log=log,
     ) if extensions else ([], {})
     config = dict(
         environment=env_name,
@@ -348,8 +447,8 @@ def render_report(
         roughness=roughness,
         metallic=metallic,
         lights=lights_desc,
-        extracted_lights=extracted,
-        split_sum=("environment split into " + (f"{len(extracted)} disc light(s) + residual; " if extracted else "no disc light (none found); ") if extract_lights else "") + f"float32 shade_direct + shade_ibl (gltf), irradiance {irradiance_size}^2 exact, prefilter {pre.face_size}^2 x {pre.num_levels} mips (FIS defaults), BRDF LUT {lut_size}^2",
+        extracted_lights=ss.extracted,
+        split_sum=ss.description,
         reference="float64 shade_direct + reference_ibl (every texel of level 0, tiered sub-texel supersampling)",
         geometry="orthographic unit sphere, v = +Z, n = (x, y, sqrt(1 - x^2 - y^2)), position = n",
         timing=f"split sum: best of {repeats} jitted calls after a warm-up; reference: one call incl. compilation (its three environment sums are shared by the metallic values of one roughness)",
@@ -359,7 +458,7 @@ def render_report(
         config["extension_roughness"] = extension_roughness
         config["extension_rows"] = {e: dict(EXTENSION_ROWS[e][0], roughness_field=EXTENSION_ROWS[e][1]) for e in extensions}
         config["extension_reference"] = "float64 shade_direct + reference_layered (the layered BSDF over the whole sphere of directions, tiered sub-texel supersampling around each lobe)"
-    return dict(config=config, precompute_s=precompute_s, materials=rows, images=images, mask=mask, extensions=ext_rows[0], extension_images=ext_rows[1])
+    return dict(config=config, precompute_s=ss.precompute_s, materials=rows, images=images, mask=mask, extensions=ext_rows[0], extension_images=ext_rows[1])
 
 
 def _extension_rows(names, roughness, *, base_color, env, ss_env, n, v, p, mask, lights, lights32, discs32, irr, pre, lut, repeats, log):
@@ -442,6 +541,135 @@ def _extension_rows(names, roughness, *, base_color, env, ss_env, n, v, p, mask,
     return rows, images
 
 
+#: Asset pixels the reference is computed for by default (a fixed random subset when there are more).
+DEFAULT_ASSET_PIXELS = 2048
+#: Default G-buffer size of an asset report (width, height).
+DEFAULT_ASSET_SIZE = (320, 240)
+#: Core glTF material fields the asset report reads from the G-buffer (emission is left out).
+_CORE_FIELDS = ("base_color", "metallic", "roughness", "occlusion")
+
+
+def asset_report(
+    scene: Scene,
+    env=None,
+    *,
+    env_name: str | None = None,
+    asset_name: str = "asset",
+    face_size: int = 64,
+    pixels: int | None = DEFAULT_ASSET_PIXELS,
+    seed: int = 0,
+    irradiance_size: int = 32,
+    lut_size: int = 128,
+    repeats: int = 5,
+    extract_lights: bool = True,
+    log=print,
+) -> dict:
+    """The split-sum error on the pixels of a scene (a glTF asset: `jaxpbr.load_gltf`).
+
+    The scene's G-buffer (`jaxpbr.rendering.renderer.gbuffer`: position, shading normal, view and
+    the material after textures at each pixel centre of its camera) is shaded by the split sum of
+    `env` as `render` shades it (dominant lights extracted, the renderer's default prefilter size;
+    the same `_SplitSum` as the sphere report) and by the float64 reference (`reference_ibl_terms`
+    of the same pixels); both measure the IBL term only: no punctual lights (the scene's are not
+    read), no emission, and no shadows (image-based lighting is not shadowed). Occlusion (texture)
+    multiplies the reference and the split sum's environment maps, not the suns it extracts (as in
+    `render`): under a sun, occluded pixels show that difference too.
+
+    env: as `render_report` (None: the procedural sky + sun at `face_size`; the scene's own
+        environment is not read). Materials must be core glTF materials (ValueError otherwise:
+        the layered reference is the sphere report's `extensions` rows).
+    pixels: at most this many asset pixels are measured: a fixed random subset (`seed`) of the
+        eligible ones when there are more (None: all). Eligible: roughness >= the reference's
+        floor `min_reference_roughness(face size)` and n.v > 0 (the reference is 0 there, the
+        split sum clamps n.v); the others are counted in the config.
+    Returns a dict: "config", "gbuffer_s", "precompute_s", "asset" (the row of `render_report`'s
+    materials: errors of the IBL term, "parts" by `PARTS`, split_sum_s and reference_s, both on
+    the measured pixels, back to back in this process) and "samples" (flat pixel indices into
+    the H x W image, per-pixel relative luminance error of the IBL term, the two IBL terms (N, 3);
+    not JSON).
+    """
+    if not isinstance(scene, Scene) or scene.camera is None:
+        raise TypeError(f"asset_report expects a jaxpbr.Scene with a camera (jaxpbr.load_gltf), got {type(scene).__name__}")
+    env, env_name = _environment(env, face_size, env_name)
+    if pixels is not None:
+        pixels = positive_int("pixels", pixels)
+    r_floor = min_reference_roughness(env.face_size)
+
+    t0 = time.perf_counter()
+    gb = jax.block_until_ready(_renderer.gbuffer(scene))
+    gbuffer_s = time.perf_counter() - t0
+    gm = gb.material
+    if gm.layered:
+        raise ValueError(
+            f"{asset_name}: the asset uses glTF material extensions ({', '.join(g for g in gm.extensions if g != 'emissive_strength')}); "
+            "the asset report's reference covers core materials (the extensions are measured on spheres: report render --extensions)"
+        )
+    hit = np.asarray(gb.hit)
+    H, W = hit.shape
+    flat = np.flatnonzero(hit)
+    if flat.size == 0:
+        raise ValueError(f"{asset_name}: no pixel of the {W}x{H} image shows the asset; check the camera")
+
+    def per_pixel(x, tail=()):
+        return np.broadcast_to(np.asarray(x, np.float64), hit.shape + tail).reshape((-1,) + tail)[flat]
+
+    n, v, p = (per_pixel(getattr(gb, k), (3,)) for k in ("normal", "view", "position"))
+    mat = {f: per_pixel(getattr(gm, f), (3,) if f == "base_color" else ()) for f in _CORE_FIELDS}
+    mat["roughness"] = np.clip(mat["roughness"], 0.0, 1.0)
+    smooth = mat["roughness"] < r_floor
+    back = (np.sum(n * v, -1) <= 0.0) & ~smooth
+    eligible = np.flatnonzero(~smooth & ~back)
+    if eligible.size == 0:
+        raise ValueError(
+            f"{asset_name}: none of its {flat.size} pixels can be measured: roughness below the reference's floor "
+            f"{r_floor:.3f} at {env.face_size}^2 ({int(smooth.sum())} px; use a larger --face-size) or n.v <= 0 ({int(back.sum())} px)"
+        )
+    idx = eligible
+    if pixels is not None and eligible.size > pixels:
+        idx = np.sort(np.random.default_rng(seed).choice(eligible, pixels, replace=False))
+    log(f"render report: {asset_name}, {W}x{H} G-buffer ({gbuffer_s:.2f} s), {flat.size} px on the asset, {idx.size} measured; {env_name} at {env.face_size}^2")
+
+    ss = _SplitSum(env, [], extract_lights=extract_lights, irradiance_size=irradiance_size,
+                   prefilter_size=_renderer._prefilter_size(Environment(radiance=env), _renderer.RenderOptions()), lut_size=lut_size)
+    ss.log_setup(log)
+    f32 = jnp.float32
+    n32, v32, p32 = (jnp.asarray(a[idx], f32) for a in (n, v, p))
+    m32 = Material(**{f: jnp.asarray(x[idx], f32) for f, x in mat.items()})
+    with jax.enable_x64(True):
+        m64 = Material(**{f: jnp.asarray(x[idx], jnp.float64) for f, x in mat.items()})
+    t0 = time.perf_counter()
+    terms = reference_ibl_terms(n[idx], v[idx], mat["roughness"][idx], env)
+    terms_s = time.perf_counter() - t0
+    row, _, rest_s, arrays = _measure(ss, p32, n32, v32, m32, m64, terms, repeats=repeats)
+    row["reference_s"] = terms_s + rest_s
+    yt, yr = luminance(arrays["split_sum"]), luminance(arrays["reference"])
+    lum_err = np.abs(yt - yr) / np.maximum(yr, 1e-300)
+    ib = row["parts"]["ibl"]
+    log(f"  IBL: mean {100 * ib['lum_mean']:.2f} %, p99 {100 * ib['lum_p99']:.1f} % (relative luminance); split sum {1e3 * row['split_sum_s']:.2f} ms, reference {row['reference_s']:.1f} s")
+    config = dict(
+        kind="asset",
+        asset=asset_name,
+        image=[int(W), int(H)],
+        camera=dict(position=np.asarray(scene.camera.position, np.float64).tolist(), target=np.asarray(scene.camera.target, np.float64).tolist(), fov_y_deg=float(scene.camera.fov_y_deg)),
+        pixels_on_asset=int(flat.size),
+        pixels_measured=int(idx.size),
+        pixels_limit=pixels,
+        seed=int(seed),
+        pixels_below_roughness_floor=int(smooth.sum()),
+        pixels_back_facing=int(back.sum()),
+        roughness_floor=r_floor,
+        environment=env_name,
+        environment_face_size=env.face_size,
+        extracted_lights=ss.extracted,
+        split_sum=ss.description,
+        reference="float64 reference_ibl (every texel of level 0, tiered sub-texel supersampling) of the same G-buffer pixels",
+        timing=f"split sum: best of {repeats} jitted calls after a warm-up; reference: one call incl. compilation; both on the measured pixels, back to back in this process",
+        device=str(jax.devices()[0].platform),
+    )
+    samples = dict(pixel=flat[idx], rel_lum_error=lum_err, split_sum=arrays["split_sum"], reference=arrays["reference"])
+    return dict(config=config, gbuffer_s=gbuffer_s, precompute_s=ss.precompute_s, asset=row, samples=samples, mask=hit)
+
+
 # ------------------------------------------------------------------------------------------
 # outputs
 # ------------------------------------------------------------------------------------------
@@ -450,6 +678,8 @@ def _extension_rows(names, roughness, *, base_color, env, ss_env, n, v, p, mask,
 def markdown(result: dict) -> str:
     """The result as a Markdown section (config line + table)."""
     c = result["config"]
+    if c.get("kind") == "asset":
+        return _asset_markdown(result)
     out = [
         "# jaxpbr split-sum error vs float64 reference render",
         "",
@@ -471,8 +701,9 @@ def markdown(result: dict) -> str:
         "",
         "## The IBL term by part and by energy model",
         "",
-        "Bias: signed relative error of the IBL term. Diffuse / specular (dielectrics): the two parts apart (the split sum is "
-        "linear in base colour: specular = the term at base colour 0, diffuse = the difference to base colour 1). "
+        "Bias: signed relative error of the IBL term. Diffuse / specular: the two lobes apart (the glTF BRDF is linear in the "
+        "diffuse colour (1 - metallic) base at fixed F0: specular = the term at the same F0 without diffuse colour, diffuse = the "
+        "rest; metals have no diffuse lobe). "
         "Furnace-normalised: each model's IBL term divided per pixel by its own white-furnace response, against the reference "
         "divided by its single-scattering albedo: single scattering (`multiscatter=False`, the reference's model) and Fdez-Aguera "
         "multiple scattering (`multiscatter=True`, the renderer's default for glTF).",
@@ -513,9 +744,53 @@ def markdown(result: dict) -> str:
     return "\n".join(out) + "\n"
 
 
+def _asset_markdown(result: dict) -> str:
+    """The table of `asset_report`: one row per part of the IBL term."""
+    c, row = result["config"], result["asset"]
+    skipped = []
+    if c["pixels_below_roughness_floor"]:
+        skipped.append(f"{c['pixels_below_roughness_floor']} with roughness below the reference's floor {c['roughness_floor']:.3f}")
+    if c["pixels_back_facing"]:
+        skipped.append(f"{c['pixels_back_facing']} with n.v <= 0")
+    eligible = c["pixels_on_asset"] - c["pixels_below_roughness_floor"] - c["pixels_back_facing"]
+    subset = f"a fixed random subset (seed {c['seed']}) of the {eligible} eligible" if c["pixels_measured"] < eligible else "every eligible pixel"
+    per_px = row["reference_s"] / c["pixels_measured"]
+    out = [
+        f"# jaxpbr split-sum error on {c['asset']} vs float64 reference render",
+        "",
+        f"Asset: {c['asset']}, {c['image'][0]}x{c['image'][1]} G-buffer (pixel centres) with {c['pixels_on_asset']} px on the asset; "
+        f"measured: {c['pixels_measured']} px, {subset}" + (f"; not eligible: {'; '.join(skipped)}" if skipped else "") + ".",
+        f"Environment: {c['environment']} ({c['environment_face_size']}^2 per face); IBL only: no punctual lights, no emission, no shadows.",
+        f"Split sum: {c['split_sum']}. Reference: {c['reference']}.",
+        f"Run times (same process, back to back, on the {c['pixels_measured']} px): split sum {1e3 * row['split_sum_s']:.2f} ms, "
+        f"reference {row['reference_s']:.2f} s ({1e3 * per_px:.2f} ms/px); G-buffer {result['gbuffer_s']:.2f} s, precompute (once) {result['precompute_s']:.2f} s. "
+        f"Timing: {c['timing']}; device {c['device']}.",
+        "",
+        "Per-pixel relative luminance error |Y(split sum) - Y(reference)| / Y(reference) over the pixels where the part is present: "
+        "mean and percentiles; bias: sum(Y(split sum) - Y(reference)) / sum Y(reference); RGB: sum |diff| / sum reference over "
+        "pixels and channels (the sphere tables' mean rel. error). Parts as in the sphere report: diffuse and specular lobes "
+        "(the specular one at the pixel's F0 without diffuse colour), each energy model divided by its white-furnace response, "
+        "and the multiple-scattering term `render` draws against the single-scattering reference. "
+        "Occlusion (texture) scales the reference and the split sum's maps, not its extracted suns (as in `render`).",
+        "",
+        "| part | pixels | mean | p50 | p90 | p99 | max | bias | RGB |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for key, label in PARTS.items():
+        st = row["parts"].get(key)
+        if st is None:
+            out.append(f"| {label} | 0 | - | - | - | - | - | - | - |")
+            continue
+        out.append(
+            f"| {label} | {st['pixels']} | {100 * st['lum_mean']:.2f} % | {100 * st['lum_p50']:.2f} % | {100 * st['lum_p90']:.2f} % | "
+            f"{100 * st['lum_p99']:.1f} % | {100 * st['lum_max']:.1f} % | {100 * st['lum_bias']:+.2f} % | {100 * st['mean_rel_error']:.2f} % |"
+        )
+    return "\n".join(out) + "\n"
+
+
 def to_json(result: dict) -> str:
     """The numbers of the result (no images) as JSON text."""
-    data = {k: v for k, v in result.items() if k not in ("images", "mask", "extension_images")}
+    data = {k: v for k, v in result.items() if k not in ("images", "mask", "extension_images", "samples")}
     return json.dumps(data, indent=2) + "\n"
 
 
@@ -531,6 +806,8 @@ def plot(result: dict, path) -> bool:
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
+    if result["config"].get("kind") == "asset":
+        return _asset_plot(result, path, plt, LogNorm)
     rough = result["config"]["roughness"]
     metal = result["config"]["metallic"]
     imgs = result["images"]
@@ -552,6 +829,29 @@ def plot(result: dict, path) -> bool:
     fig.colorbar(im, ax=axes, shrink=0.8, label="per-pixel relative error |split sum - reference| / reference")
     fig.suptitle(f"split-sum error, {result['config']['environment']}", fontsize=10)
     atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+    plt.close(fig)
+    return True
+
+
+def _asset_plot(result: dict, path, plt, LogNorm) -> bool:
+    """The asset's per-pixel relative luminance error of the IBL term at its measured pixels (dots)
+    over its coverage (grey)."""
+    c, smp = result["config"], result["samples"]
+    W, H = c["image"]
+    err = np.asarray(smp["rel_lum_error"])
+    hi = max(float(np.max(err[np.isfinite(err)], initial=1e-3)), 1e-3)
+    norm = LogNorm(vmin=max(hi * 1e-4, 1e-5), vmax=hi)
+    fig, ax = plt.subplots(figsize=(6.4, 6.4 * H / W + 0.6))
+    ax.imshow(np.where(result["mask"], 0.85, 1.0), cmap="gray", vmin=0.0, vmax=1.0, interpolation="nearest")
+    y, x = np.divmod(np.asarray(smp["pixel"]), W)
+    dots = ax.scatter(x, y, c=np.clip(err, norm.vmin, None), norm=norm, cmap="magma", s=max(1.0, (1.5 * 6.4 * 72 / W) ** 2), linewidths=0)  # ~1.5 pixels wide
+    ax.set_xlim(-0.5, W - 0.5)
+    ax.set_ylim(H - 0.5, -0.5)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    fig.colorbar(dots, ax=ax, shrink=0.8, label="|Y(split sum) - Y(reference)| / Y(reference), IBL")
+    ax.set_title(f"{c['asset']}, {c['environment']}: {c['pixels_measured']} px, mean {100 * result['asset']['parts']['ibl']['lum_mean']:.2f} %", fontsize=9)
+    atomic_write(Path(path), lambda tmp: fig.savefig(tmp, dpi=110, format="png", bbox_inches="tight"))
     plt.close(fig)
     return True
 
@@ -605,62 +905,110 @@ def add_command(report_subparsers):
     object of `report`). Returns the new sub-parser."""
     p = report_subparsers.add_parser(
         "render",
-        help="split-sum shading error vs the float64 reference render (Markdown table + JSON + PNG)",
+        help="split-sum shading error vs the float64 reference render, on spheres or a glTF asset (Markdown table + JSON + PNG)",
         description="Shade one sphere per material (roughness x metallic) with the split sum and with the float64 "
         "reference (full reflectance integral over every environment texel), under an environment and two punctual "
-        "lights; write render_report.md, render_report.json and render_report.png into --output-dir.",
+        "lights; write render_report.md, render_report.json and render_report.png into --output-dir. "
+        "With ASSET (.gltf, .glb) and --environment: the same on the asset's own pixels (its G-buffer, materials after "
+        "textures), IBL only; write render_report_<asset name>.md/.json/.png.",
     )
-    p.add_argument("--env", default="procedural:sky", help=f"{ENVIRONMENT_HELP} (default: %(default)s)")
-    p.add_argument("--output-dir", default=".", help="directory for render_report.md/.json/.png (default: current)")
+    p.add_argument("asset", nargs="?", default=None, metavar="ASSET", help="a glTF 2.0 asset (.gltf, .glb) to measure instead of the spheres (needs --environment)")
+    p.add_argument("--environment", "--env", dest="env", default=None, metavar="FILE", help=f"{ENVIRONMENT_HELP} (default for the spheres: procedural:sky; required with ASSET)")
+    p.add_argument("--output-dir", default=".", help="directory for the .md/.json/.png (default: current)")
     p.add_argument("--face-size", type=positive_int_arg, default=64, help="environment face size (default: %(default)s; the reference's roughness floor halves in alpha per doubling, its cost grows 4x)")
-    p.add_argument("--pixels", type=positive_int_arg, default=48, help="sphere image size P x P (default: %(default)s)")
-    p.add_argument("--roughness", type=_float_list, default=list(DEFAULT_ROUGHNESS), help="comma-separated roughness values (default: %(default)s)")
-    p.add_argument("--metallic", type=_float_list, default=list(DEFAULT_METALLIC), help="comma-separated metallic values (default: %(default)s)")
-    p.add_argument("--base-color", type=float, nargs=3, default=list(DEFAULT_BASE_COLOR), metavar=("R", "G", "B"), help="linear base colour (default: %(default)s)")
+    p.add_argument("--pixels", type=positive_int_arg, default=None, help=f"spheres: image size P x P (default: 48); ASSET: at most this many of its pixels, a fixed random subset, go to the reference (default: {DEFAULT_ASSET_PIXELS})")
+    p.add_argument("--width", type=positive_int_arg, default=None, help=f"ASSET: G-buffer width (default: {DEFAULT_ASSET_SIZE[0]})")
+    p.add_argument("--height", type=positive_int_arg, default=None, help=f"ASSET: G-buffer height (default: {DEFAULT_ASSET_SIZE[1]})")
+    p.add_argument("--roughness", type=_float_list, default=None, help="spheres: comma-separated roughness values (default: " + ",".join(f"{x:g}" for x in DEFAULT_ROUGHNESS) + ")")
+    p.add_argument("--metallic", type=_float_list, default=None, help="spheres: comma-separated metallic values (default: " + ",".join(f"{x:g}" for x in DEFAULT_METALLIC) + ")")
+    p.add_argument("--base-color", type=float, nargs=3, default=None, metavar=("R", "G", "B"), help="spheres: linear base colour (default: " + " ".join(f"{x:g}" for x in DEFAULT_BASE_COLOR) + ")")
     p.add_argument("--irradiance-size", type=positive_int_arg, default=32)
     p.add_argument("--lut-size", type=positive_int_arg, default=128)
     p.add_argument("--no-extract-lights", dest="extract_lights", action="store_false", help="shade the whole environment with the split sum (no dominant-light extraction; the pre-issue-11 baseline)")
     p.add_argument(
         "--extensions", nargs="?", const="all", default=None, type=_name_list, metavar="NAMES",
-        help="add rows per glTF material extension (comma-separated from " + ", ".join(n.replace(" ", "_") for n in EXTENSION_ROWS) + "; default all): "
+        help="spheres: add rows per glTF material extension (comma-separated from " + ", ".join(n.replace(" ", "_") for n in EXTENSION_ROWS) + "; default all): "
         "the layered split sum against reference_layered (off by default: ~1 min per row at the default size, anisotropy several)",
     )
     p.add_argument("--no-extensions", dest="extensions", action="store_const", const=None, help="no extension rows (the default)")
-    p.add_argument("--extension-roughness", type=_float_list, default=list(DEFAULT_EXTENSION_ROUGHNESS), help="roughness values of the extension rows (default: %(default)s)")
+    p.add_argument("--extension-roughness", type=_float_list, default=None, help="spheres: roughness values of the extension rows (default: " + ",".join(f"{x:g}" for x in DEFAULT_EXTENSION_ROUGHNESS) + ")")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_report_render)
     return p
+
+
+def _env_name(env: str) -> str:
+    return "procedural sky+sun" if env.startswith("procedural:") else Path(env).name
 
 
 def cmd_report_render(args) -> int:
     out_dir = Path(args.output_dir)
     if not out_dir.is_dir():
         raise InputError(f"--output-dir {str(out_dir)!r} does not exist; create it first")
-    if any(not 0.0 <= c <= 1.0 for c in args.base_color):
-        raise InputError(f"--base-color must lie in [0, 1], got {args.base_color}")
+    log = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr))
+    if args.asset is not None:
+        return _cmd_asset(args, out_dir, log)
+    if args.width is not None or args.height is not None:
+        raise CLIError("--width/--height size an ASSET's G-buffer; the spheres' size is --pixels")
+    roughness = args.roughness or list(DEFAULT_ROUGHNESS)
+    metallic = args.metallic or list(DEFAULT_METALLIC)
+    base_color = args.base_color or list(DEFAULT_BASE_COLOR)
+    pixels = args.pixels or 48
+    env_arg = args.env or "procedural:sky"
+    if any(not 0.0 <= c <= 1.0 for c in base_color):
+        raise InputError(f"--base-color must lie in [0, 1], got {base_color}")
     # Before any work: the G-buffer and the per-material images are float64 per pixel (48^2 -> 144^2
     # raised the peak RSS by 56 MB for one material: ~3 kB per pixel), the environment as usual.
-    materials = len(args.roughness) * len(args.metallic)
-    require_memory(f"a {args.pixels}x{args.pixels} report of {materials} materials", args.pixels**2 * (3000.0 + 100.0 * materials), "lower --pixels")
-    require_environment(args.face_size, procedural=args.env.startswith("procedural:"))
-    env = load_environment([args.env], args.face_size)
-    name = "procedural sky+sun" if args.env.startswith("procedural:") else Path(args.env).name
-    log = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr))
+    materials = len(roughness) * len(metallic)
+    require_memory(f"a {pixels}x{pixels} report of {materials} materials", pixels**2 * (3000.0 + 100.0 * materials), "lower --pixels")
+    require_environment(args.face_size, procedural=env_arg.startswith("procedural:"))
+    env = load_environment([env_arg], args.face_size)
     result = render_report(
         env,
-        env_name=name,
-        roughness=args.roughness,
-        metallic=args.metallic,
-        base_color=tuple(args.base_color),
-        pixels=args.pixels,
+        env_name=_env_name(env_arg),
+        roughness=roughness,
+        metallic=metallic,
+        base_color=tuple(base_color),
+        pixels=pixels,
         irradiance_size=args.irradiance_size,
         lut_size=args.lut_size,
         extract_lights=args.extract_lights,
         extensions=args.extensions or (),
-        extension_roughness=args.extension_roughness,
+        extension_roughness=args.extension_roughness or list(DEFAULT_EXTENSION_ROUGHNESS),
         log=log,
     )
-    written = write_report(result, out_dir, log=log)
+    return _write_and_print(result, out_dir, "render_report", log)
+
+
+def _cmd_asset(args, out_dir: Path, log) -> int:
+    """`report render ASSET --environment FILE`: inputs checked before any work, then `asset_report`."""
+    path = Path(args.asset)
+    if path.suffix.lower() not in (".gltf", ".glb"):
+        raise CLIError(f"ASSET must be a glTF 2.0 file (.gltf or .glb), got {path.name!r}")
+    if not path.is_file():
+        raise CLIError(f"ASSET {str(path)!r} does not exist")
+    if args.env is None:
+        raise CLIError("an ASSET is measured under an environment: add --environment FILE (an equirect .hdr/.exr panorama) or --environment procedural:sky")
+    sphere_only = [f for f, v in (("--roughness", args.roughness), ("--metallic", args.metallic), ("--base-color", args.base_color),
+                                  ("--extensions", args.extensions), ("--extension-roughness", args.extension_roughness)) if v is not None]
+    if sphere_only:
+        raise CLIError(f"{', '.join(sphere_only)} set the spheres' materials; an ASSET brings its own")
+    W, H = args.width or DEFAULT_ASSET_SIZE[0], args.height or DEFAULT_ASSET_SIZE[1]
+    pixels = args.pixels or DEFAULT_ASSET_PIXELS
+    # The G-buffer (~300 bytes per pixel with its stages) and the reference's float64 work per measured pixel (~3 kB).
+    require_memory(f"a {W}x{H} G-buffer and {pixels} reference pixels", W * H * 300.0 + pixels * 3000.0, "lower --width/--height or --pixels")
+    require_environment(args.face_size, procedural=args.env.startswith("procedural:"))
+    scene = load_gltf(path, width=W, height=H, asset_lights=False)
+    env = load_environment([args.env], args.face_size)
+    result = asset_report(
+        scene, env, env_name=_env_name(args.env), asset_name=path.name, face_size=args.face_size, pixels=pixels,
+        irradiance_size=args.irradiance_size, lut_size=args.lut_size, extract_lights=args.extract_lights, log=log,
+    )
+    return _write_and_print(result, out_dir, f"render_report_{path.stem}", log)
+
+
+def _write_and_print(result: dict, out_dir: Path, prefix: str, log) -> int:
+    written = write_report(result, out_dir, prefix=prefix, log=log)
     print(markdown(result))
     print("wrote " + ", ".join(str(p) for p in written) + ("" if any(p.suffix == ".png" for p in written) else " (no figure: matplotlib is not installed)"))
     return 0

@@ -1679,7 +1679,7 @@ def _take_chunk(b, start, *, n):
 
 @keyword_only("options")
 def gbuffer(scene: Scene, *, options: RenderOptions | None = None, **overrides):
-    """The G-buffer `render` shades: one sample at each pixel centre of the camera (its
+    """The G-buffer `render` shades: the nearest surface at each pixel centre of the camera (its
     `supersample` is not used), materials after textures, COLOR_0 and normal maps -> `GBuffer`
     with (H, W) / (H, W, 3) leaves in the options' dtype: hit, position, normal (the shading
     normal), view (unit, towards the camera) and a per-pixel `Material` (the extension fields of
