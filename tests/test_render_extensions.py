@@ -205,7 +205,7 @@ def test_the_anisotropy_texture_does_not_turn_the_normal_map():
         n = unpack3(jnp.tile(jnp.array([0.0, 0.0, 1.0]), (H, W, 1)))
         t = unpack3(jnp.tile(jnp.array([1.0, 0.0, 0.0]), (H, W, 1)))
         uv = (jnp.full((H, W), 0.25), jnp.full((H, W), 0.25))
-        _, n_out, _, aniso = renderer._apply_texture(objects, 0, jnp.zeros((H, W), jnp.int32), uv, t, n, m, jnp.float32)
+        _, n_out, _, aniso, _ = renderer._apply_texture(objects, 0, jnp.zeros((H, W), jnp.int32), uv, t, n, m, jnp.float32)
         normals.append(np.stack([np.asarray(c) for c in n_out], -1))
         if direction is not None:
             np.testing.assert_allclose(np.stack([np.asarray(c) for c in aniso], -1)[0, 0], [0.0, 1.0, 0.0], atol=1e-6)
