@@ -74,7 +74,16 @@ def main(argv=None):
             cov = int(((img.sum(-1) > 0) != hit).sum())
             print(f"| {n} x {2 * n} | {tris} | {rel.mean() * 100:.2f} % | {np.percentile(rel, 99) * 100:.2f} % | "
                   f"{cov} px | {t:.3f} s | {t / t_ref:.1f}x |")
-        shadowed = np.asarray(jp.render(scene))
+        # The picture: the finest grid standing on a floor, with shadows.
+        s = 40.0
+        floor = jp.Mesh(
+            positions=np.array([[-s, -8.6, s], [s, -8.6, s], [s, -8.6, -s], [-s, -8.6, -s]], np.float32),
+            triangles=np.array([[0, 1, 2], [0, 2, 3]], np.int32),
+            normals=np.tile(np.float32([0, 1, 0]), (4, 1)),
+            material=jp.Material(base_color=(0.5, 0.5, 0.5), metallic=0.0, roughness=0.7),
+        )
+        cam = ref_scene.camera.replace(position=(0.0, 3.0, 26.0), target=(0.0, -2.0, 0.0))
+        shadowed = np.asarray(jp.render(scene.replace(objects=(*scene.objects, floor), camera=cam)))
     out = Path(args.out) if args.out else Path(__file__).resolve().parent.parent / "docs" / "gltf_sphere_grid.png"
     jp.image.write(out, jp.color.tonemap(shadowed, "aces"), encoding="srgb")
     print(f"wrote {out}")
