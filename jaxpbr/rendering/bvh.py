@@ -261,6 +261,30 @@ def _segments(starts, counts):
     return seg, pos
 
 
+def _seg_min_max(seg, k, x):
+    """Per-segment min and max of x (E, 3) -> (k, 3), (k, 3) (1-D ufunc.at per column: fast)."""
+    mn = np.full((3, k), np.inf)
+    mx = np.full((3, k), -np.inf)
+    for a in range(3):
+        np.minimum.at(mn[a], seg, x[:, a])
+        np.maximum.at(mx[a], seg, x[:, a])
+    return mn.T, mx.T
+
+
+def _seg_min_max_t(seg, k, x, op):
+    """Per-segment op (np.minimum or np.maximum) of x (E, 3) -> (3, k), component-major."""
+    out = np.full((3, k), np.inf if op is np.minimum else -np.inf)
+    for a in range(3):
+        op.at(out[a], seg, x[:, a])
+    return out
+
+
+def _area_t(lo, hi):
+    """Surface area of boxes given component-major: lo, hi (3, ...)."""
+    e = np.maximum(hi - lo, 0.0)
+    return 2.0 * (e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
+
+
 def _build_tree(lo, hi, leaf_size, bins, c_trav=1.0, c_isect=1.0):
     """Binned SAH, level by level. lo, hi (n, 3) float64 triangle boxes. Returns
     (order, node_lo, node_hi, node_start, node_count, node_left, depth): node_left[i] = index of
@@ -269,49 +293,44 @@ def _build_tree(lo, hi, leaf_size, bins, c_trav=1.0, c_isect=1.0):
     cen = 0.5 * (lo + hi)
     order = np.arange(n)
     n_lo, n_hi = [lo.min(0, initial=np.inf)[None]], [hi.max(0, initial=-np.inf)[None]]
-    n_start, n_count, _n_left = [np.zeros(1, np.int64)], [np.array([n], np.int64)], []
+    n_start, n_count = [np.zeros(1, np.int64)], [np.array([n], np.int64)]
     open_ids = np.array([0])
+    starts, counts, boxes_lo, boxes_hi = n_start[0], n_count[0], n_lo[0], n_hi[0]
     total = 1
     depth = 0
     level_left = []
     while open_ids.size:
         k = open_ids.size
-        starts = np.concatenate(n_start)[open_ids]
-        counts = np.concatenate(n_count)[open_ids]
-        boxes_lo = np.concatenate(n_lo)[open_ids]
-        boxes_hi = np.concatenate(n_hi)[open_ids]
         seg, pos = _segments(starts, counts)
         idx = order[pos]
         c, tlo, thi = cen[idx], lo[idx], hi[idx]
-        cmin = np.full((k, 3), np.inf)
-        cmax = np.full((k, 3), -np.inf)
-        np.minimum.at(cmin, seg, c)
-        np.maximum.at(cmax, seg, c)
+        cmin, cmax = _seg_min_max(seg, k, c)
         ext = cmax - cmin
         best_cost = np.full(k, np.inf)
         best_axis = np.zeros(k, np.int64)
         best_bin = np.zeros(k, np.int64)
         elem_bins = np.empty((3, seg.size), np.int64)
+        nb = bins if counts.max() > 4 * bins else max(2, bins // 2)  # small nodes: fewer bins
         for a in range(3):
-            e = ext[seg, a]
-            f = np.where(e > 0, (c[:, a] - cmin[seg, a]) / np.where(e > 0, e, 1.0), 0.0)
-            b = np.minimum((f * bins).astype(np.int64), bins - 1)
+            e = ext[:, a]
+            inv = np.where(e > 0, nb / np.where(e > 0, e, 1.0), 0.0)
+            b = np.minimum(((c[:, a] - cmin[seg, a]) * inv[seg]).astype(np.int64), nb - 1)
             elem_bins[a] = b
-            key = seg * bins + b
-            cnt = np.bincount(key, minlength=k * bins).reshape(k, bins)
-            blo = np.full((k * bins, 3), np.inf)
-            bhi = np.full((k * bins, 3), -np.inf)
-            np.minimum.at(blo, key, tlo)
-            np.maximum.at(bhi, key, thi)
-            blo, bhi = blo.reshape(k, bins, 3), bhi.reshape(k, bins, 3)
-            plo, phi = np.minimum.accumulate(blo, 1), np.maximum.accumulate(bhi, 1)
-            slo = np.minimum.accumulate(blo[:, ::-1], 1)[:, ::-1]
-            shi = np.maximum.accumulate(bhi[:, ::-1], 1)[:, ::-1]
-            pc = np.cumsum(cnt, 1)
-            nl, nr = pc[:, :-1], pc[:, -1:] - pc[:, :-1]
+            key = b * k + seg  # bin-major: the per-bin slices below are contiguous
+            cnt = np.bincount(key, minlength=k * nb).reshape(nb, k)
+            blo = _seg_min_max_t(key, k * nb, tlo, np.minimum).reshape(3, nb, k)
+            bhi = _seg_min_max_t(key, k * nb, thi, np.maximum).reshape(3, nb, k)
+            plo, phi, slo, shi = blo.copy(), bhi.copy(), blo.copy(), bhi.copy()
+            for j in range(1, nb):  # prefix and suffix bounds, one bin at a time
+                np.minimum(plo[:, j - 1], plo[:, j], out=plo[:, j])
+                np.maximum(phi[:, j - 1], phi[:, j], out=phi[:, j])
+                np.minimum(slo[:, nb - j], slo[:, nb - j - 1], out=slo[:, nb - j - 1])
+                np.maximum(shi[:, nb - j], shi[:, nb - j - 1], out=shi[:, nb - j - 1])
+            pc = np.cumsum(cnt, 0)
+            nl, nr = pc[:-1], pc[-1:] - pc[:-1]
             with np.errstate(invalid="ignore"):
-                cost = _area(plo[:, :-1], phi[:, :-1]) * nl + _area(slo[:, 1:], shi[:, 1:]) * nr
-            cost = np.where((nl > 0) & (nr > 0), cost, np.inf)
+                cost = _area_t(plo[:, :-1], phi[:, :-1]) * nl + _area_t(slo[:, 1:], shi[:, 1:]) * nr
+            cost = np.where((nl > 0) & (nr > 0), cost, np.inf).T  # (k, nb - 1)
             i = np.argmin(cost, 1)
             cbest = cost[np.arange(k), i]
             better = cbest < best_cost
@@ -363,15 +382,14 @@ def _build_tree(lo, hi, leaf_size, bins, c_trav=1.0, c_isect=1.0):
             ch_count[1::2] = counts[sids] - nl[sids]
             cseg, cpos = _segments(ch_start, ch_count)
             cidx = order[cpos]
-            clo = np.full((2 * m, 3), np.inf)
-            chi = np.full((2 * m, 3), -np.inf)
-            np.minimum.at(clo, cseg, lo[cidx])
-            np.maximum.at(chi, cseg, hi[cidx])
+            clo = _seg_min_max(cseg, 2 * m, lo[cidx])[0]
+            chi = _seg_min_max(cseg, 2 * m, hi[cidx])[1]
             n_lo.append(clo)
             n_hi.append(chi)
             n_start.append(ch_start)
             n_count.append(ch_count)
             new_open = np.arange(total, total + 2 * m)
+            starts, counts, boxes_lo, boxes_hi = ch_start, ch_count, clo, chi
             total += 2 * m
         else:
             new_open = np.zeros(0, np.int64)

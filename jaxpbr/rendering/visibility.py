@@ -196,7 +196,7 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
     lo = tri.min(1) - tol
     hi = tri.max(1) + tol
     ext = (hi - lo).max(1)
-    h0 = max(0.5 * float(np.median(ext)), 1e-30)
+    h0 = max(float(np.percentile(ext, 90)), 1e-30)  # most triangles on level 0
     level = np.maximum(0, np.ceil(np.log2(np.maximum(ext / h0, 1.0)))).astype(np.int64)
     found = []
 
@@ -258,12 +258,14 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
         tri_of, local = _expand(span.prod(1))
         sx, sy = span[tri_of, 0], span[tri_of, 1]
         cell = np.stack([ilo[tri_of, 0] + local % sx, ilo[tri_of, 1] + (local // sx) % sy, ilo[tri_of, 2] + local // (sx * sy)], 1)
-        cell -= cell.min(0)
+        cmin = cell.min(0)
+        cell -= cmin
         dims = cell.max(0) + 1
         key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
         is_own = own[tri_of]
         order = np.lexsort((~is_own, key))  # per cell: this level's triangles first
         key, tri_of, is_own = key[order], tri_of[order], is_own[order]
+        del cell
         run_end = np.r_[np.nonzero(np.diff(key))[0] + 1, key.size]
         end_of = np.repeat(run_end, np.diff(np.r_[0, run_end]))
         first = np.nonzero(is_own)[0]  # pair each own entry with the later entries of its cell
@@ -278,7 +280,13 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
             src, off = _expand(c)
             a = f[src]
             b = a + 1 + off
-            keep_pairs(members[tri_of[a]], members[tri_of[b]])
+            i, j = members[tri_of[a]], members[tri_of[b]]
+            # a pair sharing several cells is kept only in the cell holding the low corner of
+            # the intersection of their boxes
+            corner = np.floor(np.maximum(lo[i], lo[j]) / h).astype(np.int64) - cmin
+            ck = (corner[:, 0] * dims[1] + corner[:, 1]) * dims[2] + corner[:, 2]
+            keep = ck == key[a]
+            keep_pairs(i[keep], j[keep])
             start = stop
     if not found:
         return np.zeros((0, 2), np.int64)
@@ -317,8 +325,39 @@ def _not_separated_in_plane(a, b, margin):
     return ~sep
 
 
+class _RayData:
+    """Per-ray constants of the host-side exact test, computed on first need for a subset of
+    the rays (most primary rays miss, and only hits are tested): float32 rays, the watertight
+    test's setup, and the tie tolerance (world units, and in t)."""
+
+    def __init__(self, o64, d64, scale):
+        n = len(o64)
+        self.o32, self.d32 = o64.astype(F32), d64.astype(F32)
+        self.scale = scale
+        self.have = np.zeros(n, bool)
+        self.setup = [np.zeros(n, np.int32) for _ in range(3)] + [np.zeros(n, F32) for _ in range(3)] + [np.zeros(n, bool)]
+        self.tol_abs = np.zeros(n)
+        self.tol_t = np.zeros(n)
+
+    def ensure(self, rays):
+        need = rays[~self.have[rays]]
+        if need.size == 0:
+            return
+        if need.size > 1 and (np.diff(need) <= 0).any():  # not strictly increasing: dedupe
+            mark = np.zeros(len(self.have), bool)
+            mark[need] = True
+            need = np.nonzero(mark)[0]
+        for dst, src in zip(self.setup, _bvh.ray_setup(self.d32[need], np)):
+            dst[need] = src
+        o, d = self.o32[need].astype(np.float64), self.d32[need].astype(np.float64)
+        self.tol_abs[need] = TIE_TOL * (self.scale + np.sqrt(np.einsum("nk,nk->n", o, o)))
+        dn = np.sqrt(np.einsum("nk,nk->n", d, d))
+        self.tol_t[need] = self.tol_abs[need] / np.where(dn > 0, dn, 1.0)
+        self.have[need] = True
+
+
 class _EmbreeBackend:
-    def __init__(self, vertices, triangles, threads=None):
+    def __init__(self, vertices, triangles, threads=None, exact_ties=True):
         from embreex.mesh_construction import TriangleMesh
         from embreex.rtcore_scene import EmbreeScene
 
@@ -351,11 +390,12 @@ class _EmbreeBackend:
         self.welded = welded
         self.v2t = _csr(welded.reshape(-1)[corner_ok], corner_tri[corner_ok], nv)
         tol_build = TIE_TOL * 4.0 * self.scale
-        pairs = self.ids[_near_pairs(t64[self.ids], welded[self.ids], tol_build)]
+        pairs = self.ids[_near_pairs(t64[self.ids], welded[self.ids], tol_build)] if exact_ties else np.zeros((0, 2), np.int64)
         both = np.concatenate([pairs, pairs[:, ::-1]]) if pairs.size else np.zeros((0, 2), np.int64)
         self.near = _csr(both[:, 0], both[:, 1], self.n_tri)
         self.flagged = np.diff(self.near[0]) > 0
         self.n_near_pairs = len(pairs)
+        self.rounds_log = []  # (rays hit, rays refined, rays going on) per embree round, for tuning
 
     # -- embree calls ------------------------------------------------------------------------------
     def _pool_get(self):
@@ -390,13 +430,12 @@ class _EmbreeBackend:
         return prim, np.concatenate([p[1] for p in parts])
 
     # -- the exact refinement ------------------------------------------------------------------------
-    def _test(self, o32, d32, setup, ray, cand):
-        """Watertight test of (ray[i], cand[i]) pairs: (hit, t, b0, b1, b2) float32 (bary for the
-        near-edge test only)."""
-        s = tuple(x[ray] for x in setup)
+    def _test(self, rd, ray, cand):
+        """Watertight test of the pairs (ray[i], cand[i]): (hit, t, b0, b1, b2), float32 (the
+        barycentrics only for the near-edge test)."""
+        kx, ky, kz, sx, sy, sz, ok = (x[ray] for x in rd.setup)
         tri = self.tri[cand]
-        kx, ky, kz, sx, sy, sz, ok = s
-        o = o32[ray]
+        o = rd.o32[ray]
 
         def rel(p):
             q0, q1, q2 = p[:, 0] - o[:, 0], p[:, 1] - o[:, 1], p[:, 2] - o[:, 2]
@@ -423,82 +462,95 @@ class _EmbreeBackend:
         return _gather_lists(offs, vals, tris)
 
     @staticmethod
-    def _update(best_t, best_p, ray, t, p, ok):
-        """Lexicographic (t, id) minimum of the valid candidates into best (in place)."""
+    def _update(best_t, best_p, ray, t, p, ok, unique=False):
+        """Lexicographic (t, id) minimum of the valid candidates into best (in place); unique:
+        each ray appears at most once in `ray`."""
         ray, t, p = ray[ok], t[ok], p[ok]
         if ray.size == 0:
             return
-        order = np.lexsort((p, t, ray))
-        ray, t, p = ray[order], t[order], p[order]
-        first = np.r_[True, ray[1:] != ray[:-1]]
-        ray, t, p = ray[first], t[first], p[first]
+        if not unique:
+            order = np.lexsort((p, t, ray))
+            ray, t, p = ray[order], t[order], p[order]
+            first = np.r_[True, ray[1:] != ray[:-1]]
+            ray, t, p = ray[first], t[first], p[first]
         better = (t < best_t[ray]) | ((t == best_t[ray]) & (p < best_p[ray]))
         best_t[ray[better]] = t[better]
         best_p[ray[better]] = p[better]
 
     def closest(self, o64, d64, tnear, tfar, after, max_rounds=64):
-        """Canonical closest hit (see the module docstring): (t float32, prim int32 or _NONE)."""
+        """Canonical closest hit (see the module docstring): (t float32, prim int64 or _NONE).
+
+        embree proposes the nearest triangle beyond s (s = tnear, or just past the previous hit's
+        tie zone when continuing); the proposal, and when it may be tied its neighbours, are
+        tested exactly; a ray is done when the best valid hit so far is no farther than the
+        proposal's tie zone (everything untested lies beyond it), else s moves past the zone."""
         n = len(o64)
-        o32, d32 = o64.astype(F32), d64.astype(F32)
-        setup = _bvh.ray_setup(d32, np)
-        dn = np.linalg.norm(d32.astype(np.float64), axis=1)
-        dn = np.where(dn > 0, dn, 1.0)
-        tol_abs = TIE_TOL * (self.scale + np.linalg.norm(o32.astype(np.float64), axis=1))
-        tol_t = tol_abs / dn
+        rd = _RayData(o64, d64, self.scale)
         tn32, tf32 = tnear.astype(F32), tfar.astype(F32)
         best_t = np.full(n, np.inf, F32)
         best_p = np.full(n, _NONE, np.int64)
 
-        def consider(ray, cand):
-            hit, t, *_ = self._test(o32, d32, setup, ray, cand)
+        def valid(ray, cand, hit, t):
             ok = hit & (t >= tn32[ray]) & (t <= tf32[ray]) & (cand != after[ray])
-            ok &= (t > tn32[ray]) | (cand > after[ray])
-            self._update(best_t, best_p, ray, t, cand, ok)
+            return ok & ((t > tn32[ray]) | (cand > after[ray]))
 
-        s = tnear.astype(np.float64).copy()
+        def consider(ray, cand):
+            if ray.size:
+                hit, t, *_ = self._test(rd, ray, cand)
+                self._update(best_t, best_p, ray, t, cand, valid(ray, cand, hit, t))
+
+        s = tnear.astype(np.float64)
         cont = np.nonzero(after >= 0)[0]
         if cont.size:  # the hits tied with the previous one are its neighbours: test them directly
+            s = s.copy()
+            rd.ensure(cont)
             prev = after[cont]
-            consider(cont, prev)  # (rejected by cand != after; gives nothing, kept for clarity)
             own, cand = self._flagged_near(prev)
             consider(cont[own], cand)
-            hit, t, b0, b1, b2 = self._test(o32, d32, setup, cont, prev)
-            edge = self._near_edge(prev, b0, b1, b2, tol_abs[cont]) | ~hit
-            e = cont[edge]
+            hit, t, b0, b1, b2 = self._test(rd, cont, prev)
+            e = cont[self._near_edge(prev, b0, b1, b2, rd.tol_abs[cont]) | ~hit]
             if e.size:
                 own, cand = self._adjacent(after[e])
                 consider(e[own], cand)
-            s[cont] += tol_t[cont]
-        active = np.arange(n)
+            s[cont] += rd.tol_t[cont]
+        active = None  # all rays
         for _ in range(max_rounds):
-            if active.size == 0:
-                break
-            sa = s[active]
-            shift = np.where(sa != 0, sa, 0.0)
-            org = (o64[active] + shift[:, None] * d64[active]).astype(F32)
+            sa = s if active is None else s[active]
+            d32 = rd.d32 if active is None else rd.d32[active]
+            if not sa.any():
+                org = rd.o32 if active is None else rd.o32[active]
+            else:
+                o_, d_ = (o64, d64) if active is None else (o64[active], d64[active])
+                org = (o_ + sa[:, None] * d_).astype(F32)
             with np.errstate(invalid="ignore"):
-                span = (tfar[active].astype(np.float64) - shift).astype(F32)
+                span = ((tfar if active is None else tfar[active]) - sa).astype(F32)
             span = np.where(np.isnan(span), F32(-1), span)
-            pid, te = self._run(org, d32[active], np.maximum(span, F32(0)), "INTERSECT")
+            pid, te = self._run(org, d32, np.maximum(span, F32(0)), "INTERSECT")
             hitm = (pid >= 0) & (span >= 0)
-            ray = active[hitm]
-            prop = self.ids[pid[hitm]] if ray.size else np.zeros(0, np.int64)
-            t_ref = sa[hitm] + te[hitm].astype(np.float64)
-            hit, t, b0, b1, b2 = self._test(o32, d32, setup, ray, prop)
-            ok = hit & (t >= tn32[ray]) & (t <= tf32[ray]) & (prop != after[ray])
-            ok &= (t > tn32[ray]) | (prop > after[ray])
-            self._update(best_t, best_p, ray, t, prop, ok)
-            refine = ~ok | self.flagged[prop] | self._near_edge(prop, b0, b1, b2, tol_abs[ray])
+            sub = np.nonzero(hitm)[0]
+            ray = sub if active is None else active[sub]
+            if ray.size == 0:
+                break
+            rd.ensure(ray)
+            prop = self.ids[pid[sub]]
+            t_ref = sa[sub] + te[sub].astype(np.float64)
+            hit, t, b0, b1, b2 = self._test(rd, ray, prop)
+            ok = valid(ray, prop, hit, t)
+            self._update(best_t, best_p, ray, t, prop, ok, unique=True)
+            refine = ~ok | self.flagged[prop] | self._near_edge(prop, b0, b1, b2, rd.tol_abs[ray])
             r = np.nonzero(refine)[0]
             if r.size:
                 own, cand = self._flagged_near(prop[r])
                 consider(ray[r[own]], cand)
                 own, cand = self._adjacent(prop[r])
                 consider(ray[r[own]], cand)
-            done = best_t[ray].astype(np.float64) <= t_ref + tol_t[ray]
-            again = ray[~done]
-            s[again] = t_ref[~done] + tol_t[again]
-            active = again
+            done = best_t[ray].astype(np.float64) <= t_ref + rd.tol_t[ray]
+            active = ray[~done]
+            self.rounds_log.append((ray.size, int(r.size), int(active.size)))
+            if active.size == 0:
+                break
+            s = s.copy() if s is tnear else s
+            s[active] = t_ref[~done] + rd.tol_t[active]
         return best_t, best_p
 
     def barycentrics(self, o64, d64, prim):
@@ -569,12 +621,16 @@ class TriangleAccel:
         lanes: int = _bvh.DEFAULT_LANES,
         min_triangles: int = 0,
         threads: int | None = None,
+        exact_ties: bool = True,
     ) -> TriangleAccel:
         """Build on the host. vertices (V, 3) float, triangles (T, 3) int. backend: "auto" (embree
         if importable and JAX runs on the CPU, else jax), "embree" or "jax". leaf_size, lanes and
         min_triangles tune the jax backend (triangles per BVH leaf; rays in flight; pad the BVH
         arrays as for this many triangles so that several meshes share one compiled traversal),
-        threads the embree one (default: os.cpu_count())."""
+        threads and exact_ties the embree one (threads: default os.cpu_count(); exact_ties=False
+        skips the build-time search for non-adjacent triangles within the tie tolerance, about
+        half of the build time: then coplanar copies and crossing triangles may come out of
+        continuation in embree's order, or one of them be skipped)."""
         if backend not in ("auto", "embree", "jax"):
             raise InputError(f"backend must be 'auto', 'embree' or 'jax', got {backend!r}")
         if backend == "auto":
@@ -583,7 +639,7 @@ class TriangleAccel:
         if backend == "embree":
             if not embree_available():
                 raise InputError("backend='embree' needs the embreex package (pip install embreex)")
-            return cls("embree", _EmbreeBackend(vertices, triangles, threads), n_tri, lanes)
+            return cls("embree", _EmbreeBackend(vertices, triangles, threads, exact_ties), n_tri, lanes)
         bvh = build_bvh(vertices, triangles, leaf_size=leaf_size, min_triangles=min_triangles).to_device()
         return cls("jax", bvh, n_tri, lanes)
 

@@ -1,0 +1,142 @@
+"""Benchmark of triangle-mesh visibility (jaxpbr.rendering.visibility): the primary rays of a
+pinhole camera (1920x1080 by default) onto icospheres, embree against the JAX BVH on this machine.
+
+For each mesh and backend: the build time (host), then `intersect` run back to back `--repeats`
+times in the same process (min and median reported; the JAX backend's first call, which compiles,
+is reported apart). "embreex raw" is embreex's own `run` on the same rays, without the exact
+refinement that `TriangleAccel` adds (the host-side watertight test, ties, barycentrics).
+
+    python examples/bench_visibility.py [--subdiv 6 8] [--repeats 3] [--width 1920 --height 1080]
+        [--backends embree jax raw] [--shadow]
+
+Subdivision 6 is 81,920 triangles, 7 is 327,680, 8 is 1,310,720.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import numpy as np
+
+import jax
+
+from jaxpbr.rendering.visibility import TriangleAccel, embree_available
+
+
+def icosphere(subdiv: int):
+    """A unit icosphere: (vertices (V, 3) float64, triangles (T, 3) int64), 20 * 4^subdiv faces."""
+    t = (1 + 5**0.5) / 2
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    for _ in range(subdiv):
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        uniq, inv = np.unique(e, axis=0, return_inverse=True)
+        mid = v[uniq[:, 0]] + v[uniq[:, 1]]
+        mid /= np.linalg.norm(mid, axis=1, keepdims=True)
+        m = inv.reshape(3, -1) + len(v)  # midpoints of edges 01, 12, 20 per face
+        a, b, c = f[:, 0], f[:, 1], f[:, 2]
+        f = np.concatenate([np.stack(x, 1) for x in ([a, m[0], m[2]], [b, m[1], m[0]], [c, m[2], m[1]], [m[0], m[1], m[2]])])
+        v = np.concatenate([v, mid])
+    return v, f
+
+
+def camera_rays(width: int, height: int, fov_y_deg: float = 45.0, eye=(0.3, 0.4, 3.0)):
+    """Pinhole rays (origins, unit directions), (H*W, 3) float32, looking at the origin."""
+    eye = np.asarray(eye, float)
+    fwd = -eye / np.linalg.norm(eye)
+    right = np.cross(fwd, [0.0, 1.0, 0.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    h = np.tan(np.radians(fov_y_deg) / 2)
+    ys, xs = np.mgrid[0:height, 0:width]
+    sx = ((xs + 0.5) / width * 2 - 1) * h * width / height
+    sy = (1 - (ys + 0.5) / height * 2) * h
+    d = fwd + sx[..., None] * right + sy[..., None] * up
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    d = d.reshape(-1, 3).astype(np.float32)
+    return np.broadcast_to(eye.astype(np.float32), d.shape).copy(), d
+
+
+def timed(fn, repeats):
+    out, times = None, []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return out, times
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--subdiv", type=int, nargs="+", default=[6, 8])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--width", type=int, default=1920)
+    ap.add_argument("--height", type=int, default=1080)
+    ap.add_argument("--backends", nargs="+", default=["raw", "embree", "jax"], choices=["raw", "embree", "jax"])
+    ap.add_argument("--shadow", action="store_true", help="also time occluded() for shadow rays from the hits")
+    args = ap.parse_args()
+    if not embree_available():
+        args.backends = [b for b in args.backends if b == "jax"]
+    o, d = camera_rays(args.width, args.height)
+    n = len(o)
+    print(f"{args.width}x{args.height} = {n} primary rays; JAX {jax.__version__} on {jax.default_backend()}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}")
+    rows = []
+    for sub in args.subdiv:
+        v, f = icosphere(sub)
+        ref = None
+        for backend in args.backends:
+            if backend == "raw":
+                from embreex.mesh_construction import TriangleMesh
+                from embreex.rtcore_scene import EmbreeScene
+
+                t = time.perf_counter()
+                scene = EmbreeScene()
+                TriangleMesh(scene, v.astype(np.float32), f.astype(np.int32))
+                scene.run(o[:1], d[:1])  # commit
+                build = time.perf_counter() - t
+                _, times = timed(lambda: scene.run(o, d, output=True), args.repeats)
+                rows.append((len(f), "embreex raw (1 thread)", build, None, times))
+                continue
+            t = time.perf_counter()
+            acc = TriangleAccel.build(v, f, backend=backend)
+            build = time.perf_counter() - t
+            first = None
+            if backend == "jax":
+                t = time.perf_counter()
+                jax.block_until_ready(acc.intersect(o, d))
+                first = time.perf_counter() - t
+            h, times = timed(lambda: jax.block_until_ready(acc.intersect(o, d)), args.repeats)
+            prim = np.asarray(h.prim)
+            label = f"{backend} (TriangleAccel)" + (f", {acc._impl.threads} threads" if backend == "embree" else "")
+            rows.append((len(f), label, build, first, times))
+            if ref is None:
+                ref = prim
+            else:
+                same = np.mean(prim == ref)
+                print(f"  {len(f)} triangles: {backend} agrees with the first backend on {100 * same:.4f}% of the pixels")
+            if args.shadow:
+                hit = prim >= 0
+                p = o[hit] + np.asarray(h.t)[hit, None] * d[hit]
+                light = np.broadcast_to(np.array([0.4, 0.8, 0.45], np.float32), p.shape)
+                nrm = p / np.linalg.norm(p, axis=1, keepdims=True)
+                from jaxpbr.rendering.visibility import offset_ray_origin
+
+                so = offset_ray_origin(p.astype(np.float32), nrm.astype(np.float32))
+                jax.block_until_ready(acc.occluded(so, light))
+                _, st = timed(lambda: jax.block_until_ready(acc.occluded(so, light)), args.repeats)
+                rows.append((len(f), f"{backend} occluded ({hit.sum()} shadow rays)", None, None, [x * n / hit.sum() for x in st]))
+    print()
+    print(f"{'triangles':>10}  {'backend':<34} {'build s':>8} {'1st call s':>10} {'min s':>8} {'median s':>9} {'Mrays/s (best)':>15}")
+    for tri, label, build, first, times in rows:
+        b = f"{build:8.2f}" if build is not None else f"{'':>8}"
+        fc = f"{first:10.2f}" if first is not None else f"{'':>10}"
+        print(f"{tri:>10}  {label:<34} {b} {fc} {min(times):8.3f} {statistics.median(times):9.3f} {n / min(times) / 1e6:15.3f}")
+    print("(occluded rows: times scaled to the full ray count)" if args.shadow else "")
+
+
+if __name__ == "__main__":
+    main()
