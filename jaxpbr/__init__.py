@@ -20,6 +20,7 @@ from ._version import __version__
 from .shading.brdf_terms import MIN_ROUGHNESS, MODELS
 from .shading.layered import brdf
 from .conventions import CONVENTIONS
+from .ibl.baked import write_baked
 from .ibl.cubemap import Cubemap
 from .ibl.diffuse import irradiance, sh9_irradiance, sh9_project
 from .ibl.shade import shade_ibl
@@ -33,6 +34,7 @@ from .shading.lights import (
 )
 from .shading.lut import compute_brdf_lut, lut_lookup, lut_reference
 from .shading.material import Material
+from .rendering.baked import read_baked
 from .rendering.gltf_scene import load_gltf
 from .rendering.mesh import Mesh
 from .rendering.renderer import RenderOptions, bake, render, render_batch
@@ -49,6 +51,8 @@ __all__ = [
     "io",
     "rendering",
     "bake",
+    "read_baked",
+    "write_baked",
     "CONVENTIONS",
     "Camera",
     "Cubemap",
