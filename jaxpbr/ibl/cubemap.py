@@ -373,7 +373,9 @@ LOOKUP_KEYS = frozenset({"distribution", "mapping_levels", "roughness_mapping", 
 
 
 def _lookup_part(pairs) -> tuple:
-    return tuple(kv for kv in pairs if kv[0] in LOOKUP_KEYS)
+    """The lookup pairs, sorted by key: the order metadata arrives in (a KTX2 file stores its keys
+    sorted) does not change a compiled program's identity."""
+    return tuple(sorted((kv for kv in pairs if kv[0] in LOOKUP_KEYS), key=lambda kv: kv[0]))
 
 
 class CubeInfo(tuple):
