@@ -7,11 +7,10 @@ bucket, so the traversal compiles once per query kind (intersect, occluded, firs
 
 from __future__ import annotations
 
-import numpy as np
-import pytest
-
 import jax
 import jax.numpy as jnp
+import numpy as np
+import pytest
 
 from jaxpbr.errors import InputError
 from jaxpbr.rendering import bvh as bvh_mod
@@ -223,6 +222,10 @@ def test_degenerate_triangles_are_never_hit(backend):
     assert prim[5] == 4
     for x in h:
         assert not np.isnan(np.asarray(x, float)).any()
+    # meshes with nothing to hit
+    for v, f in ((np.zeros((3, 3)), np.array([[0, 1, 2]])), (np.zeros((0, 3)), np.zeros((0, 3), int))):
+        acc = _accel(v, f, backend)
+        assert (np.asarray(acc.intersect(o, d).prim) == -1).all() and not np.asarray(acc.occluded(o, d)).any()
 
 
 # --------------------------------------------------------------------------------------------------

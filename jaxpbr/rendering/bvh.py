@@ -1,13 +1,19 @@
 """A bounding volume hierarchy over triangles: built on the host in NumPy, traversed in JAX.
 
-`build_bvh` makes a binary BVH with a binned surface-area heuristic (16 bins per axis, top-down,
-one vectorised pass per tree level, at most `leaf_size` triangles per leaf; below depth 40 splits
-turn into object medians so the depth stays bounded) and flattens it into arrays: for every inner
-node the boxes of its two children, and per child either an inner-node index or a leaf's range in
-the leaf-ordered triangle arrays. `intersect_bvh` / `occluded_bvh` trace rays through it with a
-`lax.while_loop` per ray and a fixed-size stack (nearer child first, both leaf children of a node
-tested in the node's step), vmapped over the rays and run in chunks; they are tracer-friendly
-(jit them, or call them inside a jitted renderer) and run on any JAX backend.
+`build_bvh` makes a binary BVH with a binned surface-area heuristic (16 bins per axis, 8 for small
+nodes; top-down, one vectorised pass per tree level; at most `leaf_size` triangles per leaf; below
+depth 40 splits turn into object medians so the depth stays bounded) and flattens it into arrays:
+for every inner node the boxes of its two children, and per child either an inner-node index or a
+leaf's range in the leaf-ordered triangle array.
+
+`intersect_bvh` / `occluded_bvh` / `first_k_hits_bvh` trace rays through it. Each ray's traversal is
+a stack machine (a fixed-size stack; per step: test the current node's two child boxes, intersect
+the triangles of the leaf children hit, go to the nearer inner child and push the farther, or pop).
+`lanes` rays are in flight at once in one `lax.while_loop`; a lane whose ray is finished writes its
+result and takes the next ray from the queue, so a slow ray holds up nobody (a vmapped per-ray loop
+runs every ray for as many steps as the slowest one in its batch: measured 10x slower on CPU). The
+functions are tracer-friendly (jit them, call them inside a jitted renderer, vmap them) and run on
+any JAX backend.
 
 The ray/triangle test, `watertight_test`, is the watertight test of Woop, Benthin & Wald ("Watertight
 Ray/Triangle Intersection", JCGT 2013), written for both NumPy and jax.numpy so that the host (the
@@ -38,10 +44,13 @@ have a definite order. `intersect_bvh(..., tnear, after_prim)` returns the first
 (tnear, after_prim) in that order (and never `after_prim` itself): passing the previous hit's t and
 id walks through every triangle on the ray exactly once, nearest first (`first_k_hits_bvh`).
 
-What recompiles: the traversal is compiled per (ray count, node-array length, triangle-array
-length, stack size, leaf size, chunk size, dtypes). `build_bvh(..., bucket=True)` (the default) pads
-the node and triangle arrays to powers of two and the stack to a multiple of 16, so meshes of
-similar size share one compiled traversal; `pad_rays` pads a ray count to a power-of-two bucket.
+What recompiles: the traversal is compiled per (ray count, lanes, node-array length, triangle-array
+length, stack size, leaf size, origin dtype (the barycentrics' dtype), k for first_k_hits). With
+`build_bvh(..., bucket=True)` (the default) the node and triangle arrays are padded to powers of two
+(at least `min_triangles`) and the stack to a multiple of 16 (at least 32), so meshes of similar
+size share one compiled traversal; `pad_rays` gives the power-of-two bucket that
+`visibility.TriangleAccel` pads ray counts to. Nothing here depends on the mesh's values, so a
+renderer's shading stages never recompile because of the geometry.
 """
 
 from __future__ import annotations

@@ -180,72 +180,45 @@ def _gather_lists(offs, vals, which):
     return owner, vals[pos]
 
 
-def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 << 22) -> np.ndarray:
+def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 << 21) -> np.ndarray:
     """Pairs (i, j), i < j, of triangles that come within about `tol` of each other away from the
     vertices they share: interpenetrating or touching parts, coplanar overlapping copies. A superset
     for pairs without a shared (welded) vertex: boxes grown by tol overlap, each triangle reaches
     the other's plane within tol, and in the plane no edge axis separates them by more than 2 tol.
     Pairs sharing a vertex must be coplanar within tol and overlap by more than tol in the plane
     (a duplicate, a fold); edge neighbours are handled by the near-edge test instead. (Triangles
-    that share a vertex and cross elsewhere at an angle are not found.) Candidates come from a hierarchical
-    uniform grid: a triangle lives on the level whose cells (h0 2^level) are at least its size, and
-    is paired with the triangles of its own level or finer that share a cell with it."""
+    that share a vertex and cross elsewhere at an angle are not found.)
+
+    Candidates come from a hierarchical uniform grid: a triangle lives on the level whose cells
+    (h0 2^level) are at least its size, and is paired with the triangles of its own level or finer
+    that share a cell with it; a pair sharing several cells is kept in the cell of the low corner
+    of the intersection of their boxes only. The per-pair tests run as one jitted JAX kernel on
+    chunks of candidates (in NumPy they were the bulk of the build)."""
     n = len(tri)
     if n < 2:
         return np.zeros((0, 2), np.int64)
+    center = 0.5 * (tri.reshape(-1, 3).min(0) + tri.reshape(-1, 3).max(0))
+    tri = tri - center  # float32 below: centred coordinates keep its rounding well under tol
     lo = tri.min(1) - tol
     hi = tri.max(1) + tol
     ext = (hi - lo).max(1)
     h0 = max(float(np.percentile(ext, 90)), 1e-30)  # most triangles on level 0
     level = np.maximum(0, np.ceil(np.log2(np.maximum(ext / h0, 1.0)))).astype(np.int64)
-    found = []
-
     nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area2 = np.linalg.norm(nrm, axis=1)
     nrm /= area2[:, None]
-    plane_d = np.einsum("nk,nk->n", nrm, tri[:, 0])
     longest = np.sqrt(((tri - np.roll(tri, 1, axis=1)) ** 2).sum(2)).max(1)
-    alt = area2 / longest  # the smallest altitude
-    flat = tri.reshape(-1, 9)
-
-    def dist(a, b):  # signed distances of b's vertices from a's plane: (m, 3)
-        pb, na = flat[b], nrm[a]
-        return np.stack([(pb[:, 3 * v : 3 * v + 3] * na).sum(1) for v in range(3)], 1) - plane_d[a][:, None]
-
-    lo32 = [np.nextafter(lo[:, a].astype(F32), F32(-np.inf)) for a in range(3)]
-    hi32 = [np.nextafter(hi[:, a].astype(F32), F32(np.inf)) for a in range(3)]
-    welded = welded.astype(np.int32)
-
-    def keep_pairs(i, j):
-        i, j = i.astype(np.int32), j.astype(np.int32)
-        for a in range(3):  # box overlap, one axis at a time (compacting as it goes)
-            ok = (lo32[a][i] <= hi32[a][j]) & (lo32[a][j] <= hi32[a][i])
-            i, j = i[ok], j[ok]
-        wi, wj = welded[i], welded[j]
-        shared = np.zeros(i.size, bool)
-        for a in range(3):
-            for b in range(3):
-                shared |= wi[:, a] == wj[:, b]
-        # triangles sharing a vertex meet there anyway: they count only when they also overlap
-        # in a common plane (a duplicate, a fold): coplanar within tol, overlapping by > tol.
-        # Cheap prefilter: coplanar within tol needs sin(angle between normals) <= ~2 tol / altitude
-        cosn = np.abs((nrm[i] * nrm[j]).sum(1))
-        lim = np.minimum(1.0, 4.0 * tol / np.minimum(alt[i], alt[j]))
-        maybe = ~shared | (1.0 - cosn * cosn <= lim * lim)
-        i, j, shared = i[maybe], j[maybe], shared[maybe]
-        dij, dji = dist(i, j), dist(j, i)
-        coplanar = (np.abs(dij) <= tol).all(1) & (np.abs(dji) <= tol).all(1)
-
-        def reaches(dd):
-            return ~((dd > tol).all(1) | (dd < -tol).all(1))
-
-        near = np.where(shared, coplanar, reaches(dij) & reaches(dji))
-        i, j, shared = i[near], j[near], shared[near]
-        if i.size:
-            near = _not_separated_in_plane(tri[i], tri[j], np.where(shared, -tol, 2 * tol))
-            if near.any():
-                found.append(np.sort(np.stack([i[near], j[near]], 1), 1))
-
+    data = {
+        "lo": lo.astype(F32),
+        "hi": hi.astype(F32),
+        "welded": welded.astype(np.int32),
+        "nrm": nrm.astype(F32),
+        "pd": np.einsum("nk,nk->n", nrm, tri[:, 0]).astype(F32),
+        "verts": tri.reshape(-1, 9).astype(F32),
+        "alt": (area2 / longest).astype(F32),  # the smallest altitude
+    }
+    data_dev = None
+    found = []
     for lev in range(int(level.max()) + 1):
         members = np.nonzero(level <= lev)[0]
         own = level[members] == lev
@@ -264,33 +237,78 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
         key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
         is_own = own[tri_of]
         order = np.lexsort((~is_own, key))  # per cell: this level's triangles first
-        key, tri_of, is_own = key[order], tri_of[order], is_own[order]
-        del cell
+        key, tri_of, is_own, cell = key[order], tri_of[order], is_own[order], cell[order].astype(np.int32)
         run_end = np.r_[np.nonzero(np.diff(key))[0] + 1, key.size]
         end_of = np.repeat(run_end, np.diff(np.r_[0, run_end]))
         first = np.nonzero(is_own)[0]  # pair each own entry with the later entries of its cell
         cnt = end_of[first] - first - 1
-        # in chunks of about `chunk` pairs
         cum = np.cumsum(cnt)
         start = 0
-        while start < first.size:
+        params = (F32(h), cmin.astype(F32), F32(tol))
+        while start < first.size:  # chunks of about `chunk` pairs
             stop = int(np.searchsorted(cum, (cum[start - 1] if start else 0) + chunk, "right"))
             stop = max(stop, start + 1)
-            f, c = first[start:stop], cnt[start:stop]
-            src, off = _expand(c)
-            a = f[src]
+            src, off = _expand(cnt[start:stop])
+            a = first[start:stop][src]
             b = a + 1 + off
             i, j = members[tri_of[a]], members[tri_of[b]]
-            # a pair sharing several cells is kept only in the cell holding the low corner of
-            # the intersection of their boxes
-            corner = np.floor(np.maximum(lo[i], lo[j]) / h).astype(np.int64) - cmin
-            ck = (corner[:, 0] * dims[1] + corner[:, 1]) * dims[2] + corner[:, 2]
-            keep = ck == key[a]
-            keep_pairs(i[keep], j[keep])
+            m = i.size
+            if m < _KERNEL_MIN_PAIRS:
+                keep, shared = _pair_tests(i, j, cell[a], data, params)
+            else:
+                if data_dev is None:
+                    data_dev = {k: jnp.asarray(v) for k, v in data.items()}
+                size = 1 << (m - 1).bit_length()  # padded: few compiled sizes
+                pad = size - m
+                ii = np.pad(i.astype(np.int32), (0, pad))
+                jj = np.pad(j.astype(np.int32), (0, pad))
+                ca = np.pad(cell[a], ((0, pad), (0, 0)), constant_values=-1)  # padding never matches
+                dev = (jnp.float32(params[0]), jnp.asarray(params[1]), jnp.float32(params[2]))
+                keep, shared = (np.asarray(x)[:m] for x in _pair_kernel(ii, jj, jnp.asarray(ca), data_dev, dev))
+            if keep.any():
+                i, j, shared = i[keep], j[keep], shared[keep]
+                sep = _not_separated_in_plane(tri[i], tri[j], np.where(shared, -tol, 2 * tol))
+                if sep.any():
+                    found.append(np.sort(np.stack([i[sep], j[sep]], 1), 1))
             start = stop
     if not found:
         return np.zeros((0, 2), np.int64)
     return np.unique(np.concatenate(found), axis=0)
+
+
+def _pair_tests(i, j, cell_a, data, params, xp=np):
+    """The per-pair tests of `_near_pairs` in float32, for NumPy or (jitted, `_pair_kernel`)
+    jax.numpy: (keep, shared)."""
+    h, cmin, tol = params
+    tol = tol * 1.5  # a superset: generous against float32 rounding
+    lo_i, lo_j, hi_i, hi_j = data["lo"][i], data["lo"][j], data["hi"][i], data["hi"][j]
+    box = xp.all((lo_i <= hi_j) & (lo_j <= hi_i), axis=1)
+    corner = xp.floor(xp.maximum(lo_i, lo_j) / h) - cmin
+    box &= xp.all(corner.astype(np.int32) == cell_a, axis=1)
+    wi, wj = data["welded"][i], data["welded"][j]
+    shared = xp.any(wi[:, :, None] == wj[:, None, :], axis=(1, 2))
+    ni, nj = data["nrm"][i], data["nrm"][j]
+
+    def dist(n, d, verts):  # (m, 3) signed distances of the vertices from the plane (n, d)
+        v = verts.reshape(-1, 3, 3)
+        return (v[..., 0] * n[:, None, 0] + v[..., 1] * n[:, None, 1]) + v[..., 2] * n[:, None, 2] - d[:, None]
+
+    dij = dist(ni, data["pd"][i], data["verts"][j])
+    dji = dist(nj, data["pd"][j], data["verts"][i])
+    coplanar = xp.all(xp.abs(dij) <= tol, axis=1) & xp.all(xp.abs(dji) <= tol, axis=1)
+
+    def reaches(dd):
+        return ~(xp.all(dd > tol, axis=1) | xp.all(dd < -tol, axis=1))
+
+    # triangles sharing a vertex meet there anyway: they count only when they also overlap in a
+    # common plane (a duplicate, a fold): coplanar within tol (the in-plane overlap is tested after)
+    keep = box & xp.where(shared, coplanar, reaches(dij) & reaches(dji))
+    return keep, shared
+
+
+_pair_kernel = jax.jit(lambda i, j, cell_a, data, params: _pair_tests(i, j, cell_a, data, params, jnp))
+#: Candidate chunks at least this large go through the jitted kernel (compiling it costs ~0.5 s).
+_KERNEL_MIN_PAIRS = 1 << 18
 
 
 def _expand(counts):
@@ -376,6 +394,7 @@ class _EmbreeBackend:
         self.threads = int(threads or os.cpu_count() or 1)
         self._pool = None
         self._lock = threading.Lock()
+        self._local = threading.local()  # set on worker threads that run whole chunks
         t64 = self.tri.astype(np.float64)
         # altitudes (distance of each vertex from the opposite edge) for the near-edge test
         area2 = np.linalg.norm(np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0]), axis=1)
@@ -418,7 +437,7 @@ class _EmbreeBackend:
             return r["primID"], r["tfar"]
 
         pool = self._pool_get()
-        if pool is None or n < 4096:
+        if pool is None or n < 4096 or getattr(self._local, "inside", False):
             parts = [one(0, n)]
         else:
             m = self.threads * 4
@@ -563,10 +582,27 @@ class _EmbreeBackend:
         return b1, b2
 
     def intersect(self, o64, d64, tnear, tfar, after):
-        t, p = self.closest(o64, d64, tnear, tfar, after)
-        b1, b2 = self.barycentrics(o64, d64, p)
-        miss = p == _NONE
-        return Hits(np.where(miss, np.inf, t).astype(F32), np.where(miss, -1, p).astype(np.int32), b1, b2)
+        n = len(o64)
+        pool = self._pool_get()
+        if pool is None or n < 1 << 16 or getattr(self._local, "inside", False):
+            t, p = self.closest(o64, d64, tnear, tfar, after)
+            b1, b2 = self.barycentrics(o64, d64, p)
+            miss = p == _NONE
+            return Hits(np.where(miss, np.inf, t).astype(F32), np.where(miss, -1, p).astype(np.int32), b1, b2)
+
+        # many rays: whole chunks (embree and the NumPy refinement, which releases the GIL in its
+        # array operations) run on the worker threads
+        def part(ab):
+            a, b = ab
+            self._local.inside = True
+            try:
+                return self.intersect(o64[a:b], d64[a:b], tnear[a:b], tfar[a:b], after[a:b])
+            finally:
+                self._local.inside = False
+
+        cuts = np.linspace(0, n, 2 * self.threads + 1).astype(int)
+        parts = list(pool.map(part, itertools.pairwise(cuts)))
+        return Hits(*(np.concatenate(x) for x in zip(*parts)))
 
     def occluded(self, o64, d64, tnear, tfar):
         shift = tnear.astype(np.float64)
@@ -604,11 +640,13 @@ class TriangleAccel:
     device-resident `BVH` to pass to the jitted `intersect_jax` / `occluded_jax` / `first_k_hits_jax`
     inside a renderer's own jit)."""
 
-    def __init__(self, backend: str, impl, num_triangles: int, lanes: int = _bvh.DEFAULT_LANES):
+    def __init__(self, backend: str, impl, num_triangles: int, lanes: int | None = None):
         self.backend = backend
         self._impl = impl
         self.num_triangles = num_triangles
-        self.lanes = lanes
+        # rays in flight in the JAX traversal: enough to amortise a step's fixed cost; a GPU
+        # needs many more than a CPU to fill it (a guess there: no GPU measurement behind it)
+        self.lanes = int(lanes or (_bvh.DEFAULT_LANES if jax.default_backend() == "cpu" else 1 << 17))
 
     @classmethod
     def build(
@@ -618,15 +656,16 @@ class TriangleAccel:
         *,
         backend: str = "auto",
         leaf_size: int = 4,
-        lanes: int = _bvh.DEFAULT_LANES,
+        lanes: int | None = None,
         min_triangles: int = 0,
         threads: int | None = None,
         exact_ties: bool = True,
     ) -> TriangleAccel:
         """Build on the host. vertices (V, 3) float, triangles (T, 3) int. backend: "auto" (embree
         if importable and JAX runs on the CPU, else jax), "embree" or "jax". leaf_size, lanes and
-        min_triangles tune the jax backend (triangles per BVH leaf; rays in flight; pad the BVH
-        arrays as for this many triangles so that several meshes share one compiled traversal),
+        min_triangles tune the jax backend (triangles per BVH leaf; rays in flight, default 8192
+        on a CPU and 131072 elsewhere; pad the BVH arrays as for this many triangles so that
+        several meshes share one compiled traversal),
         threads and exact_ties the embree one (threads: default os.cpu_count(); exact_ties=False
         skips the build-time search for non-adjacent triangles within the tie tolerance, about
         half of the build time: then coplanar copies and crossing triangles may come out of
