@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 import jax
+import pytest
 
 from jaxpbr.cli._cache import prune
 
@@ -44,3 +45,18 @@ def pytest_configure(config):
     ):
         jax.config.update(name, value)
         os.environ[name.upper()] = str(value)
+
+
+#: Node ids of the tests marked slow by list (tests/slow_tests.txt): the measured slowest ones.
+SLOW_LIST = Path(__file__).with_name("slow_tests.txt")
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Mark the listed tests slow before `-m 'not slow'` deselects by marker."""
+    listed = {
+        line.strip() for line in SLOW_LIST.read_text().splitlines() if line.strip() and not line.startswith("#")
+    }
+    for item in items:
+        if item.nodeid in listed:
+            item.add_marker(pytest.mark.slow)
