@@ -834,12 +834,13 @@ def test_accessor_outside_its_buffer(tmp_path):
     doc = json.loads(path.read_text())
     doc["accessors"][0]["count"] = 4
     path.write_text(json.dumps(doc))
-    with pytest.raises(InputError, match=r"mesh 0 \('tri'\) primitive 0 POSITION \(accessor 0\).*bufferView 0"):
+    with pytest.raises(InputError, match=r"mesh 0 \('tri'\) primitive 0 POSITION \(/meshes/0/primitives/0/attributes/POSITION\): "
+                                         r"accessor 0 \(/accessors/0\).*bufferView 0 \(/bufferViews/0\)"):
         read_gltf(path)
     doc["accessors"][0]["count"] = 3
     doc["bufferViews"][0]["byteLength"] = 400
     path.write_text(json.dumps(doc))
-    with pytest.raises(InputError, match=r"bufferView 0.*\[0, 400\).*36 bytes"):
+    with pytest.raises(InputError, match=r"bufferView 0 \(/bufferViews/0\).*\[0, 400\) of buffer 0 \(/buffers/0\).*36 bytes"):
         read_gltf(path)
 
 
@@ -847,7 +848,7 @@ def test_index_out_of_range(tmp_path):
     b = _minimal()
     b.doc["meshes"][0]["primitives"][0]["indices"] = b.accessor(np.uint8([0, 1, 9]), UBYTE, "SCALAR")
     path = b.write(tmp_path / "idx.gltf")
-    with pytest.raises(InputError, match=r"'tri'.*index 9.*3 elements"):
+    with pytest.raises(InputError, match=r"'tri'.*\(/meshes/0/primitives/0/indices\).*9 at position 2.*3 elements"):
         read_gltf(path)
 
 
@@ -984,5 +985,273 @@ def test_integer_colour_must_be_normalized(tmp_path):
     b.doc["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"] = b.accessor(np.uint8([[255, 0, 0, 255]] * 3),
                                                                               UBYTE, "VEC4")
     path = b.write(tmp_path / "colour.gltf")
-    with pytest.raises(InputError, match=r"'tri'.*COLOR_0 \(accessor 1\).*normalized"):
+    with pytest.raises(InputError, match=r"'tri'.*COLOR_0 \(/meshes/0/primitives/0/attributes/COLOR_0\): accessor 1 \(/accessors/1\).*normalized"):
         read_gltf(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input: one line naming the JSON pointer (RFC 6901) of the offending object; the memory
+# guard before any buffer is read; the command line's one-line error, exit status 2, no output
+# ---------------------------------------------------------------------------------------------
+def _error(path, error=InputError, **kw) -> str:
+    """The message read_gltf raises for `path`, checked to be one line."""
+    with pytest.raises(error) as e:
+        read_gltf(path, **kw)
+    msg = str(e.value)
+    assert "\n" not in msg and "\r" not in msg, msg
+    return msg
+
+
+def _edit(path: Path, edit) -> Path:
+    """Apply edit(doc) to the JSON of a .gltf, or of a .glb's JSON chunk (the BIN chunk kept)."""
+    data = path.read_bytes()
+    if data[:4] != b"glTF":
+        doc = json.loads(data)
+        edit(doc)
+        path.write_text(json.dumps(doc))
+        return path
+    jlen = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20 : 20 + jlen])
+    edit(doc)
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    chunks = struct.pack("<I4s", len(js), b"JSON") + js + data[20 + jlen :]
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks)
+    return path
+
+
+def _with_texture(b: Builder, image: dict) -> Builder:
+    """The image as the base colour texture of the triangle's material."""
+    b.add("images", image)
+    b.add("textures", {"source": len(b.doc["images"]) - 1})
+    b.add("materials", {"pbrMetallicRoughness": {"baseColorTexture": {"index": len(b.doc["textures"]) - 1}}})
+    b.doc["meshes"][0]["primitives"][0]["material"] = len(b.doc["materials"]) - 1
+    return b
+
+
+def _png_bomb(w=12_000, h=12_000) -> bytes:
+    """A valid PNG header declaring w x h RGBA pixels (2.3 GB as float32) and a token IDAT."""
+    def chunk(kind, body):
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 6, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
+
+
+@pytest.mark.parametrize("attr,n", [("POSITION", 3), ("NORMAL", 3), ("TANGENT", 4), ("TEXCOORD_0", 2)])
+def test_non_finite_attribute_refused(tmp_path, attr, n):
+    b = _minimal()
+    values = np.float32([[0, 0, 0, 1], [1, 0, 0, 1], [0, 1, 0, 1]])[:, :n].copy()
+    values[1, 0], values[2, 0], values[2, 1] = np.nan, np.nan, -np.inf
+    acc = b.accessor(values, FLOAT, f"VEC{n}")
+    b.doc["meshes"][0]["primitives"][0]["attributes"][attr] = acc
+    msg = _error(b.write(tmp_path / "nan.gltf"))
+    assert (f"mesh 0 ('tri') primitive 0 {attr} (/meshes/0/primitives/0/attributes/{attr}): "
+            f"accessor {acc} (/accessors/{acc}): holds 3 non-finite values (2 NaN, 1 infinite) "
+            f"among its {3 * n} values, the first in element 1") in msg
+
+
+def test_non_finite_instance_translation_refused(tmp_path):
+    b = _minimal()
+    b.used("EXT_mesh_gpu_instancing")
+    acc = b.accessor(np.float32([[0, 0, 0], [np.inf, 0, 0]]), FLOAT, "VEC3")
+    b.doc["nodes"][0]["extensions"] = {"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": acc}}}
+    msg = _error(b.write(tmp_path / "inst.gltf"))
+    assert f"(/nodes/0/extensions/EXT_mesh_gpu_instancing/attributes/TRANSLATION): accessor {acc} (/accessors/{acc})" in msg
+    assert "1 non-finite values (0 NaN, 1 infinite)" in msg
+
+
+def test_indices_out_of_range_counted(tmp_path):
+    b = _minimal()
+    b.doc["meshes"][0]["primitives"][0]["indices"] = b.accessor(np.uint16([0, 1, 2, 2, 7, 3]), USHORT, "SCALAR")
+    msg = _error(b.write(tmp_path / "idx.gltf"))
+    assert ("mesh 0 ('tri') primitive 0 indices (/meshes/0/primitives/0/indices): accessor 1 (/accessors/1): "
+            "2 of its 6 indices are out of range (the first, 7 at position 4): the vertex attributes have 3 elements") in msg
+
+
+def test_short_buffer_external_and_glb(tmp_path):
+    path = _bad(tmp_path)
+    (tmp_path / "bad.bin").write_bytes((tmp_path / "bad.bin").read_bytes()[:20])
+    msg = _error(path)
+    assert "buffer 0 (/buffers/0/byteLength): byteLength is 36 but file" in msg and "holds only 20 bytes" in msg
+    glb = _edit(_minimal().write(tmp_path / "short.glb", mode="glb"), lambda d: d["buffers"][0].update(byteLength=4096))
+    assert "buffer 0 (/buffers/0/byteLength): byteLength is 4096 but the GLB's BIN chunk holds only 36 bytes" in _error(glb)
+
+
+def test_views_and_accessors_outside_their_data(tmp_path):
+    path = _minimal().write(tmp_path / "v.glb", mode="glb")
+    _edit(path, lambda d: d["bufferViews"][0].update(byteOffset=8))
+    assert ("accessor 0 (/accessors/0): bufferView 0 (/bufferViews/0): covers bytes [8, 44) of buffer 0 (/buffers/0), "
+            "which has 36 bytes") in _error(path)
+    _edit(path, lambda d: (d["bufferViews"][0].update(byteOffset=0), d["accessors"][0].update(byteOffset=4)))
+    assert ("accessor 0 (/accessors/0): count 3 x 12 bytes from byteOffset 4 reads bytes [4, 40) of bufferView 0 "
+            "(/bufferViews/0), which has 36 bytes") in _error(path)
+    _edit(path, lambda d: d["accessors"][0].update(byteOffset=0, bufferView=5))
+    assert "accessor 0 (/accessors/0): /accessors/0/bufferView: names bufferView 5, which does not exist" in _error(path)
+
+
+def test_missing_truncated_and_outside_images(tmp_path):
+    b = _with_texture(_minimal(), {"uri": "gone.png"})
+    msg = _error(b.write(tmp_path / "gone.gltf"))
+    assert "image 0 (/images/0/uri): file" in msg and "gone.png' (uri 'gone.png') not found" in msg
+    (tmp_path / "cut.png").write_bytes(png_bytes(_IMG)[:60])
+    msg = _error(_with_texture(_minimal(), {"uri": "cut.png"}).write(tmp_path / "cut.gltf"))
+    assert "image 0 (/images/0): the PNG data (60 bytes) is truncated: chunk 'IDAT' at byte 33" in msg
+    b = _with_texture(_minimal(), {"bufferView": 1, "mimeType": "image/png"})
+    b.view(png_bytes(_IMG))
+    path = _edit(b.write(tmp_path / "out.glb", mode="glb"), lambda d: d["bufferViews"][1].update(byteLength=10**6))
+    assert "image 0 (/images/0): bufferView 1 (/bufferViews/1): covers bytes [36, 1000036) of buffer 0 (/buffers/0)" in _error(path)
+
+
+def _set(path: str, value):
+    """An edit setting doc[a][b]... = value for path 'a/b/...' (integers index lists)."""
+    keys = [int(k) if k.isdigit() else k for k in path.split("/")]
+
+    def edit(doc):
+        for k in keys[:-1]:
+            doc = doc.setdefault(k, {}) if isinstance(doc, dict) else doc[k]
+        doc[keys[-1]] = value
+
+    return edit
+
+
+@pytest.mark.parametrize("edit,expected", [
+    (_set("scenes/0/nodes", [0, 4]), "scene graph (/scenes/0/nodes/1): node 4 does not exist"),
+    (_set("nodes/0/children", [0]), "node 0 (/nodes/0/children/0): is its own ancestor"),
+    (_set("nodes/0/mesh", 3), "node 0 (/nodes/0/mesh): mesh 3 does not exist"),
+    (_set("nodes/0/translation", [0, float("nan"), 0]), "node 0 (/nodes/0): transform has non-finite values"),
+    (_set("meshes/0/primitives/0/mode", 1), "mesh 0 ('tri') primitive 0 (/meshes/0/primitives/0/mode): has mode LINES"),
+    (_set("meshes/0/primitives/0/material", 2), "mesh 0 primitive 0 (/meshes/0/primitives/0/material): material 2 does not exist"),
+    (_set("meshes/0/primitives/0/attributes/NORMAL", 9),
+     "mesh 0 ('tri') primitive 0 NORMAL (/meshes/0/primitives/0/attributes/NORMAL): accessor 9 does not exist"),
+    (_set("accessors/0/type", "VEC2"), "accessor 0 (/accessors/0): has type VEC2, expected VEC3"),
+    (_set("extensionsRequired", ["KHR_materials_ior", "EXT_nope"]),
+     "extensionsRequired (/extensionsRequired): needs EXT_nope (/extensionsRequired/1)"),
+    (_set("asset/version", "1.0"), "asset.version (/asset/version): is '1.0'"),
+    (_set("bufferViews/0/buffer", 2), "bufferView 0 (/bufferViews/0): /bufferViews/0/buffer: names buffer 2, which does not exist"),
+    (_set("materials", [{"normalTexture": {"index": 3}}]),
+     "material 0 normal texture (/materials/0/normalTexture/index): texture 3 does not exist"),
+    (_set("materials", [{"pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1]}}]),
+     "material 0 (/materials/0/pbrMetallicRoughness/baseColorFactor): expected 4 finite numbers"),
+    (lambda d: (_set("cameras", [{"type": "fisheye"}])(d), _set("nodes/0/camera", 0)(d)),
+     "camera 0 (/cameras/0/type): type 'fisheye' is neither 'perspective' nor 'orthographic'"),
+    (_set("nodes/0/extensions", {"KHR_lights_punctual": {"light": 1}}),
+     "node 0 KHR_lights_punctual (/nodes/0/extensions/KHR_lights_punctual/light): light 1 does not exist"),
+], ids=lambda x: x.split(":")[0] if isinstance(x, str) else None)
+def test_structure_errors_name_the_pointer(tmp_path, edit, expected):
+    assert expected in _error(_edit(_bad(tmp_path), edit))
+
+
+def test_sampler_and_texture_source_pointers(tmp_path):
+    b = _with_texture(_minimal(), {"uri": "data:image/png;base64," + base64.b64encode(png_bytes(_IMG[:1, :1, :3])).decode()})
+    path = b.write(tmp_path / "s.gltf")
+    _edit(path, lambda d: (d.setdefault("samplers", []).append({"wrapS": 1}), d["textures"][0].update(sampler=0)))
+    assert "sampler 0 (/samplers/0/wrapS): wrapS = 1 is not a valid glTF value" in _error(path)
+    _edit(path, lambda d: (d["textures"][0].pop("sampler"), d["textures"][0].update(source=7)))
+    assert ("material 0 base_color texture (/materials/0/pbrMetallicRoughness/baseColorTexture): "
+            "texture 0 (/textures/0/source): image 7 does not exist") in _error(path)
+
+
+def test_huge_count_refused_before_any_buffer_is_read(tmp_path, monkeypatch):
+    """A declared count of 4e9 (an accessor without a bufferView decodes to zeros of that count) is
+    refused by the memory check from the JSON alone: neither the buffer nor an accessor is read."""
+    from jaxpbr._memory import MemoryLimitError
+    from jaxpbr.io.gltf._binary import Buffers
+
+    def never(*args, **kw):
+        raise AssertionError("read before the memory check")
+
+    path = _edit(_bad(tmp_path), lambda d: (d["accessors"][0].pop("bufferView"), d["accessors"][0].update(count=4_000_000_000)))
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "64")
+    monkeypatch.setattr(Buffers, "buffer", never)
+    monkeypatch.setattr(Buffers, "_decode", never)
+    msg = _error(path, MemoryLimitError)
+    assert "(largest: mesh 0 ('tri') primitive 0 (/meshes/0/primitives/0)" in msg
+    assert "more than the 64 GB available; lower the vertex and index counts of /meshes/0/primitives/0 " \
+           "(POSITION /accessors/0 count 4000000000)" in msg and "JAXPBR_MEMORY_LIMIT" in msg
+    # The same check under a limit below a small asset's needs names the parts it would read.
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "1e-9")
+    msg = _error(_bad(tmp_path, "small.gltf"), MemoryLimitError)
+    assert "/meshes/0/primitives/0" in msg and "buffer 0 (/buffers/0)" in msg
+
+
+def test_image_resolution_from_its_header_refused_before_decoding(tmp_path, monkeypatch):
+    """A PNG whose header declares 12000^2 RGBA pixels: refused from the header (no pixels decoded)
+    at load, and by the decode's own check when read lazily."""
+    from jaxpbr._memory import MemoryLimitError
+    from jaxpbr.io.gltf import _images
+
+    b = _with_texture(_minimal(), {"bufferView": 1, "mimeType": "image/png", "name": "bomb"})
+    b.view(_png_bomb())
+    path = b.write(tmp_path / "bomb.glb", mode="glb")
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "2")
+    real = _images._decode
+    monkeypatch.setattr(_images, "_decode", lambda *a, **k: pytest.fail("decoded before the memory check"))
+    msg = _error(path, MemoryLimitError)
+    assert "(largest: image 0 ('bomb') (/images/0) 6.91 GB; mesh 0 ('tri') primitive 0 (/meshes/0/primitives/0) 516 B" in msg
+    assert "lower the resolution of /images/0 (12000x12000, 4 channels)" in msg
+    monkeypatch.setattr(_images, "_decode", real)
+    asset = read_gltf(path, lazy_images=True)
+    with pytest.raises(MemoryLimitError, match=r"decoding image 0 \('bomb'\) \(/images/0\) \(12000x12000, 4 channels\) needs about 6.91 GB"):
+        asset.images[0].pixels  # noqa: B018
+
+
+def test_image_headers_read_for_the_estimate(tmp_path):
+    """The estimate's (H, W, C) of PNG and JPEG headers, read without decoding, equal the decoded shapes."""
+    from jaxpbr.io.gltf._images import header_shape
+
+    oiio = pytest.importorskip("OpenImageIO")
+    for shape in ((5, 7, 3), (4, 9, 4), (6, 2, 1)):
+        data = png_bytes(np.zeros(shape, np.uint8))
+        assert header_shape(lambda o, n, d=data: d[o : o + n]) == shape
+    buf = oiio.ImageBuf(oiio.ImageSpec(11, 6, 3, "uint8"))
+    jpg = tmp_path / "a.jpg"
+    assert buf.write(str(jpg))
+    data = jpg.read_bytes()
+    assert header_shape(lambda o, n: data[o : o + n]) == (6, 11, 3)
+    assert header_shape(lambda o, n: data[o : o + n][:2]) is None  # cut short: unknown, not a guess
+    # In a GLB, behind 90 kB of APPn segments: read at the offsets, the BIN chunk is not loaded.
+    from jaxpbr.io.gltf._binary import Buffers
+    from jaxpbr.io.gltf._images import image_source
+    from jaxpbr.io.gltf._loader import _read_document
+
+    def app(n):
+        return b"\xff\xe9" + (n + 2).to_bytes(2, "big") + b"x" * n
+
+    b = _with_texture(_minimal(), {"bufferView": 1, "mimeType": "image/jpeg"})
+    b.view(data[:2] + app(60000) + app(30000) + data[2:])
+    path = b.write(tmp_path / "jpeg.glb", mode="glb")
+    gltf, _, glb_bin = _read_document(path)
+    buffers = Buffers(gltf, path, glb_bin)
+    assert image_source(gltf, buffers, 0) == ((6, 11, 3), len(data) + 90008) and not buffers._buffers
+    assert read_gltf(path).images[0].pixels.shape == (6, 11, 3)
+
+
+@pytest.mark.parametrize("kind,expected", [
+    ("nan", "(/meshes/0/primitives/0/attributes/POSITION): accessor 1 (/accessors/1): holds 1 non-finite values"),
+    ("huge", "lower the vertex and index counts of /meshes/0/primitives/0"),
+    ("image", "image 0 (/images/0): the PNG data (60 bytes) is truncated"),
+])
+def test_cli_render_of_a_bad_asset(tmp_path, capsys, monkeypatch, kind, expected):
+    """`jaxpbr render bad.glb -o out.png`: one line `jaxpbr: error: ...` naming the pointer, exit 2, nothing written."""
+    from jaxpbr.cli import main
+
+    b = _minimal()
+    if kind == "nan":
+        b.doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = b.accessor(
+            np.float32([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]]), FLOAT, "VEC3")
+    elif kind == "image":
+        _with_texture(b, {"bufferView": 1, "mimeType": "image/png"})
+        b.view(png_bytes(_IMG)[:60])
+    path = b.write(tmp_path / "bad.glb", mode="glb")
+    if kind == "huge":
+        _edit(path, lambda d: (d["accessors"][0].pop("bufferView"), d["accessors"][0].update(count=4_000_000_000)))
+        monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "64")
+    before = sorted(tmp_path.rglob("*"))
+    code = main(["render", str(path), "-o", str(tmp_path / "out.png"), "--width", "32", "--height", "18"])
+    err = capsys.readouterr().err
+    assert code == 2
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"jaxpbr: error: glTF file {str(path)!r}: "), err
+    assert expected in lines[0]
+    assert sorted(tmp_path.rglob("*")) == before

@@ -12,7 +12,7 @@ import numpy as np
 
 from ...errors import InputError
 
-__all__ = ["Buffers", "fail", "read_uri", "resolve_uri"]
+__all__ = ["Buffers", "fail", "get", "loc", "pointer", "primitive_attributes", "read_uri", "resolve_uri"]
 
 #: componentType -> little-endian NumPy dtype.
 COMPONENT_TYPES = {
@@ -43,10 +43,33 @@ TYPE_SHAPES = {
 }
 
 
+def pointer(*parts) -> str:
+    """The RFC 6901 JSON pointer of a location in the glTF JSON: pointer('meshes', 3, 'primitives', 0)
+    -> '/meshes/3/primitives/0' ('~' and '/' in a key escaped as '~0' and '~1')."""
+    return "".join("/" + str(p).replace("~", "~0").replace("/", "~1") for p in parts)
+
+
+def loc(where: str, at: str) -> str:
+    """'<where> (<JSON pointer>)': a readable name and the JSON location it stands for."""
+    return f"{where} ({at})" if where else at
+
+
+_NEWLINES = re.compile(r"\s*[\r\n]+\s*")
+
+
 def fail(file, where: str, problem: str, fix: str):
-    """Raise the loader's InputError: '<file>: <where>: <problem>. Fix: <fix>'."""
+    """Raise the loader's InputError, one line: '<file>: <where>: <problem>. Fix: <fix>'; `where`
+    names the JSON location (see `loc`, `pointer`)."""
     where = f"{where}: " if where else ""
-    raise InputError(f"glTF file {str(file)!r}: {where}{problem}. Fix: {fix}")
+    raise InputError(_NEWLINES.sub(" ", f"glTF file {str(file)!r}: {where}{problem}. Fix: {fix}"))
+
+
+def primitive_attributes(prim) -> dict:
+    """A primitive's attributes {name: accessor index} (pygltflib object or dict; unset ones left out)."""
+    raw = get(prim, "attributes")
+    if not raw:
+        return {}
+    return {k: v for k, v in (vars(raw) if not isinstance(raw, dict) else raw).items() if v is not None}
 
 
 def get(obj, key, default=None):
@@ -105,6 +128,21 @@ def read_uri(file, where: str, uri: str, base: Path) -> tuple[str | None, bytes,
         fail(file, where, f"cannot read {str(value)!r}: {e}", "check the file's permissions and path")
 
 
+def _peek_data_uri(uri: str, off: int, n: int) -> bytes | None:
+    """Bytes [off, off + n) of a base64 data: URI's payload, decoding only the characters that hold
+    them (4 characters per 3 bytes); None for other data URIs."""
+    comma = uri.find(",")
+    if comma < 0 or ";base64" not in uri[:comma]:
+        return None
+    first = off // 3
+    text = uri[comma + 1 + 4 * first : comma + 1 + 4 * -(-(off + n) // 3)]
+    try:
+        data = base64.b64decode(text + "=" * (-len(text) % 4), validate=False)
+    except (binascii.Error, ValueError):
+        return None
+    return data[off - 3 * first : off - 3 * first + n]
+
+
 def _normalize(a: np.ndarray) -> np.ndarray:
     """glTF's normalized-integer decoding (§3.11): unsigned c / (2^n - 1), signed max(c / (2^(n-1) - 1), -1)."""
     kind, bits = a.dtype.kind, a.dtype.itemsize * 8
@@ -116,102 +154,202 @@ def _normalize(a: np.ndarray) -> np.ndarray:
 
 
 class Buffers:
-    """The file's buffers (read on first use) and its accessors decoded to NumPy."""
+    """The file's buffers (read on first use) and its accessors decoded to NumPy.
 
-    def __init__(self, gltf, file: Path, glb_blob: bytes | None):
+    Every method takes the readable name and the JSON pointer of the place that uses the object
+    (`where`, `at`), so that an error names both the use and the object's own JSON location."""
+
+    def __init__(self, gltf, file: Path, glb_bin: tuple[int, int] | None):
+        """glb_bin: (offset, length) of a GLB's BIN chunk in `file` (read on first use), or None."""
         self.gltf = gltf
         self.file = file
         self.base = file.parent
-        self.glb_blob = glb_blob
+        self.glb_bin = glb_bin
         self._buffers: dict[int, bytes] = {}
         self._accessors: dict[int, np.ndarray] = {}
 
     # -- buffers and views -------------------------------------------------------------------
-    def buffer(self, i: int, where: str) -> bytes:
-        if i in self._buffers:
-            return self._buffers[i]
+    def _buffer_entry(self, i, where: str, at: str):
+        """(the buffer's JSON object, its name, its pointer), or InputError for a bad index."""
         buffers = self.gltf.buffers or []
-        if not 0 <= i < len(buffers):
-            fail(self.file, where, f"buffer {i} does not exist (the file has {len(buffers)})",
-                 "repair or re-export the asset")
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(buffers):
+            fail(self.file, f"{where}: {at}" if where else at,
+                 f"names buffer {i!r}, which does not exist (the file has {len(buffers)})", "repair or re-export the asset")
         b = buffers[i]
-        what = f"buffer {i}" + (f" ({b.name!r})" if get(b, "name") else "")
+        return b, f"buffer {i}" + (f" ({b.name!r})" if get(b, "name") else ""), pointer("buffers", i)
+
+    def buffer(self, i, where: str, at: str) -> bytes:
+        """The bytes of buffer i. where: the user, named with its pointer ("bufferView 2
+        (/bufferViews/2)"); at: the pointer of the property naming the buffer (/bufferViews/2/buffer)."""
+        if isinstance(i, int) and i in self._buffers:
+            return self._buffers[i]
+        b, what, own = self._buffer_entry(i, where, at)
         uri = get(b, "uri")
         if uri is None:
-            if i != 0 or self.glb_blob is None:
-                fail(self.file, what, "has no uri and is not the GLB binary chunk",
+            if i != 0 or self.glb_bin is None:
+                fail(self.file, loc(what, own), "has no uri and is not the GLB binary chunk",
                      "give the buffer a uri, or store the asset as .glb with this as buffer 0")
-            data = self.glb_blob
+            offset, size = self.glb_bin
+            try:
+                with open(self.file, "rb") as f:
+                    f.seek(offset)
+                    data = f.read(size)
+            except OSError as e:
+                fail(self.file, loc(what, own), f"the GLB's BIN chunk cannot be read: {e}", "check the file and its permissions")
+            source = "the GLB's BIN chunk"
         else:
-            _, data, _ = read_uri(self.file, what, uri, self.base)
+            _, data, source = read_uri(self.file, loc(what, own + "/uri"), uri, self.base)
+            source = "its data URI" if source == "data URI" else f"file {source!r}"
         length = get(b, "byteLength", 0)
+        if not isinstance(length, int) or isinstance(length, bool) or length < 0:
+            fail(self.file, loc(what, own + "/byteLength"), f"byteLength {length!r} is not a byte count",
+                 "repair or re-export the asset")
         if len(data) < length:
-            fail(self.file, what, f"holds {len(data)} bytes but byteLength says {length}",
-                 "the .bin file is truncated or stale: re-export the asset")
+            fail(self.file, loc(what, own + "/byteLength"),
+                 f"byteLength is {length} but {source} holds only {len(data)} bytes",
+                 "the buffer is truncated or stale: download or re-export the asset")
         self._buffers[i] = data
         return data
 
-    def view(self, i: int, where: str) -> tuple[bytes, int, int, int | None]:
-        """(buffer bytes, start offset, byteLength, byteStride) of bufferView i, range-checked."""
-        views = self.gltf.bufferViews or []
-        if not 0 <= i < len(views):
-            fail(self.file, where, f"bufferView {i} does not exist (the file has {len(views)})",
-                 "repair or re-export the asset")
-        v = views[i]
-        buf = self.buffer(get(v, "buffer", 0), f"{where} (bufferView {i})")
-        off, length = get(v, "byteOffset", 0), get(v, "byteLength", 0)
-        if off < 0 or length < 0 or off + length > len(buf):
-            fail(self.file, f"{where}: bufferView {i}",
-                 f"covers bytes [{off}, {off + length}) of buffer {get(v, 'buffer', 0)}, which has {len(buf)} bytes",
-                 "the buffer is truncated or the bufferView is wrong: re-export the asset")
-        return buf, off, length, get(v, "byteStride")
+    def buffer_size(self, i) -> int | None:
+        """The bytes buffer i will hold once read (its file's size, the GLB chunk's length, a data
+        URI's decoded length), without reading it; None when unknown."""
+        if isinstance(i, int) and i in self._buffers:
+            return len(self._buffers[i])
+        buffers = self.gltf.buffers or []
+        if not isinstance(i, int) or not 0 <= i < len(buffers):
+            return None
+        uri = get(buffers[i], "uri")
+        if uri is None:
+            return self.glb_bin[1] if i == 0 and self.glb_bin is not None else None
+        if uri.startswith("data:"):
+            return len(uri) * 3 // 4
+        try:
+            kind, _, value = resolve_uri(uri, self.base)
+            return value.stat().st_size if kind == "file" else None
+        except (ValueError, OSError):
+            return None
 
-    def view_bytes(self, i: int, where: str) -> bytes:
-        buf, off, length, _ = self.view(i, where)
+    def _view_entry(self, i, where: str, at: str):
+        """(bufferView i's JSON object, its pointer), or InputError for a bad index."""
+        views = self.gltf.bufferViews or []
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(views):
+            fail(self.file, f"{where}: {at}" if where else at,
+                 f"names bufferView {i!r}, which does not exist (the file has {len(views)})", "repair or re-export the asset")
+        return views[i], pointer("bufferViews", i)
+
+    def view(self, i, where: str, at: str) -> tuple[bytes, int, int, int | None]:
+        """(buffer bytes, start offset, byteLength, byteStride) of bufferView i, range-checked.
+        where: the user, named with its pointer ("... accessor 7 (/accessors/7)", "image 1
+        (/images/1)"); at: the pointer of the property naming the view (/accessors/7/bufferView)."""
+        v, own = self._view_entry(i, where, at)
+        bi = get(v, "buffer", 0)
+        buf = self.buffer(bi, loc(f"bufferView {i}", own), own + "/buffer")
+        off, length = get(v, "byteOffset", 0), get(v, "byteLength", 0)
+        prefix = f"{where}: " if where else ""
+        here = prefix + loc(f"bufferView {i}", own)
+        for key, value in (("byteOffset", off), ("byteLength", length)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                fail(self.file, prefix + loc(f"bufferView {i}", f"{own}/{key}"),
+                     f"{key} {value!r} is not a byte count", "repair or re-export the asset")
+        if off + length > len(buf):
+            fail(self.file, here,
+                 f"covers bytes [{off}, {off + length}) of buffer {bi} ({pointer('buffers', bi)}), which has {len(buf)} bytes",
+                 "the buffer is truncated or the bufferView is wrong: re-export the asset")
+        stride = get(v, "byteStride")
+        if stride is not None and (not isinstance(stride, int) or isinstance(stride, bool) or stride <= 0):
+            fail(self.file, prefix + loc(f"bufferView {i}", f"{own}/byteStride"),
+                 f"byteStride {stride!r} is not a positive byte count", "repair or re-export the asset")
+        return buf, off, length, stride
+
+    def view_bytes(self, i, where: str, at: str) -> bytes:
+        buf, off, length, _ = self.view(i, where, at)
         return bytes(buf[off : off + length])
 
+    def peek_view(self, i, n: int, start: int = 0) -> bytes | None:
+        """Up to n bytes of bufferView i from byte `start` of the view, read without loading its
+        buffer (a GLB chunk or an external file is read at the offset, a base64 data URI decoded
+        there, a loaded buffer sliced); None when that cannot be done cheaply or the view is
+        invalid (its use reports that)."""
+        views = self.gltf.bufferViews or []
+        if not isinstance(i, int) or not 0 <= i < len(views):
+            return None
+        v = views[i]
+        bi, off, length = get(v, "buffer", 0), get(v, "byteOffset", 0), get(v, "byteLength", 0)
+        if not all(isinstance(x, int) for x in (bi, off, length)):
+            return None
+        if not 0 <= start <= length:
+            return b""
+        off, n = off + start, max(0, min(n, length - start))
+        if bi in self._buffers:
+            return bytes(self._buffers[bi][off : off + n])
+        buffers = self.gltf.buffers or []
+        if not 0 <= bi < len(buffers):
+            return None
+        uri = get(buffers[bi], "uri")
+        try:
+            if uri is None:
+                if bi != 0 or self.glb_bin is None:
+                    return None
+                path, pos = self.file, self.glb_bin[0] + off
+            elif uri.startswith("data:"):
+                return _peek_data_uri(uri, off, n)
+            else:
+                kind, _, value = resolve_uri(uri, self.base)
+                if kind != "file":
+                    return None
+                path, pos = value, off
+            with open(path, "rb") as f:
+                f.seek(pos)
+                return f.read(n)
+        except (ValueError, OSError):
+            return None
+
     # -- accessors ---------------------------------------------------------------------------
-    def _read(self, view_index, byte_offset, count, dtype, cols, rows, where, stride=None, packed=False):
-        """(count, cols*rows) raw array from a bufferView; matrix columns are 4-byte aligned."""
+    def _read(self, view_index, byte_offset, count, dtype, cols, rows, where, at, stride=None, packed=False):
+        """(count, cols*rows) raw array from a bufferView (`at`: the pointer naming the view);
+        matrix columns are 4-byte aligned. Elements are copied out through a strided view of the
+        buffer (no index arrays: the copy is the only allocation)."""
         col_bytes = rows * dtype.itemsize
         col_stride = -(-col_bytes // 4) * 4 if cols > 1 else col_bytes
         elem = col_stride * (cols - 1) + col_bytes  # bytes an element spans
-        buf, off, length, view_stride = self.view(view_index, where)
+        buf, off, length, view_stride = self.view(view_index, where, at)
         if stride is None:  # tightly packed: an element's size, matrix columns padded
             stride = col_stride * cols if (packed or view_stride is None) else view_stride
         if stride < elem:
-            fail(self.file, where, f"byteStride {stride} is smaller than one element ({elem} bytes)",
-                 "repair or re-export the asset")
+            fail(self.file, f"{where}: {loc(f'bufferView {view_index}', pointer('bufferViews', view_index, 'byteStride'))}",
+                 f"byteStride {stride} is smaller than one element ({elem} bytes)", "repair or re-export the asset")
+        if not isinstance(byte_offset, int) or isinstance(byte_offset, bool) or byte_offset < 0:
+            fail(self.file, where, f"byteOffset {byte_offset!r} is not a byte count", "repair or re-export the asset")
         end = byte_offset + (stride * (count - 1) + elem if count else 0)
-        if byte_offset < 0 or end > length:
+        if end > length:
             fail(self.file, where,
-                 f"reads bytes [{byte_offset}, {end}) of bufferView {view_index}, which has {length} bytes",
+                 f"count {count} x {stride} bytes from byteOffset {byte_offset} reads bytes [{byte_offset}, {end}) "
+                 f"of bufferView {view_index} ({pointer('bufferViews', view_index)}), which has {length} bytes",
                  "the accessor's count/byteOffset or the bufferView's byteLength is wrong: re-export the asset")
         if count == 0:
             return np.zeros((0, cols * rows), dtype)
-        raw = np.frombuffer(buf, np.uint8, count=end - byte_offset, offset=off + byte_offset)
-        col_idx = (np.arange(cols)[:, None] * col_stride + np.arange(col_bytes)[None, :]).ravel()
-        idx = np.arange(count)[:, None] * stride + col_idx[None, :]
-        return np.ascontiguousarray(raw[idx]).view(dtype).reshape(count, cols * rows)
+        raw = np.ndarray((count, cols, col_bytes), np.uint8, buffer=buf, offset=off + byte_offset,
+                         strides=(stride, col_stride, 1))
+        return np.ascontiguousarray(raw).view(dtype).reshape(count, cols * rows)
 
-    def accessor(self, i: int, where: str, *, allowed_types=None, allowed_components=None) -> np.ndarray:
+    def accessor(self, i, where: str, at: str, *, allowed_types=None, allowed_components=None,
+                 finite: bool = False) -> np.ndarray:
         """Accessor i decoded: (count,) for SCALAR, (count, n) for VECn, (count, n, n) for MATn.
+
+        where, at: the use's readable name and JSON pointer (e.g. "mesh 3 ('Body') primitive 0
+        NORMAL", "/meshes/3/primitives/0/attributes/NORMAL"); errors name both and the accessor's
+        own pointer. finite: refuse NaN and infinite values (counted in the error).
 
         Normalized integer accessors come back as float32 (spec formulas); FLOAT as float32; other
         integer accessors keep their integer dtype. Sparse substitution and accessors without a
         bufferView (zeros) are handled; min/max are not used."""
         accessors = self.gltf.accessors or []
-        if not isinstance(i, int) or not 0 <= i < len(accessors):
-            fail(self.file, where, f"accessor {i} does not exist (the file has {len(accessors)})",
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(accessors):
+            fail(self.file, loc(where, at), f"accessor {i!r} does not exist (the file has {len(accessors)})",
                  "repair or re-export the asset")
-        where = f"{where} (accessor {i})"
-        key = i
-        if key in self._accessors:
-            out = self._accessors[key]
-        else:
-            out = self._decode(accessors[i], where)
-            out.flags.writeable = False  # shared by every primitive that reads it
-            self._accessors[key] = out
+        own = pointer("accessors", i)
+        where = f"{loc(where, at)}: {loc(f'accessor {i}', own)}"
         a = accessors[i]
         if allowed_types is not None and get(a, "type") not in allowed_types:
             fail(self.file, where, f"has type {get(a, 'type')}, expected {' or '.join(allowed_types)}",
@@ -221,9 +359,24 @@ class Buffers:
             fail(self.file, where,
                  f"has componentType {COMPONENT_NAMES.get(get(a, 'componentType'), get(a, 'componentType'))}, "
                  f"expected one of {names}", "repair or re-export the asset")
+        if i in self._accessors:
+            out = self._accessors[i]
+        else:
+            out = self._decode(a, where, own)
+            out.flags.writeable = False  # shared by every primitive that reads it
+            self._accessors[i] = out
+        if finite and out.dtype.kind == "f":
+            bad = ~np.isfinite(out)
+            if bad.any():
+                nan = int(np.isnan(out).sum())
+                inf = int(bad.sum()) - nan
+                first = int(np.argmax(bad.reshape(out.shape[0], -1).any(axis=1)))
+                fail(self.file, where, f"holds {nan + inf} non-finite values ({nan} NaN, {inf} infinite) among its "
+                     f"{out.size} values, the first in element {first}",
+                     "fix the exporter's data (a NaN or infinite vertex attribute cannot be rendered) and re-export")
         return out
 
-    def _decode(self, a, where: str) -> np.ndarray:
+    def _decode(self, a, where: str, own: str) -> np.ndarray:
         ctype, atype = get(a, "componentType"), get(a, "type")
         if ctype not in COMPONENT_TYPES:
             fail(self.file, where, f"unknown componentType {ctype}", "repair or re-export the asset")
@@ -232,29 +385,34 @@ class Buffers:
         dtype = COMPONENT_TYPES[ctype]
         cols, rows = TYPE_SHAPES[atype]
         count = get(a, "count", 0)
-        if not isinstance(count, int) or count < 0:
+        if not isinstance(count, int) or isinstance(count, bool) or count < 0:
             fail(self.file, where, f"invalid count {count!r}", "repair or re-export the asset")
         view = get(a, "bufferView")
         if view is None:
             data = np.zeros((count, cols * rows), dtype)
         else:
-            data = self._read(view, get(a, "byteOffset", 0), count, dtype, cols, rows, where)
+            data = self._read(view, get(a, "byteOffset", 0), count, dtype, cols, rows, where, own + "/bufferView")
         sparse = get(a, "sparse")
         if sparse is not None:
             data = data.copy()
             n = get(sparse, "count", 0)
             si, sv = get(sparse, "indices"), get(sparse, "values")
+            if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= count or si is None or sv is None:
+                fail(self.file, f"{where}: {own}/sparse", f"sparse count {n!r} (at most the accessor's {count}) "
+                     "or its indices/values are missing", "repair or re-export the asset")
             ictype = get(si, "componentType")
             if ictype not in (5121, 5123, 5125):
-                fail(self.file, f"{where}: sparse.indices", f"componentType {ictype} is not an unsigned integer type",
+                fail(self.file, f"{where}: {own}/sparse/indices", f"componentType {ictype} is not an unsigned integer type",
                      "repair or re-export the asset")
             idx = self._read(get(si, "bufferView"), get(si, "byteOffset", 0), n, COMPONENT_TYPES[ictype], 1, 1,
-                             f"{where}: sparse.indices", packed=True).ravel().astype(np.int64)
+                             f"{where}: sparse indices ({own}/sparse/indices)", f"{own}/sparse/indices/bufferView",
+                             packed=True).ravel().astype(np.int64)
             vals = self._read(get(sv, "bufferView"), get(sv, "byteOffset", 0), n, dtype, cols, rows,
-                              f"{where}: sparse.values", packed=True)
+                              f"{where}: sparse values ({own}/sparse/values)", f"{own}/sparse/values/bufferView",
+                              packed=True)
             if n and (idx.min() < 0 or idx.max() >= count):
-                fail(self.file, f"{where}: sparse.indices", f"index {int(idx.max())} is outside [0, {count})",
-                     "repair or re-export the asset")
+                fail(self.file, f"{where}: sparse indices ({own}/sparse/indices)",
+                     f"index {int(idx.max())} is outside [0, {count})", "repair or re-export the asset")
             data[idx] = vals
         if get(a, "normalized", False) and dtype.kind in "iu":
             data = _normalize(data)

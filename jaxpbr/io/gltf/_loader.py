@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import struct
 import warnings
 from dataclasses import dataclass
@@ -12,7 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
-from ._binary import Buffers, fail, get
+from ._binary import Buffers, fail, get, loc, pointer, primitive_attributes
+from ._budget import check_asset_memory
 from ._geometry import (
     MODE_NAMES,
     face_normals,
@@ -55,58 +57,95 @@ class _Shape:
     generated_tangents: bool
 
 
+def _json_error(e: ValueError) -> str:
+    """Where a JSON syntax error is: 'line L, column C' (no JSON location exists yet)."""
+    return f"line {e.lineno}, column {e.colno}" if isinstance(e, json.JSONDecodeError) else "its text"
+
+
 def _read_document(path: Path):
-    """(pygltflib.GLTF2, GLB binary chunk or None) of the file, or InputError."""
+    """(pygltflib.GLTF2, the JSON as Python objects, (offset, length) of the GLB's BIN chunk or
+    None), or InputError. Of a .glb only the header and the JSON chunk are read; the BIN chunk is
+    read when a buffer needs it (after the memory check)."""
     import pygltflib
 
     try:
-        data = path.read_bytes()
+        f = open(path, "rb")  # noqa: SIM115 - closed below
     except FileNotFoundError:
         raise InputError(f"glTF file {str(path)!r} not found. Fix: check the path") from None
     except OSError as e:
         raise InputError(f"glTF file {str(path)!r} cannot be read: {e}. Fix: check the path and permissions") from None
-    if data[:4] == b"glTF":
-        if len(data) < 20:
-            fail(path, "GLB header", f"the file has only {len(data)} bytes", "the file is truncated: re-export it")
-        version, length = struct.unpack_from("<II", data, 4)
-        if version != 2:
-            fail(path, "GLB header", f"container version {version}, only version 2 (glTF 2.0) is read",
-                 "convert the asset to glTF 2.0 (e.g. with the Khronos glTF converters or Blender)")
-        if length > len(data):
-            fail(path, "GLB header", f"declares {length} bytes but the file has {len(data)}",
-                 "the file is truncated: download or export it again")
-        offset, chunks = 12, []
-        while offset + 8 <= length:
-            clen, ctype = struct.unpack_from("<II", data, offset)
-            if offset + 8 + clen > length:
-                fail(path, f"GLB chunk {len(chunks)}", f"runs past the end of the file ({offset + 8 + clen} > {length})",
-                     "the file is truncated: download or export it again")
-            chunks.append((ctype, data[offset + 8 : offset + 8 + clen]))
-            offset += 8 + clen
-        if not chunks or chunks[0][0] != 0x4E4F534A:  # 'JSON'
-            fail(path, "GLB", "the first chunk is not the JSON chunk", _FIX)
+    with f:
         try:
-            doc = json.loads(chunks[0][1].decode("utf-8"))
-            gltf = pygltflib.GLTF2.load_from_bytes(data[:length])
-        except (ValueError, UnicodeDecodeError) as e:
-            fail(path, "GLB JSON chunk", f"is not valid JSON ({e})", _FIX)
-        except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
-            fail(path, "GLB", f"pygltflib cannot parse it ({type(e).__name__}: {e})", _FIX)
-        blob = next((c for t, c in chunks[1:] if t == 0x004E4942), None)  # 'BIN\0'
-        return gltf, doc, blob
+            size = os.fstat(f.fileno()).st_size
+            head = f.read(12)
+            if head[:4] == b"glTF":
+                return _read_glb(path, f, head, size, pygltflib)
+            data = head + f.read()
+        except OSError as e:
+            raise InputError(f"glTF file {str(path)!r} cannot be read: {e}. Fix: check the path and permissions") from None
     try:
         text = data.decode("utf-8-sig")
         doc = json.loads(text)
     except (ValueError, UnicodeDecodeError) as e:
-        fail(path, "", f"is neither GLB nor valid JSON ({e})",
+        fail(path, f"JSON {_json_error(e)}", f"is neither GLB nor valid JSON ({e})",
              "check that the file is a glTF 2.0 asset (.gltf JSON or .glb binary) and not truncated")
     if not isinstance(doc, dict):
-        fail(path, "", "the JSON is not an object", _FIX)
+        fail(path, "JSON root (pointer '')", "the JSON is not an object", _FIX)
     try:
         gltf = pygltflib.GLTF2.gltf_from_json(text)
-    except Exception as e:  # noqa: BLE001
-        fail(path, "", f"pygltflib cannot parse the JSON ({type(e).__name__}: {e})", _FIX)
+    except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
+        fail(path, "JSON root (pointer '')", f"pygltflib cannot parse the JSON ({type(e).__name__}: {e})", _FIX)
     return gltf, doc, None
+
+
+def _read_glb(path: Path, f, head: bytes, size: int, pygltflib):
+    if len(head) < 12 or size < 20:
+        fail(path, "GLB header (bytes 0-11)", f"the file has only {size} bytes", "the file is truncated: re-export it")
+    version, length = struct.unpack_from("<II", head, 4)
+    if version != 2:
+        fail(path, "GLB header (bytes 0-11)", f"container version {version}, only version 2 (glTF 2.0) is read",
+             "convert the asset to glTF 2.0 (e.g. with the Khronos glTF converters or Blender)")
+    if length > size:
+        fail(path, "GLB header (bytes 0-11)", f"declares {length} bytes but the file has {size}",
+             "the file is truncated: download or export it again")
+    offset, chunks = 12, []
+    while offset + 8 <= length:
+        f.seek(offset)
+        clen, ctype = struct.unpack("<II", f.read(8))
+        if offset + 8 + clen > length:
+            fail(path, f"GLB chunk {len(chunks)} (bytes {offset}-{offset + 7})",
+                 f"runs past the end of the file ({offset + 8 + clen} > {length})",
+                 "the file is truncated: download or export it again")
+        chunks.append((ctype, offset + 8, clen))
+        offset += 8 + clen
+    if not chunks or chunks[0][0] != 0x4E4F534A:  # 'JSON'
+        fail(path, "GLB chunk 0 (bytes 12-19)", "the first chunk is not the JSON chunk", _FIX)
+    f.seek(chunks[0][1])
+    raw = f.read(chunks[0][2])
+    try:
+        text = raw.decode("utf-8")
+        doc = json.loads(text)
+    except (ValueError, UnicodeDecodeError) as e:
+        fail(path, f"GLB JSON chunk, {_json_error(e)}", f"is not valid JSON ({e})", _FIX)
+    if not isinstance(doc, dict):
+        fail(path, "GLB JSON chunk, root (pointer '')", "the JSON is not an object", _FIX)
+    try:
+        gltf = pygltflib.GLTF2.gltf_from_json(text)
+    except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
+        fail(path, "GLB JSON chunk, root (pointer '')", f"pygltflib cannot parse it ({type(e).__name__}: {e})", _FIX)
+    blob = next(((o, n) for t, o, n in chunks[1:] if t == 0x004E4942), None)  # 'BIN\0'
+    return gltf, doc, blob
+
+
+@dataclass
+class _Visit:
+    """A node reached by the scene traversal: its index, world matrix, readable name and pointer."""
+
+    index: int
+    node: object
+    world: np.ndarray
+    where: str
+    at: str
 
 
 class _Loader:
@@ -116,36 +155,49 @@ class _Loader:
         self.lazy_images = lazy_images
         self.notes: list[str] = []
         self.ignored_features: dict[str, set] = {}
+        #: The JSON pointer of what is being read (named by errors the checks did not foresee).
+        self.context = ""
 
     # ------------------------------------------------------------------------------------------
     def run(self) -> GltfAsset:
-        gltf, doc, blob = _read_document(self.path)
+        gltf, doc, glb_bin = _read_document(self.path)
         self.gltf = gltf
         self.doc = doc
         asset = doc.get("asset")
         version = str(get(asset, "version", "")) if isinstance(asset, dict) else ""
         if not version.startswith("2."):
-            fail(self.path, "asset.version", f"is {version or 'missing'!r}; only glTF 2.x is read",
+            fail(self.path, loc("asset.version", "/asset/version" if isinstance(asset, dict) else "/asset"),
+                 f"is {version or 'missing'!r}; only glTF 2.x is read",
                  "convert the asset to glTF 2.0 (glTF 1.0 files can be upgraded with gltf-pipeline or Blender)")
         self._check_extensions()
-        self.buffers = Buffers(gltf, self.path, blob)
+        self.buffers = Buffers(gltf, self.path, glb_bin)
         self.materials_reader = MaterialReader(gltf, self.path, self.notes)
-        materials = [self.materials_reader.material(i) for i in range(len(gltf.materials or []))]
+        materials = []
+        for i in range(len(gltf.materials or [])):
+            self.context = pointer("materials", i)
+            materials.append(self.materials_reader.material(i))
         self.materials = materials
         self.default_material: int | None = None
         self.shapes: dict[tuple[int, int], _Shape | None] = {}
         self.primitives: list[GltfPrimitive] = []
         self.lights: list[GltfLight] = []
         self.cameras: list[GltfCamera] = []
-        scene_index, roots = self._scene()
-        self._traverse(roots)
+        scene_index, roots, roots_at = self._scene()
+        visits = self._walk(roots, roots_at)
+        # One memory check of everything the load will decode, before any buffer is read.
+        self.context = ""
+        check_asset_memory(self, visits)
+        for v in visits:
+            self._visit(v)
         if gltf.animations:
             self._ignore("animations", f"{len(gltf.animations)} animation(s) (the static pose is loaded)")
+        self.context = "/images"
         images = make_images(gltf, self.buffers, self.path)
         if not self.lazy_images:
-            used = sorted({t.image for m in self.materials for t in m.textures.values()})
-            for i in used:
+            for i in self.used_images():
+                self.context = pointer("images", i)
                 images[i].pixels  # noqa: B018 - decode now, so that a bad image fails the load
+        self.context = ""
         if self.primitives:
             lo = np.min([p.positions.min(axis=0) for p in self.primitives if p.num_vertices], axis=0)
             hi = np.max([p.positions.max(axis=0) for p in self.primitives if p.num_vertices], axis=0)
@@ -169,17 +221,22 @@ class _Loader:
             warnings=tuple(self.notes),
         )
 
+    def used_images(self) -> list[int]:
+        """The images the materials' texture slots sample (decoded by the load unless lazy)."""
+        return sorted({t.image for m in self.materials for t in m.textures.values()})
+
     def _ignore(self, feature: str, item: str):
         self.ignored_features.setdefault(feature, set()).add(item)
 
     def _check_extensions(self):
         required = list(self.gltf.extensionsRequired or [])
         used = list(self.gltf.extensionsUsed or [])
-        missing = [e for e in required if e not in SUPPORTED_EXTENSIONS]
+        missing = [(k, e) for k, e in enumerate(required) if e not in SUPPORTED_EXTENSIONS]
         if missing:
-            fail(self.path, "extensionsRequired",
-                 f"needs {', '.join(missing)}, which jaxpbr does not implement "
-                 f"(supported: {', '.join(SUPPORTED_EXTENSIONS)})",
+            named = ", ".join(f"{e} ({pointer('extensionsRequired', k)})" for k, e in missing)
+            fail(self.path, loc("extensionsRequired", "/extensionsRequired"),
+                 f"needs {named}, "
+                 f"which jaxpbr does not implement (supported: {', '.join(SUPPORTED_EXTENSIONS)})",
                  "re-export without those extensions (e.g. decompress Draco/meshopt and convert KTX2/WebP "
                  "textures with gltf-transform), or make them optional")
         ignored = [e for e in used if e not in SUPPORTED_EXTENSIONS]
@@ -189,78 +246,104 @@ class _Loader:
 
     # -- scene graph -------------------------------------------------------------------------------
     def _scene(self):
+        """(scene index or None, root node indices, the pointer of the list naming them)."""
         scenes = self.gltf.scenes or []
         nodes = self.gltf.nodes or []
         index = self.scene_arg
+        where = f"scene={index!r} (the argument; the file's scenes are /scenes)"
         if index is None:
             index = self.gltf.scene
+            where = loc("scene", "/scene")
         if index is None and scenes:
             index = 0
         if index is None:  # no scenes: every root node
-            children = {c for n in nodes for c in (get(n, "children", []) or [])}
-            return None, [i for i in range(len(nodes)) if i not in children]
-        if not isinstance(index, int) or not 0 <= index < len(scenes):
-            fail(self.path, "scene", f"scene {index!r} does not exist (the file has {len(scenes)})",
+            children = {c for n in nodes for c in (get(n, "children", []) or []) if isinstance(c, int)}
+            return None, [i for i in range(len(nodes)) if i not in children], "/nodes"
+        if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(scenes):
+            fail(self.path, where, f"scene {index!r} does not exist (the file has {len(scenes)})",
                  f"pick a scene index in [0, {len(scenes)})" if scenes else _FIX)
-        return index, list(get(scenes[index], "nodes", []) or [])
+        return index, list(get(scenes[index], "nodes", []) or []), pointer("scenes", index, "nodes")
 
-    def _traverse(self, roots):
+    def _walk(self, roots, roots_at: str) -> list[_Visit]:
+        """The nodes of the scene in traversal order (depth first) with their world matrices;
+        structural errors (missing nodes, cycles, bad transforms) are raised here, before any
+        buffer is read."""
         nodes = self.gltf.nodes or []
-        stack = [(r, np.eye(4), ()) for r in reversed(roots)]
+        out = []
+        no_scene = roots_at == "/nodes"
+        stack = [(r, np.eye(4), (), roots_at if no_scene else f"{roots_at}/{k}")
+                 for k, r in reversed(list(enumerate(roots)))]
         while stack:
-            i, parent, ancestors = stack.pop()
-            if not isinstance(i, int) or not 0 <= i < len(nodes):
-                fail(self.path, "scene graph", f"node {i!r} does not exist (the file has {len(nodes)})", _FIX)
+            i, parent, ancestors, ref = stack.pop()
+            if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(nodes):
+                fail(self.path, loc("scene graph", ref), f"node {i!r} does not exist (the file has {len(nodes)})", _FIX)
+            at = pointer("nodes", i)
             if i in ancestors:
-                fail(self.path, f"node {i}", "is its own ancestor (a cycle in the node hierarchy)", _FIX)
+                fail(self.path, loc(f"node {i}", ref), "is its own ancestor (a cycle in the node hierarchy)", _FIX)
             node = nodes[i]
+            self.context = at
             where = f"node {i}" + (f" ({node.name!r})" if get(node, "name") else "")
             matrix = get(node, "matrix")
+            t_at = at + "/matrix" if matrix is not None else at
             try:
                 local = node_matrix(matrix, get(node, "translation"), get(node, "rotation"), get(node, "scale"))
             except (ValueError, TypeError) as e:
-                fail(self.path, where, f"invalid transform ({e})", _FIX)
+                fail(self.path, loc(where, t_at), f"invalid transform ({e})", _FIX)
             if not np.all(np.isfinite(local)):
-                fail(self.path, where, "transform has non-finite values", _FIX)
+                fail(self.path, loc(where, t_at), "transform has non-finite values", _FIX)
             world = parent @ local
-            if get(node, "mesh") is not None:
-                self._instance_mesh(i, node, world, where)
-            if get(node, "camera") is not None:
-                self._camera(i, node, world, where)
-            light = (get(node, "extensions", {}) or {}).get("KHR_lights_punctual")
-            if light is not None and get(light, "light") is not None:
-                self._light(i, get(light, "light"), world, where)
-            if get(node, "skin") is not None:
-                self._ignore("skins", f"node {i} (its mesh is loaded in the bind pose, with the node's transform)")
-            for c in reversed(list(get(node, "children", []) or [])):
-                stack.append((c, world, ancestors + (i,)))
+            out.append(_Visit(i, node, world, where, at))
+            children = get(node, "children", []) or []
+            for k, c in reversed(list(enumerate(children))):
+                stack.append((c, world, ancestors + (i,), f"{at}/children/{k}"))
+        return out
+
+    def _visit(self, v: _Visit):
+        self.context = v.at
+        node = v.node
+        if get(node, "mesh") is not None:
+            self._instance_mesh(v)
+        if get(node, "camera") is not None:
+            self._camera(v)
+        light = (get(node, "extensions", {}) or {}).get("KHR_lights_punctual")
+        if light is not None and get(light, "light") is not None:
+            self._light(v, get(light, "light"))
+        if get(node, "skin") is not None:
+            self._ignore("skins", f"node {v.index} (its mesh is loaded in the bind pose, with the node's transform)")
 
     # -- meshes ------------------------------------------------------------------------------------
-    def _instance_mesh(self, node_index, node, world, where):
+    def mesh_of(self, v: _Visit):
+        """(mesh index, mesh) of a node, or InputError naming /nodes/i/mesh."""
         meshes = self.gltf.meshes or []
-        m = get(node, "mesh")
-        if not isinstance(m, int) or not 0 <= m < len(meshes):
-            fail(self.path, where, f"mesh {m!r} does not exist (the file has {len(meshes)})", _FIX)
-        mesh = meshes[m]
-        inst = (get(node, "extensions", {}) or {}).get("EXT_mesh_gpu_instancing")
-        if inst is None:
-            self._emit(node_index, m, mesh, world, None)
-            return
-        for k, local in enumerate(self._instance_matrices(get(inst, "attributes", {}) or {}, where)):
-            self._emit(node_index, m, mesh, world @ local, k)
+        m = get(v.node, "mesh")
+        if not isinstance(m, int) or isinstance(m, bool) or not 0 <= m < len(meshes):
+            fail(self.path, loc(v.where, v.at + "/mesh"), f"mesh {m!r} does not exist (the file has {len(meshes)})", _FIX)
+        return m, meshes[m]
 
-    def _instance_matrices(self, attrs, where) -> np.ndarray:
+    def _instance_mesh(self, v: _Visit):
+        m, mesh = self.mesh_of(v)
+        inst = (get(v.node, "extensions", {}) or {}).get("EXT_mesh_gpu_instancing")
+        if inst is None:
+            self._emit(v.index, m, mesh, v.world, None)
+            return
+        for k, local in enumerate(self._instance_matrices(inst, v)):
+            self._emit(v.index, m, mesh, v.world @ local, k)
+
+    def _instance_matrices(self, inst, v: _Visit) -> np.ndarray:
         """(N, 4, 4) EXT_mesh_gpu_instancing transforms T @ R @ S, one per instance."""
-        where = f"{where}: EXT_mesh_gpu_instancing"
+        attrs = get(inst, "attributes", {}) or {}
+        where = f"{v.where} EXT_mesh_gpu_instancing"
+        at = v.at + "/extensions/EXT_mesh_gpu_instancing/attributes"
         cols = {}
         for name, atype, comps in (("TRANSLATION", "VEC3", (5126,)), ("ROTATION", "VEC4", (5126, 5120, 5122)),
                                    ("SCALE", "VEC3", (5126,))):
             if attrs.get(name) is not None:
-                cols[name] = np.asarray(self.buffers.accessor(attrs[name], f"{where} {name}", allowed_types=(atype,),
-                                                              allowed_components=comps), np.float64)
-        counts = {v.shape[0] for v in cols.values()}
+                cols[name] = np.asarray(self.buffers.accessor(attrs[name], f"{where} {name}", f"{at}/{name}",
+                                                              allowed_types=(atype,), allowed_components=comps,
+                                                              finite=True), np.float64)
+        counts = {c.shape[0] for c in cols.values()}
         if len(counts) != 1:
-            fail(self.path, where, "needs TRANSLATION, ROTATION or SCALE accessors, all of the same count", _FIX)
+            fail(self.path, loc(where, at), "needs TRANSLATION, ROTATION or SCALE accessors, all of the same count", _FIX)
         n = counts.pop()
         out = np.tile(np.eye(4), (n, 1, 1))
         if "ROTATION" in cols:
@@ -286,6 +369,7 @@ class _Loader:
             normal_matrix = np.linalg.pinv(a).T
         for p, prim in enumerate(get(mesh, "primitives", []) or []):
             key = (m, p)
+            self.context = pointer("meshes", m, "primitives", p)
             material_index = self._material_index(prim, m, p)
             if key not in self.shapes:
                 self.shapes[key] = self._shape(m, mesh, p, prim, self.materials[material_index])
@@ -326,73 +410,79 @@ class _Loader:
                 self.materials.append(self.materials_reader.material(None))
                 self.default_material = len(self.materials) - 1
             return self.default_material
-        if not isinstance(i, int) or not 0 <= i < len(self.gltf.materials or []):
-            fail(self.path, f"mesh {m} primitive {p}",
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(self.gltf.materials or []):
+            fail(self.path, loc(f"mesh {m} primitive {p}", pointer("meshes", m, "primitives", p, "material")),
                  f"material {i!r} does not exist (the file has {len(self.gltf.materials or [])})", _FIX)
         return i
 
-    def _attribute(self, attrs, name, where, types, components):
+    def _attribute(self, attrs, name, where, at, types, components):
+        """Attribute `name` of a primitive (`at`: the primitive's pointer) decoded, or None; NaN
+        and infinite values are refused (they would poison the bounds, normals and the render)."""
         i = attrs.get(name)
         if i is None:
             return None
-        a = self.buffers.accessor(i, f"{where} {name}", allowed_types=types, allowed_components=components)
-        return a
+        return self.buffers.accessor(i, f"{where} {name}", f"{at}/attributes/{name}", allowed_types=types,
+                                     allowed_components=components, finite=True)
 
     def _shape(self, m, mesh, p, prim, material: GltfMaterial) -> _Shape | None:
         mesh_name = get(mesh, "name")
         where = f"mesh {m}" + (f" ({mesh_name!r})" if mesh_name else "") + f" primitive {p}"
+        at = pointer("meshes", m, "primitives", p)
         mode = get(prim, "mode", 4)
         if mode not in (4, 5, 6):
             name = MODE_NAMES.get(mode, f"unknown mode {mode}")
-            fail(self.path, where, f"has mode {name}; jaxpbr renders triangles only "
+            fail(self.path, loc(where, at + "/mode"), f"has mode {name}; jaxpbr renders triangles only "
                  "(TRIANGLES, TRIANGLE_STRIP, TRIANGLE_FAN)",
                  "remove the point/line primitives from the asset (or convert them to triangle geometry) and re-export")
-        raw = get(prim, "attributes")
-        attrs = {k: v for k, v in (vars(raw) if not isinstance(raw, dict) else raw).items() if v is not None} if raw else {}
+        attrs = primitive_attributes(prim)
         if get(prim, "targets"):
             self._ignore("morph targets", f"mesh {m} (the base shape is loaded, without morph weights)")
         if "POSITION" not in attrs:
-            self.notes.append(f"{where} has no POSITION attribute and is skipped (as the spec says)")
+            self.notes.append(f"{loc(where, at)} has no POSITION attribute and is skipped (as the spec says)")
             return None
-        positions = self._attribute(attrs, "POSITION", where, ("VEC3",), _FLOATISH + (5125,))
+        positions = self._attribute(attrs, "POSITION", where, at, ("VEC3",), _FLOATISH + (5125,))
         positions = np.asarray(positions, np.float64)
         n = positions.shape[0]
-        normals = self._attribute(attrs, "NORMAL", where, ("VEC3",), _FLOATISH)
-        tangents = self._attribute(attrs, "TANGENT", where, ("VEC4",), _FLOATISH)
+        normals = self._attribute(attrs, "NORMAL", where, at, ("VEC3",), _FLOATISH)
+        tangents = self._attribute(attrs, "TANGENT", where, at, ("VEC4",), _FLOATISH)
         texcoords = {}
         for s in (0, 1):
-            uv = self._attribute(attrs, f"TEXCOORD_{s}", where, ("VEC2",), _FLOATISH)
+            uv = self._attribute(attrs, f"TEXCOORD_{s}", where, at, ("VEC2",), _FLOATISH)
             if uv is not None:
                 texcoords[s] = np.asarray(uv, np.float32)
-        color = self._attribute(attrs, "COLOR_0", where, ("VEC3", "VEC4"), (5121, 5123, 5126))
+        color = self._attribute(attrs, "COLOR_0", where, at, ("VEC3", "VEC4"), (5121, 5123, 5126))
         for name, arr in (("NORMAL", normals), ("TANGENT", tangents), ("COLOR_0", color)):
             if arr is not None and arr.dtype.kind != "f":
-                fail(self.path, f"{where} {name} (accessor {attrs[name]})",
+                fail(self.path, f"{loc(f'{where} {name}', f'{at}/attributes/{name}')}: "
+                     f"{loc(f'accessor {attrs[name]}', pointer('accessors', attrs[name]))}",
                      "is an integer accessor without normalized: true (glTF needs FLOAT or normalized integers)", _FIX)
         for name, arr in (("NORMAL", normals), ("TANGENT", tangents), ("COLOR_0", color),
                           *((f"TEXCOORD_{s}", uv) for s, uv in texcoords.items())):
             if arr is not None and arr.shape[0] != n:
-                fail(self.path, where, f"{name} has {arr.shape[0]} elements but POSITION has {n}", _FIX)
-        if not np.all(np.isfinite(positions)):
-            fail(self.path, where, "POSITION holds NaN or infinite values", _FIX)
+                fail(self.path, loc(f"{where} {name}", f"{at}/attributes/{name}"),
+                     f"has {arr.shape[0]} elements but POSITION ({at}/attributes/POSITION) has {n}", _FIX)
         if color is not None:
             color = np.asarray(color, np.float32)
             if color.shape[1] == 3:
                 color = np.concatenate([color, np.ones((n, 1), np.float32)], axis=1)
         if get(prim, "indices") is not None:
-            idx = self.buffers.accessor(get(prim, "indices"), f"{where} indices", allowed_types=("SCALAR",),
+            ia = get(prim, "indices")
+            idx = self.buffers.accessor(ia, f"{where} indices", f"{at}/indices", allowed_types=("SCALAR",),
                                         allowed_components=(5121, 5123, 5125))
             idx = np.asarray(idx, np.int64)
             if idx.size and idx.max() >= n:
-                bad = int(np.argmax(idx >= n))
-                fail(self.path, f"{where} indices (accessor {get(prim, 'indices')})",
-                     f"index {int(idx[bad])} at position {bad} is out of range: the vertex attributes have {n} elements",
+                bad = idx >= n
+                first = int(np.argmax(bad))
+                fail(self.path, f"{loc(f'{where} indices', f'{at}/indices')}: {loc(f'accessor {ia}', pointer('accessors', ia))}",
+                     f"{int(bad.sum())} of its {idx.size} indices are out of range (the first, {int(idx[first])} at "
+                     f"position {first}): the vertex attributes have {n} elements",
                      "the indices and vertex accessors do not match: re-export the asset")
         else:
             idx = np.arange(n, dtype=np.int64)
         count = idx.shape[0]
         if (mode == 4 and count % 3) or (mode in (5, 6) and count < 3) or count == 0:
-            fail(self.path, where, f"{count} vertex indices do not make {MODE_NAMES[mode]} "
+            what = f"{at}/indices" if get(prim, "indices") is not None else f"{at}/attributes/POSITION"
+            fail(self.path, loc(where, what), f"{count} vertex indices do not make {MODE_NAMES[mode]} "
                  "(TRIANGLES needs a non-zero multiple of 3, strips and fans at least 3)", _FIX)
         tris = triangle_list(idx, mode)
         arrays = {"positions": positions}
@@ -414,7 +504,7 @@ class _Loader:
         arrays["normals"] = normalize_rows(np.asarray(normals, np.float64))
         generated = False
         if "tangents" not in arrays and material.needs_tangents:
-            generated, tris = self._generate_tangents(arrays, tris, material, where, unwelded)
+            generated, tris = self._generate_tangents(arrays, tris, material, loc(where, at), unwelded)
             if generated:
                 keys = list(arrays)
                 welded, tris = weld([arrays[k] for k in keys], tris)
@@ -470,18 +560,20 @@ class _Loader:
         return True, tris
 
     # -- cameras and lights -----------------------------------------------------------------------
-    def _camera(self, node_index, node, world, where):
+    def _camera(self, v: _Visit):
         cameras = self.gltf.cameras or []
-        c = get(node, "camera")
-        if not isinstance(c, int) or not 0 <= c < len(cameras):
-            fail(self.path, where, f"camera {c!r} does not exist (the file has {len(cameras)})", _FIX)
+        c = get(v.node, "camera")
+        if not isinstance(c, int) or isinstance(c, bool) or not 0 <= c < len(cameras):
+            fail(self.path, loc(v.where, v.at + "/camera"), f"camera {c!r} does not exist (the file has {len(cameras)})", _FIX)
         cam = cameras[c]
+        at = pointer("cameras", c)
         kind = get(cam, "type")
         name = get(cam, "name", "")
+        world, node_index = v.world, v.index
         if kind == "perspective":
             pp = get(cam, "perspective")
             if pp is None or get(pp, "yfov") is None or get(pp, "znear") is None:
-                fail(self.path, f"camera {c}", "perspective camera without yfov/znear", _FIX)
+                fail(self.path, loc(f"camera {c}", at + "/perspective"), "perspective camera without yfov/znear", _FIX)
             self.cameras.append(GltfCamera(
                 type=kind, world_matrix=world.copy(), camera=c, node=node_index, name=name,
                 yfov=float(get(pp, "yfov")), aspect_ratio=None if get(pp, "aspectRatio") is None else float(get(pp, "aspectRatio")),
@@ -489,26 +581,30 @@ class _Loader:
         elif kind == "orthographic":
             op = get(cam, "orthographic")
             if op is None or any(get(op, k) is None for k in ("xmag", "ymag", "znear", "zfar")):
-                fail(self.path, f"camera {c}", "orthographic camera without xmag/ymag/znear/zfar", _FIX)
+                fail(self.path, loc(f"camera {c}", at + "/orthographic"), "orthographic camera without xmag/ymag/znear/zfar", _FIX)
             self.cameras.append(GltfCamera(
                 type=kind, world_matrix=world.copy(), camera=c, node=node_index, name=name,
                 xmag=float(get(op, "xmag")), ymag=float(get(op, "ymag")),
                 znear=float(get(op, "znear")), zfar=float(get(op, "zfar"))))
         else:
-            fail(self.path, f"camera {c}", f"type {kind!r} is neither 'perspective' nor 'orthographic'", _FIX)
+            fail(self.path, loc(f"camera {c}", at + "/type"), f"type {kind!r} is neither 'perspective' nor 'orthographic'", _FIX)
 
-    def _light(self, node_index, li, world, where):
+    def _light(self, v: _Visit, li):
         ext = (get(self.gltf, "extensions", {}) or {}).get("KHR_lights_punctual") or {}
         lights = get(ext, "lights", []) or []
-        if not isinstance(li, int) or not 0 <= li < len(lights):
-            fail(self.path, f"{where}: KHR_lights_punctual", f"light {li!r} does not exist (the file has {len(lights)})", _FIX)
+        if not isinstance(li, int) or isinstance(li, bool) or not 0 <= li < len(lights):
+            fail(self.path, loc(f"{v.where} KHR_lights_punctual", v.at + "/extensions/KHR_lights_punctual/light"),
+                 f"light {li!r} does not exist (the file has {len(lights)})", _FIX)
         light = lights[li]
+        at = pointer("extensions", "KHR_lights_punctual", "lights", li)
+        what = f"KHR_lights_punctual light {li}"
         kind = get(light, "type")
         if kind not in ("directional", "point", "spot"):
-            fail(self.path, f"KHR_lights_punctual light {li}", f"type {kind!r} is not directional, point or spot", _FIX)
+            fail(self.path, loc(what, at + "/type"), f"type {kind!r} is not directional, point or spot", _FIX)
         color = np.asarray(get(light, "color", (1.0, 1.0, 1.0)), np.float64)
-        if color.shape != (3,):
-            fail(self.path, f"KHR_lights_punctual light {li}", f"color {color.tolist()} is not 3 numbers", _FIX)
+        if color.shape != (3,) or not np.all(np.isfinite(color)):
+            fail(self.path, loc(what, at + "/color"), f"color {color.tolist()} is not 3 finite numbers", _FIX)
+        world = v.world
         direction = normalize_rows((world[:3, :3] @ np.array([0.0, 0.0, -1.0]))[None])[0]
         inner = outer = None
         if kind == "spot":
@@ -518,7 +614,7 @@ class _Loader:
         self.lights.append(GltfLight(
             type=kind, color=color, intensity=float(get(light, "intensity", 1.0)),
             range=float(get(light, "range", math.inf)), position=world[:3, 3].copy(), direction=direction,
-            light=li, node=node_index, name=get(light, "name", ""),
+            light=li, node=v.index, name=get(light, "name", ""),
             inner_cone_angle=inner, outer_cone_angle=outer))
 
 
@@ -554,7 +650,9 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False) -> G
     except InputError:
         raise
     except (TypeError, KeyError, IndexError, AttributeError, ValueError) as e:
-        raise InputError(f"glTF file {str(path)!r}: malformed content ({type(e).__name__}: {e}). Fix: {_FIX}") from e
+        near = f"{loader.context}: " if loader.context else ""
+        msg = f"glTF file {str(path)!r}: {near}malformed content ({type(e).__name__}: {e}). Fix: {_FIX}"
+        raise InputError(" ".join(msg.split())) from e
     for note in asset.warnings:
         warnings.warn(f"{path.name}: {note}", UserWarning, stacklevel=2)
     return asset

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._binary import fail, get
+from ._binary import fail, get, loc, pointer
 from ._types import GltfMaterial, GltfSampler, GltfTextureRef
 
 __all__ = ["MATERIAL_EXTENSIONS", "MaterialReader", "texture_transform_matrix"]
@@ -100,93 +100,100 @@ class MaterialReader:
         self._samplers: dict[int, GltfSampler] = {}
 
     def sampler(self, i: int | None, where: str) -> GltfSampler:
+        """Sampler i; `where`: the texture naming it, with the pointer of its `sampler` property."""
         if i is None:
             return GltfSampler()
         if i in self._samplers:
             return self._samplers[i]
         samplers = self.gltf.samplers or []
-        if not 0 <= i < len(samplers):
-            fail(self.file, where, f"sampler {i} does not exist (the file has {len(samplers)})",
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(samplers):
+            fail(self.file, where, f"sampler {i!r} does not exist (the file has {len(samplers)})",
                  "repair or re-export the asset")
         s = samplers[i]
-        where = f"sampler {i}"
         values = {}
         for key, table, default in (("wrapS", WRAP, 10497), ("wrapT", WRAP, 10497),
                                     ("magFilter", MAG_FILTER, 9729), ("minFilter", MIN_FILTER, 9987)):
             v = get(s, key, default)
             if v not in table:
-                fail(self.file, where, f"{key} = {v} is not a valid glTF value ({sorted(table)})",
-                     "repair or re-export the asset")
+                fail(self.file, loc(f"sampler {i}", pointer("samplers", i, key)),
+                     f"{key} = {v} is not a valid glTF value ({sorted(table)})", "repair or re-export the asset")
             values[key] = table[v]
         out = GltfSampler(values["wrapS"], values["wrapT"], values["magFilter"], values["minFilter"], True)
         self._samplers[i] = out
         return out
 
-    def texref(self, role: str, info, where: str) -> GltfTextureRef | None:
+    def texref(self, role: str, info, where: str, at: str) -> GltfTextureRef | None:
+        """The slot `role` of a material; `at`: the JSON pointer of its textureInfo."""
         where = f"{where} {role} texture"
         index = get(info, "index")
         textures = self.gltf.textures or []
-        if not isinstance(index, int) or not 0 <= index < len(textures):
-            fail(self.file, where, f"texture {index} does not exist (the file has {len(textures)})",
+        if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(textures):
+            fail(self.file, loc(where, at + "/index"), f"texture {index!r} does not exist (the file has {len(textures)})",
                  "repair or re-export the asset")
         tex = textures[index]
         source = get(tex, "source")
         if source is None:
             exts = sorted(get(tex, "extensions", {}) or {})
-            self.notes.append(f"{where}: texture {index} has no PNG/JPEG source"
+            self.notes.append(f"{loc(where, at)}: texture {index} has no PNG/JPEG source"
                               + (f" (only {', '.join(exts)})" if exts else "") + "; the slot is dropped")
             return None
         images = self.gltf.images or []
-        if not 0 <= source < len(images):
-            fail(self.file, f"{where} (texture {index})", f"image {source} does not exist (the file has {len(images)})",
-                 "repair or re-export the asset")
+        if not isinstance(source, int) or isinstance(source, bool) or not 0 <= source < len(images):
+            fail(self.file, f"{loc(where, at)}: {loc(f'texture {index}', pointer('textures', index, 'source'))}",
+                 f"image {source!r} does not exist (the file has {len(images)})", "repair or re-export the asset")
         texcoord = get(info, "texCoord", 0)
+        tc_at = at + "/texCoord"
         transform = np.eye(3)
         tt = (get(info, "extensions", {}) or {}).get("KHR_texture_transform")
         if tt is not None:
-            offset = _floats(get(tt, "offset", (0.0, 0.0)), 2, self.file, f"{where}: KHR_texture_transform.offset")
-            scale = _floats(get(tt, "scale", (1.0, 1.0)), 2, self.file, f"{where}: KHR_texture_transform.scale")
-            rotation = _float(get(tt, "rotation", 0.0), self.file, f"{where}: KHR_texture_transform.rotation")
+            tt_at = at + "/extensions/KHR_texture_transform"
+            offset = _floats(get(tt, "offset", (0.0, 0.0)), 2, self.file, loc(where, tt_at + "/offset"))
+            scale = _floats(get(tt, "scale", (1.0, 1.0)), 2, self.file, loc(where, tt_at + "/scale"))
+            rotation = _float(get(tt, "rotation", 0.0), self.file, loc(where, tt_at + "/rotation"))
             transform = texture_transform_matrix(offset, rotation, scale)
-            texcoord = get(tt, "texCoord", texcoord)
-        if not isinstance(texcoord, int) or texcoord < 0:
-            fail(self.file, where, f"texCoord {texcoord!r} is not a valid set index", "repair or re-export the asset")
+            if get(tt, "texCoord") is not None:
+                texcoord, tc_at = get(tt, "texCoord"), tt_at + "/texCoord"
+        if not isinstance(texcoord, int) or isinstance(texcoord, bool) or texcoord < 0:
+            fail(self.file, loc(where, tc_at), f"texCoord {texcoord!r} is not a valid set index",
+                 "repair or re-export the asset")
         transform.flags.writeable = False
         return GltfTextureRef(
             role=role,
             texture=index,
             image=source,
             texcoord=texcoord,
-            sampler=self.sampler(get(tex, "sampler"), f"{where} (texture {index})"),
+            sampler=self.sampler(get(tex, "sampler"), f"{loc(where, at)}: {loc(f'texture {index}', pointer('textures', index, 'sampler'))}"),
             transform=transform,
             has_transform=tt is not None,
             colorspace="srgb" if role in SRGB_ROLES else "linear",
-            scale=_float(get(info, "scale", 1.0), self.file, where) if role in ("normal", "clearcoat_normal") else 1.0,
-            strength=_float(get(info, "strength", 1.0), self.file, where) if role == "occlusion" else 1.0,
+            scale=_float(get(info, "scale", 1.0), self.file, loc(where, at + "/scale")) if role in ("normal", "clearcoat_normal") else 1.0,
+            strength=_float(get(info, "strength", 1.0), self.file, loc(where, at + "/strength")) if role == "occlusion" else 1.0,
         )
 
     def material(self, i: int | None) -> GltfMaterial:
         if i is None:
-            return GltfMaterial(index=None, name="default", factors=_core_factors(None, None, self.file, ""))
+            return GltfMaterial(index=None, name="default", factors=_core_factors(None, None, self.file, "", ""))
         m = self.gltf.materials[i]
         name = get(m, "name", "")
         where = f"material {i}" + (f" ({name!r})" if name else "")
+        at = pointer("materials", i)
         pbr = get(m, "pbrMetallicRoughness")
-        factors = _core_factors(m, pbr, self.file, where)
-        bcf = _floats(get(pbr, "baseColorFactor", (1.0, 1.0, 1.0, 1.0)), 4, self.file, f"{where}: baseColorFactor")
+        factors = _core_factors(m, pbr, self.file, where, at)
+        bcf = _floats(get(pbr, "baseColorFactor", (1.0, 1.0, 1.0, 1.0)), 4, self.file,
+                      loc(where, at + "/pbrMetallicRoughness/baseColorFactor"))
         textures = {}
 
-        def add(role, info):
+        def add(role, info, info_at):
             if info is not None:
-                ref = self.texref(role, info, where)
+                ref = self.texref(role, info, where, info_at)
                 if ref is not None:
                     textures[role] = ref
 
-        add("base_color", get(pbr, "baseColorTexture"))
-        add("metallic_roughness", get(pbr, "metallicRoughnessTexture"))
-        add("normal", get(m, "normalTexture"))
-        add("occlusion", get(m, "occlusionTexture"))
-        add("emissive", get(m, "emissiveTexture"))
+        add("base_color", get(pbr, "baseColorTexture"), at + "/pbrMetallicRoughness/baseColorTexture")
+        add("metallic_roughness", get(pbr, "metallicRoughnessTexture"), at + "/pbrMetallicRoughness/metallicRoughnessTexture")
+        add("normal", get(m, "normalTexture"), at + "/normalTexture")
+        add("occlusion", get(m, "occlusionTexture"), at + "/occlusionTexture")
+        add("emissive", get(m, "emissiveTexture"), at + "/emissiveTexture")
         used = []
         exts = get(m, "extensions", {}) or {}
         for ext, (fields, roles) in MATERIAL_EXTENSIONS.items():
@@ -194,37 +201,40 @@ class MaterialReader:
                 continue
             used.append(ext)
             data = exts[ext] or {}
+            ext_at = pointer("materials", i, "extensions", ext)
             for key, (fname, default) in fields.items():
                 value = get(data, key, default)
                 if isinstance(default, tuple):
-                    factors[fname] = _floats(value, len(default), self.file, f"{where}: {ext}.{key}")
+                    factors[fname] = _floats(value, len(default), self.file, loc(where, f"{ext_at}/{key}"))
                 else:
-                    factors[fname] = _float(value, self.file, f"{where}: {ext}.{key}",
+                    factors[fname] = _float(value, self.file, loc(where, f"{ext_at}/{key}"),
                                             allow_inf=fname == "attenuation_distance")
             for key, role in roles.items():
-                add(role, get(data, key))
+                add(role, get(data, key), f"{ext_at}/{key}")
         alpha_mode = get(m, "alphaMode", "OPAQUE")
         if alpha_mode not in ("OPAQUE", "MASK", "BLEND"):
-            fail(self.file, where, f"alphaMode {alpha_mode!r} is not OPAQUE, MASK or BLEND", "repair or re-export the asset")
+            fail(self.file, loc(where, at + "/alphaMode"), f"alphaMode {alpha_mode!r} is not OPAQUE, MASK or BLEND",
+                 "repair or re-export the asset")
         return GltfMaterial(
             index=i,
             name=name,
             factors=factors,
             base_color_alpha=bcf[3],
             alpha_mode=alpha_mode,
-            alpha_cutoff=_float(get(m, "alphaCutoff", 0.5), self.file, f"{where}: alphaCutoff"),
+            alpha_cutoff=_float(get(m, "alphaCutoff", 0.5), self.file, loc(where, at + "/alphaCutoff")),
             double_sided=bool(get(m, "doubleSided", False)),
             textures=textures,
             extensions=tuple(used),
         )
 
 
-def _core_factors(m, pbr, file, where) -> dict:
-    bcf = _floats(get(pbr, "baseColorFactor", (1.0, 1.0, 1.0, 1.0)), 4, file, f"{where}: baseColorFactor")
+def _core_factors(m, pbr, file, where, at) -> dict:
+    pbr_at = at + "/pbrMetallicRoughness"
+    bcf = _floats(get(pbr, "baseColorFactor", (1.0, 1.0, 1.0, 1.0)), 4, file, loc(where, pbr_at + "/baseColorFactor"))
     return {
         "base_color": bcf[:3],
-        "metallic": _float(get(pbr, "metallicFactor", 1.0), file, f"{where}: metallicFactor"),
-        "roughness": _float(get(pbr, "roughnessFactor", 1.0), file, f"{where}: roughnessFactor"),
+        "metallic": _float(get(pbr, "metallicFactor", 1.0), file, loc(where, pbr_at + "/metallicFactor")),
+        "roughness": _float(get(pbr, "roughnessFactor", 1.0), file, loc(where, pbr_at + "/roughnessFactor")),
         "occlusion": 1.0,
-        "emissive": _floats(get(m, "emissiveFactor", (0.0, 0.0, 0.0)), 3, file, f"{where}: emissiveFactor"),
+        "emissive": _floats(get(m, "emissiveFactor", (0.0, 0.0, 0.0)), 3, file, loc(where, at + "/emissiveFactor")),
     }
