@@ -612,3 +612,20 @@ def test_gradient_of_a_texel_under_a_light_matches_central_differences():
     e[idx] = h
     fd = (loss(jnp.asarray(tex0 + e)) - loss(jnp.asarray(tex0 - e))) / (2 * h)
     np.testing.assert_allclose(g[idx], float(fd), rtol=1e-5)
+
+
+def test_memory_guard_counts_the_meshes(monkeypatch):
+    """check_memory (what render runs first) refuses a mesh scene too large for the limit, naming the
+    triangle count, before any work."""
+    from jaxpbr.rendering.renderer import check_memory
+
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "1")
+    P = np.zeros((3_000_000, 3), np.float32)
+    P[:, 0] = np.arange(3_000_000)
+    P[1::3, 1] = 1.0
+    T = np.arange(3_000_000, dtype=np.int32).reshape(-1, 3)
+    scene = jp.Scene(camera=jp.Camera(width=64, height=36), objects=[Mesh(positions=P, triangles=T)])
+    with pytest.raises(ValueError, match="the meshes' triangle count"):
+        check_memory(scene)
+    small = jp.Scene(camera=jp.Camera(width=64, height=36), objects=[Mesh(positions=P[:3], triangles=T[:1])])
+    check_memory(small)

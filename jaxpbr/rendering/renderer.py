@@ -1262,7 +1262,13 @@ def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: s
                 if f.name.endswith("_texture") and x is not None:
                     textures[id(x)] = np.shape(texels(x))
     parts = _memory.render_bytes(W, H, textures.values())
-    parts = {("Camera.width/height" if k == "width/height" else "the textures' resolution" if k == "textures" else k): v for k, v in parts.items()}
+    meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)] if scene.gbuffer is None else []
+    parts |= _memory.mesh_bytes(sum(m.num_vertices for m in meshes), sum(m.num_triangles for m in meshes))
+    parts = {
+        ("Camera.width/height" if k == "width/height" else "the textures' resolution" if k == "textures"
+         else "the meshes' triangle count" if k == "triangles" else k): v
+        for k, v in parts.items()
+    }
     env = scene.environment
     if env is not None:
         # (the plan without the light extraction, which is work; the maps' sizes are the same)
