@@ -451,6 +451,8 @@ def test_auto_backend_and_errors():
         TriangleAccel.build(v, f + 100)
     with pytest.raises(InputError):
         acc.intersect(np.zeros((3, 2)), np.ones((3, 2)))
+    with pytest.raises(InputError):
+        acc.intersect(np.zeros((3, 3)), np.ones((3, 3)), after_prim=len(f))
 
 
 @backends

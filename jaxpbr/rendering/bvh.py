@@ -423,7 +423,7 @@ def _next_pow2(x: int) -> int:
     return 1 << max(0, int(x) - 1).bit_length()
 
 
-def build_bvh(vertices, triangles, *, leaf_size: int = 4, bins: int = 16, bucket: bool = True, min_triangles: int = 0) -> BVH:
+def build_bvh(vertices, triangles, *, leaf_size: int = 2, bins: int = 16, bucket: bool = True, min_triangles: int = 0) -> BVH:
     """Build the BVH of a triangle mesh on the host (NumPy arrays in the result; `BVH.to_device`
     moves them). vertices (V, 3) float, triangles (T, 3) int (rows are the triangle ids reported
     by the traversal). Zero-area and non-finite triangles are left out.

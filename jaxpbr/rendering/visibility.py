@@ -632,6 +632,12 @@ def _host_rays(origins, directions, tnear, tfar, after):
     return shape, o, d, tn, tf, af
 
 
+def _check_after(after, n_tri):
+    a = np.asarray(after)
+    if a.size and (a.min() < -1 or a.max() >= max(n_tri, 1)):
+        raise InputError(f"after_prim must be -1 or a triangle id in [0, {n_tri}), got [{a.min()}, {a.max()}]")
+
+
 class TriangleAccel:
     """Visibility queries against one triangle mesh (see the module docstring).
 
@@ -646,7 +652,9 @@ class TriangleAccel:
         self.num_triangles = num_triangles
         # rays in flight in the JAX traversal: enough to amortise a step's fixed cost; a GPU
         # needs many more than a CPU to fill it (a guess there: no GPU measurement behind it)
-        self.lanes = int(lanes or (_bvh.DEFAULT_LANES if jax.default_backend() == "cpu" else 1 << 17))
+        self._on_cpu = jax.default_backend() == "cpu"
+        self.lanes = int(lanes or (_bvh.DEFAULT_LANES if self._on_cpu else 1 << 17))
+        self.threads = os.cpu_count() or 1
 
     @classmethod
     def build(
@@ -655,7 +663,7 @@ class TriangleAccel:
         triangles,
         *,
         backend: str = "auto",
-        leaf_size: int = 4,
+        leaf_size: int = 2,
         lanes: int | None = None,
         min_triangles: int = 0,
         threads: int | None = None,
@@ -692,15 +700,30 @@ class TriangleAccel:
     # traversal compiles once per bucket; the padding rays have a zero direction and end at once.
     def _jax_call(self, fn, shape, arrays, **kw):
         """arrays: name -> (value, trailing shape, dtype). Everything is cast to a definite
-        (strong) dtype, so Python scalars and arrays hit the same compiled program."""
+        (strong) dtype, so Python scalars and arrays hit the same compiled program. Ray counts are
+        padded to power-of-two buckets. On a CPU, large batches are cut into one part per core,
+        traced concurrently from Python threads: XLA runs this loop on about one core per call
+        (measured on 2 cores: 2 concurrent calls 2-3x faster than one call on twice the rays)."""
         n = int(np.prod(shape, dtype=np.int64))
-        m = pad_rays(n)
         flat = {}
         for name, (a, tail, dt) in arrays.items():
-            a = jnp.broadcast_to(jnp.asarray(a).astype(dt), shape + tail).reshape((n,) + tail)
-            flat[name] = jnp.pad(a, [(0, m - n)] + [(0, 0)] * len(tail))
-        out = fn(self._impl, **flat, lanes=min(self.lanes, m), **kw)
-        return jax.tree.map(lambda x: x[:n].reshape(shape + x.shape[1:]), out)
+            flat[name] = (jnp.broadcast_to(jnp.asarray(a).astype(dt), shape + tail).reshape((n,) + tail), tail)
+        parts = self.threads if (self._on_cpu and n >= 2 * _bvh.DEFAULT_LANES) else 1
+
+        def run(lo, hi):
+            m = pad_rays(hi - lo)
+            args = {k: jnp.pad(a[lo:hi], [(0, m - (hi - lo))] + [(0, 0)] * len(t)) for k, (a, t) in flat.items()}
+            out = fn(self._impl, **args, lanes=min(self.lanes, m), **kw)
+            return jax.block_until_ready(jax.tree.map(lambda x: x[: hi - lo], out)) if parts > 1 else jax.tree.map(lambda x: x[: hi - lo], out)
+
+        if parts == 1:
+            out = run(0, n)
+        else:
+            cuts = np.linspace(0, n, parts + 1).astype(int)
+            with ThreadPoolExecutor(parts) as pool:
+                outs = list(pool.map(lambda ab: run(*ab), itertools.pairwise(cuts)))
+            out = jax.tree.map(lambda *xs: jnp.concatenate(xs), *outs)
+        return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), out)
 
     @staticmethod
     def _ray_dtype(origins, directions):
@@ -721,6 +744,8 @@ class TriangleAccel:
         (t, id) counts when tnear <= t <= tfar, id != after_prim and (t, id) > (tnear, after_prim);
         the least (t, id) wins. after_prim = -1: the plain closest hit in [tnear, tfar]; the
         previous hit's (t, prim): the next hit along the same ray (continuation)."""
+        if not isinstance(after_prim, jax.core.Tracer):
+            _check_after(after_prim, self.num_triangles)
         if self.backend == "embree":
             shape, o, d, tn, tf, af = _host_rays(origins, directions, tnear, tfar, after_prim)
             h = self._impl.intersect(o, d, tn, tf, af)
