@@ -156,9 +156,11 @@ def offset_ray_origin(p, n):
 
 
 def _weld(v: np.ndarray) -> np.ndarray:
-    """Vertex ids merged by exact float32 position (so that seams split by index still count as
-    adjacent): (V,) int64."""
-    key = np.ascontiguousarray(v.astype(F32)).view(np.dtype((np.void, 12))).reshape(-1)
+    """Vertex ids merged by float32 position (so that seams split by index still count as
+    adjacent): (V,) int64. Positions are hashed to 64 bits; a collision merges two positions,
+    which only adds candidates to the tie tests."""
+    bits = np.ascontiguousarray(v.astype(F32)).view(np.uint32).reshape(-1, 3).astype(np.uint64)
+    key = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)) ^ (bits[:, 2] << np.uint64(21))
     _, inv = np.unique(key, return_inverse=True)
     return inv.reshape(-1)
 
