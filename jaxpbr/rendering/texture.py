@@ -100,6 +100,7 @@ from .._numerics import (
 )
 from .._pytree import Pytree, leaf, static
 from ..errors import InputError
+from ..io.gltf import GLTF_MAG_FILTERS, GLTF_MIN_FILTERS, GLTF_WRAP_MODES  # glTF sampler enums -> names
 
 __all__ = [
     "DEFAULT_MAX_ANISOTROPY",
@@ -134,17 +135,6 @@ MIN_FILTERS = (
     "nearest_mipmap_linear",
     "linear_mipmap_linear",
 )
-#: glTF 2.0 sampler enums (the OpenGL constants) -> names.
-GLTF_WRAP_MODES = {10497: "repeat", 33071: "clamp", 33648: "mirror"}
-GLTF_MAG_FILTERS = {9728: "nearest", 9729: "linear"}
-GLTF_MIN_FILTERS = {
-    9728: "nearest",
-    9729: "linear",
-    9984: "nearest_mipmap_nearest",
-    9985: "linear_mipmap_nearest",
-    9986: "nearest_mipmap_linear",
-    9987: "linear_mipmap_linear",
-}
 DEFAULT_MAX_ANISOTROPY = 16
 #: The LOD given to a zero footprint (log2 0 = -inf): any value <= 0 means magnification.
 LOD_MIN = -50.0

@@ -9,6 +9,9 @@ with world transforms. See `read_gltf` for what is supported, refused and ignore
 """
 
 from ._loader import SUPPORTED_EXTENSIONS, read_gltf
+from ._materials import MAG_FILTER as GLTF_MAG_FILTERS
+from ._materials import MIN_FILTER as GLTF_MIN_FILTERS
+from ._materials import WRAP as GLTF_WRAP_MODES
 from ._materials import texture_transform_matrix
 from ._types import (
     TEXTURE_CHANNELS,
@@ -24,6 +27,9 @@ from ._types import (
 
 
 __all__ = [
+    "GLTF_MAG_FILTERS",
+    "GLTF_MIN_FILTERS",
+    "GLTF_WRAP_MODES",
     "SUPPORTED_EXTENSIONS",
     "TEXTURE_CHANNELS",
     "GltfAsset",
