@@ -310,6 +310,13 @@ def test_first_k_hits_through_stacked_and_coplanar_layers(backend):
         assert np.array_equal(np.asarray(hh.prim), prim[:, i])
         tn = np.where(np.asarray(hh.prim) >= 0, np.asarray(hh.t), np.inf)
         after = np.asarray(hh.prim)
+    # the epsilon pattern (tnear just past the previous t) loses the coplanar layers
+    tn, seen = np.zeros(n), []
+    for i in range(8):
+        hh = acc.intersect(o, d, tnear=tn)
+        seen.append(np.asarray(hh.prim))
+        tn = np.asarray(hh.t, np.float64) * (1 + 1e-6) + 1e-6
+    assert ((np.stack(seen, 1) >= 0).sum(1) == 5).all()
 
 
 @backends

@@ -43,7 +43,18 @@ exactly through a shared edge reports every triangle whose watertight test it pa
 both; renderers blending layers may want to merge consecutive hits with equal t on adjacent
 triangles). The origin and direction must stay bit-identical between the calls (do not move the
 origin to the previous hit). `first_k_hits` is this loop. With after_prim = -1 (the default) the
-result is the plain closest hit in [tnear, tfar].
+result is the plain closest hit in [tnear, tfar]. An alpha-MASK loop:
+
+    hits = acc.intersect(o, d)
+    for _ in range(max_layers):
+        cut = alpha_of(hits) < cutoff                # the caller's texture lookup; misses: False
+        if not cut.any():
+            break
+        nxt = acc.intersect(o, d, tnear=hits.t, after_prim=hits.prim)
+        hits = Hits(*(np.where(cut, b, a) for a, b in zip(hits, nxt)))
+
+(The usual `tnear = t * (1 + eps)` instead skips every layer closer than the epsilon, coplanar
+copies included, and can hit the same triangle again; the tests show both.)
 
 Shadow rays
 -----------
@@ -55,6 +66,7 @@ little short of the light (e.g. (1 - 1e-4) * distance).
 
 from __future__ import annotations
 
+import collections
 import itertools
 import os
 import threading
@@ -377,6 +389,9 @@ class _RayData:
 
 
 class _EmbreeBackend:
+    """embree scene + the host-side data of the exact refinement: the float32 triangles in the
+    caller's order, altitudes (near-edge test), welded-vertex adjacency, near pairs."""
+
     def __init__(self, vertices, triangles, threads=None, exact_ties=True):
         from embreex.mesh_construction import TriangleMesh
         from embreex.rtcore_scene import EmbreeScene
@@ -416,7 +431,8 @@ class _EmbreeBackend:
         self.near = _csr(both[:, 0], both[:, 1], self.n_tri)
         self.flagged = np.diff(self.near[0]) > 0
         self.n_near_pairs = len(pairs)
-        self.rounds_log = []  # (rays hit, rays refined, rays going on) per embree round, for tuning
+        # (rays hit, rays refined, rays going on) of the latest embree rounds, for tuning
+        self.rounds_log = collections.deque(maxlen=64)
 
     # -- embree calls ------------------------------------------------------------------------------
     def _pool_get(self):
@@ -542,7 +558,8 @@ class _EmbreeBackend:
                 org = rd.o32 if active is None else rd.o32[active]
             else:
                 o_, d_ = (o64, d64) if active is None else (o64[active], d64[active])
-                org = (o_ + sa[:, None] * d_).astype(F32)
+                shift = np.where(np.isfinite(sa), sa, 0.0)  # (an infinite tnear gets span < 0 below)
+                org = (o_ + shift[:, None] * d_).astype(F32)
             with np.errstate(invalid="ignore"):
                 span = ((tfar if active is None else tfar[active]) - sa).astype(F32)
             span = np.where(np.isnan(span), F32(-1), span)
@@ -607,10 +624,11 @@ class _EmbreeBackend:
         return Hits(*(np.concatenate(x) for x in zip(*parts)))
 
     def occluded(self, o64, d64, tnear, tfar):
-        shift = tnear.astype(np.float64)
+        shift = np.where(np.isfinite(tnear), tnear, 0.0)
         org = (o64 + shift[:, None] * d64).astype(F32)
-        span = (tfar.astype(np.float64) - shift).astype(F32)
-        ok = span >= 0
+        with np.errstate(invalid="ignore"):
+            span = (tfar - tnear).astype(F32)
+        ok = span >= 0  # (NaN for inf - inf: False)
         occ, _ = self._run(org, d64.astype(F32), np.where(ok, span, F32(0)), "OCCLUDED")
         return occ & ok
 
