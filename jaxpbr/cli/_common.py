@@ -66,23 +66,36 @@ def close_progress_line() -> str:
 
 
 class Progress:
-    """A one-line progress indicator on stderr (silent when `quiet`); the library's precomputes take
-    it as their `progress(done, total)` callback and know nothing of the terminal."""
+    """A progress indicator on stderr (silent when `quiet`); the library's precomputes take it as
+    their `progress(done, total)` callback and know nothing of the terminal. On a terminal: one line
+    redrawn in place with the elapsed time and an estimate of the time left. Elsewhere (a log file, a
+    pipe, CI): no carriage returns, one plain line per quarter of the work."""
 
-    def __init__(self, label: str, quiet: bool = False):
+    def __init__(self, label: str, quiet: bool = False, *, tty: bool | None = None):
         self.label, self.quiet, self.t0 = label, quiet, time.perf_counter()
+        self.tty = sys.stderr.isatty() if tty is None else tty
+        self._quarter = -1
 
     def __call__(self, done: int, total: int) -> None:
         if threading.current_thread() is threading.main_thread():
             raise_pending()  # on XLA's callback thread a raise would only abort the program
         if self.quiet:
             return
+        elapsed = time.perf_counter() - self.t0
+        frac = done / max(total, 1)
+        eta = f", about {elapsed * (1 - frac) / frac:.0f} s left" if 0 < frac < 1 else ""
+        if not self.tty:
+            quarter = int(4 * frac)
+            if quarter > self._quarter:
+                self._quarter = quarter
+                print(f"{self.label}: {done}/{total} after {elapsed:.1f} s{eta}", file=sys.stderr, flush=True)
+            return
         width = 24
-        fill = int(width * done / max(total, 1))
+        fill = int(width * frac)
         end = "\n" if done >= total else ""
         _OPEN_LINE[0] = not end
         print(
-            f"\r{self.label}: [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {time.perf_counter() - self.t0:.1f} s",
+            f"\r{self.label}: [{'#' * fill}{'.' * (width - fill)}] {done}/{total}  {elapsed:.1f} s{eta}   ",
             end=end,
             file=sys.stderr,
             flush=True,

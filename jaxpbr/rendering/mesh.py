@@ -169,9 +169,12 @@ class _Accels:
         self.lock = threading.Lock()
         self.builds = 0  # counted by tests: one build per mesh content
 
-    def get(self, vertices: np.ndarray, triangles: np.ndarray, backend: str):
+    def get(self, vertices: np.ndarray, triangles: np.ndarray, backend: str, *, exact_ties: bool = False):
+        """The structure of this content; `exact_ties` (the embree engine's build-time search for
+        nearly coincident triangles, 5x its build time at 1.3 M triangles) only where the order of
+        coincident surfaces matters: alpha-blended and cut-out layers walked by continuation."""
         h = hashlib.blake2b(digest_size=20)
-        h.update(backend.encode())
+        h.update(f"{backend}/{exact_ties}".encode())
         h.update(np.int64(vertices.shape + triangles.shape).tobytes())
         h.update(vertices.tobytes())
         h.update(triangles.tobytes())
@@ -182,7 +185,7 @@ class _Accels:
                 return self.entries[digest]
         from .visibility import TriangleAccel
 
-        accel = TriangleAccel.build(vertices, triangles, backend=backend)
+        accel = TriangleAccel.build(vertices, triangles, backend=backend, **({"exact_ties": exact_ties} if backend == "embree" else {}))
         with self.lock:
             self.builds += 1
             self.entries[digest] = accel
@@ -205,7 +208,7 @@ def _host_cast(vertices, triangles, cull_back, o, d, alpha=None, layers: int = 1
     (t, prim) in the engine's order)."""
     vertices = np.ascontiguousarray(vertices, np.float32)
     triangles = np.ascontiguousarray(triangles, np.int32)
-    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax")
+    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax", exact_ties=alpha is not None)
     cull_back = np.asarray(cull_back, bool)
     shape = np.shape(o)[:-1]
     o = np.asarray(o, np.float32).reshape(-1, 3)

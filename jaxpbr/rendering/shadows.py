@@ -31,7 +31,7 @@ __all__ = ["shadow_visibility"]
 def _host_occluded(vertices, triangles, o, d, tfar, alpha=None):
     vertices = np.ascontiguousarray(vertices, np.float32)
     triangles = np.ascontiguousarray(triangles, np.int32)
-    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax")
+    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax", exact_ties=alpha is not None)
     shape = np.shape(o)[:-1]
     o = np.asarray(o, np.float32).reshape(-1, 3)
     d = np.asarray(d, np.float32).reshape(-1, 3)
