@@ -9,7 +9,7 @@ follows the gradient of all views at once (`jaxpbr.render_batch` over the camera
 `jax.jit(jax.value_and_grad(...))`) with Adam (optax).
 
 Texels and roughness are unconstrained parameters mapped into range by a sigmoid: texels into
-(0, 1) (linear: the texture the renderer filters), roughness into [0.05, 1] (MATH.md 8.8). The
+(0, 1) (linear: the texture the renderer filters), roughness into [0.05, 1] (docs/math.md 8.8). The
 texture's mip pyramid is built inside the step (`jaxpbr.Texture.from_image` is traceable), so the
 gradient reaches the texels through the trilinear / anisotropic filtering. Which triangle each
 pixel sees (and whether a shadow ray is blocked) is decided on the host (Embree, through

@@ -4,7 +4,7 @@ The target is rendered with a known material under an HDR environment (an .hdr/.
 command line, or the procedural sky + sun) plus two point lights; the fit starts from grey,
 metallic 0.5, roughness 0.5 and follows the gradient of the rendered image (through the split-sum
 IBL lookups and the direct-lighting BRDF) with Adam (optax). Parameters are unconstrained and mapped
-into their valid ranges (sigmoid), roughness into [0.05, 1] (MATH.md 8.8: a learnable roughness must
+into their valid ranges (sigmoid), roughness into [0.05, 1] (docs/math.md 8.8: a learnable roughness must
 not reach the singular r = 0).
 
 The environment is baked once (`jaxpbr.bake`: irradiance, prefiltered chain, LUT) and passed to the

@@ -3,7 +3,7 @@
 Each helper states *why* it exists. The recurring pattern is the "double where": masking only the
 output of `jnp.where(ok, f(x), 0)` still evaluates `f` (and its derivative) on the bad lanes, and
 because NaN * 0 = NaN the NaN leaks into the gradient. So the *input* is first replaced by a benign
-value on the bad lanes, then the output is masked (MATH.md §8.10; JAX FAQ "gradients contain NaN
+value on the bad lanes, then the output is masked (docs/math.md §8.10; JAX FAQ "gradients contain NaN
 where using where").
 """
 

@@ -1,11 +1,11 @@
-"""Independent float64 NumPy reference for the BRDF terms, transcribed from MATH.md §1, §2.
+"""Independent float64 NumPy reference for the BRDF terms, transcribed from docs/math.md §1, §2.
 
 Written straight from the textbook forms (not from jaxpbr, which is deliberately *not* imported
 here): the GGX NDF as `alpha^2 / (pi ((NoH^2)(alpha^2 - 1) + 1)^2)`, Smith through Lambda, the
 visibility as `G2 / (4 NoV NoL)`, the glTF 2.0 Appendix B material exactly as its text writes it,
 and a line-by-line transcription of the LearnOpenGL `pbr.fs` per-light code.
 
-Conventions (MATH.md §0): `n, v, l` unit vectors pointing away from the surface, `r` perceptual
+Conventions (docs/math.md §0): `n, v, l` unit vectors pointing away from the surface, `r` perceptual
 roughness, `alpha = r^2`. Dot products are arrays of shape (...); colours (..., 3). All arithmetic
 is float64 (inputs are converted with `np.asarray(x, np.float64)`).
 """

@@ -1,6 +1,6 @@
 """Tests of `jaxpbr.shading.brdf_terms`: every term and both models against the float64 NumPy reference
-(`tests/reference.py`, written from MATH.md, not from jaxpbr), plus the closed forms, integrals and
-white-furnace oracles of MATH.md §1.5 / §7.
+(`tests/reference.py`, written from docs/math.md, not from jaxpbr), plus the closed forms, integrals and
+white-furnace oracles of docs/math.md §1.5 / §7.
 
 Error model used for every comparison (float64 and float32 alike): the inputs are first rounded to
 the dtype under test and the reference is evaluated in float64 on *those* rounded inputs, so what is
@@ -559,7 +559,7 @@ def test_exactly_zero_when_light_or_viewer_at_or_below_horizon(model, dtype):
 
 
 # ============================================================================================
-# 5. Closed forms (MATH.md §1.4, §1.5, §7.1)
+# 5. Closed forms (docs/math.md §1.4, §1.5, §7.1)
 # ============================================================================================
 
 ALPHAS = np.array([0.002025, 0.01, 0.0625, 0.25, 0.5, 0.81, 1.0])
@@ -588,7 +588,7 @@ def test_d_at_normal_and_at_alpha_one():
 
 @pytest.mark.parametrize("model,shader_epsilon", [("gltf", 1e-4), ("learnopengl", 0.0), ("learnopengl", 1e-4)])
 def test_specular_at_v_equals_l_equals_n(model, shader_epsilon):
-    """A metal (base_color = F0, metallic = 1) at v = l = n: f = F0 / (4 pi alpha^2) (MATH.md §1.5);
+    """A metal (base_color = F0, metallic = 1) at v = l = n: f = F0 / (4 pi alpha^2) (docs/math.md §1.5);
     pbr.fs divides by 4 + 1e-4 instead of 4."""
     rng = np.random.default_rng(5)
     r = np.array([0.05, 0.1, 0.3, 0.5, 0.8, 1.0])
@@ -626,7 +626,7 @@ def test_fresnel_average_closed_form():
 
 
 # ============================================================================================
-# 6. Integrals (MATH.md §7.1, §7.3, §7.4) — deterministic Gauss-Legendre on graded panels
+# 6. Integrals (docs/math.md §7.1, §7.3, §7.4) — deterministic Gauss-Legendre on graded panels
 # ============================================================================================
 
 
@@ -655,7 +655,7 @@ ROUGHNESS_NORMALISATION = (1.0, 0.5, 0.25, 0.1, 0.05)
 
 @pytest.mark.parametrize("use_sin2", [False, True])
 def test_d_normalisation(use_sin2):
-    """2 pi int_0^{pi/2} D cos sin dtheta = 1 (MATH.md §7.1), for r down to 0.05 (alpha = 0.0025):
+    """2 pi int_0^{pi/2} D cos sin dtheta = 1 (docs/math.md §7.1), for r down to 0.05 (alpha = 0.0025):
     theta panels graded towards the peak at 0 with scale alpha."""
     th_all, w_all, a_all, seg = [], [], [], []
     for i, r in enumerate(ROUGHNESS_NORMALISATION):
@@ -670,7 +670,7 @@ def test_d_normalisation(use_sin2):
     sin2 = jnp.asarray(np.sin(th) ** 2) if use_sin2 else None
     D = np.asarray(B.d_ggx(jnp.asarray(np.cos(th)), jnp.asarray(a), sin2))
     integral = np.bincount(seg, 2 * np.pi * w * D * np.cos(th) * np.sin(th)).reshape(-1, 2)
-    # The two quadrature orders agree to ~1e-13: converged far below the 1e-6 asked for by MATH.md.
+    # The two quadrature orders agree to ~1e-13: converged far below the 1e-6 asked for by docs/math.md.
     assert np.all(np.abs(integral[:, 0] - integral[:, 1]) < 1e-10), integral
     np.testing.assert_allclose(integral[:, 1], 1.0, rtol=0, atol=1e-6)
 
@@ -698,7 +698,7 @@ def _visible_normal_integral(mu_v, alpha, m):
 
 
 def test_visible_normal_normalisation_heitz():
-    """int G1(v) max(0, v.m) D(m) dm = cos theta_v (Heitz 2014; MATH.md §7.1) — tests Lambda/G1
+    """int G1(v) max(0, v.m) D(m) dm = cos theta_v (Heitz 2014; docs/math.md §7.1) — tests Lambda/G1
     against D. 2-D Gauss-Legendre over the hemisphere of m."""
     cases = [(r, mu) for r in (1.0, 0.5, 0.3) for mu in (1.0, 0.7, 0.3, 0.1)]
     nh_all, s2_all, w_all, a_all, seg = [], [], [], [], []
@@ -750,14 +750,14 @@ def directional_albedo(grid, m):
     return np.bincount(seg, np.asarray(f) * w, minlength=len(grid))
 
 
-# MATH.md §7.3 table: E(mu = 1), E(0.5), E(0.1) for r = 0.25 ... 1 (4 digits).
+# docs/math.md §7.3 table: E(mu = 1), E(0.5), E(0.1) for r = 0.25 ... 1 (4 digits).
 ALBEDO_TABLE = {
     0.25: (0.9957, 0.9883, 0.8968),
     0.5: (0.9158, 0.8572, 0.8916),
     0.75: (0.6269, 0.6632, 0.8484),
     1.0: (0.3069, 0.4507, 0.7602),
 }
-# MATH.md §7.2 "Limits": E(mu = 1) to 6 digits.
+# docs/math.md §7.2 "Limits": E(mu = 1) to 6 digits.
 ALBEDO_NORMAL = {0.1: 0.999899, 0.25: 0.995688, 0.5: 0.915812, 0.75: 0.626886, 1.0: 0.306853}
 FURNACE_MU = (1.0, 0.85, 0.7, 0.5, 0.3, 0.2, 0.1, 0.05, 0.02)
 FURNACE_R = (0.05, 0.1, 0.25, 0.5, 0.75, 1.0)
@@ -774,7 +774,7 @@ def furnace():
 
 
 def test_white_furnace_never_exceeds_one(furnace):
-    """Single-scatter GGX with F = 1 loses energy, never gains: E(mu) <= 1 (MATH.md §7.3)."""
+    """Single-scatter GGX with F = 1 loses energy, never gains: E(mu) <= 1 (docs/math.md §7.3)."""
     E, qerr = furnace
     # 8 vs 12 nodes per panel agree to ~1e-8 (worst: mu = 0.02, r = 0.05); the 12-node rule is far
     # more accurate than that difference (checked against 20 nodes while writing: < 1e-11).
@@ -788,7 +788,7 @@ def test_white_furnace_table(furnace):
     E, qerr = furnace
     for r, row in ALBEDO_TABLE.items():
         for mu, expected in zip((1.0, 0.5, 0.1), row):
-            # The table is 4 digits from MATH.md's own quadrature, quoted as accurate to ~1e-4
+            # The table is 4 digits from docs/math.md's own quadrature, quoted as accurate to ~1e-4
             # (e.g. E(0.5, r=0.5) = 0.857263 is printed 0.8572): tolerance 1e-4 + our quadrature error.
             assert abs(E[(mu, r)] - expected) <= 1e-4 + qerr, (mu, r, E[(mu, r)], expected)
     for r, expected in ALBEDO_NORMAL.items():
@@ -813,7 +813,7 @@ def _burley_albedo(r, mu_v, m=24):
 
 
 def test_burley_albedo():
-    """MATH.md §7.4: at NoV = 1, 41/42 (r = 0) and 87/84 (r = 1, > 1: Burley gains energy);
+    """docs/math.md §7.4: at NoV = 1, 41/42 (r = 0) and 87/84 (r = 1, > 1: Burley gains energy);
     at NoV = 0.5, 0.9609 / 1.0083 / 1.0569 for r = 0 / 0.5 / 1 (4 digits)."""
     # NoV = 1: the integrand is entire in theta_l (l.h = cos(theta_l/2)); 2 x 24 Gauss-Legendre
     # nodes reach rounding level, so 1e-12 (~5000 eps) is a pure rounding allowance.

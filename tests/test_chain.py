@@ -40,7 +40,7 @@ DIR = np.array([0.2, 0.5, -0.7]) / np.linalg.norm([0.2, 0.5, -0.7])
 
 def D_ggx_at(theta_h, alpha):
     """GGX D at angle theta_h from the normal, with cos^2 (a^2 - 1) + 1 written as sin^2 + a^2 cos^2
-    (no cancellation at small alpha, MATH.md 8.2)."""
+    (no cancellation at small alpha, docs/math.md 8.2)."""
     a2 = alpha * alpha
     return a2 / (math.pi * (math.sin(theta_h) ** 2 + a2 * math.cos(theta_h) ** 2) ** 2)
 

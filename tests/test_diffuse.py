@@ -1,5 +1,5 @@
 """Tests for jaxpbr.ibl.diffuse: the stored quantity Ebar = E/pi for both methods ("exact" texel-moment
-convolution and "sh9"), against closed forms (MATH.md 7.4) and independent float64 computations.
+convolution and "sh9"), against closed forms (docs/math.md 7.4) and independent float64 computations.
 
 Independent machinery written here (float64 NumPy):
 * cube texel geometry from the GL face table, exact solid angles from the corner formula,
@@ -10,7 +10,7 @@ Independent machinery written here (float64 NumPy):
   piecewise-constant environment, E_pc(n) = sum_j L_j n.Phi(clip_j), and the documented "exact" method
   with exact moments, E_method(n) = sum_J max(0, n . sum_{j in J} L_j Phi_j) (J: source-size texels);
   E_method <= E_pc, the difference being the loss at horizon-straddling source texels.
-* the R&H 2001 SH9 basis, analytic coefficients and the closed-form evaluation with c1..c5 (MATH.md 6.2).
+* the R&H 2001 SH9 basis, analytic coefficients and the closed-form evaluation with c1..c5 (docs/math.md 6.2).
 
 Tolerances used throughout (derived, see the helpers): the module computes texel moments with a 4x4
 midpoint rule, whose error is bounded by `quad_bound`; the piecewise-constant representation of a
@@ -147,7 +147,7 @@ def sample_normals(k=24, seed=0):
 
 
 # ----------------------------------------------------------------------------------------------
-# SH9 (R&H 2001, MATH.md 6.2), written independently
+# SH9 (R&H 2001, docs/math.md 6.2), written independently
 # ----------------------------------------------------------------------------------------------
 
 C0, C1, C4, C6, C8 = (

@@ -1,4 +1,4 @@
-"""Split-sum IBL shading: white-furnace identities (MATH.md 7.5), the LearnOpenGL ambient term
+"""Split-sum IBL shading: white-furnace identities (docs/math.md 7.5), the LearnOpenGL ambient term
 against a transcription of its GLSL, direct formula checks, stiff inputs and gradients."""
 
 import jax
@@ -35,7 +35,7 @@ ROUGH = np.array([0.0, 0.1, 0.3, 0.5, 0.75, 1.0])
 
 @pytest.mark.parametrize("dtype,tol", [(jnp.float64, 1e-12), (jnp.float32, 1e-5)])
 def test_white_furnace_multiscatter_metal_and_white_dielectric_return_one(luts, dtype, tol):
-    """MATH.md 7.5: F0 = 1 metal -> FssEss + FmsEms = 1; white dielectric (c_diff = 1, F0 = 0.04)
+    """docs/math.md 7.5: F0 = 1 metal -> FssEss + FmsEms = 1; white dielectric (c_diff = 1, F0 = 0.04)
     -> FssEss + FmsEms + k_D = 1, for any (A, B) in the LUT, so at every NoV and roughness."""
     env = const_cube(1.0, dtype=dtype)
     lut = luts["correlated"].astype(dtype)
@@ -178,7 +178,7 @@ def test_learnopengl_ambient_matches_glsl_transcription(luts):
 
 
 def test_learnopengl_overbrightens_grazing_vs_gltf(luts):
-    """MATH.md 1.4: fresnelSchlickRoughness in place of F0 over-brightens grazing angles (x1.6 at
+    """docs/math.md 1.4: fresnelSchlickRoughness in place of F0 over-brightens grazing angles (x1.6 at
     NoV = 0.2, r = 0 for F0 = 0.04): the specular of the two models, same LUT, black diffuse."""
     env, black = const_cube(1.0), const_cube(0.0)
     lut = luts["correlated"]

@@ -1,7 +1,7 @@
-"""The split-sum BRDF LUT: the float64 reference against MATH.md §7.2/§7.3 and an independent scipy
+"""The split-sum BRDF LUT: the float64 reference against docs/math.md §7.2/§7.3 and an independent scipy
 integral, the fast table against the reference at every texel, lookup, gradients, bad arguments.
 
-Oracles: MATH.md tables (quoted to 4 decimals, stated error <~1e-4), closed forms (r = 0 mirror,
+Oracles: docs/math.md tables (quoted to 4 decimals, stated error <~1e-4), closed forms (r = 0 mirror,
 1 - ln 2 at NoV = 1, r = 1; the grazing limit 20/21, 1/21 at r = 1), scipy adaptive quadrature in
 l-space written here from the textbook terms of tests/reference.py. `lut_reference` is itself only
 an oracle for `compute_brdf_lut` after it has passed those checks.
@@ -27,7 +27,7 @@ lookup = jax.jit(lut_lookup)  # one compilation per shape instead of one per pri
 lookup_clamped = jax.jit(functools.partial(lut_lookup, edges="clamp"))
 
 NOV_TABLE = np.array([0.02, 0.1, 0.25, 0.5, 0.75, 1.0])
-# MATH.md §7.2, rows r, columns NoV_TABLE, entries (A, B).
+# docs/math.md §7.2, rows r, columns NoV_TABLE, entries (A, B).
 TABLE = {
     "correlated": {
         0.0: [(0.0961, 0.9039), (0.4095, 0.5905), (0.7627, 0.2373), (0.9688, 0.0312), (0.9990, 0.0010), (1, 0)],
@@ -59,9 +59,9 @@ def _closed_form_r0(mu):
 # --------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("smith", [s for s in SMITH_VARIANTS if s in TABLE])  # MATH.md tables two of them
+@pytest.mark.parametrize("smith", [s for s in SMITH_VARIANTS if s in TABLE])  # docs/math.md tables two of them
 def test_reference_matches_math_tables(smith):
-    """MATH.md §7.2 to its precision: 4 decimals (rounding 5e-5) with error <~1e-4 -> 1e-4."""
+    """docs/math.md §7.2 to its precision: 4 decimals (rounding 5e-5) with error <~1e-4 -> 1e-4."""
     rows = TABLE[smith]
     r = np.repeat(list(rows), len(NOV_TABLE))
     mu = np.tile(NOV_TABLE, len(rows))
@@ -73,21 +73,21 @@ def test_reference_matches_math_tables(smith):
 @pytest.mark.parametrize("smith", SMITH_VARIANTS)
 def test_reference_closed_forms(smith):
     mu = np.array([1e-9, 1e-3, 0.02, 0.3, 0.77, 1.0])
-    # r = 0: the mirror, exactly (MATH.md §7.2 "Limits")
+    # r = 0: the mirror, exactly (docs/math.md §7.2 "Limits")
     np.testing.assert_allclose(lut_reference(mu, 0.0, smith=smith), _closed_form_r0(mu), rtol=0, atol=1e-12)
     # NoV = 1, r = 1: D = 1/pi, G1(v) = 1 and both variants have G2 = 2c/(1+c), c = n.l, so
-    # f (n.l) dl = c/(1+c) dc: E = A + B = 1 - ln 2 exactly (MATH.md §7.3), and with
+    # f (n.l) dl = c/(1+c) dc: E = A + B = 1 - ln 2 exactly (docs/math.md §7.3), and with
     # v.h = sqrt((1+c)/2), B = int_0^1 c/(1+c) (1 - sqrt((1+c)/2))^5 dc = 3.36e-5 (so A alone is
-    # not 1 - ln 2, as MATH.md §7.2 words it; the difference is below its 1e-4 precision).
+    # not 1 - ln 2, as docs/math.md §7.2 words it; the difference is below its 1e-4 precision).
     b_exact = integrate.quad(lambda c: c / (1 + c) * (1 - np.sqrt((1 + c) / 2)) ** 5, 0, 1, epsabs=1e-15)[0]
     a, b = lut_reference(1.0, 1.0, smith=smith)
     assert abs(a + b - (1.0 - np.log(2.0))) < 1e-10 and abs(b - b_exact) < 1e-10
-    # B(NoV = 1) < 1e-4 for every r (MATH.md §7.2)
+    # B(NoV = 1) < 1e-4 for every r (docs/math.md §7.2)
     assert np.all(lut_reference(1.0, np.array([0.1, 0.25, 0.5, 0.75]), smith=smith)[:, 1] < 1e-4)
 
 
 def test_reference_normal_incidence_albedo_math_7_3():
-    """E(mu = 1) = A + B for the height-correlated lobe, quoted to 6 decimals (MATH.md §7.3)."""
+    """E(mu = 1) = A + B for the height-correlated lobe, quoted to 6 decimals (docs/math.md §7.3)."""
     r = np.array([0.1, 0.25, 0.5, 0.75, 1.0])
     e = lut_reference(np.ones_like(r), r, smith="correlated").sum(-1)
     np.testing.assert_allclose(e, [0.999899, 0.995688, 0.915812, 0.626886, 0.306853], atol=1e-6)
@@ -114,10 +114,10 @@ def test_separable_smith_is_below_the_correlated_one():
 
 
 def test_reference_grazing_limit():
-    """NoV -> 0 (MATH.md §7.2): height-correlated A + B -> 1; at r = 1 the limit is exact:
+    """NoV -> 0 (docs/math.md §7.2): height-correlated A + B -> 1; at r = 1 the limit is exact:
     the visible normals of a grazing v have density prop. to max(0, h.x) with D = 1/pi, so
     B -> E[(1 - c)^5] with c ~ 2c dc, = 1/21, A -> 20/21. Schlick-GGX stays below 1 (MATH's values).
-    (MATH.md quotes correlated A = 0.4895 / 0.8067 / 0.9520 at NoV = 1e-6; those sum to 0.9997 and
+    (docs/math.md quotes correlated A = 0.4895 / 0.8067 / 0.9520 at NoV = 1e-6; those sum to 0.9997 and
     are ~3.5e-4 low: the limit is 0.489829 / 0.807064 / 0.952381 by a direct 2-D quadrature.)"""
     r = np.array([0.25, 0.5, 1.0])
     corr = lut_reference(1e-6, r, smith="correlated")
@@ -219,7 +219,7 @@ def test_lut_every_texel_matches_reference(small_luts, smith):
 
 
 def test_lut_first_row_approaches_the_mirror():
-    """The r = 0.5/n row vs the exact r = 0 row (MATH.md §7.2). Height-correlated Smith deviates by
+    """The r = 0.5/n row vs the exact r = 0 row (docs/math.md §7.2). Height-correlated Smith deviates by
     O((alpha/NoV)^2): < 1e-4 from 128 rows on (measured 9.9e-6 at 128, 2.2e-6 at 256). Schlick-GGX
     deviates to first order, G1_schlick(NoV) = NoV / (NoV (1-k) + k) ~ 1 - k/NoV with k = alpha/2,
     and the mirror of a grazing v is grazing too, so the row is ~G1_schlick(NoV)^2 times the

@@ -1,6 +1,6 @@
 """The float64 reference render of image-based lighting (`jaxpbr.ibl.reference_render`).
 
-Oracles: the BRDF itself (`jp.brdf`), the directional albedo of MATH.md 7.2/7.3 (white furnace),
+Oracles: the BRDF itself (`jp.brdf`), the directional albedo of docs/math.md 7.2/7.3 (white furnace),
 a 1-D quadrature of the Fresnel-weighted Lambert lobe, the punctual-light limit of a small bright
 cap, and its own convergence under doubled supersampling. Agreement with the split sum is checked
 only where the split sum is accurate (rough lobes, near-normal view); its grazing error is measured
@@ -58,7 +58,7 @@ def test_kernel_decomposition_is_the_gltf_brdf(smith):
 
 
 def test_white_furnace_metal_equals_directional_albedo():
-    """Constant environment L = 1, metal with base colour 1: Lo = E(NoV, r) = A + B (MATH.md 7.3),
+    """Constant environment L = 1, metal with base colour 1: Lo = E(NoV, r) = A + B (docs/math.md 7.3),
     to 1.5e-3 on a 16^2 map (the quadrature error there; see the convergence test)."""
     env = _const_env(16)
     n = np.array([0.0, 0.0, 1.0])
@@ -68,7 +68,7 @@ def test_white_furnace_metal_equals_directional_albedo():
         lo = reference_ibl(n, _view(mu), m, env)
         e = np.asarray(jp.lut_reference(mu, r)).sum(-1)
         np.testing.assert_allclose(lo, np.broadcast_to(e[:, None], lo.shape), atol=1.5e-3)
-    # r = 1, NoV = 1: E = 1 - ln 2 exactly (MATH.md 7.2)
+    # r = 1, NoV = 1: E = 1 - ln 2 exactly (docs/math.md 7.2)
     lo = reference_ibl(n, n, jp.Material(metallic=1.0, roughness=1.0), env)
     assert abs(lo[0] - (1.0 - math.log(2.0))) < 1e-3
     # occlusion multiplies

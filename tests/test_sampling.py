@@ -1,7 +1,7 @@
 """Hammersley points, GGX (NDF and VNDF) and cosine sampling, densities and tangent frames.
 
 Oracles are independent of jaxpbr: a bit-by-bit Python radical inverse, scipy quadrature and
-Gauss-Legendre grids over the textbook D / G1 of tests/reference.py (MATH.md §1, §3, §7.1).
+Gauss-Legendre grids over the textbook D / G1 of tests/reference.py (docs/math.md §1, §3, §7.1).
 Functions under test are called jitted with shared shapes, so the file compiles little.
 """
 
@@ -122,13 +122,13 @@ def _mean_cos_quad(alpha):
 
 
 def test_mean_cos_quadrature_reproduces_math_value():
-    # MATH.md §7.1: alpha = 0.3, quadrature 0.90463 (checks the oracle used below)
+    # docs/math.md §7.1: alpha = 0.3, quadrature 0.90463 (checks the oracle used below)
     assert abs(_mean_cos_quad(0.3) - 0.90463) < 5e-6
 
 
 @pytest.mark.parametrize("dtype", DTYPES)
 def test_sample_ggx_h_mean_cos_matches_quadrature(dtype):
-    """MATH.md §7.1 sampling check, for alpha = 0.05, 0.3, 1 at once (alpha (3, 1) broadcasts)."""
+    """docs/math.md §7.1 sampling check, for alpha = 0.05, 0.3, 1 at once (alpha (3, 1) broadcasts)."""
     h = sample_ggx_h(hammersley(N_QMC, dtype), jnp.asarray(ALPHAS, dtype)[:, None])
     assert h.shape == (3, N_QMC, 3) and h.dtype == dtype
     got = np.mean(np.asarray(h[..., 2], np.float64), axis=-1)
@@ -146,7 +146,7 @@ def test_sample_ggx_h_azimuth_and_polar_angle_are_the_documented_maps():
 
 
 def test_sample_ggx_h_small_alpha_float32_keeps_sin_theta():
-    """MATH.md §8.3: at r = 0.02, sqrt(1 - cos^2) is exactly 0 in float32 for xi <= 0.01."""
+    """docs/math.md §8.3: at r = 0.02, sqrt(1 - cos^2) is exactly 0 in float32 for xi <= 0.01."""
     alpha = 0.02**2
     xi1 = np.array([1e-4, 1e-3, 1e-2, 0.5])
     exact = alpha * np.sqrt(xi1 / (1 - xi1 + alpha**2 * xi1))  # sin theta, float64
@@ -181,7 +181,7 @@ def test_ggx_sampler_and_its_pdf_agree():
 
 @pytest.mark.parametrize("mu", [1.0, 0.7, 0.3, 0.1])
 def test_pdf_ggx_vndf_matches_textbook_and_integrates_to_one(mu):
-    """MATH.md §7.1: int G1(v) max(0, v.h) D(h) dh = cos theta_v, i.e. the pdf integrates to 1,
+    """docs/math.md §7.1: int G1(v) max(0, v.h) D(h) dh = cos theta_v, i.e. the pdf integrates to 1,
     for alpha in {1, 0.5, 0.3}."""
     v = np.array([np.sqrt(1 - mu * mu), 0.0, mu])
     for alpha in (1.0, 0.5, 0.3):

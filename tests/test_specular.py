@@ -2,7 +2,7 @@
 convolution and the FIS driver (with and without the exactly convolved brightest texels).
 
 Oracles are independent float64 computations written here: the GGX NDF and the lobe integrals in l-space by
-scipy quadrature (MATH.md 1.1, 3.3), exact texel means of a linear environment from the closed-form first
+scipy quadrature (docs/math.md 1.1, 3.3), exact texel means of a linear environment from the closed-form first
 moments of the cube texels (Lambert / Arvo), and Filament's / glTF's roughness -> lod formulas.
 
 The prefilter driver is host-side Python (NumPy + several jitted kernels), so there is no jit-vs-eager
@@ -36,7 +36,7 @@ from jaxpbr.ibl.specular import (  # noqa: E402
 EPS64 = np.finfo(np.float64).eps
 
 # ----------------------------------------------------------------------------------------------
-# Independent GGX lobe (MATH.md 1.1, 3.3): n = v = R, l = reflect(-R, h), R.l = cos(theta_l), theta_h = theta_l/2
+# Independent GGX lobe (docs/math.md 1.1, 3.3): n = v = R, l = reflect(-R, h), R.l = cos(theta_l), theta_h = theta_l/2
 # ----------------------------------------------------------------------------------------------
 
 

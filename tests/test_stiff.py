@@ -1,4 +1,4 @@
-"""The stiff grid (MATH.md §8): values AND gradients stay finite at every degenerate input.
+"""The stiff grid (docs/math.md §8): values AND gradients stay finite at every degenerate input.
 
 Every combination of r in {0, 1e-4, 0.045, 1}, NoV in {-0.5, 0, 1e-6, 1}, NoL in {-0.5, 0, 1e-6, 1}
 (each with the light on the mirror side and on the same side as the viewer), plus v = -l, a

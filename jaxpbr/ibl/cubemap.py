@@ -131,7 +131,7 @@ def texel_directions(size: int) -> np.ndarray:
 def _solid_angles_np(size: int) -> np.ndarray:
     # Exact: the solid angle of the region [0,x]x[0,y] of the plane z = 1 seen from the origin is
     # A(x, y) = atan2(x y, sqrt(x^2 + y^2 + 1)); a texel is the signed sum over its four corners
-    # (MATH.md 3.4; Filament CubemapUtils::solidAngle). The six faces are identical.
+    # (docs/math.md 3.4; Filament CubemapUtils::solidAngle). The six faces are identical.
     e = np.linspace(-1.0, 1.0, size + 1, dtype=np.float64)
     x0, x1 = e[None, :-1], e[None, 1:]
     y0, y1 = e[:-1, None], e[1:, None]
@@ -180,7 +180,7 @@ def equirect_directions(height: int, *, width: int | None = None) -> np.ndarray:
 
 
 def _equirect_row_solid_angles(height: int, width: int) -> np.ndarray:
-    # Exact per-pixel solid angle of row k: (2 pi / W)(cos(pi k/H) - cos(pi (k+1)/H)) (MATH.md 3.4).
+    # Exact per-pixel solid angle of row k: (2 pi / W)(cos(pi k/H) - cos(pi (k+1)/H)) (docs/math.md 3.4).
     k = np.arange(height + 1)
     return (2.0 * math.pi / width) * -np.diff(np.cos(np.pi * k / height))
 

@@ -1,6 +1,6 @@
 """Diffuse irradiance maps: exact cosine convolution and order-2 spherical harmonics (SH9).
 
-Stored quantity (DESIGN.md, MATH.md 6.1): Ebar(n) = E(n)/pi = (1/pi) * integral of L(w) max(0, n.w) dw,
+Stored quantity (DESIGN.md, docs/math.md 6.1): Ebar(n) = E(n)/pi = (1/pi) * integral of L(w) max(0, n.w) dw,
 the cosine-weighted mean radiance, so a Lambert surface reflects c_diff * Ebar(n). A constant
 environment L gives Ebar = L.
 
@@ -12,7 +12,7 @@ environment L gives Ebar = L.
   why a 64^2 source level is enough for a 32^2 map (error measured in `jaxpbr report precompute`).
   The convolution is a chunked matrix product (memory O(chunk x source texels)).
 * `method="sh9"`: Ramamoorthi & Hanrahan 2001: project L on the 9 real SH (R&H basis, no
-  Condon-Shortley sign; MATH.md 6.2) with exact solid angles, scale by A_l = (pi, 2pi/3, pi/4),
+  Condon-Shortley sign; docs/math.md 6.2) with exact solid angles, scale by A_l = (pi, 2pi/3, pi/4),
   evaluate, clamp at 0 (the ringing of a sun goes negative), divide by pi.
 """
 
@@ -90,7 +90,7 @@ def sh9_basis(d) -> jax.Array:
 def sh9_project(env: Cubemap, *, level: int = 0) -> jax.Array:
     """Radiance SH coefficients L_lm = sum_i L_i Y_lm(w_i) Omega_i over `level` -> (9, C).
 
-    Texel centres and exact solid angles (uniform weights would bias by +3.1 %, MATH.md 7.4).
+    Texel centres and exact solid angles (uniform weights would bias by +3.1 %, docs/math.md 7.4).
     Computed in float64 when x64 is enabled, otherwise in the map's dtype.
     """
     check_radiance("sh9_project: env", env)
@@ -113,7 +113,7 @@ def sh9_irradiance(coeffs, n) -> jax.Array:
     """Ebar(n) = max(0, sum_lm A_l L_lm Y_lm(n)) / pi from radiance coefficients (9, C); n (..., 3).
 
     -> (..., C). The clamp matters: SH9 of a single directional light dips to -0.0396 of its
-    irradiance at cos = -8/15 (MATH.md 7.4).
+    irradiance at cos = -8/15 (docs/math.md 7.4).
     """
     coeffs = jnp.asarray(coeffs)
     a = jnp.asarray(_SH9_A, coeffs.dtype)[:, None] / math.pi

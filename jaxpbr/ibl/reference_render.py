@@ -156,7 +156,7 @@ def _kernels(nol, vol, nov, a2, smith: str):
     together: nol = n.l, vol = v.l, nov = n.v, a2 = alpha^2. Zero where n.l <= 0 or n.v <= 0.
 
     h = (v + l)/|v + l|: v.h = sqrt((1 + v.l)/2), n.h = (n.v + n.l)/|v + l| (float64: the
-    1 - NoH^2 cancellation costs ~1e-11 relative at alpha 0.002, MATH.md 8.2 is a float32 issue).
+    1 - NoH^2 cancellation costs ~1e-11 relative at alpha 0.002, docs/math.md 8.2 is a float32 issue).
     """
     front = (nol > 0.0) & (nov > 0.0)
     nl = jnp.where(front, nol, 1.0)

@@ -6,17 +6,17 @@ with k_d = 0.96 (1 - W(n.v)) the dielectric Fresnel layer's (1 - F) averaged ove
 lobe (`diffuse_fresnel_weight`; the float64 reference integrates the glTF BRDF's (1 - F) diffuse
 weight, and leaving it out makes dielectrics ~4 % too bright).
 
-(Karis 2013; MATH.md 4, 6). `Ebar = E/pi` comes from `jaxpbr.ibl.diffuse`, `LD` from
+(Karis 2013; docs/math.md 4, 6). `Ebar = E/pi` comes from `jaxpbr.ibl.diffuse`, `LD` from
 `jaxpbr.ibl.specular` (its roughness -> mip mapping is read from the map's metadata), `(A, B)` from
-`jaxpbr.shading.lut`. With `multiscatter=True` the Fdez-Aguera 2019 energy compensation (MATH.md 5.3, with
+`jaxpbr.shading.lut`. With `multiscatter=True` the Fdez-Aguera 2019 energy compensation (docs/math.md 5.3, with
 the *minus* sign: k_D = c_diff (1 - FssEss - FmsEms)) is applied per lobe -- the dielectric lobe
 (F0 = 0.04, c_diff = base_color) and the metal lobe (F0 = base_color, no diffuse) -- and the two
-are mixed by metallic, so a white furnace returns exactly 1 for either (MATH.md 7.5).
+are mixed by metallic, so a white furnace returns exactly 1 for either (docs/math.md 7.5).
 
 The `learnopengl` model reproduces the LearnOpenGL IBL chapter's ambient term for fidelity:
 F = fresnelSchlickRoughness(NoV, F0, r) used in place of F0 (`F A + B`) and kD = (1 - F)(1 - metallic)
 on the diffuse term; it expects a LUT built with `smith="schlick_ggx"`. It over-brightens grazing
-angles (MATH.md 1.4); the default `gltf` model uses the correct F0 A + B.
+angles (docs/math.md 1.4); the default `gltf` model uses the correct F0 A + B.
 """
 
 from __future__ import annotations

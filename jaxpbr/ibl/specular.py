@@ -1,6 +1,6 @@
 """GGX-prefiltered specular environment mips (the "LD" term of the split sum).
 
-Level m of the result stores (DESIGN.md, MATH.md 3.3)
+Level m of the result stores (DESIGN.md, docs/math.md 3.3)
 
     LD(R, r_m) = integral L(l) D(h) (R.l)+ dl / integral D(h) (R.l)+ dl,     n = v = R, h = (R+l)/|R+l|,
 
@@ -354,7 +354,7 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
     """Local-frame light directions (n, 3), weights NoL (n,), source LODs (n,) for v = n = +z.
 
     `sampling.hammersley` points through `sampling.sample_ggx_h` (GGX NDF sampling in the sin^2
-    form, MATH.md 3.2, 8.3), l = 2 (n.h) h - n; pdf p_l = p_h / (4 v.h) = D/4 (`sampling.pdf_ggx_h`).
+    form, docs/math.md 3.2, 8.3), l = 2 (n.h) h - n; pdf p_l = p_h / (4 v.h) = D/4 (`sampling.pdf_ggx_h`).
     Evaluated once per (alpha, n, source) in float64, eagerly even when `prefilter` is being traced
     (jit / grad): these are constants of the computation.
     """
@@ -409,7 +409,7 @@ def _fis_rows(flat, sizes, R, table, local, w, lod, chunk: int, token=None):
 
 
 def lobe_normalizer(alpha: float) -> float:
-    """W(alpha) = integral of D(h) (R.l)+ dl with n = v = R (D normalised as in MATH.md 1.1).
+    """W(alpha) = integral of D(h) (R.l)+ dl with n = v = R (D normalised as in docs/math.md 1.1).
 
     dl = 4 (v.h) dw_h turns it into 4 E[(NoL)+] under the sampling density D cos(theta_h); with
     xi uniform, cos^2 = (1-xi)/(1+(a^2-1)xi) and NoL = 2cos^2 - 1 > 0 for xi < 1/(1+a^2), giving

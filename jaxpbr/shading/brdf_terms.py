@@ -1,6 +1,6 @@
 """BRDF terms (GGX, Smith, Schlick, Lambert, Burley) and the two complete models.
 
-Notation follows MATH.md: `n, v, l` unit vectors pointing away from the surface, `h = normalize(v+l)`,
+Notation follows docs/math.md: `n, v, l` unit vectors pointing away from the surface, `h = normalize(v+l)`,
 `r` perceptual roughness, `alpha = r^2`, `NoV = n.v` etc. Every term is a pure function that
 broadcasts over leading axes; scalars per sample are shaped `(...)`, colours `(..., 3)`.
 
@@ -15,7 +15,7 @@ Models (`brdf(..., model=...)`):
 `MODEL_REGISTRY` is the one list of models and of the options each uses; an option given a
 non-default value with a model that does not use it is an error (`check_options`).
 
-Stiff inputs (MATH.md §8) are handled once, in `geometry_soa`: directions are normalised safely, the
+Stiff inputs (docs/math.md §8) are handled once, in `geometry_soa`: directions are normalised safely, the
 half vector of v = -l is the zero vector, and lanes where the surface does not see both the viewer
 and the light (NoV <= 0 or NoL <= 0) get benign stand-in values before anything divides, then a
 BRDF of exactly 0. Roughness is floored at `min_roughness` (default 0.045, Filament's desktop
@@ -145,7 +145,7 @@ def d_ggx(n_dot_h: jax.Array, alpha: jax.Array, sin2_h: jax.Array | None = None)
     """GGX / Trowbridge-Reitz normal distribution D(h), in 1/sr, shape (...).
 
     `D = alpha^2 / (pi d^2)` with `d = (1 - NoH^2) + (NoH alpha)^2` — the cancellation-free form
-    (MATH.md §1.1, Filament `D_GGX`); the textbook `NoH^2 (alpha^2 - 1) + 1` loses ~20 % in float32
+    (docs/math.md §1.1, Filament `D_GGX`); the textbook `NoH^2 (alpha^2 - 1) + 1` loses ~20 % in float32
     at r = 0.02. Pass `sin2_h = |n x h|^2` (Lagrange identity) to avoid `1 - NoH^2` entirely.
     Domain: alpha > 0 (alpha = 0 is a delta). Zero for NoH <= 0 (chi+).
     """
@@ -214,7 +214,7 @@ def g1_schlick_ggx(mu: jax.Array, k: jax.Array) -> jax.Array:
 def v_schlick_ggx(n_dot_v, n_dot_l, k):
     """Schlick-GGX visibility `G1(NoV) G1(NoL) / (4 NoV NoL) = 1 / (4 (NoV(1-k)+k)(NoL(1-k)+k))`.
 
-    Division-free (MATH.md §1.3): finite for any k > 0 (k_direct >= 1/8 always).
+    Division-free (docs/math.md §1.3): finite for any k > 0 (k_direct >= 1/8 always).
     """
     return 0.25 / ((n_dot_v * (1.0 - k) + k) * (n_dot_l * (1.0 - k) + k))
 
@@ -235,7 +235,7 @@ def fresnel_schlick(cos_theta, f0, f90=1.0):
 
 
 def fresnel_schlick_roughness(n_dot_v, f0, r):
-    """Lagarde's roughness-aware Schlick, `F0 + (max(1 - r, F0) - F0)(1 - NoV)^5` (MATH.md §1.4).
+    """Lagarde's roughness-aware Schlick, `F0 + (max(1 - r, F0) - F0)(1 - NoV)^5` (docs/math.md §1.4).
 
     A heuristic for the ambient term of LearnOpenGL; note mu = NoV, not VoH. `n_dot_v` and `r`
     (...), `f0` (..., 3) -> (..., 3).

@@ -1,6 +1,6 @@
 """The split-sum BRDF LUT (Karis 2013): converged tables of (A, B), a float64 reference, lookup.
 
-Definition (MATH.md §4.1). For a unit normal n, view direction v with `mu = n.v`, and the GGX
+Definition (docs/math.md §4.1). For a unit normal n, view direction v with `mu = n.v`, and the GGX
 specular lobe `f_spec = D(h) V(v, l) F(v.h)` with Schlick's `F = F0 + (F90 - F0)(1 - v.h)^5`,
 
     int_{H^2} f_spec(v, l) (n.l) dl = F0 A(mu, r) + F90 B(mu, r)
@@ -9,7 +9,7 @@ specular lobe `f_spec = D(h) V(v, l) F(v.h)` with Schlick's `F = F0 + (F90 - F0)
 with `alpha = r^2` (r perceptual roughness). `smith` picks V: ``"correlated"`` — height-correlated
 Smith (Heitz 2014; glTF 2.0 App. B, Filament; the default) —, ``"schlick_ggx"`` — separable
 Schlick-GGX with `k = alpha / 2` (Karis 2013 for IBL; LearnOpenGL `brdf.fs`), *not* the
-`(r + 1)^2 / 8` of analytic lights (MATH.md §1.3) — or ``"separable"`` — the uncorrelated Smith-GGX
+`(r + 1)^2 / 8` of analytic lights (docs/math.md §1.3) — or ``"separable"`` — the uncorrelated Smith-GGX
 `G2 = G1(v) G1(l)` of `brdf(smith="separable")`, so that a render with that option shades its IBL
 term with the same G; ``"schlick"`` is a deprecated alias of ``"schlick_ggx"``.
 At r = 0 the lobe is a mirror and `A = 1 - (1 - mu)^5`, `B = (1 - mu)^5` exactly.
@@ -20,7 +20,7 @@ between texel centres, uses the closed form at r = 0 and extrapolates linearly o
 texel to r = 1 and NoV = 1 (`lut_padded`).
 
 Why not Monte Carlo: the usual 1024-sample Hammersley estimate (GGX NDF sampling) is off by up
-to 1.3e-2 at the texels of a 256^2 table, mean 7.7e-4 (measured against `lut_reference`; MATH.md
+to 1.3e-2 at the texels of a 256^2 table, mean 7.7e-4 (measured against `lut_reference`; docs/math.md
 §7.2 quotes ~2e-3). `compute_brdf_lut` uses a deterministic product Gauss-Legendre rule in
 half-vector space that splits off the below-horizon region exactly and grades its nodes into the
 thin layers of the integrand; with the default 864 nodes per texel it is within 1.4e-6 of
@@ -334,7 +334,7 @@ def compute_brdf_lut(
 # the inner one (the fast rule integrates phi outside), the integration is in plain (theta, phi)
 # with a composite Gauss-Legendre rule on geometrically graded panels (no variable maps), the
 # horizon enters as the inner limit phi_max(theta), n.l comes from the double-angle form
-# mu cos 2t + s_v sin 2t cos p, and V from the textbook Smith Lambda / Schlick G1 (MATH.md §1.2,
+# mu cos 2t + s_v sin 2t cos p, and V from the textbook Smith Lambda / Schlick G1 (docs/math.md §1.2,
 # §1.3), not from jaxpbr.shading.brdf_terms. With f_spec (n.l) dl = D G2 F / (4 mu) * 4 (v.h) dw_h:
 #
 #     {A, B} = 2 int_0^{t_top} dt sin t D(t) int_0^{phi_max(t)} dp G2 (v.h) {1-Fc, Fc} / mu

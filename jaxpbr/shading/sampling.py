@@ -1,12 +1,12 @@
 """Point sets and importance sampling for the GGX lobe, the cosine lobe and their densities.
 
-Conventions (MATH.md §0, §3): directions are sampled in the *tangent frame* of the normal, where
+Conventions (docs/math.md §0, §3): directions are sampled in the *tangent frame* of the normal, where
 `n = (0, 0, 1)`; `to_world(local, n)` rotates them into world space with `tangent_frame(n)`. A
 sample set is `xi`, shape (..., 2), with values in [0, 1]; as in Karis / LearnOpenGL / Filament
 `phi = 2 pi xi[..., 0]` and the polar angle comes from `xi[..., 1]`. Roughness enters as the GGX
 width `alpha = r^2` (never the perceptual r). Every function is pure, broadcasts over leading axes
 and works under `jit`, `vmap` and `grad`; values and gradients stay finite for `alpha = 0` and for
-`xi` exactly 0 or 1 (MATH.md §8.1, §8.3, §8.12).
+`xi` exactly 0 or 1 (docs/math.md §8.1, §8.3, §8.12).
 
 Densities are with respect to solid angle (1/sr): `pdf_ggx_h` and `pdf_ggx_vndf` in half-vector
 space, `pdf_reflect` converts a half-vector density into the density of `l = reflect(v, h)`
@@ -55,7 +55,7 @@ _INV_PI = 1.0 / math.pi
 
 
 # --------------------------------------------------------------------------------------------
-# Hammersley point set (MATH.md §3.1, §8.12)
+# Hammersley point set (docs/math.md §3.1, §8.12)
 # --------------------------------------------------------------------------------------------
 
 
@@ -77,7 +77,7 @@ def radical_inverse(i: jax.Array, dtype=jnp.float32) -> jax.Array:
     `i`: integer array (taken modulo 2^32). Returns `dtype`, same shape.
 
     float32 keeps only the top 24 reversed bits, `(bits >> 8) * 2^-24`: `float32(0xFFFFFFFF *
-    2^-32)` rounds to exactly 1.0 (MATH.md §8.12), and a sample at 1 is 0/0 in the GGX inversion
+    2^-32)` rounds to exactly 1.0 (docs/math.md §8.12), and a sample at 1 is 0/0 in the GGX inversion
     at alpha = 0. The dropped bits are bits 24..31 of `i`, so the value is exact for i < 2^24.
     float64 represents all 32 bits exactly.
     """
@@ -90,7 +90,7 @@ def radical_inverse(i: jax.Array, dtype=jnp.float32) -> jax.Array:
 def hammersley(n: int, dtype=jnp.float32) -> jax.Array:
     """The n-point Hammersley set `x_i = (i / n, Phi_2(i))`, i = 0 .. n-1, shape (n, 2), in [0, 1).
 
-    MATH.md §3.1 (Filament doc, LearnOpenGL). `n` is static (it is a shape): a positive Python int.
+    docs/math.md §3.1 (Filament doc, LearnOpenGL). `n` is static (it is a shape): a positive Python int.
     Column 0 is used as `phi / (2 pi)`, column 1 for the polar angle.
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n <= 0:
@@ -114,7 +114,7 @@ def hammersley(n: int, dtype=jnp.float32) -> jax.Array:
 def _frame_soa(n: Vec3) -> tuple[Vec3, Vec3, Vec3]:
     """(t, b, n_unit) for a Vec3 normal; see `tangent_frame`."""
     n = vnormalize(n)
-    # MATH.md §8.13 (Karis / LearnOpenGL / Filament): cross with the +Z axis unless n is within
+    # docs/math.md §8.13 (Karis / LearnOpenGL / Filament): cross with the +Z axis unless n is within
     # ~2.6 degrees of it, else with +X. |cross(up, n)| >= sqrt(1 - 0.999^2) = 0.045 on the branch
     # that is kept, so the normalisation is well conditioned; vnormalize guards the branch that is
     # evaluated but discarded (e.g. cross(Z, Z) = 0), so its gradient cannot leak NaN.
@@ -136,7 +136,7 @@ def tangent_frame(n: jax.Array) -> tuple[jax.Array, jax.Array]:
       `t, b`, each (..., 3), unit and orthogonal to each other and to n.
 
     `t = normalize(cross(up, n))`, `b = cross(n, t)` with `up = (0,0,1)` if `|n.z| < 0.999` else
-    `(1,0,0)` (MATH.md §8.13): a fixed `up` is NaN when n is parallel to it (LearnOpenGL's
+    `(1,0,0)` (docs/math.md §8.13): a fixed `up` is NaN when n is parallel to it (LearnOpenGL's
     `up = (0,1,0)` fails at n = +-Y). Finite, with finite gradients, at n = +-X, +-Y, +-Z.
     """
     t, b, _ = _frame_soa(unpack3(as_float(n)))
@@ -162,7 +162,7 @@ def reflect(v: jax.Array, h: jax.Array) -> jax.Array:
 
 
 # --------------------------------------------------------------------------------------------
-# GGX NDF sampling (MATH.md §3.2)
+# GGX NDF sampling (docs/math.md §3.2)
 # --------------------------------------------------------------------------------------------
 
 
@@ -180,10 +180,10 @@ def sample_ggx_h(xi: jax.Array, alpha: jax.Array) -> jax.Array:
       xi: (..., 2) uniform samples in [0, 1] (e.g. `hammersley`); sets the dtype.
       alpha: GGX width `r^2`, broadcasting with `xi[..., 0]`; alpha = 0 gives h = (0, 0, 1).
 
-    Walter 2007 / Karis 2013 (MATH.md §3.2):
+    Walter 2007 / Karis 2013 (docs/math.md §3.2):
       `phi = 2 pi xi0`, `cos^2 = (1 - xi1) / d`, `sin^2 = alpha^2 xi1 / d`, `d = (1 - xi1) + alpha^2 xi1`.
     `sin` comes from its own formula, not `sqrt(1 - cos^2)`: in float32 at r = 0.02 the latter is
-    exactly 0 for xi1 <= 0.01 (true 4e-6 .. 4e-5, MATH.md §8.3). `d` is written without the
+    exactly 0 for xi1 <= 0.01 (true 4e-6 .. 4e-5, docs/math.md §8.3). `d` is written without the
     `1 + (alpha^2 - 1) xi1` cancellation. Density: `pdf_ggx_h`.
     """
     x0, x1 = _unit_xi(xi)
@@ -202,7 +202,7 @@ def sample_ggx_h(xi: jax.Array, alpha: jax.Array) -> jax.Array:
 def pdf_ggx_h(n_dot_h: jax.Array, alpha: jax.Array) -> jax.Array:
     """Density of `sample_ggx_h` over half-vector solid angle: `p_h = D(h) (n.h)`, in 1/sr, (...).
 
-    MATH.md §3.2. Zero for n.h <= 0. At alpha = 0 the distribution is a delta at h = n: the
+    docs/math.md §3.2. Zero for n.h <= 0. At alpha = 0 the distribution is a delta at h = n: the
     density is +inf at n.h = 1 and 0 elsewhere (the value `1 / (N p)` of a PDF-based LOD then
     clamps to the finest level), with zero gradient.
     """
@@ -218,7 +218,7 @@ def pdf_ggx_h(n_dot_h: jax.Array, alpha: jax.Array) -> jax.Array:
 def pdf_reflect(pdf_h: jax.Array, v_dot_h: jax.Array) -> jax.Array:
     """Density of `l = reflect(v, h)` from the density of h: `p_l = p_h / (4 v.h)`, (...).
 
-    MATH.md §3.2 (Jacobian `|dh/dl| = 1 / (4 v.h)`). Zero where v.h <= 0 (that h reflects v
+    docs/math.md §3.2 (Jacobian `|dh/dl| = 1 / (4 v.h)`). Zero where v.h <= 0 (that h reflects v
     into the surface, the sample is discarded). Where `p_h` is inf (alpha = 0) so is `p_l`.
     """
     vh = as_float(v_dot_h)
@@ -237,7 +237,7 @@ def sample_ggx_vndf(v_local: jax.Array, xi: jax.Array, alpha: jax.Array) -> jax.
     Heitz 2018, "Sampling the GGX Distribution of Visible Normals" (JCGT 7(4)), isotropic alpha:
     stretch `v_h = normalize(alpha v.x, alpha v.y, v.z)`, sample the projected hemisphere
     (`r = sqrt(xi0)`, `phi = 2 pi xi1`, `s = (1 + v_h.z)/2`, `t2 = (1 - s) sqrt(1 - t1^2) + s t2`),
-    unstretch `h = normalize(alpha n_h.x, alpha n_h.y, max(1e-6, n_h.z))` (MATH.md §3.2; note this
+    unstretch `h = normalize(alpha n_h.x, alpha n_h.y, max(1e-6, n_h.z))` (docs/math.md §3.2; note this
     sampler takes the radius from xi0, following the paper).
 
     Args:
@@ -279,8 +279,8 @@ def sample_ggx_vndf(v_local: jax.Array, xi: jax.Array, alpha: jax.Array) -> jax.
 def pdf_ggx_vndf(n_dot_v: jax.Array, n_dot_h: jax.Array, v_dot_h: jax.Array, alpha: jax.Array) -> jax.Array:
     """Density of `sample_ggx_vndf` over half-vector solid angle, (...), in 1/sr:
 
-    `p_h = G1(v) max(0, v.h) D(h) / (n.v)` (Heitz 2018; MATH.md §3.2), with the Smith G1 of GGX.
-    It integrates to 1 over h for every v with n.v > 0 (MATH.md §7.1). Zero for n.v <= 0 or
+    `p_h = G1(v) max(0, v.h) D(h) / (n.v)` (Heitz 2018; docs/math.md §3.2), with the Smith G1 of GGX.
+    It integrates to 1 over h for every v with n.v > 0 (docs/math.md §7.1). Zero for n.v <= 0 or
     n.h <= 0; alpha = 0 gives the delta (inf at n.h = 1, else 0) as in `pdf_ggx_h`. For the
     density of `l = reflect(v, h)` use `pdf_reflect` (giving `G1(v) D / (4 n.v)`).
     """
