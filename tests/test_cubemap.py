@@ -646,7 +646,7 @@ def test_from_function_bad_output():
 
 
 def test_equirect_convention():
-    # DESIGN.md: u = 0.5 + atan2(z, x)/(2 pi), v_up = 0.5 + asin(y)/pi, row 0 on top (+Y).
+    # docs/conventions.md: u = 0.5 + atan2(z, x)/(2 pi), v_up = 0.5 + asin(y)/pi, row 0 on top (+Y).
     d = rand_dirs(500, 30)
     u, v = jax.jit(dir_to_equirect)(jnp.asarray(d))
     np.testing.assert_allclose(np.asarray(u), 0.5 + np.arctan2(d[:, 2], d[:, 0]) / (2 * np.pi), atol=4 * EPS64)

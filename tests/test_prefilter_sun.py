@@ -3,7 +3,7 @@
 The environment: 0.5 + a smooth Gaussian sun (standard deviation 4 degrees, peak 400), built here
 in NumPy (each texel the solid-angle-weighted mean of the function over 4 x 4 sub-texels). The
 oracle: LD(R, r) = sum L K Omega / sum K Omega over 4 x 4 sub-texels of every texel of the source
-(K = D(h) (R.l)+, n = v = R, the definition of DESIGN.md "Conventions"), with the sub-texels' exact
+(K = D(h) (R.l)+, n = v = R, the definition of docs/conventions.md), with the sub-texels' exact
 solid angles, in NumPy float64 -- no jaxpbr code but the cube-face convention, which is checked
 against `texel_directions` first.
 

@@ -1,6 +1,6 @@
 """Cube maps: direction <-> texel, exact texel solid angles, seam-aware lookup, pyramids, equirect.
 
-Conventions (DESIGN.md; written into every output's metadata):
+Conventions (docs/conventions.md; written into every output's metadata):
 
 * Faces in the order +X, -X, +Y, -Y, +Z, -Z with the OpenGL / KTX orientation (the major-axis table
   of the OpenGL spec, "Cube Map Texture Selection"): for a direction r with major axis ma,

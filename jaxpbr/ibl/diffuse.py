@@ -1,6 +1,6 @@
 """Diffuse irradiance maps: exact cosine convolution and order-2 spherical harmonics (SH9).
 
-Stored quantity (DESIGN.md, docs/math.md 6.1): Ebar(n) = E(n)/pi = (1/pi) * integral of L(w) max(0, n.w) dw,
+Stored quantity (docs/conventions.md, docs/math.md 6.1): Ebar(n) = E(n)/pi = (1/pi) * integral of L(w) max(0, n.w) dw,
 the cosine-weighted mean radiance, so a Lambert surface reflects c_diff * Ebar(n). A constant
 environment L gives Ebar = L.
 

@@ -33,7 +33,7 @@ def sky_with_sun(
 
     Sky: horizon colour blending to the zenith colour with sqrt(elevation); ground: constant below the
     horizon; sun: a uniform disc of `sun_radiance` and angular radius `sun_radius_deg` (the defaults
-    put ~55-60 % of the sphere's power in the sun, the stiff case of ANCHORS.md). The disc edge is
+    put ~55-60 % of the sphere's power in the sun, a stiff case for the precomputes). The disc edge is
     anti-aliased over 0.05 degrees so that area-filtered cube maps converge with resolution.
     """
     d = jnp.asarray(d)

@@ -1,6 +1,6 @@
 """GGX-prefiltered specular environment mips (the "LD" term of the split sum).
 
-Level m of the result stores (DESIGN.md, docs/math.md 3.3)
+Level m of the result stores (docs/conventions.md, docs/math.md 3.3)
 
     LD(R, r_m) = integral L(l) D(h) (R.l)+ dl / integral D(h) (R.l)+ dl,     n = v = R, h = (R+l)/|R+l|,
 

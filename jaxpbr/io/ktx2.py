@@ -23,7 +23,7 @@ KTX stores cube faces in the order +X, -X, +Y, -Y, +Z, -Z, all with orientation 
 equations). Within a face, texel data are rows of texels, row after row, tightly packed ("Packing"), and "the first
 pixel in the data stream for each face ... is closest to the origin of the texture coordinate system": the texel at
 row ``y``, column ``x`` of the stream is the one at ``s = (x + 0.5)/S``, ``t = (y + 0.5)/S``, as a GL/Vulkan
-upload of the same bytes places it. jaxpbr's convention (DESIGN.md, Conventions) is exactly that table's (s, t):
+upload of the same bytes places it. jaxpbr's convention (docs/conventions.md) is exactly that table's (s, t):
 ``levels[m][f, i, j]`` is the texel of face f at ``s = (j + 0.5)/S``, ``t = (i + 0.5)/S``. So
 
     file face f = array face f (the same order), file row i = ``levels[m][f, i, :]``, file column j = index j,

@@ -7,7 +7,7 @@ as `leaf(rank=...)`, `subtree()` or `static()`; validation in each class's `_val
 `jaxpbr.rendering.renderer.render` turns a `Scene` into linear HDR radiance; this module holds the data types
 and the geometry (primary rays, ray casting, surface attributes).
 
-Conventions (DESIGN.md): right-handed, +Y up, the camera looks from `position` to `target`; pixel
+Conventions (docs/conventions.md): right-handed, +Y up, the camera looks from `position` to `target`; pixel
 (i, j) has row i from the top. Texture coordinates follow glTF: uv = (0, 0) is the top-left corner
 of the image (row 0), u to the right, v down; texel (i, j) sits at ((j + 0.5)/W, (i + 0.5)/H);
 lookups are bilinear with repeat wrapping. Tangent frames: T = dP/du (normalised), B = N x T, so a

@@ -14,7 +14,7 @@ Schlick-GGX with `k = alpha / 2` (Karis 2013 for IBL; LearnOpenGL `brdf.fs`), *n
 term with the same G; ``"schlick"`` is a deprecated alias of ``"schlick_ggx"``.
 At r = 0 the lobe is a mirror and `A = 1 - (1 - mu)^5`, `B = (1 - mu)^5` exactly.
 
-Layout (DESIGN.md, Conventions): shape `(n_roughness, n_nov, 2)`, element `[j, i]` at
+Layout (docs/conventions.md): shape `(n_roughness, n_nov, 2)`, element `[j, i]` at
 `r = (j + 0.5) / n_roughness`, `NoV = (i + 0.5) / n_nov`, channels (A, B); `lut_lookup` is bilinear
 between texel centres, uses the closed form at r = 0 and extrapolates linearly over the last half
 texel to r = 1 and NoV = 1 (`lut_padded`).
