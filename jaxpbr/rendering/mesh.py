@@ -308,9 +308,12 @@ def concat_meshes(meshes, dtype):
             else jnp.broadcast_to(jnp.asarray(fill, dtype), (m.num_vertices, len(fill)))
             for m in meshes
         ])
-    out["flat"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, m.normals is None) for m in meshes]))
-    out["tri_object"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, k, np.int32) for k, m in enumerate(meshes)]))
-    out["cull_back"] = jnp.asarray(np.concatenate([np.full(m.num_triangles, not m.double_sided) for m in meshes]))
+    # Per-triangle tables made in the program from per-mesh values (O(meshes) constants, not O(triangles)).
+    counts = np.asarray([m.num_triangles for m in meshes])
+    total = int(counts.sum())
+    out["tri_object"] = jnp.repeat(jnp.arange(len(meshes), dtype=jnp.int32), counts, total_repeat_length=total)
+    out["flat"] = jnp.asarray([m.normals is None for m in meshes])[out["tri_object"]]
+    out["cull_back"] = jnp.asarray([not m.double_sided for m in meshes])[out["tri_object"]]
     out["alpha"] = _alpha_arrays(meshes, out, dtype) if any(m.alpha_mode != "OPAQUE" for m in meshes) else None
     return out
 
