@@ -36,6 +36,7 @@ from .shading.lut import compute_brdf_lut, lut_lookup, lut_reference
 from .shading.material import Material
 from .rendering.baked import read_baked
 from .rendering.gltf_scene import load_gltf
+from .rendering.scene_file import load_scene
 from .rendering.mesh import Mesh
 from .rendering.renderer import RenderOptions, bake, render, render_batch
 from .rendering.texture import Texture
@@ -62,6 +63,7 @@ __all__ = [
     "Texture",
     "TextureSlot",
     "load_gltf",
+    "load_scene",
     "Plane",
     "RenderOptions",
     "Scene",

@@ -230,7 +230,8 @@ def _simple():
 
 
 def test_every_entry_point_reads_the_registry():
-    from jaxpbr.cli import build_parser, scene_file
+    from jaxpbr.cli import build_parser
+    from jaxpbr.rendering import scene_file
 
     assert jp.MODELS == tuple(MODEL_REGISTRY) == jp.ibl.shade.IBL_MODELS
     assert scene_file.MODELS is jp.MODELS

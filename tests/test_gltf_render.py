@@ -502,7 +502,7 @@ def test_aovs_against_closed_forms(tmp_path):
 def test_toml_scene_includes_a_gltf_asset(tmp_path):
     """[[objects]] type = "gltf": the asset's meshes and lights join the scene file's objects; the
     render equals the same scene built in Python; a missing file is one error naming the key."""
-    from jaxpbr.cli.scene_file import load_scene
+    from jaxpbr.rendering.scene_file import load_scene
     from jaxpbr.errors import InputError
 
     w = Writer()

@@ -1,4 +1,4 @@
-"""Scene TOML files (jaxpbr.cli.scene_file): the examples load and render, values round-trip into the
+"""Scene TOML files (jaxpbr.rendering.scene_file): the examples load and render, values round-trip into the
 Scene, every class of bad input gives a one-line message naming file, key path and fix."""
 
 import math
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxpbr as jp
-from jaxpbr.cli.scene_file import SceneFile, hex_to_linear, load_scene, loads_scene
+from jaxpbr.rendering.scene_file import SceneFile, hex_to_linear, load_scene, loads_scene
 from jaxpbr.errors import InputError
 from jaxpbr.io import image
 from jaxpbr.rendering.scene import TexturedMaterial

@@ -20,7 +20,7 @@ from ..rendering.renderer import BAND_PIXELS, RenderOptions, check_memory, plan,
 from ..rendering.scene import MAX_SUPERSAMPLE
 from ..shading.brdf_terms import MODELS
 from ._common import CLIError, Progress, positive_int_arg, raise_pending
-from .scene_file import load_scene
+from ..rendering.scene_file import load_scene
 
 __all__ = ["add_command", "cmd_render"]
 

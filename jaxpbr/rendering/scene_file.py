@@ -41,8 +41,8 @@ from ..ibl.cubeio import load_environment
 from ..ibl.diffuse import IRRADIANCE_METHODS
 from ..ibl.specular import MAPPINGS
 from ..io import image
-from ..rendering.renderer import RenderOptions
-from ..rendering.scene import (
+from .renderer import RenderOptions
+from .scene import (
     EXTENSION_TEXTURES,
     Camera,
     Environment,
@@ -717,7 +717,7 @@ class _Loader:
         """The meshes of a glTF asset (world space, its own materials), and its lights when
         `lights` (default true) -- the same conversion as `jaxpbr.load_gltf`."""
         from ..io.gltf import read_gltf
-        from ..rendering.gltf_scene import lights_from_asset, meshes_from_asset
+        from .gltf_scene import lights_from_asset, meshes_from_asset
 
         if "path" not in t:
             self.fail(path, 'missing key "path"; add path = "model.glb" (relative to the scene file)')
