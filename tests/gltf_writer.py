@@ -1,18 +1,32 @@
-"""A small glTF 2.0 writer for render tests: meshes, materials (with PNG textures), lights and
-cameras written straight to JSON + one binary buffer (.glb or .gltf with a data URI), independent of
-jaxpbr's reader. Only what the tests need; every file it writes passes the Khronos validator
-(tests/test_gltf_render.py checks when node and the validator are installed)."""
+"""Small glTF 2.0 writers for the tests, independent of jaxpbr's reader, and the Khronos glTF
+Validator runner.
+
+* `Writer`: meshes, materials (with PNG textures), lights and cameras written straight to JSON + one
+  binary buffer (.glb or .gltf with a data URI); what the render tests need.
+* `Builder`: a glTF document built entry by entry (any component type, strides, sparse accessors,
+  samplers, extensions) and written as .gltf (external .bin or data URI) or .glb; what the loader
+  tests and `tests/gltf_assets.py` need.
+* `png_bytes`: an 8-bit PNG encoded with zlib alone.
+* `validate` / `assert_valid`: the Khronos glTF-Validator (npm package gltf-validator) run with node.
+"""
 
 from __future__ import annotations
 
 import base64
 import json
+import os
+import shutil
 import struct
+import subprocess
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 FLOAT, UINT32 = 5126, 5125
+BYTE, UBYTE, SHORT, USHORT, UINT = 5120, 5121, 5122, 5123, 5125
+_NP = {FLOAT: "<f4", BYTE: "<i1", UBYTE: "<u1", SHORT: "<i2", USHORT: "<u2", UINT: "<u4"}
+ARRAY_BUFFER, ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
 class Writer:
@@ -120,6 +134,152 @@ class Writer:
             self.doc["buffers"] = [{"byteLength": len(self.bin), "uri": uri}]
             path.write_text(json.dumps(self.doc))
         return path
+
+
+class Builder:
+    """A glTF document and its single binary buffer, written as .gltf (external .bin or data URI) or .glb."""
+
+    def __init__(self, generator="jaxpbr tests"):
+        self.doc = {"asset": {"version": "2.0", "generator": generator}}
+        self.bin = bytearray()
+
+    def add(self, key, obj) -> int:
+        self.doc.setdefault(key, []).append(obj)
+        return len(self.doc[key]) - 1
+
+    def view(self, data: bytes, *, stride=None, target=None) -> int:
+        while len(self.bin) % 4:
+            self.bin.append(0)
+        v = {"buffer": 0, "byteOffset": len(self.bin), "byteLength": len(data)}
+        if stride is not None:
+            v["byteStride"] = stride
+        if target is not None:
+            v["target"] = target
+        self.bin += data
+        return self.add("bufferViews", v)
+
+    def accessor(self, values, ctype, atype, *, view=None, offset=0, count=None, normalized=False,
+                 minmax=False, target=None, sparse=None) -> int:
+        values = np.asarray(values)
+        if view is None and values.size:
+            raw = np.ascontiguousarray(values.astype(_NP[ctype]).reshape(len(values), -1))
+            stride = raw.shape[1] * raw.itemsize
+            if atype != "SCALAR" and stride % 4:  # vertex attributes: elements 4-byte aligned
+                padded = np.zeros((len(raw), stride + (-stride % 4)), np.uint8)
+                padded[:, :stride] = raw.view(np.uint8)
+                view = self.view(padded.tobytes(), stride=padded.shape[1], target=target)
+            else:
+                view = self.view(raw.tobytes(), target=target)
+        acc = {"componentType": ctype, "type": atype, "count": int(count if count is not None else len(values))}
+        if view is not None:
+            acc["bufferView"] = view
+            if offset:
+                acc["byteOffset"] = offset
+        if normalized:
+            acc["normalized"] = True
+        if minmax:
+            flat = values.reshape(len(values), -1)
+            acc["min"] = [v.item() for v in flat.min(axis=0)]
+            acc["max"] = [v.item() for v in flat.max(axis=0)]
+        if sparse is not None:
+            acc["sparse"] = sparse
+        return self.add("accessors", acc)
+
+    def used(self, *names, required=()):
+        for n in names:
+            self.doc.setdefault("extensionsUsed", []).append(n)
+        for n in required:
+            self.doc.setdefault("extensionsRequired", []).append(n)
+
+    def write(self, path: Path, *, mode="bin") -> Path:
+        """mode: 'bin' (external .bin next to the .gltf), 'data' (base64 data URI) or 'glb'."""
+        doc = json.loads(json.dumps(self.doc))
+        data = bytes(self.bin) + b"\0" * (-len(self.bin) % 4)
+        if self.bin:
+            buf = {"byteLength": len(self.bin)}
+            if mode == "bin":
+                name = path.stem + ".bin"
+                (path.parent / name).write_bytes(data)
+                buf["uri"] = name
+            elif mode == "data":
+                buf["uri"] = "data:application/octet-stream;base64," + base64.b64encode(bytes(self.bin)).decode()
+            doc["buffers"] = [buf]
+        if mode == "glb":
+            js = json.dumps(doc).encode()
+            js += b" " * (-len(js) % 4)
+            chunks = struct.pack("<I4s", len(js), b"JSON") + js
+            if self.bin:
+                chunks += struct.pack("<I4s", len(data), b"BIN\0") + data
+            path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks)
+        else:
+            path.write_text(json.dumps(doc, indent=1))
+        return path
+
+
+def png_bytes(pixels: np.ndarray) -> bytes:
+    """A PNG (8-bit, no filtering) of uint8 (H, W, C) pixels, C in 1..4."""
+    h, w, c = pixels.shape
+    colour_type = {1: 0, 2: 4, 3: 2, 4: 6}[c]
+    raw = b"".join(b"\0" + pixels[y].astype(np.uint8).tobytes() for y in range(h))
+
+    def chunk(kind, body):
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+
+    header = struct.pack(">IIBBBBB", w, h, 8, colour_type, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+
+
+# ---------------------------------------------------------------------------------------------
+# The Khronos validator (run when node and the gltf-validator package are there)
+# ---------------------------------------------------------------------------------------------
+# The Khronos glTF Validator (npm package gltf-validator): JAXPBR_GLTF_VALIDATOR, else the
+# checkout's node_modules (`npm install --no-save gltf-validator`, as .ci/run does).
+_VALIDATOR = Path(os.environ.get("JAXPBR_GLTF_VALIDATOR", Path(__file__).resolve().parent.parent / "node_modules" / "gltf-validator"))
+_VALIDATE_JS = r"""
+const fs = require('fs'); const path = require('path');
+const validator = require(process.argv[1]);
+(async () => {
+  const out = {};
+  for (const f of process.argv.slice(2)) {
+    const r = await validator.validateBytes(new Uint8Array(fs.readFileSync(f)), {
+      uri: path.basename(f), maxIssues: 0, writeTimestamp: false,
+      externalResourceFunction: (uri) => new Promise((res, rej) => fs.readFile(
+        path.resolve(path.dirname(f), decodeURIComponent(uri)), (e, d) => e ? rej(e.toString()) : res(d)))});
+    const lines = (sev) => r.issues.messages.filter(m => m.severity === sev).map(m => `${m.code} ${m.message} ${m.pointer || ''}`);
+    out[f] = {numErrors: r.issues.numErrors, numWarnings: r.issues.numWarnings, numInfos: r.issues.numInfos,
+              numHints: r.issues.numHints, errors: lines(0), warnings: lines(1)};
+  }
+  console.log(JSON.stringify(out));
+})();
+"""
+
+
+def validator_missing() -> str | None:
+    """Why the validator cannot run here (None when it can)."""
+    if shutil.which("node") is None:
+        return "node is not installed"
+    if not _VALIDATOR.is_dir():
+        return f"the npm package gltf-validator is not installed ({_VALIDATOR}; npm install --no-save gltf-validator)"
+    return None
+
+
+def validate(*paths) -> dict:
+    """The Khronos glTF-Validator's report of each file: {path: {numErrors, numWarnings, numInfos,
+    numHints, errors, warnings}} (errors and warnings as 'CODE message pointer' lines)."""
+    run = subprocess.run([shutil.which("node"), "-e", _VALIDATE_JS, str(_VALIDATOR), *map(str, paths)],
+                         check=False, capture_output=True, text=True, timeout=120)
+    if run.returncode != 0:
+        raise RuntimeError(f"gltf-validator failed: {run.stderr}")
+    return json.loads(run.stdout)
+
+
+def assert_valid(*paths):
+    """No errors from the Khronos glTF-Validator (the check is skipped when it is not installed)."""
+    if validator_missing():
+        return
+    report = validate(*paths)
+    for p in paths:
+        assert report[str(p)]["numErrors"] == 0, report[str(p)]["errors"]
 
 
 def uv_sphere(n_lat: int = 24, n_lon: int = 48, radius: float = 1.0):
