@@ -7,6 +7,8 @@ jax.config.update("jax_enable_x64", True)
 import json  # noqa: E402
 import os  # noqa: E402
 import pathlib  # noqa: E402
+import struct  # noqa: E402
+import zlib  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -314,6 +316,82 @@ def test_corrupt_file(tmp_path, ext):
     cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
     with pytest.raises(ValueError, match=f"cut{ext}.*corrupt or truncated"):
         image.read(cut)
+
+
+
+def _png(raw_rows: bytes, width: int, height: int, *, chunk_crc_ok=True, kind=b"IDAT") -> bytes:
+    """A minimal 8-bit RGB PNG written here with struct and zlib (PNG specification 5.3, 11.2.2)."""
+
+    def chunk(k, body, ok=True):
+        crc = zlib.crc32(k + body) ^ (0 if ok else 1)
+        return struct.pack(">I", len(body)) + k + body + struct.pack(">I", crc)
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(kind, zlib.compress(raw_rows), chunk_crc_ok)
+        + chunk(b"IEND", b"")
+    )
+
+
+def test_png_written_by_hand_reads_back(tmp_path):
+    codes = np.arange(2 * 3 * 3, dtype=np.uint8).reshape(2, 3, 3) * 13
+    rows = b"".join(b"\x00" + codes[y].tobytes() for y in range(2))  # filter type 0 (None) on each row
+    (tmp_path / "hand.png").write_bytes(_png(rows, 3, 2))
+    np.testing.assert_array_equal(image.read(tmp_path / "hand.png"), codes / np.float32(255.0))
+    assert image.dimensions(tmp_path / "hand.png") == (2, 3, 3)
+
+
+def _broken_files(tmp_path):
+    """Corrupt and truncated files of each format, among them those the decoders used to print about."""
+    files = {}
+    for ext in (".exr", ".hdr", ".png"):
+        good = tmp_path / f"good{ext}"
+        image.write(good, rand((32, 32, 3), seed=9))
+        data = good.read_bytes()
+        for frac in (0.3, 0.5, 0.9):
+            files[f"cut{int(frac * 100)}{ext}"] = data[: int(len(data) * frac)]
+        flipped = bytearray(data)
+        flipped[len(data) // 2] ^= 0xFF
+        files[f"flipped{ext}"] = bytes(flipped)
+    rows = b"".join(b"\x00" + bytes(9) for _ in range(4))
+    files["short_data.png"] = _png(rows[:-5], 3, 4)  # the zlib stream holds too few rows
+    files["bad_filter.png"] = _png(rows.replace(b"\x00", b"\x07", 1), 3, 4)  # filter types are 0..4
+    files["bad_crc.png"] = _png(rows, 3, 4, chunk_crc_ok=False)
+    files["bad_type.png"] = _png(rows, 3, 4, kind=b"ID\x01T")
+    return files
+
+
+def test_broken_files_print_nothing_and_leave_descriptors_alone(tmp_path, capfd, monkeypatch):
+    # The libraries print for broken files (the OpenEXR binding on stdout, libOpenEXR and libpng on
+    # stderr). capfd sees the process's file descriptors 1 and 2, so C-level output is caught too;
+    # silencing by swapping descriptors would call os.dup2, which raises here.
+    files = _broken_files(tmp_path)
+    for name, data in files.items():
+        (tmp_path / name).write_bytes(data)
+    capfd.readouterr()
+
+    def no_dup2(*args):
+        raise AssertionError("os.dup2 called while reading an image")
+
+    failed = []
+    with monkeypatch.context() as m:
+        m.setattr(os, "dup2", no_dup2)
+        for name in files:
+            for fn in (image.read, image.read_with_metadata):
+                try:
+                    fn(tmp_path / name)
+                except ValueError as e:
+                    assert name in str(e)
+                    failed.append(name)
+            image.dimensions(tmp_path / name)
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    assert len(failed) >= 2 * (len(files) - 3)  # a flipped byte may fall where a decoder does not look
+    for name in ("short_data.png", "bad_filter.png", "bad_crc.png", "bad_type.png", "cut50.exr", "cut50.png"):
+        with pytest.raises(ValueError, match="corrupt or truncated"):
+            image.read(tmp_path / name)
 
 
 def test_unsupported_extension(tmp_path):

@@ -3,8 +3,9 @@
 Formats
 -------
 ``.exr``
-    Linear float data through the OpenEXR package (``OpenEXR.File``): float32 or half, 1/3/4 channels stored as
-    ``Y`` / ``RGB`` / ``RGBA``, ZIP compression, metadata as header attributes.
+    Linear float data: float32 or half, 1/3/4 channels stored as ``Y`` / ``RGB`` / ``RGBA``, ZIP compression,
+    metadata as header attributes. Written through the OpenEXR package (``OpenEXR.File``); pixels are read
+    through OpenImageIO and the header attributes through the OpenEXR package.
 ``.hdr``
     Radiance RGBE through OpenImageIO: linear, 3 channels, non-negative; each pixel shares one 8-bit exponent, so
     every channel is stored to within about 1/256 of the pixel's *largest* channel. No metadata.
@@ -15,6 +16,11 @@ Formats
     Alpha is stored straight (unassociated) and is never encoded. Metadata as text chunks (values come back as
     strings).
 
+Reading prints nothing, also for a corrupt or truncated file: the decoders used report errors to the
+caller (OpenImageIO keeps them for ``geterror``), and a PNG is checked chunk by chunk (:func:`_png_problem`)
+before libpng, which prints its fatal errors on stderr, is given it. The process's standard streams are never
+touched.
+
 Images are ``(H, W, C)`` arrays, row 0 at the top. Reads always return float32 ``(H, W, C)`` (``C = 1`` for
 single-channel files). Writes accept NumPy or JAX arrays ``(H, W)`` or ``(H, W, C)`` with ``C`` in {1, 3, 4},
 refuse NaN/Inf (and values the format cannot hold) with a message saying how many pixels are bad, and are atomic:
@@ -24,12 +30,11 @@ write leaves no file behind and never a half-written one.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import sys
-import threading
+import struct
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -159,17 +164,19 @@ def dimensions(path) -> tuple[int, int, int] | None:
     """``(H, W, C)`` of an image file from its header, without reading the pixels (None if the
     header cannot be read: `read` then reports why)."""
     try:
+        p = Path(os.fspath(path))
+        if p.suffix.lower() == ".png" and _png_problem(p, header_only=True):
+            return None  # libpng would print its error
         oiio = _oiio()
-        with _quiet_native():
-            inp = oiio.ImageInput.open(str(os.fspath(path)))
-            if inp is None:
-                oiio.geterror()  # retrieved, or OIIO prints it at exit
-                return None
-            try:
-                spec = inp.spec()
-                return int(spec.height), int(spec.width), int(spec.nchannels)
-            finally:
-                inp.close()
+        inp = oiio.ImageInput.open(str(p))
+        if inp is None:
+            oiio.geterror()  # retrieved, or OIIO prints it at exit
+            return None
+        try:
+            spec = inp.spec()
+            return int(spec.height), int(spec.width), int(spec.nchannels)
+        finally:
+            inp.close()
     except Exception:  # noqa: BLE001 -- a missing or corrupt file: `read` gives the message
         return None
 
@@ -193,36 +200,59 @@ def _read(path, channels, want_metadata):
     _check_format(path, ext)
     if channels is not None and ext != ".exr":
         raise ValueError(f"channels= selects EXR channels by name; {str(path)!r} is a {ext} file")
-    with _quiet_native():  # a corrupt file: the libraries' own lines, beside the error raised below
-        if ext == ".exr":
-            img, meta = _read_exr(path, channels)
-        else:
-            img, meta = _read_oiio(path, ext)
+    if ext == ".exr":
+        img, meta = _read_exr(path, channels, want_metadata)
+    else:
+        img, meta = _read_oiio(path, ext)
     if img.ndim != 3 or img.shape[0] == 0 or img.shape[1] == 0:
         raise ValueError(f"{str(path)!r} holds an empty or malformed image of shape {img.shape}")
     return img, (meta if want_metadata else {})
 
 
-def _read_exr(path: Path, channels):
-    OpenEXR = _exr()
+def _read_exr(path: Path, channels, want_metadata):
+    # Pixels through OpenImageIO, which reports a corrupt file through geterror(); the OpenEXR
+    # binding prints a warning on stdout and libOpenEXR a line on stderr for one. The header
+    # attributes come from the binding (their EXR names and types), once OpenImageIO has decoded
+    # the file, so it never meets a broken file.
+    oiio = _oiio()
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise ValueError(f"could not read {str(path)!r} as an OpenEXR image (corrupt or truncated?): {oiio.geterror()}")
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
-            header = dict(f.header())
-            chans = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
-    except Exception as e:  # the binding raises RuntimeError for garbage, truncated or unsupported (deep) files
-        raise ValueError(f"could not read {str(path)!r} as an OpenEXR image (corrupt or truncated?): {e}") from e
-
-    names = _select_exr_channels(path, list(chans), channels)
-    planes = [chans[n] for n in names]
-    shapes = {p.shape for p in planes}
-    if len(shapes) != 1 or len(next(iter(shapes))) != 2:
-        raise ValueError(
-            f"{str(path)!r}: channels {names} have different or non-2-D pixel shapes {sorted(shapes)} "
-            "(subsampled or deep channels are not supported)"
-        )
+        spec = inp.spec()
+        if spec.deep:
+            raise ValueError(f"{str(path)!r} is a deep OpenEXR image; deep images are not supported")
+        all_names = list(spec.channelnames)
+        names = _select_exr_channels(path, all_names, channels)
+        index = [all_names.index(n) for n in names]
+        formats = [spec.channelformat(i) for i in index]
+        if all(f in (oiio.HALF, oiio.FLOAT) for f in formats):  # exact in float32: decode once
+            pixels = inp.read_image(0, 0, 0, spec.nchannels, oiio.FLOAT)
+            planes = None if not isinstance(pixels, np.ndarray) else [pixels.reshape(pixels.shape[:2] + (-1,))[..., i] for i in index]
+        else:  # integer (uint) channels: their own values, not OpenImageIO's [0, 1] normalisation
+            planes = []
+            for i, f in zip(index, formats):
+                pixels = inp.read_image(0, 0, i, i + 1, f)
+                if not isinstance(pixels, np.ndarray):
+                    planes = None
+                    break
+                planes.append(pixels.reshape(pixels.shape[:2]))
+        error = inp.geterror()
+    finally:
+        inp.close()
+    if planes is None:
+        raise ValueError(f"could not read {str(path)!r} as an OpenEXR image (corrupt or truncated?): {error}")
     img = np.stack([p.astype(np.float32, copy=False) for p in planes], axis=-1)
 
     meta = {}
+    if not want_metadata:
+        return img, meta
+    OpenEXR = _exr()
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            header = dict(f.header())
+    except Exception as e:  # decoded above, so not expected; reported like a corrupt file
+        raise ValueError(f"could not read the header of {str(path)!r} (corrupt?): {e}") from e
     for key, value in header.items():
         if key in _EXR_RESERVED:
             continue
@@ -271,6 +301,8 @@ def _select_exr_channels(path: Path, names: list[str], requested):
 
 
 def _read_oiio(path: Path, ext: str):
+    if ext == ".png" and (problem := _png_problem(path)):
+        raise ValueError(f"could not read {str(path)!r} as a PNG image (corrupt or truncated?): {problem}")
     oiio = _oiio()
     config = oiio.ImageSpec()
     # PNG stores straight alpha; without this hint OIIO premultiplies RGB by alpha on read.
@@ -317,6 +349,84 @@ def _read_oiio(path: Path, ext: str):
             if str(attr.type) == "string" and not attr.name.lower().startswith("oiio:"):
                 meta[attr.name] = attr.value
     return img, meta
+
+
+#: Samples per pixel of each PNG colour type, and the bit depths it allows (PNG specification, 11.2.2).
+_PNG_COLOR_TYPES = {0: (1, (1, 2, 4, 8, 16)), 2: (3, (8, 16)), 3: (1, (1, 2, 4, 8)), 4: (2, (8, 16)), 6: (4, (8, 16))}
+_PNG_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+_PNG_MAX_SIDE = 1_000_000  # libpng's default user limit on width and height
+
+
+def _png_problem(path: Path, *, header_only: bool = False) -> str | None:
+    """What is wrong with a PNG file, or None: the checks that make libpng fail, made first.
+
+    On a fatal error libpng hands the message to OpenImageIO's handler and then prints it on
+    stderr itself (``libpng error: ...``), so a file libpng would refuse is refused here instead:
+    the chunk layout up to the end of the image data (types of ASCII letters, lengths inside the
+    file, IHDR first, IDAT present), the CRC of every critical chunk, the IHDR values, the palette
+    a palette image needs and (unless `header_only`) the zlib stream of the image data: complete,
+    with a valid filter byte on every row. OpenImageIO reads nothing after the image data, and
+    libpng drops an ancillary chunk with a bad CRC with a warning it does not print; neither is
+    checked."""
+    data = path.read_bytes()
+    pos, chunks = 8, []
+    while True:
+        if chunks and chunks[-1][0] == b"IDAT" and data[pos + 4 : pos + 8] != b"IDAT":
+            break  # OpenImageIO stops reading after the image data
+        if pos + 8 > len(data):
+            return "the file ends inside a chunk header (truncated?)"
+        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        if not kind.isalpha():  # bytes.isalpha: ASCII letters only
+            return f"a chunk has the invalid type {kind!r} (corrupt?)"
+        if header_only and kind == b"IDAT":  # the header is read; the data is not
+            chunks.append((kind, b""))
+            break
+        end = pos + 12 + length
+        if length > 2**31 - 1 or end > len(data):
+            return f"chunk {kind!r} runs past the end of the file (truncated?)"
+        body = data[pos + 8 : end - 4]
+        critical = kind[:1].isupper()
+        if critical and zlib.crc32(kind + body) != struct.unpack(">I", data[end - 4 : end])[0]:
+            return f"chunk {kind.decode('latin-1')!r} has a bad CRC (corrupt?)"
+        chunks.append((kind, body))
+        pos = end
+    if chunks[0][0] != b"IHDR" or len(chunks[0][1]) != 13:
+        return "the first chunk is not a 13-byte IHDR"
+    width, height, depth, ctype, compression, filtering, interlace = struct.unpack(">IIBBBBB", chunks[0][1])
+    if not (0 < width <= _PNG_MAX_SIDE and 0 < height <= _PNG_MAX_SIDE):
+        return f"image size {width} x {height} is outside 1..{_PNG_MAX_SIDE}"
+    if ctype not in _PNG_COLOR_TYPES or depth not in _PNG_COLOR_TYPES[ctype][1]:
+        return f"invalid colour type {ctype} with bit depth {depth}"
+    if compression or filtering or interlace not in (0, 1):
+        return f"unknown compression, filter or interlace method ({compression}, {filtering}, {interlace})"
+    kinds = [k for k, _ in chunks]
+    if b"IDAT" not in kinds:
+        return "no IDAT (image data) chunk"
+    if ctype == 3 and b"PLTE" not in kinds[: kinds.index(b"IDAT")]:
+        return "a palette image without a PLTE chunk before its data"
+    if header_only:
+        return None
+    rows = []  # (row count, bytes per row without the filter byte) of each pass
+    samples = _PNG_COLOR_TYPES[ctype][0]
+    for x0, y0, dx, dy in _PNG_ADAM7 if interlace else ((0, 0, 1, 1),):
+        w, h = -(-(width - x0) // dx), -(-(height - y0) // dy)
+        if w > 0 and h > 0:
+            rows.append((h, -(-(w * samples * depth) // 8)))
+    expected = sum(h * (1 + n) for h, n in rows)
+    inflate = zlib.decompressobj()
+    try:
+        raw = inflate.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT"), expected)
+    except zlib.error as e:
+        return f"the image data does not decompress ({e})"
+    if len(raw) < expected:
+        return f"the image data holds {len(raw)} of the {expected} bytes the image needs (truncated?)"
+    pos = 0
+    for h, n in rows:
+        filters = np.frombuffer(raw, np.uint8, count=h * (n + 1), offset=pos)[:: n + 1]
+        if (filters > 4).any():
+            return "a row has an invalid filter type (corrupt?)"
+        pos += h * (n + 1)
+    return None
 
 
 # ----------------------------------------------------------------------------------------------------- write
@@ -397,42 +507,6 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", enco
             attrs["oiio:ColorSpace"] = _PNG_COLORSPACE[encoding]
         writer = lambda tmp: _write_oiio(tmp, "png", payload, attrs)  # noqa: E731
     atomic_write(path, _read_back(writer, arr.shape))
-
-
-#: One silencing at a time: two threads swapping the process's descriptors could restore them
-#: out of order and leave stderr on /dev/null.
-_QUIET_LOCK = threading.RLock()
-
-
-@contextlib.contextmanager
-def _quiet_native():
-    """Silence what C and C++ libraries print to the process's stdout and stderr (file descriptors
-    1 and 2) for the duration: OpenEXR's Python binding prints "Warning: Exception raised reading
-    pixel data" on stdout and libOpenEXR / libpng their own lines on stderr for a corrupt file,
-    beside the one error jaxpbr raises (issue 13). Python-level errors are raised as usual; Python's
-    own buffered output is flushed first so none of it is lost."""
-    with _QUIET_LOCK:
-        yield from _quiet_native_locked()
-
-
-def _quiet_native_locked():
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    saved = []
-    try:
-        with open(os.devnull, "w") as null:
-            for fd in (1, 2):
-                try:
-                    saved.append((fd, os.dup(fd)))
-                except OSError:  # no such stream: nothing to silence
-                    continue
-                os.dup2(null.fileno(), fd)
-            yield
-    finally:
-        for fd, copy in saved:
-            os.dup2(copy, fd)
-            os.close(copy)
 
 
 def _read_back(writer, shape):
