@@ -135,7 +135,7 @@ def test_kernels_are_leaves(module):
 
 
 #: The rooms from the bottom up; a module of a room imports only its own room and the rooms below.
-ROOMS = ("jaxpbr", "jaxpbr.io", "jaxpbr.shading", "jaxpbr.ibl", "jaxpbr.rendering", "jaxpbr.cli")
+ROOMS = ("jaxpbr", "jaxpbr.io", "jaxpbr.shading", "jaxpbr.ibl", "jaxpbr.rendering", "jaxpbr.batch", "jaxpbr.cli")
 #: Modules at the top of the package that sit above the rooms: the public namespace and entry points.
 TOP = {"jaxpbr", "jaxpbr.__main__"}
 

@@ -1,0 +1,454 @@
+"""Job files: JSON Lines rows of render and bake jobs, validated whole before any work.
+
+One JSON object per line (blank lines are skipped). Render rows::
+
+    {"name": "grid/front", "scene": "demo", "width": 256, "height": 256,
+     "camera": {"position": [0, 0, 24], "target": [0, 0, 0], "fov_y": 45},
+     "environment": "procedural:sky", "environment_intensity": 1.0, "environment_rotation": 30,
+     "material": {"roughness": 0.3}, "options": {"model": "gltf"},
+     "output": {"formats": ["png", "exr"], "aovs": ["depth", "normal"], "exposure": 0}}
+
+`scene` is "demo" (the default), a TOML scene file, a glTF asset (.gltf/.glb) or
+{"factory": "module:function", "args": {...}} (a function returning a `jaxpbr.Scene`; the module is
+imported with the job file's folder on `sys.path`). Bake rows (``"kind": "bake"``) take an
+environment and the keywords of `jaxpbr.write_baked` (`face_size`, `size`, `irradiance_size`,
+`lut_size`, `container`, `ktx_format`, `sheen`, `extract`, ...) and write the set into the folder
+named by `name`. Paths are relative to the job file's folder; names are relative to the output
+folder. docs/batch.md has every field.
+
+`load_jobs` checks every row and raises one `JobFileError` listing every problem, one line each:
+"<file>:<row>: <field>: <problem>; <fix>" (rows count from 1, as editors number lines).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import inspect
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+from ..ibl.baked import write_baked
+from ..rendering.aovs import AOVS
+from ..rendering.renderer import RenderOptions
+from ..rendering.scene import MAX_SUPERSAMPLE
+from ..shading.material import Material
+
+__all__ = ["BakeJob", "JobFileError", "RenderJob", "load_jobs", "parse_jobs"]
+
+RENDER_FIELDS = ("kind", "name", "scene", "width", "height", "supersample", "camera", "environment",
+                 "environment_intensity", "environment_rotation", "material", "options", "output")
+CAMERA_FIELDS = ("position", "target", "up", "fov_y")
+OUTPUT_FIELDS = ("formats", "aovs", "exposure", "tonemap", "encoding", "bits")
+FORMATS = ("png", "exr")
+TONEMAPS = ("reinhard", "aces", "aces_narkowicz", "clamp")
+ENCODINGS = ("srgb", "gamma2.2", "linear")
+#: `write_baked` keywords a bake row may set (everything but the environment, the folder and the
+#: caller's hooks), with their defaults: derived from the function's signature.
+BAKE_OPTIONS = {
+    k: p.default for k, p in inspect.signature(write_baked).parameters.items()
+    if p.kind is inspect.Parameter.KEYWORD_ONLY and k not in ("progress", "outputs", "names")
+}
+_RENDER_OPTIONS = {f.name: f for f in dataclasses.fields(RenderOptions)}
+_NAME = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
+#: Images per job are capped like the command line's renders.
+MAX_SIDE = 16384
+
+
+class JobFileError(InputError):
+    """A job file with bad rows: the message has one line per problem."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = list(problems)
+        super().__init__("\n".join(self.problems))
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderJob:
+    """One render row, validated. `key` identifies what it computes (the row and its input files'
+    sizes and modification times): a completed job is redone only when its key changes."""
+
+    row: int
+    name: str
+    scene: Any  # "demo" | Path (.toml/.gltf/.glb) | ("factory", "module:function", args-json, folder)
+    width: int | None
+    height: int | None
+    supersample: int | None
+    camera: dict | None
+    environment: str | None  # "procedural:sky" or an absolute path
+    environment_intensity: float | None
+    environment_rotation: float | None
+    material: dict | None
+    options: dict
+    formats: tuple[str, ...]
+    aovs: tuple[str, ...]
+    display: dict
+    key: str
+
+    kind = "render"
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        """The output files, relative to the output folder."""
+        return tuple(f"{self.name}.{f}" for f in self.formats)
+
+    @property
+    def group(self) -> tuple:
+        """Jobs of one group share the loaded scene, the environment's precomputes and the compiled
+        programs (same scene source, image size, options and outputs)."""
+        return ("render", repr(self.scene), self.width, self.height, self.supersample, self.environment,
+                json.dumps(self.options, sort_keys=True), self.aovs)
+
+
+@dataclasses.dataclass(frozen=True)
+class BakeJob:
+    """One bake row, validated: `jaxpbr.write_baked(environment, out/name, **options)`."""
+
+    row: int
+    name: str
+    environment: str
+    options: dict
+    key: str
+
+    kind = "bake"
+
+    @property
+    def outputs(self) -> tuple[str, ...]:
+        return ()  # a folder: the files are listed by the index the bake writes
+
+    @property
+    def group(self) -> tuple:
+        return ("bake", self.environment, json.dumps({k: v for k, v in self.options.items() if k == "face_size"}))
+
+
+def load_jobs(path) -> list:
+    """Read and validate a job file -> [RenderJob | BakeJob] in file order (JobFileError lists
+    every bad row)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise InputError(f"job file {str(path)!r} does not exist; give a JSON Lines file (docs/batch.md)") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise InputError(f"cannot read job file {str(path)!r}: {e}") from None
+    return parse_jobs(text, base_dir=path.resolve().parent, source=path.name)
+
+
+def parse_jobs(text: str, *, base_dir, source: str = "<jobs>") -> list:
+    """Validate the rows of a job file's text (paths relative to `base_dir`)."""
+    base_dir = Path(base_dir)
+    problems: list[str] = []
+    jobs: list = []
+    names: dict[str, int] = {}
+    stamps: dict[Path, Any] = {}
+    for row, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        where = f"{source}:{row}"
+        try:
+            obj = json.loads(line)
+        except json.JSONDecodeError as e:
+            problems.append(f"{where}: not JSON ({e.msg} at column {e.colno}); write one JSON object per line")
+            continue
+        if not isinstance(obj, dict):
+            problems.append(f"{where}: expected a JSON object, got {type(obj).__name__}; write one object per line")
+            continue
+        bad: list[str] = []
+        job = _parse_row(obj, row, base_dir, bad, stamps)
+        problems += [f"{where}: {b}" for b in bad]
+        if job is None:
+            continue
+        if job.name in names:
+            problems.append(f"{where}: name: {job.name!r} is already the name of row {names[job.name]}; give every job its own name")
+            continue
+        names[job.name] = row
+        jobs.append(job)
+    # An output of one job may not be a folder of another (a bake's folder is a name).
+    owned = {n: r for n, r in names.items()}
+    for j in jobs:
+        parts = j.name.split("/")
+        for k in range(1, len(parts)):
+            prefix = "/".join(parts[:k])
+            if prefix in owned:
+                problems.append(f"{source}:{j.row}: name: {j.name!r} lies inside {prefix!r}, the output of row {owned[prefix]}; rename one")
+    if not jobs and not problems:
+        problems.append(f"{source}: no jobs; write one JSON object per line (docs/batch.md)")
+    if problems:
+        raise JobFileError(problems)
+    return jobs
+
+
+def _parse_row(obj: dict, row: int, base: Path, bad: list, stamps: dict):
+    kind = obj.get("kind", "render")
+    if kind not in ("render", "bake"):
+        bad.append(f"kind: {kind!r} is not a job kind; use 'render' or 'bake'")
+        return None
+    name = obj.get("name")
+    if not isinstance(name, str) or not _NAME.match(name) or any(p in (".", "..") for p in name.split("/")):
+        bad.append(f"name: expected a relative output name of letters, digits, '_', '-', '.' and '/' "
+                   f"(e.g. 'sky/front'), got {name!r}")
+        name = None
+    if kind == "bake":
+        return _parse_bake(obj, row, name, base, bad, stamps)
+    for k in obj:
+        if k not in RENDER_FIELDS:
+            bad.append(f"{k}: unknown field of a render job{_suggest(k, RENDER_FIELDS)}")
+    scene = _scene(obj.get("scene", "demo"), base, bad)
+    width = _int(obj, "width", None, bad, 1, MAX_SIDE)
+    height = _int(obj, "height", None, bad, 1, MAX_SIDE)
+    supersample = _int(obj, "supersample", None, bad, 1, MAX_SUPERSAMPLE)
+    camera = _camera(obj.get("camera"), bad)
+    env = obj.get("environment")
+    environment = None
+    if env is not None:
+        environment = _input_file(env, base, "environment", (".hdr", ".exr"), bad, procedural=True)
+    intensity = _number(obj, "environment_intensity", bad, minimum=0.0)
+    rotation = _number(obj, "environment_rotation", bad)
+    if env is None and (intensity is not None or rotation is not None):
+        if scene == "demo":
+            pass  # the demo has its own sky
+        elif not (isinstance(scene, Path) and scene.suffix == ".toml"):
+            bad.append("environment_intensity/environment_rotation: the job has no environment; add 'environment' or drop them")
+    material = _material(obj.get("material"), bad)
+    options = _options(obj.get("options", {}), bad)
+    formats, aovs, display = _output(obj.get("output", {}), bad)
+    if bad or name is None:
+        return None
+    key = _key(obj, [scene if isinstance(scene, Path) else None, Path(environment) if environment and not environment.startswith("procedural:") else None], stamps)
+    return RenderJob(row=row, name=name, scene=scene, width=width, height=height, supersample=supersample,
+                     camera=camera, environment=environment, environment_intensity=intensity,
+                     environment_rotation=rotation, material=material, options=options, formats=formats,
+                     aovs=aovs, display=display, key=key)
+
+
+def _parse_bake(obj: dict, row: int, name, base: Path, bad: list, stamps: dict):
+    for k in obj:
+        if k not in ("kind", "name", "environment") and k not in BAKE_OPTIONS:
+            bad.append(f"{k}: unknown field of a bake job{_suggest(k, tuple(BAKE_OPTIONS) + ('environment',))}")
+    env = obj.get("environment")
+    if env is None:
+        bad.append("environment: missing; give an .hdr/.exr panorama or 'procedural:sky'")
+        environment = None
+    else:
+        environment = _input_file(env, base, "environment", (".hdr", ".exr"), bad, procedural=True)
+    options = {}
+    for k, default in BAKE_OPTIONS.items():
+        if k not in obj:
+            continue
+        v = obj[k]
+        if isinstance(default, bool):
+            ok = isinstance(v, bool)
+            want = "true or false"
+        elif isinstance(default, str):
+            ok = isinstance(v, str)
+            want = "a string"
+        elif isinstance(default, int) or default is None:
+            ok = v is None or (isinstance(v, int) and not isinstance(v, bool) and v >= 0)
+            want = "a non-negative integer"
+        else:
+            ok, want = True, ""
+        if not ok:
+            bad.append(f"{k}: expected {want}, got {v!r}")
+        else:
+            options[k] = v
+    for k, choices in (("container", ("ktx2", "exr")), ("ktx_format", ("rgba16f", "rgba32f")),
+                       ("irradiance_method", ("exact", "sh9")), ("smith", ("correlated", "separable", "schlick_ggx")),
+                       ("mapping", ("linear", "quadratic"))):
+        if k in options and options[k] not in choices:
+            bad.append(f"{k}: {options[k]!r} is not one of {', '.join(choices)}")
+    for k in ("face_size", "size", "irradiance_size", "lut_size"):
+        if options.get(k) == 0:
+            bad.append(f"{k}: must be positive")
+    if bad or name is None or environment is None:
+        return None
+    key = _key(obj, [Path(environment) if not environment.startswith("procedural:") else None], stamps)
+    return BakeJob(row=row, name=name, environment=environment, options=options, key=key)
+
+
+def _suggest(word: str, choices) -> str:
+    import difflib
+
+    m = difflib.get_close_matches(word, list(choices), n=1)
+    return f" (did you mean {m[0]!r}?)" if m else f"; known fields: {', '.join(choices)}"
+
+
+def _input_file(value, base: Path, field: str, suffixes, bad: list, procedural=False):
+    if not isinstance(value, str) or not value:
+        bad.append(f"{field}: expected a file path string, got {value!r}")
+        return None
+    if procedural and value.startswith("procedural:"):
+        if value != "procedural:sky":
+            bad.append(f"{field}: unknown procedural environment {value!r}; the one available is 'procedural:sky'")
+            return None
+        return value
+    p = (base / value).resolve()
+    if p.suffix.lower() not in suffixes:
+        bad.append(f"{field}: {value!r} is not one of {', '.join(suffixes)}{' or procedural:sky' if procedural else ''}")
+        return None
+    if not p.is_file():
+        bad.append(f"{field}: file {value!r} does not exist (paths are relative to the job file's folder)")
+        return None
+    return str(p)
+
+
+def _scene(value, base: Path, bad: list):
+    if value == "demo":
+        return "demo"
+    if isinstance(value, dict):
+        extra = set(value) - {"factory", "args"}
+        fac = value.get("factory")
+        args = value.get("args", {})
+        if extra:
+            bad.append(f"scene: unknown key(s) {sorted(extra)} of a factory scene; use 'factory' and 'args'")
+        if not isinstance(fac, str) or not re.match(r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$", fac):
+            bad.append(f"scene.factory: expected 'module:function', got {fac!r}")
+            return None
+        if not isinstance(args, dict):
+            bad.append(f"scene.args: expected an object of keyword arguments, got {args!r}")
+            return None
+        return ("factory", fac, json.dumps(args, sort_keys=True), str(base))
+    p = _input_file(value, base, "scene", (".toml", ".gltf", ".glb"), bad)
+    return None if p is None else Path(p)
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _int(obj, k, default, bad, lo, hi):
+    if k not in obj:
+        return default
+    v = obj[k]
+    if not isinstance(v, int) or isinstance(v, bool) or not lo <= v <= hi:
+        bad.append(f"{k}: expected an integer in [{lo}, {hi}], got {v!r}")
+        return default
+    return v
+
+
+def _number(obj, k, bad, minimum=None):
+    if k not in obj:
+        return None
+    v = obj[k]
+    if not _finite(v) or (minimum is not None and v < minimum):
+        bad.append(f"{k}: expected a finite number{f' >= {minimum:g}' if minimum is not None else ''}, got {v!r}")
+        return None
+    return float(v)
+
+
+def _vec3(v) -> bool:
+    return isinstance(v, list) and len(v) == 3 and all(_finite(x) for x in v)
+
+
+def _camera(cam, bad):
+    if cam is None:
+        return None
+    if not isinstance(cam, dict):
+        bad.append(f"camera: expected an object with {', '.join(CAMERA_FIELDS)}, got {cam!r}")
+        return None
+    out = {}
+    for k, v in cam.items():
+        if k not in CAMERA_FIELDS:
+            bad.append(f"camera.{k}: unknown field{_suggest(k, CAMERA_FIELDS)}")
+        elif k == "fov_y":
+            if not _finite(v) or not 0 < v < 180:
+                bad.append(f"camera.fov_y: expected degrees in (0, 180), got {v!r}")
+            else:
+                out[k] = float(v)
+        elif not _vec3(v):
+            bad.append(f"camera.{k}: expected three numbers [x, y, z], got {v!r}")
+        else:
+            out[k] = tuple(float(x) for x in v)
+    if "position" in out and "target" in out and out["position"] == out["target"]:
+        bad.append("camera: position and target are the same point; move one")
+    return out
+
+
+def _material(mat, bad):
+    if mat is None:
+        return None
+    if not isinstance(mat, dict) or not mat:
+        bad.append(f"material: expected an object of Material fields (e.g. {{\"roughness\": 0.3}}), got {mat!r}")
+        return None
+    fields = [f.name for f in dataclasses.fields(Material)]
+    unknown = [k for k in mat if k not in fields]
+    for k in unknown:
+        bad.append(f"material.{k}: not a Material field{_suggest(k, fields)}")
+    if unknown:
+        return None
+    try:
+        Material(**mat)
+    except (TypeError, ValueError) as e:
+        bad.append(f"material: {e}")
+        return None
+    return dict(mat)
+
+
+def _options(opts, bad):
+    if not isinstance(opts, dict):
+        bad.append(f"options: expected an object of RenderOptions keywords, got {opts!r}")
+        return {}
+    unknown = [k for k in opts if k not in _RENDER_OPTIONS]
+    for k in unknown:
+        bad.append(f"options.{k}: not a RenderOptions keyword{_suggest(k, tuple(_RENDER_OPTIONS))}")
+    if unknown:
+        return {}
+    try:
+        RenderOptions(**opts)
+    except (TypeError, ValueError) as e:
+        bad.append(f"options: {e}")
+        return {}
+    return dict(opts)
+
+
+def _output(out, bad):
+    if not isinstance(out, dict):
+        bad.append(f"output: expected an object with {', '.join(OUTPUT_FIELDS)}, got {out!r}")
+        return ("png",), (), {}
+    for k in out:
+        if k not in OUTPUT_FIELDS:
+            bad.append(f"output.{k}: unknown field{_suggest(k, OUTPUT_FIELDS)}")
+    formats = out.get("formats", ["png"])
+    if not isinstance(formats, list) or not formats or any(f not in FORMATS for f in formats) or len(set(formats)) != len(formats):
+        bad.append(f"output.formats: expected a list of distinct formats from {', '.join(FORMATS)}, got {formats!r}")
+        formats = ["png"]
+    aovs = out.get("aovs", [])
+    if not isinstance(aovs, list) or any(a not in AOVS for a in aovs):
+        bad.append(f"output.aovs: expected a list from {', '.join(AOVS)}, got {aovs!r}")
+        aovs = []
+    if aovs and "exr" not in formats:
+        bad.append("output.aovs: AOVs are EXR layers; add 'exr' to output.formats")
+    display = {}
+    if "exposure" in out:
+        if not _finite(out["exposure"]):
+            bad.append(f"output.exposure: expected a finite number of EV stops, got {out['exposure']!r}")
+        else:
+            display["exposure"] = float(out["exposure"])
+    for k, choices in (("tonemap", TONEMAPS), ("encoding", ENCODINGS)):
+        if k in out:
+            if out[k] not in choices:
+                bad.append(f"output.{k}: {out[k]!r} is not one of {', '.join(choices)}")
+            else:
+                display[k] = out[k]
+    if "bits" in out:
+        if out["bits"] not in (8, 16) or isinstance(out["bits"], bool):
+            bad.append(f"output.bits: expected 8 or 16, got {out['bits']!r}")
+        else:
+            display["bits"] = out["bits"]
+    return tuple(formats), tuple(aovs), display
+
+
+def _key(obj: dict, files, stamps: dict) -> str:
+    """What a job computes: its row and the size and modification time of each input file."""
+    h = hashlib.sha256(json.dumps(obj, sort_keys=True).encode())
+    for p in files:
+        if p is None:
+            continue
+        if p not in stamps:
+            st = p.stat()
+            stamps[p] = (str(p), st.st_size, st.st_mtime_ns)
+        h.update(repr(stamps[p]).encode())
+    return h.hexdigest()
