@@ -15,6 +15,7 @@ failed with the cause. A job with a record is never sent again, so each job is d
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import os
 import warnings
@@ -72,7 +73,7 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
         return {"workers": 0, "pids": [], "replaced": 0}
     started_here = not ray.is_initialized()
     if started_here:
-        kw = dict(include_dashboard=False, logging_level=logging.WARNING, log_to_driver=False)
+        kw = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
         with warnings.catch_warnings():
             # Ray starts its processes with fork + exec (no Python runs in the forked child).
             warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
@@ -117,10 +118,7 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
                         retry.append(j)
                 if retry:
                     pending.appendleft(retry)
-                try:
-                    ray.kill(actor)
-                except Exception:  # noqa: BLE001 - already gone
-                    pass
+                _kill(ray, actor)
                 actors.remove(actor)
                 if pending:
                     fresh = remote.remote(str(folder.root), worker_setup)
@@ -136,9 +134,12 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
         return {"workers": len(pids), "pids": sorted(pids), "replaced": replaced}
     finally:
         for a in actors:
-            try:
-                ray.kill(a)
-            except Exception:  # noqa: BLE001
-                pass
+            _kill(ray, a)
         if started_here:
             ray.shutdown()
+
+
+def _kill(ray, actor) -> None:
+    """Stop an actor; one that is already gone raises, which is what was wanted."""
+    with contextlib.suppress(Exception):
+        ray.kill(actor)

@@ -85,7 +85,7 @@ class OutputFolder:
             self._lock.release()
             self._lock = None
 
-    def __enter__(self) -> "OutputFolder":
+    def __enter__(self):
         self.acquire()
         return self
 

@@ -98,7 +98,7 @@ class Worker:
             raise InputError(f"job {job.name!r}: options.dtype float64 needs JAX's 64-bit mode; "
                              f"set JAX_ENABLE_X64=1 for the run")
         check_memory(scene, options=opts, where=f"job {job.name!r}")
-        display = {**{"exposure": 0.0, "bits": 8}, **file_display, **job.display}
+        display = {"exposure": 0.0, "bits": 8, **file_display, **job.display}
         display.setdefault("tonemap", "reinhard" if opts.model == "learnopengl" else "aces")
         display.setdefault("encoding", "gamma2.2" if opts.model == "learnopengl" else "srgb")
         hdr = render(scene, options=opts)
