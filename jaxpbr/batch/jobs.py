@@ -188,7 +188,9 @@ def _parse_row(obj: dict, row: int, base: Path, bad: list, stamps: dict):
         bad.append(f"kind: {kind!r} is not a job kind; use 'render' or 'bake'")
         return None
     name = obj.get("name")
-    if not isinstance(name, str) or not _NAME.match(name) or any(p in (".", "..") for p in name.split("/")):
+    if name is None:
+        bad.append("name: missing; give every job an output name (e.g. \"sky/front\")")
+    elif not isinstance(name, str) or not _NAME.match(name) or any(p in (".", "..") for p in name.split("/")):
         bad.append(f"name: expected a relative output name of letters, digits, '_', '-', '.' and '/' "
                    f"(e.g. 'sky/front'), got {name!r}")
         name = None

@@ -19,6 +19,7 @@ from .._version import __version__
 from ..io import atomic
 from . import (
     _cache,
+    batch,
     bench_grad,
     bench_ibl,
     bench_render,
@@ -51,6 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     render.add_command(sub)
     ibl.add_commands(sub)
+    batch.add_command(sub)
 
     b = sub.add_parser("bench", help="benchmarks (JAX vs NumPy or the peers' recipes, side by side in one process)")
     bsub = b.add_subparsers(dest="bench", metavar="BENCH")
