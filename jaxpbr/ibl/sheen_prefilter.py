@@ -102,11 +102,11 @@ from .cubemap import (
     _mip_chain,
     mip_count,
     _Pyramid,
-    _subtexel_coords,
     face_to_dir,
     texel_directions,
     texel_solid_angles,
 )
+from .lobe_reference import LOD_TABLE_STEPS, chain_lookup_metadata, check_lod_blend, lobe_reference, lobe_reference_sum
 
 __all__ = [
     "CHARLIE_LOD_BLENDS",
@@ -139,8 +139,6 @@ DEFAULT_CHARLIE_LOD_BLEND = "mean_cosine"
 CHUNK = 64
 #: Largest sub-texel split of the reference.
 REFERENCE_MAX_Q = 8
-#: Entries per level interval of the metadata's "lod_table".
-LOD_TABLE_STEPS = 8
 #: Prefilter methods: "zonal" (rings in c, pyramid lookups matched to each sample's footprint)
 #: and "box" (every texel of one source level, the kernel box-filtered over each texel).
 CHARLIE_METHODS = ("zonal", "box")
@@ -183,8 +181,7 @@ def _alpha(r, min_roughness, xp):
 
 
 def _check_blend(lod_blend):
-    if lod_blend not in CHARLIE_LOD_BLENDS:
-        raise ValueError(f"unknown lod_blend {lod_blend!r}; choose one of {CHARLIE_LOD_BLENDS}")
+    check_lod_blend(lod_blend, CHARLIE_LOD_BLENDS)
 
 
 def charlie_roughness_to_lod(r, num_levels: int, *, lod_blend: str = DEFAULT_CHARLIE_LOD_BLEND,
@@ -220,19 +217,20 @@ def charlie_lookup_metadata(num_levels: int, *, lod_blend: str, face_size: int,
     K = LOD_TABLE_STEPS * max(M - 1, 1)
     u = np.linspace(0.0, 1.0, K + 1)
     table = charlie_roughness_to_lod(u, M, lod_blend=lod_blend, min_roughness=min_roughness, xp=np)
-    return {
-        "lod_blend": lod_blend,
-        "lod_formula": "lod = r*(M-1)" if lod_blend == "roughness" else (
+    return chain_lookup_metadata(
+        M,
+        lod_blend=lod_blend,
+        formula="lod = r*(M-1)" if lod_blend == "roughness" else (
             "lod = m + (k(r) - k_m) / (k_{m+1} - k_m) between the levels m, m+1 whose mean cosines bracket k(r); "
             "k(r) = 4 alpha / (1 + 6 alpha), alpha = max(r, min_roughness)^2 (the Charlie weight's mean cosine); "
             "k_m = level_mean_cosine; lod = 0 below min_roughness"
         ),
-        "chain_floor": str(max(1, positive_int("face_size", face_size) >> (M - 1))),
-        "level_alpha": ",".join(f"{x:.9g}" for x in alphas),
-        "level_mean_cosine": ",".join(f"{x:.9g}" for x in charlie_mean_cosine(alphas)),
-        "lod_table": ",".join(f"{x:.6g}" for x in np.asarray(table)),
-        "lod_table_abscissa": f"u = k/{K}, k = 0..{K}, u = r; linear interpolation in u",
-    }
+        face_size=face_size,
+        level_alpha=alphas,
+        level_mean_cosine=charlie_mean_cosine(alphas),
+        table=table,
+        abscissa=f"u = k/{K}, k = 0..{K}, u = r; linear interpolation in u",
+    )
 
 
 def _lookup_of(pre: Cubemap):
@@ -609,56 +607,16 @@ def charlie_reference(env: Cubemap, dirs, roughness: float, *, supersample: int 
     if not 0.0 <= r <= 1.0:
         raise ValueError(f"roughness must be in [0, 1], got {r}")
     alpha = max(r, float(min_roughness)) ** 2
-    dirs = np.asarray(dirs, np.float64)
-    shape = dirs.shape[:-1]
-    S0 = env.face_size
-    q = _reference_supersample(alpha, S0) if supersample is None else positive_int("supersample", supersample)
+    q = _reference_supersample(alpha, env.face_size) if supersample is None else positive_int("supersample", supersample)
     chunk = positive_int("chunk", chunk)
-    with jax.enable_x64(True):
-        B = max(1, min(S0, (1 << 21) // (chunk * S0 * q * q)))
-        nb = -(-S0 // B)
-        coords = _subtexel_coords(S0, q)
-        pad = nb * B - S0
-        om = np.concatenate([texel_solid_angles(S0)[0], np.zeros((pad, S0))])
-        t = np.concatenate([coords, np.repeat(coords[-1:], pad, 0)])
-        L = env.levels[0]
-        L = jnp.concatenate([L, jnp.zeros((6, pad) + L.shape[2:], L.dtype)], 1) if pad else L
-        out = np.asarray(_reference_sum(
-            jnp.asarray(dirs.reshape(-1, 3)), L, jax.device_put(t), jax.device_put(coords), jax.device_put(om),
-            jnp.float64(alpha), q=q, rows=B, chunk=chunk,
-        ))
-    C = env.channels
-    return (out[:, :C] / out[:, C:]).reshape(shape + (C,))
+    return lobe_reference(env, dirs, _charlie_kernel, alpha, q=q, chunk=chunk, budget=1 << 21)
 
 
-@functools.partial(jax.jit, static_argnames=("q", "rows", "chunk"))
-def _reference_sum(R, L, t, s, om, alpha, *, q, rows, chunk):
-    """sum over every sub-texel of D_c(h) (R.l)+ (L Omega, Omega) -> (N, C + 1) float64 (the
-    structure of `specular._reference_sum`: sources generated block by block on the device)."""
-    S, C = s.shape[0], L.shape[-1]
-    f64 = jnp.float64
-    ss = jnp.broadcast_to(s[None, :, None, :], (rows, S, q, q)).reshape(rows, S, q * q)
+def _charlie_kernel(c, alpha):
+    """D_c(h) (R.l)+ at c = R.l, n = v = R: n.h = sqrt((1 + c)/2), sin^2 = (1 - c)/2."""
+    c = jnp.clip(c, -1.0, 1.0)
+    return d_charlie(jnp.sqrt(0.5 * (1.0 + c)), alpha, 0.5 * (1.0 - c)) * jnp.maximum(c, 0.0)
 
-    def block(face, Rc, acc, start):
-        ct = jax.lax.dynamic_slice_in_dim(t, start, rows)
-        tt = jnp.broadcast_to(ct[:, None, :, None], (rows, S, q, q)).reshape(rows, S, q * q)
-        d = face_to_dir(face, ss, tt, xp=jnp)
-        r2 = jnp.sum(d * d, -1)
-        w = r2**-1.5
-        w = w / jnp.sum(w, -1, keepdims=True)
-        d = (d / jnp.sqrt(r2)[..., None]).reshape(-1, 3)
-        omq = jax.lax.dynamic_slice_in_dim(om, start, rows)[..., None] * w
-        Lb = jax.lax.dynamic_slice_in_dim(L[face], start, rows).astype(f64)
-        Lw = jnp.concatenate([Lb[:, :, None, :] * omq[..., None], omq[..., None]], -1).reshape(-1, C + 1)
-        c = jnp.clip(jnp.matmul(Rc, d.T, precision=HIGHEST), -1.0, 1.0)
-        k = d_charlie(jnp.sqrt(0.5 * (1.0 + c)), alpha, 0.5 * (1.0 - c)) * jnp.maximum(c, 0.0)
-        return acc + jnp.matmul(k, Lw, precision=HIGHEST)
 
-    def one(Rc):
-        acc = jnp.zeros((Rc.shape[0], C + 1), f64)
-        starts = jnp.arange(0, L.shape[1], rows)
-        for face in range(6):
-            acc, _ = jax.lax.scan(lambda a, st, f=face: (block(f, Rc, a, st), None), acc, starts)
-        return acc
-
-    return map_row_chunks(one, chunk, R.astype(f64))
+#: The float64 sum of `charlie_reference` (the Charlie lobe in `lobe_reference.lobe_reference_sum`).
+_reference_sum = functools.partial(lobe_reference_sum, lobe=_charlie_kernel)

@@ -64,11 +64,11 @@ from .cubemap import (
     _mip_chain_impl,
     mip_count,
     _Pyramid,
-    _subtexel_coords,
     face_to_dir,
     texel_directions,
     texel_solid_angles,
 )
+from .lobe_reference import LOD_TABLE_STEPS, chain_lookup_metadata, check_lod_blend, lobe_reference, lobe_reference_sum
 
 __all__ = [
     "DEFAULT_CHAIN_FLOOR",
@@ -222,8 +222,7 @@ def _one_minus_c(r, xp):
 
 
 def _check_blend(lod_blend):
-    if lod_blend not in LOD_BLENDS:
-        raise ValueError(f"unknown lod_blend {lod_blend!r}; choose one of {LOD_BLENDS}")
+    check_lod_blend(lod_blend, LOD_BLENDS)
 
 
 @keyword_only("mapping")
@@ -281,10 +280,6 @@ def lookup_of(pre: Cubemap) -> tuple[int, str, str]:
     return M, meta.get("roughness_mapping", "linear"), meta.get("lod_blend", LEGACY_LOD_BLEND)
 
 
-#: Entries per level interval of the metadata's "lod_table" (for engines; see `lookup_metadata`).
-LOD_TABLE_STEPS = 8
-
-
 def lookup_metadata(num_levels: int, *, mapping: str, lod_blend: str, face_size: int) -> dict:
     """The metadata keys that reproduce a chain's lookup beyond "roughness_mapping" and
     "mapping_levels" (written by `prefilter`, hence into the KTX2 key/values of `jaxpbr ibl` and
@@ -301,18 +296,19 @@ def lookup_metadata(num_levels: int, *, mapping: str, lod_blend: str, face_size:
     r_nodes = u if mapping == "linear" else 1.0 - np.sqrt(np.clip(1.0 - u, 0.0, 1.0))
     table = roughness_to_lod(r_nodes, M, mapping=mapping, lod_blend=lod_blend, xp=np)
     plain = "lod = r*(M-1)" if mapping == "linear" else "lod = (M-1)*r*(2-r)"
-    return {
-        "lod_blend": lod_blend,
-        "lod_formula": plain if lod_blend == "roughness" else (
+    return chain_lookup_metadata(
+        M,
+        lod_blend=lod_blend,
+        formula=plain if lod_blend == "roughness" else (
             "lod = m + (c_m - c(r)) / (c_m - c_{m+1}) between the levels m, m+1 whose roughness brackets r; "
             "c(r) = int K (R.l)^2 dl / int K (R.l) dl, K = D_GGX(h; alpha = r^2) (R.l)+, n = v = R; "
             "c_m = level_mean_cosine"
         ),
-        "chain_floor": str(max(1, positive_int("face_size", face_size) >> (M - 1))),
-        "level_mean_cosine": ",".join(f"{x:.9g}" for x in lobe_mean_cosine(rough * rough)),
-        "lod_table": ",".join(f"{x:.6g}" for x in np.asarray(table)),
-        "lod_table_abscissa": f"u = k/{K}, k = 0..{K}, u = {'r' if mapping == 'linear' else 'r*(2-r)'}; linear interpolation in u",
-    }
+        face_size=face_size,
+        level_mean_cosine=lobe_mean_cosine(rough * rough),
+        table=table,
+        abscissa=f"u = k/{K}, k = 0..{K}, u = {'r' if mapping == 'linear' else 'r*(2-r)'}; linear interpolation in u",
+    )
 
 
 def default_sample_counts(base: int, size: int, num_levels: int, max_samples: int = MAX_SAMPLES) -> list[int]:
@@ -846,69 +842,24 @@ def prefilter_reference(env: Cubemap, dirs, roughness: float, *, supersample: in
     if not 0.0 <= r <= 1.0:
         raise ValueError(f"roughness must be in [0, 1], got {r}")
     dirs = np.asarray(dirs, np.float64)
-    shape = dirs.shape[:-1]
-    with jax.enable_x64(True):
-        if r == 0.0:
+    if r == 0.0:
+        with jax.enable_x64(True):
             return np.asarray(Cubemap(env.levels[0].astype(jnp.float64)).sample(jnp.asarray(dirs)))
-        alpha = r * r
-        S0 = env.face_size
-        q = _reference_supersample(alpha, S0) if supersample is None else positive_int("supersample", supersample)
-        chunk = positive_int("chunk", chunk)
-        # Source rows per block: the (chunk, block points) kernel stays ~2^22 float64 whatever S0.
-        B = max(1, min(S0, (1 << 22) // (chunk * S0 * q * q)))
-        nb = -(-S0 // B)
-        coords = _subtexel_coords(S0, q)  # (S0, q): the sub-texel centres' face coordinates
-        pad = nb * B - S0
-        om = np.concatenate([texel_solid_angles(S0)[0], np.zeros((pad, S0))])  # padded rows weigh 0
-        t = np.concatenate([coords, np.repeat(coords[-1:], pad, 0)])
-        L = env.levels[0]
-        L = jnp.concatenate([L, jnp.zeros((6, pad) + L.shape[2:], L.dtype)], 1) if pad else L
-        out = _reference_sum(
-            jnp.asarray(dirs.reshape(-1, 3)), L, jax.device_put(t), jax.device_put(coords), jax.device_put(om),
-            alpha, q=q, rows=B, chunk=chunk,
-        )
-        out = np.asarray(out)
-        C = L.shape[-1]
-    return (out[:, :C] / out[:, C:]).reshape(shape + (C,))
+    alpha = r * r
+    q = _reference_supersample(alpha, env.face_size) if supersample is None else positive_int("supersample", supersample)
+    chunk = positive_int("chunk", chunk)
+    # Source rows per block: the (chunk, block points) kernel stays ~2^22 float64 whatever the face size.
+    return lobe_reference(env, dirs, _ggx_kernel, alpha, q=q, chunk=chunk, budget=1 << 22)
 
 
-@functools.partial(jax.jit, static_argnames=("q", "rows", "chunk"))
-def _reference_sum(R, L, t, s, om, alpha, *, q, rows, chunk):
-    """sum over every source sub-texel of K(R.l) (L Omega, Omega) -> (N, C + 1), float64.
-
-    L (6, S', S, C) the level (rows padded to whole blocks), t (S', q) / s (S, q) the sub-texel
-    face coordinates along rows / columns, om (S', S) one face's texel solid angles (padded rows 0).
-    The sources are generated on the device block by block (`rows` texel rows of a face at a
-    time) inside each chunk of output directions: no (6 S^2 q^2, 3) source array is ever held
-    (at 2048^2 faces it was 0.6 GB on the host, cached, plus its device copy and the weights)."""
+def _ggx_kernel(c, alpha):
+    """K(c) = D(h) (R.l)+ up to a constant, c = R.l, n = v = R: NoH^2 = (1+c)/2, 1 - NoH^2 = (1-c)/2."""
     a2 = alpha * alpha
-    S, C = s.shape[0], L.shape[-1]
-    f64 = jnp.float64
-    ss = jnp.broadcast_to(s[None, :, None, :], (rows, S, q, q)).reshape(rows, S, q * q)
+    return jnp.maximum(c, 0.0) / (0.5 * (1.0 - c) + 0.5 * (1.0 + c) * a2) ** 2
 
-    def block(face, Rc, acc, start):
-        ct = jax.lax.dynamic_slice_in_dim(t, start, rows)  # (rows, q)
-        tt = jnp.broadcast_to(ct[:, None, :, None], (rows, S, q, q)).reshape(rows, S, q * q)
-        d = face_to_dir(face, ss, tt, xp=jnp)  # a Python int face: no constant-folded face table
-        r2 = jnp.sum(d * d, -1)
-        w = r2**-1.5
-        w = w / jnp.sum(w, -1, keepdims=True)
-        d = (d / jnp.sqrt(r2)[..., None]).reshape(-1, 3)
-        omq = jax.lax.dynamic_slice_in_dim(om, start, rows)[..., None] * w  # (rows, S, q*q) sub-texel solid angles
-        Lb = jax.lax.dynamic_slice_in_dim(L[face], start, rows).astype(f64)  # (rows, S, C)
-        Lw = jnp.concatenate([Lb[:, :, None, :] * omq[..., None], omq[..., None]], -1).reshape(-1, C + 1)
-        c = jnp.matmul(Rc, d.T, precision=HIGHEST)  # (chunk, P)
-        k = jnp.maximum(c, 0.0) / (0.5 * (1.0 - c) + 0.5 * (1.0 + c) * a2) ** 2
-        return acc + jnp.matmul(k, Lw, precision=HIGHEST)
 
-    def one(Rc):
-        acc = jnp.zeros((Rc.shape[0], C + 1), f64)
-        starts = jnp.arange(0, L.shape[1], rows)
-        for face in range(6):
-            acc, _ = jax.lax.scan(lambda a, st, f=face: (block(f, Rc, a, st), None), acc, starts)
-        return acc
-
-    return map_row_chunks(one, chunk, R.astype(f64))
+#: The float64 sum of `prefilter_reference` (the GGX lobe in `lobe_reference.lobe_reference_sum`).
+_reference_sum = functools.partial(lobe_reference_sum, lobe=_ggx_kernel)
 
 
 # ------------------------------------------------------------------------------------------
