@@ -175,3 +175,48 @@ def test_outputs_are_not_committed_while_a_signal_is_pending(tmp_path, monkeypat
     finally:
         PENDING[0] = None
     assert sorted(p.name for p in tmp_path.iterdir()) == ["kept.txt"] and keep.read_text() == "old"
+
+
+def test_critical_sections_are_per_thread(monkeypatch):
+    # Signal handlers run in the main thread: a worker's critical section (an atomic write from a
+    # writer thread) must not defer them, and its end must not run the hooks (which would raise the
+    # main thread's pending interrupt in the worker).
+    import threading
+
+    calls = []
+    monkeypatch.setattr(atomic, "CRITICAL_EXIT_HOOKS", [lambda: calls.append(threading.current_thread().name)])
+    inside, release, seen = threading.Event(), threading.Event(), {}
+
+    def worker():
+        with atomic.critical():
+            seen["worker"] = atomic.in_critical()
+            inside.set()
+            release.wait(10)
+
+    t = threading.Thread(target=worker, name="writer")
+    t.start()
+    assert inside.wait(10)
+    seen["main while the worker is inside"] = atomic.in_critical()
+    release.set()
+    t.join(10)
+    assert seen == {"worker": True, "main while the worker is inside": False}
+    assert calls == []
+    with atomic.critical():
+        with atomic.critical():
+            assert atomic.in_critical()
+        assert calls == []  # only the outermost section's end
+    assert not atomic.in_critical() and calls == [threading.main_thread().name]
+
+
+def test_critical_depth_survives_concurrent_writers(tmp_path):
+    # Many threads entering and leaving sections at once leave no stale depth behind (a shared
+    # counter's read-modify-write can lose updates and keep every later signal deferred).
+    from concurrent.futures import ThreadPoolExecutor
+
+    def writes(k):
+        for i in range(50):
+            atomic.atomic_write(tmp_path / f"{k}-{i}.txt", lambda tmp: Path(tmp).write_text("x"))
+
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(writes, range(8)))
+    assert not atomic.in_critical() and len(list(tmp_path.iterdir())) == 400

@@ -13,6 +13,7 @@ import json
 import os
 import secrets
 import shutil
+import threading
 from pathlib import Path
 
 from .._api import keyword_only
@@ -85,10 +86,26 @@ def emergency_rollback() -> None:
             pass
 
 
-_CRITICAL = [0]
-#: Called (no arguments) when the outermost critical section ends; the command line registers the
-#: re-raise of a signal it deferred during the section.
+#: Critical-section depth, per thread. Python runs signal handlers in the main thread only, so
+#: the section a signal must not cut is the main thread's: a worker thread's section (an atomic
+#: write from a writer or cache thread) does not defer a signal aimed at the main thread, and its
+#: end does not raise one in the worker (which would take the main thread's interrupt from it).
+#: Each thread changes only its own depth, so no lock is needed and no update is lost.
+_DEPTH = threading.local()
+#: Called (no arguments) when the main thread's outermost critical section ends (and before an
+#: `OutputSet` made in the main thread commits); the command line registers the re-raise of a
+#: signal it deferred during the section.
 CRITICAL_EXIT_HOOKS: list = []
+
+
+def _depth() -> int:
+    return getattr(_DEPTH, "n", 0)
+
+
+def _run_exit_hooks() -> None:
+    if threading.current_thread() is threading.main_thread():
+        for hook in CRITICAL_EXIT_HOOKS:
+            hook()
 
 
 @contextlib.contextmanager
@@ -96,18 +113,19 @@ def critical():
     """A few statements that must not be cut in two by a signal (creating a temporary file and
     taking it in charge; renaming it into place). The command line's signal handlers consult
     `in_critical()` and defer the interrupt to the end of the section."""
-    _CRITICAL[0] += 1
+    _DEPTH.n = _depth() + 1
     try:
         yield
     finally:
-        _CRITICAL[0] -= 1
-        if _CRITICAL[0] == 0:
-            for hook in CRITICAL_EXIT_HOOKS:
-                hook()
+        _DEPTH.n -= 1
+        if _DEPTH.n == 0:
+            _run_exit_hooks()
 
 
 def in_critical() -> bool:
-    return _CRITICAL[0] > 0
+    """Whether the calling thread is inside a `critical` section (a signal handler, which runs in
+    the main thread, asks about the main thread)."""
+    return _depth() > 0
 
 
 def _create_temp(path: Path):
@@ -226,8 +244,7 @@ class OutputSet:
     def __exit__(self, exc_type, exc, tb) -> bool:
         try:
             if exc_type is None:  # a signal not raised yet (Python dropped its exception) raises here
-                for hook in CRITICAL_EXIT_HOOKS:
-                    hook()
+                _run_exit_hooks()
         except BaseException:
             exc_type = BaseException
             raise
