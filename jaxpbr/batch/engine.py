@@ -46,7 +46,8 @@ def run_batch(jobs, out, *, engine: str = "local", address: str | None = None, w
     engine: "local" (in this process) or "ray" (`ray_engine.run_ray`: actors on a local cluster,
         or the cluster at `address`; `workers` actors, default one per CPU of the cluster;
         `retries`: how often a job whose worker died is tried again; `chunk`: jobs sent together).
-    progress: optional callable(done, total) called after each job.
+    progress: optional callable(done, total): once before any job (done = the jobs found
+        complete), then after each job.
     worker_setup: optional picklable callable run once in each Ray worker before its first job
         (the command line passes the one that turns on its compilation and asset caches).
     Summary: {"engine", "jobs": [{"name", "row", "kind", "status": done | skipped | failed |
@@ -75,6 +76,8 @@ def run_batch(jobs, out, *, engine: str = "local", address: str | None = None, w
             if progress is not None:
                 progress(done_count[0], total)
 
+        if progress is not None:
+            progress(done_count[0], total)  # the starting point: jobs already complete
         try:
             if engine == "local":
                 _run_local(order_jobs(todo), folder, report)

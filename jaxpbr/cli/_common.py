@@ -69,12 +69,16 @@ class Progress:
     """A progress indicator on stderr (silent when `quiet`); the library's precomputes take it as
     their `progress(done, total)` callback and know nothing of the terminal. On a terminal: one line
     redrawn in place with the elapsed time and an estimate of the time left. Elsewhere (a log file, a
-    pipe, CI): no carriage returns, one plain line per quarter of the work."""
+    pipe, CI): no carriage returns, one plain line per quarter of the work. With `rate_unit` (e.g.
+    "jobs") the rate is shown too, and rate and estimate count from the first call's `done` (work
+    found already done, such as the completed jobs of a resumed batch, is not counted as speed)."""
 
-    def __init__(self, label: str, quiet: bool = False, *, tty: bool | None = None):
+    def __init__(self, label: str, quiet: bool = False, *, tty: bool | None = None, rate_unit: str | None = None):
         self.label, self.quiet, self.t0 = label, quiet, time.perf_counter()
         self.tty = sys.stderr.isatty() if tty is None else tty
         self._quarter = -1
+        self.rate_unit = rate_unit
+        self._base: int | None = None
 
     def __call__(self, done: int, total: int) -> None:
         if threading.current_thread() is threading.main_thread():
@@ -84,6 +88,11 @@ class Progress:
         elapsed = time.perf_counter() - self.t0
         frac = done / max(total, 1)
         eta = f", about {elapsed * (1 - frac) / frac:.0f} s left" if 0 < frac < 1 else ""
+        if self.rate_unit is not None:
+            if self._base is None:
+                self._base = done
+            rate = (done - self._base) / elapsed if elapsed > 0 else 0.0
+            eta = "" if rate <= 0 else f", {rate:.2f} {self.rate_unit}/s" + (f", about {(total - done) / rate:.0f} s left" if done < total else "")
         if not self.tty:
             quarter = int(4 * frac)
             if quarter > self._quarter:

@@ -55,7 +55,7 @@ def cmd_batch(args) -> int:
     t0 = time.perf_counter()
     summary = run_batch(
         jobs, args.out, engine=args.engine, address=args.address, workers=args.workers, retries=args.retries,
-        chunk=args.chunk, progress=Progress("batch", quiet=args.quiet), worker_setup=setup_worker, jobs_file=args.jobs,
+        chunk=args.chunk, progress=Progress("batch", quiet=args.quiet, rate_unit="jobs"), worker_setup=setup_worker, jobs_file=args.jobs,
     )
     dt = time.perf_counter() - t0
     c = summary["counts"]
