@@ -427,3 +427,33 @@ def test_exposure_of_infinite_stops():
     """ev = +-inf: inf and 0, as 2**ev (the exact ldexp split took ev - floor(ev) = NaN there)."""
     out = np.asarray(color.exposure(jnp.ones(3), jnp.asarray([jnp.inf, -jnp.inf, 2.0])))
     np.testing.assert_array_equal(out, [np.inf, 0.0, 4.0])
+
+
+
+def _loaded_colour(tmp_path, steps: str) -> str:
+    """Run `steps` in a fresh interpreter; its last line says whether colour-science was loaded after each."""
+    import subprocess
+    import sys
+
+    code = "import sys, jaxpbr\nseen = ['colour' in sys.modules]\n" + steps + "print('loaded:', seen)\n"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=600, check=False)
+    assert run.returncode == 0, run.stderr
+    return run.stdout.splitlines()[-1]
+
+
+def test_import_jaxpbr_does_not_load_colour_science(tmp_path):
+    """colour-science takes about 1.5 s to import: `import jaxpbr` does not load it; the host-side
+    sRGB (`srgb_encode_np`) does."""
+    steps = "jaxpbr.color.srgb_encode_np([0.5])\nseen.append('colour' in sys.modules)\n"
+    assert _loaded_colour(tmp_path, steps) == "loaded: [False, True]"
+
+
+def test_demo_render_does_not_load_colour_science(tmp_path):
+    """The demo render encodes sRGB on the device: the command does not load colour-science."""
+    out = tmp_path / "demo.png"
+    steps = (
+        "from jaxpbr.cli import main\n"
+        f"assert main(['render', '-o', {str(out)!r}, '--width', '16', '--height', '8']) == 0\n"
+        "seen.append('colour' in sys.modules)\n"
+    )
+    assert _loaded_colour(tmp_path, steps) == "loaded: [False, False]" and out.is_file()
