@@ -593,8 +593,8 @@ EXT_ERRORS = {
     "coat_normal_without_coat": ('clearcoat_normal_texture = "flat_n.png"\n', "materials.gold.clearcoat_normal_texture: has no effect without clearcoat"),
     "thickness_texture_without_thickness": ('transmission = 1.0\nthickness_texture = "rgb.png"\n', "materials.gold.thickness_texture: has no effect without thickness, which defaults to 0 (KHR_materials_volume"),
     "coat_scale_alone": ("clearcoat = 1.0\nclearcoat_normal_scale = 2.0\n", "materials.gold.clearcoat_normal_scale: has no effect without clearcoat_normal_texture"),
-    "alpha_channel_missing": ('specular_texture = "rgb.png"\n', "materials.gold.specular_texture: '{dir}/rgb.png' has 3 channel(s); it must hold A = specular in an RGBA image"),
-    "alpha_channel_missing_sheen": ('sheen_roughness = 1.0\nsheen_roughness_texture = "rgb.png"\n', "it must hold A = sheen roughness in an RGBA image"),
+    "alpha_channel_missing": ('specular_texture = "rgb.png"\n', "materials.gold.specular_texture: '{dir}/rgb.png' has 3 channel(s); it must hold A = specular: an RGBA image"),
+    "alpha_channel_missing_sheen": ('sheen_roughness = 1.0\nsheen_roughness_texture = "rgb.png"\n', "it must hold A = sheen roughness: an RGBA image"),
     "texture_range_exr": ('transmission = 1.0\ntransmission_texture = "hot.exr"\n', "materials.gold.transmission_texture: transmission_texture must hold linear values in [0.0, 1.0]"),
     "missing_texture_file": ('clearcoat = 1.0\nclearcoat_texture = "nope.png"\n', "materials.gold.clearcoat_texture: file '{dir}/nope.png' does not exist"),
 }

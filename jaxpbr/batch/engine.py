@@ -17,13 +17,12 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import time
-import traceback
 from pathlib import Path
 
 from .._version import __version__
 from ..errors import InputError
 from .store import OutputFolder
-from .work import Worker
+from .work import Worker, failure
 
 __all__ = ["ENGINES", "order_jobs", "run_batch"]
 
@@ -103,7 +102,7 @@ def _run_local(jobs, folder: OutputFolder, report) -> None:
             try:
                 report(job.name, {"status": "done", "record": fut.result(), "attempts": 1})
             except Exception as e:  # noqa: BLE001 - a failed job is reported, the run goes on
-                report(job.name, _failed(e, 1))
+                report(job.name, failure(e, 1))
 
         try:
             for job in jobs:
@@ -117,7 +116,7 @@ def _run_local(jobs, folder: OutputFolder, report) -> None:
                         continue
                     computed = worker.compute(job)
                 except Exception as e:  # noqa: BLE001
-                    report(job.name, _failed(e, 1))
+                    report(job.name, failure(e, 1))
                     continue
                 if pending is not None:
                     settle(pending)
@@ -131,15 +130,6 @@ def _run_local(jobs, folder: OutputFolder, report) -> None:
                 except BaseException:
                     fut.cancel()
                     raise
-
-
-def _failed(e: BaseException, attempts: int) -> dict:
-    msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-    cause = f"{type(e).__name__}: {msg}" if not isinstance(e, InputError) else msg
-    out = {"status": "failed", "error": cause, "attempts": attempts}
-    if not isinstance(e, (InputError, MemoryError, OSError)):
-        out["traceback"] = "".join(traceback.format_exception(e))[-4000:]
-    return out
 
 
 def _summary(jobs, results: dict, *, engine: str, seconds: float, jobs_file) -> dict:

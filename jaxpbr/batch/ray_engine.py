@@ -22,7 +22,7 @@ import warnings
 
 from ..errors import InputError
 from .store import OutputFolder
-from .work import Worker
+from .work import Worker, failure
 
 __all__ = ["run_ray"]
 
@@ -39,15 +39,13 @@ class BatchActor:
         return os.getpid()
 
     def run_chunk(self, jobs, attempts: dict) -> list:
-        from .engine import _failed
-
         out = []
         for job in jobs:
             try:
                 rec = self.worker.run(job, attempt=attempts[job.name])
                 out.append((job.name, {"status": "done", "record": rec, "attempts": attempts[job.name]}))
             except Exception as e:  # noqa: BLE001 - reported per job, the chunk goes on
-                out.append((job.name, _failed(e, attempts[job.name])))
+                out.append((job.name, failure(e, attempts[job.name])))
         return out
 
 

@@ -20,6 +20,7 @@ import os
 import socket
 import sys
 import time
+import traceback
 from collections import OrderedDict
 from pathlib import Path
 
@@ -44,7 +45,7 @@ from ..shading.material import Material
 from .jobs import BakeJob, RenderJob
 from .store import OutputFolder
 
-__all__ = ["Worker", "display_transform"]
+__all__ = ["Worker", "display_transform", "failure"]
 
 #: Scenes and environments a worker keeps (least recently used dropped first).
 KEEP = 4
@@ -236,3 +237,13 @@ def _with_material(obj, fields: dict):
     if isinstance(m, TexturedMaterial):
         return obj.replace(material=m.replace(factors=m.factors.replace(**fields)))
     return obj
+
+
+def failure(e: BaseException, attempts: int) -> dict:
+    """A failed job's result: the cause in one line (and the traceback of an unexpected error)."""
+    msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    cause = f"{type(e).__name__}: {msg}" if not isinstance(e, InputError) else msg
+    out = {"status": "failed", "error": cause, "attempts": attempts}
+    if not isinstance(e, (InputError, MemoryError, OSError)):
+        out["traceback"] = "".join(traceback.format_exception(e))[-4000:]
+    return out

@@ -53,27 +53,18 @@ from .scene import (
 )
 from ..shading.brdf_terms import MODELS, OPTION_CHOICES
 from ..shading.lights import DirectionalLight, PointLight, SpotLight
-from ..shading.material import EXTENSION_FIELDS, Material
+from ..shading.material import EXTENSION_FIELDS, UNIT_FIELDS, Material
 
 __all__ = ["SceneFile", "hex_to_linear", "load_scene", "loads_scene"]
 
 # Keys of each table (the documented format; docs/scene_format.md).
 _TOP = ("render", "output", "camera", "scene", "environment", "lights", "materials", "objects")
-_RENDER = (
-    "model",
-    "multiscatter",
-    "smith",
-    "irradiance_size",
-    "irradiance_method",
-    "prefilter_size",
-    "prefilter_samples",
-    "lut_size",
-    "mapping",
-    "dtype",
-    "extract_lights",
-)
+# [render] is every RenderOptions keyword, [camera] every Camera field but the per-frame jitter, and
+# the [0, 1] factors are Material's own list: derived, so that a new option is in the format at once.
+_RENDER = tuple(f.name for f in dataclasses.fields(RenderOptions))
+_RENDER_BOOLEANS = tuple(f.name for f in dataclasses.fields(RenderOptions) if "bool" in str(f.type))
 _OUTPUT = ("exposure", "tonemap", "encoding")
-_CAMERA = ("position", "target", "up", "fov_y_deg", "width", "height", "supersample")
+_CAMERA = tuple(f.name for f in dataclasses.fields(Camera) if f.name != "jitter")
 _SCENE = ("background", "ambient")
 _ENVIRONMENT = ("file", "files", "face_size", "intensity", "rotation_deg", "show_background", "clamp_negative")
 _LIGHTS = {
@@ -85,10 +76,7 @@ _LIGHTS = {
 # are in degrees in the file (anisotropy_rotation_deg -> Material.anisotropy_rotation, radians).
 _EXT_FACTORS = {f: f for fs in EXTENSION_FIELDS.values() for f in fs}
 _EXT_FACTORS["anisotropy_rotation_deg"] = _EXT_FACTORS.pop("anisotropy_rotation")
-_UNIT_KEYS = (
-    "metallic", "roughness", "occlusion", "clearcoat", "clearcoat_roughness", "sheen_roughness", "specular",
-    "anisotropy_strength", "transmission",
-)
+_UNIT_KEYS = UNIT_FIELDS
 _TEXTURES = {
     # key: (decode sRGB for PNG, minimum channels, what it holds)
     "base_color_texture": (True, 3, "RGB base colour"),
@@ -96,18 +84,12 @@ _TEXTURES = {
     "occlusion_texture": (False, 1, "R = ambient occlusion"),
     "normal_texture": (False, 3, "a tangent-space normal map (n + 1)/2 in an RGB image"),
     "emissive_texture": (True, 3, "RGB emission"),
-    # The extensions' textures (KHR specs: sheen and specular colour are sRGB-encoded colour, the
-    # rest linear data).
-    "clearcoat_texture": (False, 1, "R = clear coat"),
-    "clearcoat_roughness_texture": (False, 2, "G = clear coat roughness in an RGB image"),
-    "clearcoat_normal_texture": (False, 3, "a tangent-space normal map (n + 1)/2 in an RGB image"),
-    "sheen_color_texture": (True, 3, "RGB sheen colour"),
-    "sheen_roughness_texture": (False, 4, "A = sheen roughness in an RGBA image"),
-    "specular_texture": (False, 4, "A = specular in an RGBA image"),
-    "specular_color_texture": (True, 3, "RGB specular colour"),
-    "anisotropy_texture": (False, 3, "RG = direction (d + 1)/2, B = strength in an RGB image"),
-    "transmission_texture": (False, 1, "R = transmission"),
-    "thickness_texture": (False, 2, "G = thickness in an RGB image"),
+}
+# The extensions' textures, from TexturedMaterial's table (the KHR specs: sheen and specular colour
+# are sRGB-encoded colour, the other extension textures linear data).
+_TEXTURES |= {
+    key: (any(ch == "rgb" for _field, ch in targets), n_min, what)
+    for key, (_group, n_min, targets, what) in EXTENSION_TEXTURES.items()
 }
 _MATERIAL = (
     ("base_color", "metallic", "roughness", "occlusion", "emissive")
@@ -417,7 +399,7 @@ class _Loader:
             p = _join("render", key)
             if key == "model":
                 out[key] = self.choice(x, p, MODELS)
-            elif key in ("multiscatter", "extract_lights"):
+            elif key in _RENDER_BOOLEANS:
                 out[key] = self.boolean(x, p)
             elif key == "smith":
                 out[key] = self.choice(x, p, OPTION_CHOICES["smith"])

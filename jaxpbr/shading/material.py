@@ -17,7 +17,8 @@ __all__ = ["EXTENSIONS", "EXTENSION_FIELDS", "Material", "F0_DIELECTRIC"]
 #: (glTF 2.0 Appendix B, LearnOpenGL `vec3(0.04)`).
 F0_DIELECTRIC = 0.04
 
-_UNIT_FIELDS = (
+#: Material fields that must lie in [0, 1] (the scene file checks them with the same list).
+UNIT_FIELDS = (
     "metallic",
     "roughness",
     "occlusion",
@@ -184,7 +185,7 @@ def _check_values(name: str, value: jax.Array) -> None:
         return
     if not np.all(np.isfinite(a)):
         raise ValueError(f"Material.{name} contains NaN or Inf; pass finite values.")
-    if name in _UNIT_FIELDS and (a.min(initial=0.0) < 0.0 or a.max(initial=0.0) > 1.0):
+    if name in UNIT_FIELDS and (a.min(initial=0.0) < 0.0 or a.max(initial=0.0) > 1.0):
         raise ValueError(
             f"Material.{name} must lie in [0, 1], got values in [{a.min():g}, {a.max():g}]; "
             f"clip it (roughness is perceptual r, not alpha = r^2)."
