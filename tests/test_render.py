@@ -1,5 +1,6 @@
 """Scene layer: geometry, textures, golden pixels, composition (plan + cache), batches, errors."""
 
+import dataclasses
 import math
 
 import jax
@@ -341,8 +342,8 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     img = np.asarray(jp.render(scene, options=ss))
     assert seen["levels"] == 3 and np.isfinite(img).all()
     # The truncated chain gives the same image as the full chain (lod <= 1.15 never reads beyond).
-    full = R._env_assets(env, R.dataclasses.replace(p, prefilter_levels=5), ss)
-    want = np.asarray(R._render_jit(scene, full, R.dataclasses.replace(p, prefilter_levels=5), ss))
+    full = R._env_assets(env, dataclasses.replace(p, prefilter_levels=5), ss)
+    want = np.asarray(R._render_jit(scene, full, dataclasses.replace(p, prefilter_levels=5), ss))
     np.testing.assert_allclose(img, want, rtol=1e-6, atol=1e-7)
     # A dielectric brings the irradiance map back.
     p2 = R.plan(scene.replace(objects=scene.objects + (jp.Sphere(center=(0, 2, 0), material=jp.Material(metallic=0.5, roughness=0.3)),)))

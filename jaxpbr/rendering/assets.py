@@ -1,0 +1,190 @@
+"""The IBL assets a plan reads (irradiance, prefiltered chain, split-sum LUT, suns, sheen tables),
+taken from the environment when it carries them and otherwise computed through the asset cache,
+and `bake`: an environment with all of them precomputed.
+
+A concrete environment's maps are computed once per content and parameters (concrete even under
+an outer jit / grad / vmap); a traced environment (differentiating wrt its texels) is precomputed
+inside the trace, differentiably, and never cached."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+
+from .. import _memory
+from .._api import keyword_only
+from .._numerics import is_concrete
+
+# called through the modules: tests count precompute calls
+from ..ibl import diffuse, specular
+from ..ibl.cubemap import Cubemap
+from ..shading import shipped_luts
+from .cache import ASSETS, content_key
+from .options import RenderOptions, _lut_smith, _options
+from .plan import RenderPlan, _asset_bytes, _charlie_size, _env_split, _prefilter_size
+from .scene import Environment
+
+
+def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
+    """(irradiance | None, prefiltered, lut, disc lights | None) for the plan, in the render dtype.
+
+    Maps the environment carries (`bake`, or loaded from disk) are used as they are. Missing ones
+    are computed: for a concrete environment through the content-addressed `ASSETS` cache (once
+    per environment content and parameters, concrete even under an outer jit / grad / vmap); for
+    a traced environment (differentiating wrt its texels) inside the trace, never cached."""
+    lights, env = _env_split(env, opts) if p.env_lights else (None, env)
+    key = _env_key(env, p)
+    return (
+        _asset_irradiance(env, p, opts, key), _asset_prefiltered(env, p, opts, key), _asset_lut(env, opts), lights,
+        _asset_sheen(env, p, opts),
+    )
+
+
+def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions):
+    """(sheen albedo table, Charlie-prefiltered cube) when the plan shades sheen under IBL, else None."""
+    if not p.charlie_size:
+        return None
+    dtype = jnp.dtype(opts.dtype)
+    table = env.sheen_lut
+    if table is None:
+        table = ASSETS.get("sheen_lut", (opts.lut_size, dtype.name), lambda: shipped_luts.sheen_lut(opts.lut_size))
+    charlie = env.charlie
+    if charlie is None:
+        from ..ibl import sheen_prefilter
+
+        src = env.radiance
+        compute = lambda: sheen_prefilter.prefilter_charlie(src, size=p.charlie_size)
+        if all(is_concrete(lv) for lv in src.levels):
+            charlie = ASSETS.get("charlie", (content_key(src), p.charlie_size), compute)
+        else:
+            charlie = compute()
+    return jnp.asarray(table, dtype), _in_dtype(charlie, opts)
+
+
+def _env_key(env: Environment, p: RenderPlan):
+    """The content key of a concrete environment with maps still to compute, else None."""
+    missing = (p.ibl_diffuse and env.irradiance is None) or env.prefiltered is None
+    if missing and all(is_concrete(lv) for lv in env.radiance.levels):
+        return content_key(env.radiance)
+    return None
+
+
+def _in_dtype(c, opts: RenderOptions):
+    dtype = jnp.dtype(opts.dtype)
+    if c is None or all(lv.dtype == dtype for lv in c.levels):
+        return c
+    return Cubemap([lv.astype(dtype) for lv in c.levels], c.info)
+
+
+def _asset_lut(env: Environment, opts: RenderOptions):
+    dtype = jnp.dtype(opts.dtype)
+    smith = _lut_smith(opts)
+    if env.lut is not None:
+        if env.lut_smith != smith:
+            raise ValueError(
+                f"the environment's LUT was baked for Smith variant {env.lut_smith!r}, but model "
+                f"{opts.model!r} reads a {smith!r} LUT; bake it with model={opts.model!r} (jaxpbr.bake)"
+            )
+        lut = env.lut
+    else:
+        lut = ASSETS.get(
+            "lut", (opts.lut_size, smith, dtype.name), lambda: shipped_luts.brdf_lut(opts.lut_size, smith=smith, dtype=dtype)
+        )
+    return jnp.asarray(lut, dtype)
+
+
+def _asset_irradiance(env: Environment, p: RenderPlan, opts: RenderOptions, key):
+    if not p.ibl_diffuse:
+        return None
+    irr = env.irradiance
+    if irr is None:
+        src = env.radiance
+        params = (opts.irradiance_size, opts.irradiance_method)
+        compute = lambda: diffuse.irradiance(src, opts.irradiance_size, method=opts.irradiance_method)
+        irr = compute() if key is None else ASSETS.get("irradiance", (key,) + params, compute)
+    return _in_dtype(irr, opts)
+
+
+def _asset_prefiltered(env: Environment, p: RenderPlan, opts: RenderOptions, key):
+    pre = env.prefiltered
+    if pre is None:
+        src = env.radiance
+        params = (p.prefilter_size, p.prefilter_levels, p.mapping_levels, opts.mapping, opts.prefilter_samples)
+
+        def compute():
+            kw = {} if opts.prefilter_samples is None else {"samples": opts.prefilter_samples}
+            return specular.prefilter(
+                src,
+                p.prefilter_size,
+                num_levels=p.mapping_levels,
+                max_level=p.prefilter_levels - 1,
+                mapping=opts.mapping,
+                **kw,
+            )
+
+        if key is None:
+            pre = compute()
+        else:
+            # A longer chain of the same map already cached: its first levels are this one.
+            longer = ASSETS.find(
+                "prefilter", lambda k: k[0] == key and k[1] == params[0] and k[3:] == params[2:] and k[2] > params[1]
+            )
+            if longer is not None:
+                pre = Cubemap(longer.levels[: p.prefilter_levels], longer.info)
+            else:
+                pre = ASSETS.get("prefilter", (key,) + params, compute)
+    return _in_dtype(pre, opts)
+
+
+@keyword_only("options")
+def bake(environment: Environment, *, options: RenderOptions | None = None, sheen: bool = False, **overrides) -> Environment:
+    """The environment with every IBL asset a render can need precomputed: the irradiance map, the
+    whole prefiltered chain (all roughnesses) and the split-sum LUT of the model's Smith variant.
+
+        env = jaxpbr.bake(jaxpbr.Environment(radiance=cube))
+        step = jax.jit(jax.value_and_grad(lambda m: loss(jaxpbr.render(scene(m, env)))))
+
+    A render of a scene with a baked environment precomputes nothing, under `jit`, `grad` and
+    `vmap` alike, and the baked environment is a pytree that can be passed into a jitted function
+    as an argument (or closed over as a constant). Maps the environment already carries are kept.
+    options, **overrides: as for `render` (irradiance_size / _method, prefilter_size / _samples,
+    mapping, lut_size, dtype, and the model, which picks the LUT's Smith variant); a render
+    with a model reading another LUT raises.
+
+    For a concrete environment the assets come from (and go into) the content-addressed cache
+    `ASSETS`: baking the same texels twice computes once. A traced environment (differentiating
+    with respect to its texels) is baked inside the trace, differentiably, and not cached.
+
+    sheen: also bake what KHR_materials_sheen reads under IBL, the Charlie-prefiltered cube and the
+    sheen albedo table (`Environment.charlie`, `.sheen_lut`). Off by default: the cube costs ~5x the
+    GGX prefilter, and a render of a sheen material on an environment without it computes (and
+    caches) it then.
+    """
+    if not isinstance(environment, Environment):
+        raise TypeError(f"bake expects a jaxpbr.Environment, got {type(environment).__name__}")
+    opts = _options(options, overrides, "bake")
+    size = _prefilter_size(environment, opts)
+    if environment.prefiltered is not None:
+        levels = environment.prefiltered.num_levels
+        M = int(environment.prefiltered.metadata.get("mapping_levels", levels))
+    else:
+        levels = M = specular.default_num_levels(size)
+    probe = RenderPlan(direct=False, ibl=True, ibl_diffuse=True, env_background=False, emissive=False, textured=(),
+                       normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels, mapping_levels=M, env_lights=0)
+    _memory.require("baking the environment", _asset_bytes(environment, probe, opts, "bake"), where="bake")  # before any work
+    lights = _env_split(environment, opts)[0]
+    full = RenderPlan(
+        direct=False, ibl=True, ibl_diffuse=True, env_background=environment.show_background, emissive=False,
+        textured=(), normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels,
+        mapping_levels=M, env_lights=0 if lights is None else len(lights),
+    )
+    if sheen:
+        full = dataclasses.replace(full, extensions=("sheen",), charlie_size=_charlie_size(environment))
+    irr, pre, lut, lights, sheen_assets = _env_assets(environment, full, opts)
+    table, charlie = sheen_assets if sheen_assets is not None else (environment.sheen_lut, environment.charlie)
+    return environment.replace(
+        irradiance=irr, prefiltered=pre, lut=lut, lut_smith=_lut_smith(opts), lights=lights, charlie=charlie,
+        sheen_lut=table,
+    )
+

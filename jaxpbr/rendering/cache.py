@@ -1,0 +1,146 @@
+"""`AssetCache`: the content-addressed cache of precomputed IBL maps (memory, optionally a
+directory), and `content_key`, the SHA-1 of an environment's texels that keys it.
+
+`ASSETS` is the process's default cache; the renderer uses it unless a call passes its own."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import threading
+from collections import OrderedDict
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from .._numerics import outside_traces, remember_per_array
+from .._version import __version__
+from ..ibl.cubemap import Cubemap
+from ..io.atomic import atomic_write
+
+
+class AssetCache:
+    """LRU cache of precomputed IBL maps keyed by (environment content hash, kind, parameters).
+
+    It only ever holds concrete arrays: `get` runs the precompute outside any trace
+    (`_numerics.outside_traces`), and the renderer caches nothing for a traced environment.
+
+    `stats[kind]` counts hits and misses ("irradiance", "prefilter", "lut"), which is how tests
+    and users check what a render actually computed.
+
+    `directory`: optionally a folder where computed cube maps are also kept across processes
+    (`use_directory`; the command line turns it on, under the user's cache dir): a map found
+    there is loaded instead of computed. Files are keyed by the SHA-1 of (kind, key, jaxpbr and
+    jax versions), written atomically, and a file that cannot be read is recomputed; failing to
+    write one never fails the render. `stats[kind]["disk"]` counts the maps loaded from it.
+    """
+
+    DISK_KINDS = ("irradiance", "prefilter")
+
+    def __init__(self, maxsize: int = 16, directory=None):
+        self.maxsize = maxsize
+        self._store: OrderedDict = OrderedDict()
+        self.stats: dict[str, dict[str, int]] = {}
+        self.directory = None if directory is None else Path(directory)
+        # The renderer fills the cache from worker threads: the store and the counters are
+        # updated under this lock (the precomputes themselves run outside it, concurrently).
+        self._lock = threading.RLock()
+
+    def use_directory(self, directory) -> None:
+        """Keep computed maps in `directory` too (None: memory only)."""
+        self.directory = None if directory is None else Path(directory)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._store.clear()
+            self.stats.clear()
+
+    def find(self, kind: str, match):
+        """A cached value of `kind` whose key satisfies match(key), counted as a hit; else None."""
+        with self._lock:
+            for (k, key), value in self._store.items():
+                if k == kind and match(key):
+                    self.stats.setdefault(kind, {"hits": 0, "misses": 0})["hits"] += 1
+                    return value
+        return None
+
+    def get(self, kind: str, key, compute):
+        full = (kind, key)
+        with self._lock:
+            st = self.stats.setdefault(kind, {"hits": 0, "misses": 0})
+            if full in self._store:
+                st["hits"] += 1
+                self._store.move_to_end(full)
+                return self._store[full]
+            st["misses"] += 1
+        # Loaded on another thread too: inside a caller's trace device_put returns a tracer.
+        value = outside_traces(lambda: self._load(kind, key))
+        if value is not None:
+            with self._lock:
+                st["disk"] = st.get("disk", 0) + 1
+        else:
+            # On another thread: a compute that closed over a tracer raises UnexpectedTracerError
+            # there instead of returning it, so the store never holds one.
+            value = outside_traces(compute)
+            self._save(kind, key, value)
+        with self._lock:
+            self._store[full] = value
+            while len(self._store) > self.maxsize:
+                self._store.popitem(last=False)
+        return value
+
+    def _path(self, kind, key):
+        if self.directory is None or kind not in self.DISK_KINDS:
+            return None
+        name = hashlib.sha1(repr((kind, key, __version__, jax.__version__)).encode()).hexdigest()
+        return self.directory / f"{kind}-{name}.npz"
+
+    def _load(self, kind, key):
+        path = self._path(kind, key)
+        if path is None or not path.is_file():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                n = int(z["num_levels"])
+                levels = [jax.device_put(z[f"level{i}"]) for i in range(n)]
+                info = json.loads(str(z["info"]))
+            return Cubemap(levels, info)
+        except Exception:  # noqa: BLE001 -- unreadable or from an incompatible writer: compute it again
+            return None
+
+    def _save(self, kind, key, value) -> None:
+        path = self._path(kind, key)
+        if path is None or not isinstance(value, Cubemap):
+            return
+        arrays = {f"level{i}": np.asarray(lv) for i, lv in enumerate(value.levels)}
+        arrays["num_levels"] = np.asarray(len(value.levels))
+        arrays["info"] = np.asarray(json.dumps(dict(value.info)))
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
+        except OSError:  # full disk, read-only cache dir: the render goes on uncached
+            pass
+
+
+ASSETS = AssetCache()
+
+
+_KEYS: dict = {}  # (id(level-0 array), "sha1") -> (weakref to it, content key)
+
+
+def content_key(cube: Cubemap) -> str:
+    """SHA-1 of a cube map's level-0 texels, shape and dtype (what its precomputes depend on).
+
+    Remembered per array object (arrays are immutable), so rendering the same environment again
+    neither copies it to the host nor hashes it again."""
+    lv = cube.levels[0]
+
+    def digest():
+        a = np.ascontiguousarray(np.asarray(lv))
+        h = hashlib.sha1(a.tobytes())
+        h.update(repr((a.shape, str(a.dtype))).encode())
+        return h.hexdigest()
+
+    return remember_per_array(_KEYS, lv, "sha1", digest)
+

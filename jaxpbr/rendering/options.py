@@ -1,0 +1,108 @@
+"""`RenderOptions`: the static options of a render (hashable; part of each compiled program's
+identity), and how a call's `options=` value and keyword overrides combine into one."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .._validate import positive_int
+from ..shading.brdf_terms import MODEL_REGISTRY, check_options
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderOptions:
+    """Static render options (hashable; part of the compiled program's identity).
+
+    model: a `brdf_terms.MODEL_REGISTRY` name, "gltf" | "learnopengl" (direct BRDF and IBL
+        combination; each model's IBL reads the LUT of its `lut_smith`, "schlick_ggx" for learnopengl).
+    multiscatter: Fdez-Aguera energy compensation of the IBL term (None, the default: on for the
+        gltf model, as the Khronos glTF Sample Viewer, three.js and Filament render glTF assets;
+        rough metals are otherwise up to ~2.8x darker than in those viewers. False gives the
+        single-scattering glTF BRDF that the float64 references (and Mitsuba) integrate. gltf only:
+        True with another model raises ValueError). The suns split out of the environment get the
+        same compensation (`ibl.multiscatter_weight` times their irradiance); punctual lights none (as the
+        Sample Viewer and three.js; Filament compensates direct lights too).
+    smith: gltf only: "correlated" (the glTF spec, default) or "separable" Smith-GGX G2, for the
+        direct lighting (`brdf(smith=)`) and the IBL term alike (the split-sum LUT of that G,
+        computed on first use: only the correlated and Schlick-GGX tables are shipped).
+    irradiance_size / irradiance_method: `jaxpbr.irradiance` parameters (exact convolution default).
+    prefilter_size: face size of the prefiltered map (default: min(env face size, 128), a
+        power-of-two divisor of it); prefilter_samples: `jaxpbr.prefilter` samples (None = default).
+    lut_size: split-sum LUT resolution (shipped 128 / 256 load instantly).
+    mapping: roughness -> mip mapping of the prefiltered map ("linear" | "quadratic").
+    dtype: float32 | float64 for the shading: a name, a NumPy or a JAX dtype (stored as its name).
+    extract_lights: split dominant lights (suns) out of a concrete environment whose maps are
+        computed here (`jaxpbr.ibl.extract.extract_lights`, defaults), shade them as analytic disc
+        lights and the residual with the split sum (default True; the split sum alone is off by
+        30-60 % on metals under a sun, issue 11). Once per environment content (cached). An
+        environment with given maps uses its own `lights` (None: nothing is split).
+    shadows: shadow rays from every lit pixel towards each light and each sun split out of the
+        environment (`jaxpbr.rendering.shadows`; hard-edged). None (default): on for scenes with
+        meshes (glTF assets), off for scenes of spheres and planes only; True / False force it.
+        Image-based lighting itself is not shadowed (the materials' occlusion textures darken it).
+    """
+
+    model: str = "gltf"
+    multiscatter: bool | None = None
+    smith: str = "correlated"
+    irradiance_size: int = 32
+    irradiance_method: str = "exact"
+    prefilter_size: int | None = None
+    prefilter_samples: int | None = None
+    lut_size: int = 128
+    mapping: str = "linear"
+    dtype: str = "float32"
+    extract_lights: bool = True
+    shadows: bool | None = None
+
+    @property
+    def compensates(self) -> bool:
+        """Whether the IBL term is compensated for multiple scattering: `multiscatter`, or when it
+        is None the model's default (on for gltf, the models with the option)."""
+        if self.multiscatter is not None:
+            return bool(self.multiscatter)
+        spec = MODEL_REGISTRY.get(self.model)
+        return spec is not None and "multiscatter" in spec.ibl_options
+
+    def __post_init__(self):
+        # multiscatter=None stays None (the model's default, resolved by `compensates`), so that
+        # replacing only the model keeps meaning "the model's default".
+        check_options(self.model, multiscatter=bool(self.compensates), smith=self.smith)
+        try:
+            name = np.dtype(self.dtype).name  # "float32", np.float64, jnp.float32, np.dtype(...)
+        except TypeError:
+            name = None
+        if name not in ("float32", "float64"):
+            raise ValueError(f"dtype must be float32 or float64 (a name, NumPy or JAX dtype), got {self.dtype!r}")
+        object.__setattr__(self, "dtype", name)  # normalised: equal options hash alike
+        for name in ("irradiance_size", "lut_size"):
+            positive_int(name, getattr(self, name))
+
+
+_OPTION_FIELDS = tuple(f.name for f in dataclasses.fields(RenderOptions))
+
+
+def _options(options, overrides: dict, fn: str) -> RenderOptions:
+    """`options` (a RenderOptions, or None for the defaults) with the keyword `overrides` applied
+    on top (`dataclasses.replace`, so the result is validated again)."""
+    if options is not None and not isinstance(options, RenderOptions):
+        raise TypeError(
+            f"{fn}: options must be a jaxpbr.RenderOptions, got {type(options).__name__}; pass "
+            f"options=RenderOptions(...), or the fields as keywords, e.g. {fn}(scene, model='gltf')"
+        )
+    unknown = sorted(set(overrides) - set(_OPTION_FIELDS))
+    if unknown:
+        raise TypeError(f"{fn}: unknown render option(s) {unknown}; the RenderOptions fields are {list(_OPTION_FIELDS)}")
+    if options is None:
+        return RenderOptions(**overrides)
+    return dataclasses.replace(options, **overrides) if overrides else options
+
+
+def _lut_smith(opts: RenderOptions) -> str:
+    """The LUT's Smith term: the model's (`MODEL_REGISTRY`), or the separable Smith-GGX when the
+    direct lighting uses it, so that both terms of a render shade with one G."""
+    return "separable" if opts.smith == "separable" else MODEL_REGISTRY[opts.model].lut_smith
+
+

@@ -1,0 +1,591 @@
+"""The stages of a render, as traced functions and as separately compiled programs: geometry
+(the G-buffer: ray casts, surfaces, materials), each textured object, direct lighting, IBL +
+background; BLEND layers composited; one pass per sub-pixel sample; `gbuffer`.
+
+Shading = `shade_direct` (punctual lights, emissive) + `Environment.intensity * shade_ibl` (split
+sum) on the first surface hit, with shadow rays when the plan asks for them; misses show the
+environment at mip 0 (or `Scene.background`)."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._api import keyword_only
+from .._numerics import pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from .._pytree import evolve, fields_of, unchecked
+from ..ibl.shade import disc_multiscatter, shade_ibl
+from ..shading.layered import emission_soa
+from ..shading.lights import shade_direct
+from ..shading.material import Material
+from . import texture
+from .mesh import Mesh, cast, concat_meshes, mesh_surface
+from .options import RenderOptions, _options
+from .plan import RenderPlan, plan
+from .scene import (
+    Plane,
+    Scene,
+    Sphere,
+    TexturedMaterial,
+    TextureSlot,
+    apply_extension_textures,
+    intersect_plane,
+    intersect_sphere,
+    primary_rays,
+    sample_texture,
+)
+from .shadows import shadow_visibility
+
+#: Up to this many spheres the ray cast is unrolled (fused by XLA); beyond, a fori_loop.
+UNROLL_MAX_SPHERES = 8
+
+
+def _stack_materials(objects, dtype, extensions=()):
+    """Per-object constant materials (textured objects contribute their factors), leaves (K, ...).
+    The extension groups in `extensions` are completed with their neutral values on every object
+    (one material structure for all pixels); other extension fields are left out (None)."""
+    mats = [ob.material.factors if isinstance(ob.material, TexturedMaterial) else ob.material for ob in objects]
+    mats = [m.complete(extensions) for m in mats]
+    out = {}
+    for f in fields_of(Material):
+        if getattr(mats[0], f.name) is None:
+            continue
+        tail = (3,) * f.rank  # RGB
+        out[f.name] = jnp.stack([jnp.broadcast_to(jnp.asarray(getattr(m, f.name), dtype), tail) for m in mats])
+    return out
+
+
+def _gather_material(stack, idx) -> Material:
+    return unchecked(Material, **{f.name: (stack[f.name][idx] if f.name in stack else None) for f in fields_of(Material)})
+
+
+def _cast(objects, o, d, dtype):
+    """Nearest hit over all objects: (t, idx, hit), memory O(pixels)."""
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    shape = d[0].shape
+    t_best = jnp.full(shape, big, dtype)
+    idx = jnp.zeros(shape, jnp.int32)
+    spheres = [k for k, ob in enumerate(objects) if isinstance(ob, Sphere)]
+    planes = [k for k, ob in enumerate(objects) if isinstance(ob, Plane)]
+
+    def take(t, ok, k, t_best, idx):
+        better = ok & (t < t_best)
+        return jnp.where(better, t, t_best), jnp.where(better, k, idx)
+
+    if len(spheres) <= UNROLL_MAX_SPHERES:
+        for k in spheres:
+            c = tuple(jnp.asarray(objects[k].center, dtype)[i] for i in range(3))
+            t, ok = intersect_sphere(o, d, c, jnp.asarray(objects[k].radius, dtype))
+            t_best, idx = take(t, ok, k, t_best, idx)
+    else:
+        centers = jnp.stack([jnp.asarray(objects[k].center, dtype) for k in spheres])
+        radii = jnp.stack([jnp.asarray(objects[k].radius, dtype) for k in spheres])
+        ids = jnp.asarray(spheres, jnp.int32)
+
+        def body(i, carry):
+            c = tuple(centers[i, j] for j in range(3))
+            t, ok = intersect_sphere(o, d, c, radii[i])
+            return take(t, ok, ids[i], *carry)
+
+        t_best, idx = jax.lax.fori_loop(0, len(spheres), body, (t_best, idx))
+    for k in planes:
+        pt = tuple(jnp.asarray(objects[k].point, dtype)[i] for i in range(3))
+        nn = tuple(jnp.asarray(objects[k].normal, dtype)[i] for i in range(3))
+        t, ok = intersect_plane(o, d, pt, nn)
+        t_best, idx = take(t, ok, k, t_best, idx)
+    hit = t_best < big
+    return jnp.where(hit, t_best, 0.0), idx, hit
+
+
+def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
+    """Position, geometric normal (facing the viewer for planes), and if asked uv + tangent."""
+    K = len(objects)
+    is_plane = jnp.asarray([isinstance(ob, Plane) for ob in objects])
+    anchor = jnp.stack([jnp.asarray(ob.center if isinstance(ob, Sphere) else ob.point, dtype) for ob in objects])
+    pn = jnp.stack(
+        [jnp.asarray(ob.normal, dtype) if isinstance(ob, Plane) else jnp.zeros(3, dtype) for ob in objects]
+    )
+    p = tuple(o[i] + t * d[i] for i in range(3))
+    a = tuple(anchor[:, i][idx] if K > 1 else anchor[0, i] for i in range(3))
+    rel = tuple(p[i] - a[i] for i in range(3))
+    n_sph = vnormalize(rel)
+    plane_px = is_plane[idx] if K > 1 else is_plane[0]
+    n_pl = vnormalize(tuple((pn[:, i][idx] if K > 1 else pn[0, i]) for i in range(3)))
+    facing = jnp.where(vdot(n_pl, d) > 0, -1.0, 1.0)  # planes are two-sided
+    n_pl = tuple(c * facing for c in n_pl)
+    n = tuple(jnp.where(plane_px, n_pl[i], n_sph[i]) for i in range(3))
+    if not need_uv:
+        return p, n, None, None
+    # Sphere: u = 0.5 + atan2(x, z)/(2 pi), v = 0.5 - atan2(y, rho)/pi, T = (z, 0, -x)/rho.
+    x, y, z = n_sph
+    rho2 = x * x + z * z
+    ok = rho2 > small_sq(rho2.dtype)  # off the poles, where atan2 and T are defined
+    rho = jnp.sqrt(jnp.where(ok, rho2, 1.0))
+    u_s = 0.5 + jnp.arctan2(jnp.where(ok, x, 0.0), jnp.where(ok, z, 1.0)) / (2 * math.pi)
+    v_s = 0.5 - jnp.arctan2(y, jnp.where(ok, rho, 0.0)) / math.pi
+    t_s = (jnp.where(ok, z / rho, 1.0), jnp.zeros_like(x), jnp.where(ok, -x / rho, 0.0))
+    # Plane: T = tangent, B = N x T (with the un-flipped normal), uv = (rel.T, -rel.B) * scale.
+    tan = jnp.stack(
+        [jnp.asarray(ob.tangent, dtype) if isinstance(ob, Plane) else jnp.zeros(3, dtype) for ob in objects]
+    )
+    scale = jnp.stack([jnp.asarray(ob.uv_scale if isinstance(ob, Plane) else 1.0, dtype) for ob in objects])
+    t_p = vnormalize(tuple((tan[:, i][idx] if K > 1 else tan[0, i]) for i in range(3)))
+    n_raw = tuple(c * facing for c in n_pl)
+    tn = vdot(t_p, n_raw)
+    t_p = vnormalize(tuple(t_p[i] - tn * n_raw[i] for i in range(3)))
+    b_p = vcross(n_raw, t_p)
+    sc = scale[idx] if K > 1 else scale[0]
+    u_p = vdot(rel, t_p) * sc
+    v_p = -vdot(rel, b_p) * sc
+    u = jnp.where(plane_px, u_p, u_s)
+    v = jnp.where(plane_px, v_p, v_s)
+    tangent = tuple(jnp.where(plane_px, t_p[i], t_s[i]) for i in range(3))
+    return p, n, (u, v), tangent
+
+
+def _lookup(x, *, uv, uv1, duv, dtype):
+    """Samples (..., C) of a material texture: a `TextureSlot` filtered by its footprint (its
+    texture-coordinate set, KHR_texture_transform, mips, sampler), a plain array bilinearly."""
+    if not isinstance(x, TextureSlot):
+        return sample_texture(jnp.asarray(x, dtype), uv[0], uv[1])
+    s = x.texcoord
+    st = jnp.stack(uv if s == 0 or uv1 is None else uv1, -1)
+    if duv is None:
+        dx = dy = jnp.zeros_like(st)
+    else:
+        dx, dy = duv[s]
+    if x.transform is not None:
+        st, dx, dy = texture.apply_texture_transform(jnp.asarray(x.transform, dtype), st, dx, dy)
+    return texture.sample(_cast_floats(x.texture, dtype), st, dx, dy)
+
+
+def _apply_texture(objects, k, idx, uv, tangent, n, m: Material, dtype, coat_n=None, aniso_t=None, tangent_w=None, uv1=None, duv=None, alpha=None):
+    """Override the gathered constant material (and normal) on the pixels of textured object k;
+    with the extension textures (`scene.apply_extension_textures`) also the clear-coat normal and
+    the anisotropy direction. Returns (material, normal, coat normal | None, anisotropy direction
+    | None); the surface tangent itself is left as it is (normal maps are in its frame)."""
+    u, v = uv
+    base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
+    lookup = functools.partial(_lookup, uv=uv, uv1=uv1, duv=duv, dtype=dtype)
+    if True:
+        tm = objects[k].material
+        f = tm.factors
+        sel = idx == k
+        if tm.base_color_texture is not None:
+            tex4 = lookup(tm.base_color_texture)
+            if alpha is not None and tex4.shape[-1] == 4 and getattr(objects[k], "alpha_mode", "OPAQUE") == "BLEND":
+                alpha = jnp.where(sel, alpha * tex4[..., 3], alpha)
+            tex = tex4[..., :3]
+            base = jnp.where(sel[..., None], jnp.asarray(f.base_color, dtype) * tex, base)
+        if tm.metallic_roughness_texture is not None:
+            tex = lookup(tm.metallic_roughness_texture)[..., 1:3]
+            rough = jnp.where(sel, jnp.asarray(f.roughness, dtype) * tex[..., 0], rough)
+            metallic = jnp.where(sel, jnp.asarray(f.metallic, dtype) * tex[..., 1], metallic)
+        if tm.occlusion_texture is not None:
+            tex = lookup(tm.occlusion_texture)[..., :1]
+            occ = jnp.where(sel, jnp.asarray(f.occlusion, dtype) * tex[..., 0], occ)
+        if tm.emissive_texture is not None:
+            tex = lookup(tm.emissive_texture)[..., :3]
+            emis = jnp.where(sel[..., None], jnp.asarray(f.emissive, dtype) * tex, emis)
+        if tm.extension_textures:
+            m = evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis)
+            m, cn, tan_k = apply_extension_textures(tm, m, u, v, sel, n, tangent, dtype=dtype, lookup=lookup)
+            base, metallic, rough, occ, emis = m.base_color, m.metallic, m.roughness, m.occlusion, m.emissive
+            if cn is not None:
+                prev = n if coat_n is None else coat_n
+                coat_n = tuple(jnp.where(sel, cn[i], prev[i]) for i in range(3))
+            if tan_k is not None:  # the anisotropy direction (the normal map keeps the surface frame)
+                prev = tangent if aniso_t is None else aniso_t
+                aniso_t = tuple(jnp.where(sel, tan_k[i], prev[i]) for i in range(3))
+        if tm.normal_texture is not None:
+            tex = lookup(tm.normal_texture)[..., :3]
+            s = jnp.asarray(tm.normal_scale, dtype)
+            tx, ty, tz = (2.0 * tex[..., 0] - 1.0) * s, (2.0 * tex[..., 1] - 1.0) * s, 2.0 * tex[..., 2] - 1.0
+            # Gram-Schmidt T against the normal, B = w (N x T) (glTF; w = +1 off meshes).
+            tn = vdot(tangent, n)
+            T = vnormalize(tuple(tangent[i] - tn * n[i] for i in range(3)))
+            B = vcross(n, T)
+            if tangent_w is not None:
+                B = tuple(tangent_w * c for c in B)
+            pert = vnormalize(tuple(T[i] * tx + B[i] * ty + n[i] * tz for i in range(3)))
+            n = tuple(jnp.where(sel, pert[i], n[i]) for i in range(3))
+    return evolve(m, base_color=base, metallic=metallic, roughness=rough, occlusion=occ, emissive=emis), n, coat_n, aniso_t, alpha
+
+
+def _cast_floats(tree, dtype):
+    """Floating leaves of a pytree cast to the render dtype (user inputs may be float64 under x64)."""
+    return jax.tree_util.tree_map(
+        lambda x: jnp.asarray(x, dtype) if jnp.issubdtype(jnp.result_type(x), jnp.floating) else x, tree
+    )
+
+
+def _rotate_y(d, angle):
+    """R_y(angle) applied to Vec3 d: (c x + s z, y, -s x + c z)."""
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    return (c * d[0] + s * d[2], d[1], -s * d[0] + c * d[2])
+
+
+def _shade_direct(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g):
+    """Direct lighting + ambient + emissive (H, W, 3), or None when the plan has none of them."""
+    dtype = jnp.dtype(opts.dtype)
+    pos, n, view, m = g["pos"], g["n"], g["view"], g["m"]
+    if p_plan.direct:
+        lights = _cast_floats(list(scene.lights), dtype)
+        kw = _layer_kwargs(g, m, dtype) if p_plan.extensions else {}
+        kw.pop("transmit_direction", None)
+        if "vis" in g:
+            kw["visibility"] = g["vis"]
+        return shade_direct(pack3(pos), pack3(n), pack3(view), m, lights, model=opts.model, ambient=scene.ambient, smith=opts.smith, **kw)
+    out = None
+    if scene.ambient:
+        out = scene.ambient * m.base_color * m.occlusion[..., None]
+    if p_plan.emissive:
+        e = emission_soa(m, g["n"], g["view"], g.get("coat_n"))
+        out = e if out is None else out + e
+    return out
+
+
+def _mesh_arrays(scene: Scene, dtype):
+    """The scene's meshes concatenated (`mesh.concat_meshes`), or None without meshes."""
+    meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
+    return concat_meshes(meshes, dtype) if meshes else None
+
+
+def _layer_kwargs(g, m: Material, dtype) -> dict:
+    """The per-pixel inputs of the material extensions (world space) from the G-buffer."""
+    kw = {}
+    if "anisotropy" in m.extensions and g.get("tangent") is not None:
+        kw["tangent"] = pack3(g.get("aniso_t", g["tangent"]))
+    if "clearcoat" in m.extensions and g.get("coat_n") is not None:
+        kw["coat_normal"] = pack3(g["coat_n"])
+    dist, d_t = _volume_inputs(g, m, dtype)
+    if dist is not None:
+        kw["volume_distance"] = dist
+        kw["transmit_direction"] = d_t
+    return kw
+
+
+def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, direct):
+    """direct + environment IBL on hits, background elsewhere -> (H, W, 3)."""
+    dtype = jnp.dtype(opts.dtype)
+    n, view, m, hit, ray_dir = g["n"], g["view"], g["m"], g["hit"], g["ray"]
+    shape = hit.shape
+    out = direct
+    env = scene.environment
+    if p_plan.ibl:
+        irr, pre, lut, env_lights, sheen = assets
+        rot = -jnp.asarray(env.rotation, dtype)
+        n_e = pack3(_rotate_y(n, rot))
+        v_e = pack3(_rotate_y(view, rot))
+        kw = {}
+        if p_plan.extensions:
+            # Vector inputs of the extensions in the environment's frame.
+            kw = {k: (pack3(_rotate_y(unpack3(x), rot)) if k in ("tangent", "coat_normal", "transmit_direction") else x)
+                  for k, x in _layer_kwargs(g, m, dtype).items()}
+        sheen_kw = {} if sheen is None else {"sheen_lut": sheen[0], "charlie": sheen[1]}
+        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, **kw, **sheen_kw)
+        if p_plan.env_lights:
+            # The suns split out of the environment, as disc lights in its frame (emission is
+            # added once, by the direct stage).
+            ls = _cast_floats(list(env_lights), dtype)
+            dark = evolve(m, emissive=jnp.zeros_like(m.emissive))
+            zero = jnp.zeros_like(n_e)
+            kw.pop("transmit_direction", None)
+            sheen_kw.pop("charlie", None)
+            if "vis_env" in g:
+                kw["visibility"] = g["vis_env"]
+            ibl = ibl + shade_direct(zero, n_e, v_e, dark, ls, model=opts.model, smith=opts.smith, disc_lights=True, **kw, **sheen_kw)
+            if opts.compensates:
+                ibl = ibl + disc_multiscatter(n_e, v_e, m, lut, ls, visibility=kw.get("visibility"))
+        ibl = jnp.asarray(env.intensity, dtype) * ibl
+        out = ibl if out is None else out + ibl
+    if out is None:
+        out = jnp.zeros(shape + (3,), dtype)
+    if p_plan.env_background:
+        bg_dir = pack3(_rotate_y(ray_dir, -jnp.asarray(env.rotation, dtype)))
+        bg = jnp.asarray(env.intensity, dtype) * env.radiance.sample(bg_dir.astype(env.radiance.dtype), 0.0).astype(dtype)
+    else:
+        bg = jnp.broadcast_to(jnp.asarray(scene.background, dtype), shape + (3,))
+    return jnp.where(hit[..., None], out, bg)
+
+
+def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim=None):
+    """G-buffer of the scene (dict of Vec3 / arrays), before textures."""
+    dtype = jnp.dtype(opts.dtype)
+    if scene.gbuffer is not None:
+        gb = scene.gbuffer
+        view = vnormalize(unpack3(jnp.asarray(gb.view, dtype)))
+        return {
+            "pos": unpack3(jnp.asarray(gb.position, dtype)),
+            "n": vnormalize(unpack3(jnp.asarray(gb.normal, dtype))),
+            "view": view,
+            "m": jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), gb.material),
+            "hit": gb.hit,
+            "ray": tuple(-c for c in view),
+        }
+    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    o, d = unpack3(o_px), unpack3(d_px)
+    objects = scene.objects
+    ext = p_plan.extensions
+    need_uv = bool(p_plan.textured) or "anisotropy" in ext
+    analytic = [k for k, ob in enumerate(objects) if not isinstance(ob, Mesh)]
+    meshes = [k for k, ob in enumerate(objects) if isinstance(ob, Mesh)]
+    tw = None
+    if analytic:
+        sub = [objects[k] for k in analytic]
+        t, idx, hit = _cast(sub, o, d, dtype)
+        pos, n, uv, tangent = _surface(sub, o, d, t, idx, dtype, need_uv)
+        n_an = n
+        idx = jnp.asarray(analytic, jnp.int32)[idx] if len(analytic) < len(objects) else idx
+    if meshes:
+        arrays = concat_meshes([objects[k] for k in meshes], dtype)
+        if prim is None:  # (BLEND layers pass the layer's primitives, cast once for all layers)
+            prim = cast(arrays, o_px, d_px)
+        ddir = _ray_differentials(scene.camera, d, dtype) if need_uv else None
+        ms = mesh_surface(arrays, prim, o, d, need_uv=need_uv, ddir=ddir)
+        on_mesh = prim >= 0
+        idx_m = jnp.asarray(meshes, jnp.int32)[ms["object"]]
+        if analytic:
+            on_mesh = on_mesh & (~hit | (ms["t"] < t))
+            pick = lambda a, b: tuple(jnp.where(on_mesh, a[i], b[i]) for i in range(len(a)))
+            t, idx, hit = jnp.where(on_mesh, ms["t"], t), jnp.where(on_mesh, idx_m, idx), hit | on_mesh
+            pos, n = pick(ms["pos"], pos), pick(ms["n"], n)
+            if need_uv:
+                uv, tangent = pick(ms["uv"], uv), pick(ms["tangent"], tangent)
+                tw = jnp.where(on_mesh, ms["tangent_w"], 1.0)
+                uv1 = pick(ms["uv1"], uv)
+                duv = tuple(tuple(jnp.where(on_mesh[..., None], a, 0.0) for a in ms["duv"][s]) for s in (0, 1))
+        else:
+            t, idx, hit = ms["t"], idx_m, on_mesh
+            pos, n = ms["pos"], ms["n"]
+            if need_uv:
+                uv, tangent, tw, uv1, duv = ms["uv"], ms["tangent"], ms["tangent_w"], ms["uv1"], ms["duv"]
+    if p_plan.shadows:
+        # The geometric normal (before normal maps): shadow rays leave the surface along it.
+        ng = n if not meshes else (ms["ng"] if not analytic else tuple(jnp.where(on_mesh, ms["ng"][i], n_an[i]) for i in range(3)))
+    m = _gather_material(_stack_materials(objects, dtype, ext), idx)
+    if meshes and "color" in ms:
+        # COLOR_0 multiplies the base colour (glTF); 1 on other objects.
+        rgb = jnp.where(on_mesh[..., None], ms["color"][..., :3], 1.0)
+        m = evolve(m, base_color=m.base_color * rgb)
+    g = {"pos": pos, "n": n, "view": tuple(-c for c in d), "m": m, "hit": hit, "ray": d, "t": t, "idx": idx}
+    if meshes:
+        g["prim"] = jnp.where(on_mesh, prim, -1)
+    if p_plan.blend_layers > 1:
+        # Coverage of the layer: a BLEND mesh's alpha factor x COLOR_0's A (the base colour
+        # texture's A multiplies it in the texture stage); 1 on everything else.
+        blend_k = jnp.asarray([isinstance(ob, Mesh) and ob.alpha_mode == "BLEND" for ob in objects])[idx]
+        a = jnp.stack([jnp.asarray(ob.alpha if isinstance(ob, Mesh) else 1.0, dtype) for ob in objects])[idx]
+        if "color" in ms:
+            a = a * jnp.where(on_mesh, ms["color"][..., 3], 1.0)
+        g["alpha"] = jnp.where(hit & blend_k, a, 1.0)
+    if p_plan.shadows:
+        g["ng"] = ng
+        if p_plan.direct:
+            lights = _cast_floats(list(scene.lights), dtype)
+            g["vis"] = shadow_visibility(objects, arrays if meshes else None, pos, ng, lights, dtype)
+    if need_uv:
+        g.update(idx=idx, uv=uv, tangent=tangent)
+        if tw is not None:
+            g.update(tangent_w=tw, uv1=uv1, duv=duv)
+    if "volume" in ext:
+        # Sphere radius per pixel (0 on planes): the volume's path is the sphere's chord.
+        radii = jnp.asarray([0.0 if isinstance(ob, Plane) else 1.0 for ob in objects], dtype)
+        rad = jnp.stack([jnp.asarray(ob.radius if isinstance(ob, Sphere) else 0.0, dtype) for ob in objects]) * radii
+        g["radius"] = rad[idx] if len(objects) > 1 else jnp.broadcast_to(rad[0], idx.shape)
+    return g
+
+
+def _ray_differentials(cam, d, dtype):
+    """dD/dx, dD/dy (Vec3s) of the pinhole camera's unit ray directions d per pixel (Igehy 1999):
+    the unnormalised direction f + x r + y u moves by (2 tan(fov/2)/H) r per column and
+    -(2 tan(fov/2)/H) u per row, and has length 1/(D.f); dD = (dd - D (D.dd)) / |d|."""
+    from .scene import camera_basis
+
+    _, f, r, u = camera_basis(cam, dtype)
+    k = 2.0 * jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2) / cam.height
+    inv_len = vdot(d, f)  # 1/|d|
+    out = []
+    for dd in (tuple(k * c for c in r), tuple(-k * c for c in u)):
+        dn = vdot(d, dd)
+        out.append(tuple((dd[i] - d[i] * dn) * inv_len for i in range(3)))
+    return tuple(out)
+
+
+def _volume_inputs(g, m: Material, dtype):
+    """(path length in the medium, direction the transmitted environment light comes from) per
+    pixel for the volume extension, in world space; (None, None) without it.
+
+    Spheres: the refracted ray t = refract(-v, n, 1/ior) crosses the chord 2 R cos(theta_t) and
+    leaves through the far side, where it refracts back with the same angle (no total internal
+    reflection on a sphere): the exact exit direction is refract(t, -n', ior) with
+    n' = n + 2 cos(theta_t) t. Planes (R = 0): a slab of the material's thickness, whose exit
+    direction is -v."""
+    if "radius" not in g or "volume" not in m.extensions:
+        return None, None
+    from ..ibl.layered_ibl import refract
+
+    mc = m.complete(("ior", "volume"))
+    n = pack3(g["n"])
+    v = pack3(g["view"])
+    R = g["radius"]
+    ior = jnp.maximum(mc.ior, 1.0)
+    t_in = refract(-v, n, 1.0 / ior)
+    cos_t = -jnp.sum(t_in * n, -1)
+    chord = 2.0 * R * cos_t
+    n_far = n + (2.0 * cos_t)[..., None] * t_in
+    n_far = n_far / jnp.maximum(jnp.linalg.norm(n_far, axis=-1, keepdims=True), small_sq(dtype))
+    d_out = refract(t_in, -n_far, ior)
+    sphere = R > 0
+    dist = jnp.where(sphere, chord, mc.thickness)
+    d_t = jnp.where(sphere[..., None], d_out, -v)
+    return dist, d_t
+
+
+def _texture(scene: Scene, k: int, opts: RenderOptions, g):
+    m, n, coat_n, aniso_t, alpha = _apply_texture(
+        scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype), g.get("coat_n"),
+        g.get("aniso_t"), g.get("tangent_w"), g.get("uv1"), g.get("duv"), g.get("alpha"),
+    )
+    out = {**g, "m": m, "n": n}
+    if alpha is not None:
+        out["alpha"] = alpha
+    if coat_n is not None:
+        out["coat_n"] = coat_n
+    if aniso_t is not None:
+        out["aniso_t"] = aniso_t
+    return out
+
+
+def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool = False):
+    """One sample per pixel at sub-pixel `offset`.
+
+    staged=True runs the stages -- geometry, each textured object, direct lighting, IBL +
+    background -- as separate compiled programs (what `render` does outside transformations).
+    XLA:CPU otherwise fuses producers into every consumer and recomputes them there (each
+    light, lookup and colour channel): measured 2.7x slower for direct + IBL at 1080p and 1000x
+    slower with two normal-mapped objects; `lax.optimization_barrier` does not prevent it (it is
+    expanded away before fusion). Under an outer jit/vmap the stages inline into one program.
+    """
+    if p_plan.blend_layers > 1:
+        return _blended_pass(scene, assets, p_plan, opts, offset, staged)
+    g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset)
+    return _shade_pass(scene, assets, p_plan, opts, g, staged)
+
+
+def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool):
+    """BLEND meshes: the nearest `blend_layers` surfaces of each pixel (cast once), each shaded as
+    an image of its own by the same compiled stages, composited front to back with their alpha
+    (C = sum_k a_k prod_{j<k} (1 - a_j) C_k; an opaque surface or the background ends the pixel)."""
+    prims = (_layer_prims_jit if staged else _layer_prims)(scene, p_plan, opts, offset)
+    out, keep = None, None
+    for k in range(p_plan.blend_layers):
+        g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset, prims[..., k])
+        c = _shade_pass(scene, assets, p_plan, opts, g, staged)
+        a = g["alpha"][..., None]
+        if k == p_plan.blend_layers - 1:
+            a = jnp.ones_like(a)  # the last layer covers what is left
+        out = a * c if out is None else out + keep * a * c
+        keep = (1.0 - a) if keep is None else keep * (1.0 - a)
+    return out
+
+
+def _layer_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
+    dtype = jnp.dtype(opts.dtype)
+    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    return cast(_mesh_arrays(scene, dtype), o_px, d_px, layers=p_plan.blend_layers)
+
+
+_layer_prims_jit = jax.jit(_layer_prims, static_argnums=(1, 2))
+
+
+def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool):
+    """Textures, direct lighting and IBL + background of the G-buffer `g`."""
+    # The later stages see the pixels, not the meshes' arrays: meshes of other sizes reuse them.
+    lean = _lean(scene)
+    for k in p_plan.textured:
+        g = (_texture_jit if staged else _texture)(lean, k, opts, g)
+    direct = (_shade_direct_jit if staged else _shade_direct)(lean, p_plan, opts, g)
+    if callable(assets):  # staged: assets still being computed on another thread
+        assets = assets()
+    if p_plan.shadows and p_plan.env_lights:
+        g = {**g, "vis_env": (_sun_shadows_jit if staged else _sun_shadows)(scene, opts, g, assets[3])}
+    return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
+
+
+def _lean(scene: Scene) -> Scene:
+    """The scene with its meshes' geometry left out (their materials kept): what the shading
+    stages read."""
+    if scene.gbuffer is not None or not any(isinstance(ob, Mesh) for ob in scene.objects):
+        return scene
+    objs = tuple(
+        unchecked(Mesh, **{f.name: (getattr(ob, f.name) if f.static or f.name == "material" else None) for f in fields_of(Mesh)})
+        if isinstance(ob, Mesh) else ob
+        for ob in scene.objects
+    )
+    return evolve(scene, objects=objs)
+
+
+def _sun_shadows(scene: Scene, opts: RenderOptions, g, env_lights):
+    """(H, W, L) visibility of the suns split out of the environment (world directions: the
+    environment's frame turned by +rotation)."""
+    dtype = jnp.dtype(opts.dtype)
+    rot = jnp.asarray(scene.environment.rotation, dtype)
+    ls = _cast_floats(list(env_lights), dtype)
+    to_sun = [_rotate_y(tuple(-jnp.asarray(s.direction, dtype)[i] for i in range(3)), rot) for s in ls]
+    return shadow_visibility(scene.objects, _mesh_arrays(scene, dtype), g["pos"], g["ng"], to_sun, dtype, directions_only=True)
+
+
+_sun_shadows_jit = jax.jit(_sun_shadows, static_argnums=(1,))
+_geometry_jit = jax.jit(_geometry, static_argnums=(1, 2))
+_texture_jit = jax.jit(_texture, static_argnums=(1, 2))
+_shade_direct_jit = jax.jit(_shade_direct, static_argnums=(1, 2))
+_shade_rest_jit = jax.jit(_shade_rest, static_argnums=(2, 3))
+
+
+def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
+    s = 1 if scene.gbuffer is not None else scene.camera.supersample
+    dtype = jnp.dtype(opts.dtype)
+    if s == 1:
+        return _render_pass(scene, assets, p_plan, opts, jnp.asarray((0.5, 0.5), dtype))
+
+    def body(k, acc):
+        off = jnp.stack([((k % s).astype(dtype) + 0.5) / s, ((k // s).astype(dtype) + 0.5) / s])
+        return acc + _render_pass(scene, assets, p_plan, opts, off)
+
+    H, W = scene.image_shape
+    acc = jax.lax.fori_loop(0, s * s, body, jnp.zeros((H, W, 3), dtype))
+    return acc / (s * s)
+
+
+_render_jit = jax.jit(_render_traced, static_argnums=(2, 3))
+
+
+@keyword_only("options")
+def gbuffer(scene: Scene, *, options: RenderOptions | None = None, **overrides):
+    """The G-buffer `render` shades: the nearest surface at each pixel centre of the camera (its
+    `supersample` is not used), materials after textures, COLOR_0 and normal maps -> `GBuffer`
+    with (H, W) / (H, W, 3) leaves in the options' dtype: hit, position, normal (the shading
+    normal), view (unit, towards the camera) and a per-pixel `Material` (the extension fields of
+    the groups some object uses, the others None). Off the surfaces (hit False) the values are
+    undefined. A scene given as a G-buffer returns its own. Lights and environment are not read
+    (nothing is precomputed); options as for `render` (only dtype matters)."""
+    from .scene import GBuffer
+
+    if not isinstance(scene, Scene):
+        raise TypeError(f"gbuffer expects a jaxpbr.Scene, got {type(scene).__name__}")
+    opts = _options(options, overrides, "gbuffer")
+    if scene.gbuffer is not None:
+        return scene.gbuffer
+    bare = evolve(scene, lights=(), environment=None, camera=evolve(scene.camera, supersample=1))
+    p = plan(bare, options=opts)
+    dtype = jnp.dtype(opts.dtype)
+    g = _geometry_jit(bare, p, opts, jax.device_put(np.asarray((0.5, 0.5), dtype)))
+    lean = _lean(bare)
+    for k in p.textured:
+        g = _texture_jit(lean, k, opts, g)
+    return GBuffer(hit=g["hit"], position=pack3(g["pos"]), normal=pack3(g["n"]), view=pack3(g["view"]), material=g["m"])
