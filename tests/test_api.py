@@ -85,11 +85,11 @@ DATA = {
     "jaxpbr.ibl.cubemap.equirect_directions": ("height",),
     "jaxpbr.ibl.measure.texel_subset": ("size",),
     "jaxpbr.ibl.reference_render.min_reference_roughness": ("face_size",),
-    "jaxpbr.ibl.specular.level_roughness": ("num_levels",),
-    "jaxpbr.ibl.specular.roughness_to_lod": ("num_levels",),  # M of the map being looked up
-    "jaxpbr.ibl.specular.levels_for_roughness": ("num_levels",),  # as roughness_to_lod
-    "jaxpbr.ibl.specular.lookup_metadata": ("num_levels",),  # the chain it describes
-    "jaxpbr.ibl.specular.default_num_levels": ("size",),
+    "jaxpbr.ibl.lod.level_roughness": ("num_levels",),
+    "jaxpbr.ibl.lod.roughness_to_lod": ("num_levels",),  # M of the map being looked up
+    "jaxpbr.ibl.lod.levels_for_roughness": ("num_levels",),  # as roughness_to_lod
+    "jaxpbr.ibl.lod.lookup_metadata": ("num_levels",),  # the chain it describes
+    "jaxpbr.ibl.lod.default_num_levels": ("size",),
     # demo scenes: the image shape / grid shape
     "jaxpbr.rendering.demo.demo_scene": ("width", "height"),
     "jaxpbr.rendering.demo.learnopengl_scene": ("width", "height"),
@@ -138,7 +138,7 @@ def test_the_walk_finds_the_public_api():
     for key in ("jaxpbr.shading.brdf_terms.brdf", "jaxpbr.shading.lights.shade_direct", "jaxpbr.ibl.shade.shade_ibl",
                 "jaxpbr.shading.lut.compute_brdf_lut", "jaxpbr.shading.lut.lut_lookup", "jaxpbr.shading.lut.lut_reference",
                 "jaxpbr.shading.shipped_luts.brdf_lut", "jaxpbr.ibl.diffuse.irradiance", "jaxpbr.ibl.diffuse.sh9_project",
-                "jaxpbr.ibl.specular.prefilter", "jaxpbr.ibl.specular.roughness_to_lod", "jaxpbr.rendering.execute.render",
+                "jaxpbr.ibl.specular.prefilter", "jaxpbr.ibl.lod.roughness_to_lod", "jaxpbr.rendering.execute.render",
                 "jaxpbr.rendering.batching.render_batch", "jaxpbr.rendering.plan.plan", "jaxpbr.color.tonemap",
                 "jaxpbr.io.image.read", "jaxpbr.io.image.write", "jaxpbr.ibl.cubemap.Cubemap.from_equirect",
                 "jaxpbr.ibl.cubemap.Cubemap.from_function", "jaxpbr.ibl.measure.lut_error",
