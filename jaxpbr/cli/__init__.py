@@ -20,6 +20,7 @@ from ..io import atomic
 from . import (
     _cache,
     batch,
+    bench_batch,
     bench_grad,
     bench_ibl,
     bench_render,
@@ -61,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench_grad.add_command(bsub)
     bench_ibl.add_command(bsub)
     bench_render.add_command(bsub)
+    bench_batch.add_command(bsub)
 
     rp = sub.add_parser("report", help="error-vs-run-time reports")
     rsub = rp.add_subparsers(dest="report", metavar="REPORT")
