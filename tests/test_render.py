@@ -374,6 +374,39 @@ def test_precompute_is_cached_by_content_and_parameters():
     assert R.ASSETS.stats["prefilter"]["misses"] == 2
 
 
+@pytest.mark.parametrize("staged", [True, False])
+def test_a_cache_passed_in_is_the_only_one_read_and_filled(monkeypatch, staged):
+    """`render(cache=)`, `bake(cache=)` and `render_batch(cache=)`: the environment's maps (and the
+    suns split out of it) come from and go into the given AssetCache, on the staged path and the
+    one-program path alike; the process's default `ASSETS` is neither read nor filled."""
+    monkeypatch.setattr(R, "STAGED", staged)
+    R.ASSETS.clear()
+    scene = jp.Scene(
+        camera=jp.Camera(width=8, height=6),
+        objects=[jp.Sphere(material=jp.Material(metallic=0.0, roughness=0.5))],
+        environment=jp.Environment(radiance=small_env(16)),
+    )
+    mine = R.AssetCache()
+    first = np.asarray(jp.render(scene, cache=mine))
+    assert mine.stats["prefilter"] == {"hits": 0, "misses": 1} and mine.stats["irradiance"] == {"hits": 0, "misses": 1}
+    assert mine.stats["extract"]["misses"] == 1
+    assert not R.ASSETS.stats and not R.ASSETS._store
+    again = np.asarray(jp.render(scene, cache=mine))
+    assert mine.stats["prefilter"] == {"hits": 1, "misses": 1} and mine.stats["irradiance"] == {"hits": 1, "misses": 1}
+    np.testing.assert_array_equal(again, first)
+    # The default cache computes the same maps once for itself: the same image.
+    np.testing.assert_array_equal(np.asarray(jp.render(scene)), first)
+    assert R.ASSETS.stats["prefilter"] == {"hits": 0, "misses": 1}
+    other = R.AssetCache()
+    jp.bake(scene.environment, cache=other)
+    assert other.stats["irradiance"] == {"hits": 0, "misses": 1} and R.ASSETS.stats["irradiance"]["misses"] == 1
+    batch = R.AssetCache()
+    jp.render_batch(scene, env_intensity=jnp.asarray([1.0, 2.0]), cache=batch)
+    assert batch.stats["prefilter"] == {"hits": 0, "misses": 1} and R.ASSETS.stats["prefilter"]["misses"] == 1
+    with pytest.raises(TypeError, match="AssetCache"):
+        jp.render(scene, cache={})
+
+
 def test_environment_rotation_rotates_the_lighting():
     """Rotating the environment by theta and the scene by theta about +Y gives the same image
     for a sphere at the origin seen from a rotated camera (rotation invariance of the split sum)."""

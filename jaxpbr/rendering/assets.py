@@ -20,35 +20,36 @@ from .._numerics import is_concrete
 from ..ibl import diffuse, specular
 from ..ibl.cubemap import Cubemap
 from ..shading import shipped_luts
-from .cache import ASSETS, content_key
+from .cache import AssetCache, cache_or_default, content_key
 from .options import RenderOptions, _lut_smith, _options
 from .plan import RenderPlan, _asset_bytes, _charlie_size, _env_split, _prefilter_size
 from .scene import Environment
 
 
-def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions):
+def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions, cache: AssetCache | None = None):
     """(irradiance | None, prefiltered, lut, disc lights | None) for the plan, in the render dtype.
 
     Maps the environment carries (`bake`, or loaded from disk) are used as they are. Missing ones
-    are computed: for a concrete environment through the content-addressed `ASSETS` cache (once
+    are computed: for a concrete environment through the content-addressed `cache` (default `ASSETS`; once
     per environment content and parameters, concrete even under an outer jit / grad / vmap); for
     a traced environment (differentiating wrt its texels) inside the trace, never cached."""
-    lights, env = _env_split(env, opts) if p.env_lights else (None, env)
+    cache = cache_or_default(cache)
+    lights, env = _env_split(env, opts, cache) if p.env_lights else (None, env)
     key = _env_key(env, p)
     return (
-        _asset_irradiance(env, p, opts, key), _asset_prefiltered(env, p, opts, key), _asset_lut(env, opts), lights,
-        _asset_sheen(env, p, opts),
+        _asset_irradiance(env, p, opts, key, cache), _asset_prefiltered(env, p, opts, key, cache),
+        _asset_lut(env, opts, cache), lights, _asset_sheen(env, p, opts, cache),
     )
 
 
-def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions):
+def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions, cache: AssetCache | None = None):
     """(sheen albedo table, Charlie-prefiltered cube) when the plan shades sheen under IBL, else None."""
     if not p.charlie_size:
         return None
     dtype = jnp.dtype(opts.dtype)
     table = env.sheen_lut
     if table is None:
-        table = ASSETS.get("sheen_lut", (opts.lut_size, dtype.name), lambda: shipped_luts.sheen_lut(opts.lut_size))
+        table = cache_or_default(cache).get("sheen_lut", (opts.lut_size, dtype.name), lambda: shipped_luts.sheen_lut(opts.lut_size))
     charlie = env.charlie
     if charlie is None:
         from ..ibl import sheen_prefilter
@@ -56,7 +57,7 @@ def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions):
         src = env.radiance
         compute = lambda: sheen_prefilter.prefilter_charlie(src, size=p.charlie_size)
         if all(is_concrete(lv) for lv in src.levels):
-            charlie = ASSETS.get("charlie", (content_key(src), p.charlie_size), compute)
+            charlie = cache_or_default(cache).get("charlie", (content_key(src), p.charlie_size), compute)
         else:
             charlie = compute()
     return jnp.asarray(table, dtype), _in_dtype(charlie, opts)
@@ -77,7 +78,7 @@ def _in_dtype(c, opts: RenderOptions):
     return Cubemap([lv.astype(dtype) for lv in c.levels], c.info)
 
 
-def _asset_lut(env: Environment, opts: RenderOptions):
+def _asset_lut(env: Environment, opts: RenderOptions, cache: AssetCache | None = None):
     dtype = jnp.dtype(opts.dtype)
     smith = _lut_smith(opts)
     if env.lut is not None:
@@ -88,13 +89,13 @@ def _asset_lut(env: Environment, opts: RenderOptions):
             )
         lut = env.lut
     else:
-        lut = ASSETS.get(
+        lut = cache_or_default(cache).get(
             "lut", (opts.lut_size, smith, dtype.name), lambda: shipped_luts.brdf_lut(opts.lut_size, smith=smith, dtype=dtype)
         )
     return jnp.asarray(lut, dtype)
 
 
-def _asset_irradiance(env: Environment, p: RenderPlan, opts: RenderOptions, key):
+def _asset_irradiance(env: Environment, p: RenderPlan, opts: RenderOptions, key, cache: AssetCache | None = None):
     if not p.ibl_diffuse:
         return None
     irr = env.irradiance
@@ -102,11 +103,11 @@ def _asset_irradiance(env: Environment, p: RenderPlan, opts: RenderOptions, key)
         src = env.radiance
         params = (opts.irradiance_size, opts.irradiance_method)
         compute = lambda: diffuse.irradiance(src, opts.irradiance_size, method=opts.irradiance_method)
-        irr = compute() if key is None else ASSETS.get("irradiance", (key,) + params, compute)
+        irr = compute() if key is None else cache_or_default(cache).get("irradiance", (key,) + params, compute)
     return _in_dtype(irr, opts)
 
 
-def _asset_prefiltered(env: Environment, p: RenderPlan, opts: RenderOptions, key):
+def _asset_prefiltered(env: Environment, p: RenderPlan, opts: RenderOptions, key, cache: AssetCache | None = None):
     pre = env.prefiltered
     if pre is None:
         src = env.radiance
@@ -127,18 +128,22 @@ def _asset_prefiltered(env: Environment, p: RenderPlan, opts: RenderOptions, key
             pre = compute()
         else:
             # A longer chain of the same map already cached: its first levels are this one.
-            longer = ASSETS.find(
+            cache = cache_or_default(cache)
+            longer = cache.find(
                 "prefilter", lambda k: k[0] == key and k[1] == params[0] and k[3:] == params[2:] and k[2] > params[1]
             )
             if longer is not None:
                 pre = Cubemap(longer.levels[: p.prefilter_levels], longer.info)
             else:
-                pre = ASSETS.get("prefilter", (key,) + params, compute)
+                pre = cache.get("prefilter", (key,) + params, compute)
     return _in_dtype(pre, opts)
 
 
 @keyword_only("options")
-def bake(environment: Environment, *, options: RenderOptions | None = None, sheen: bool = False, **overrides) -> Environment:
+def bake(
+    environment: Environment, *, options: RenderOptions | None = None, sheen: bool = False, cache: AssetCache | None = None,
+    **overrides,
+) -> Environment:
     """The environment with every IBL asset a render can need precomputed: the irradiance map, the
     whole prefiltered chain (all roughnesses) and the split-sum LUT of the model's Smith variant.
 
@@ -152,9 +157,10 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, shee
     mapping, lut_size, dtype, and the model, which picks the LUT's Smith variant); a render
     with a model reading another LUT raises.
 
-    For a concrete environment the assets come from (and go into) the content-addressed cache
-    `ASSETS`: baking the same texels twice computes once. A traced environment (differentiating
-    with respect to its texels) is baked inside the trace, differentiably, and not cached.
+    For a concrete environment the assets come from (and go into) the content-addressed `cache` (an
+    `AssetCache`; None: the process's default, `ASSETS`): baking the same texels twice computes
+    once. A traced environment (differentiating with respect to its texels) is baked inside the
+    trace, differentiably, and not cached.
 
     sheen: also bake what KHR_materials_sheen reads under IBL, the Charlie-prefiltered cube and the
     sheen albedo table (`Environment.charlie`, `.sheen_lut`). Off by default: the cube costs ~5x the
@@ -173,7 +179,8 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, shee
     probe = RenderPlan(direct=False, ibl=True, ibl_diffuse=True, env_background=False, emissive=False, textured=(),
                        normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels, mapping_levels=M, env_lights=0)
     _memory.require("baking the environment", _asset_bytes(environment, probe, opts, "bake"), where="bake")  # before any work
-    lights = _env_split(environment, opts)[0]
+    cache = cache_or_default(cache)
+    lights = _env_split(environment, opts, cache)[0]
     full = RenderPlan(
         direct=False, ibl=True, ibl_diffuse=True, env_background=environment.show_background, emissive=False,
         textured=(), normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels,
@@ -181,7 +188,7 @@ def bake(environment: Environment, *, options: RenderOptions | None = None, shee
     )
     if sheen:
         full = dataclasses.replace(full, extensions=("sheen",), charlie_size=_charlie_size(environment))
-    irr, pre, lut, lights, sheen_assets = _env_assets(environment, full, opts)
+    irr, pre, lut, lights, sheen_assets = _env_assets(environment, full, opts, cache)
     table, charlie = sheen_assets if sheen_assets is not None else (environment.sheen_lut, environment.charlie)
     return environment.replace(
         irradiance=irr, prefiltered=pre, lut=lut, lut_smith=_lut_smith(opts), lights=lights, charlie=charlie,

@@ -16,6 +16,7 @@ from .._pytree import Pytree, evolve, fields_of
 from .._validate import check_values, positive_int
 from ..shading.material import Material
 from .assets import _env_assets
+from .cache import AssetCache, cache_or_default
 from .execute import _staged, _supersampled
 from .options import RenderOptions, _options
 from .plan import plan
@@ -119,6 +120,7 @@ def render_batch(
     chunk: int | None = None,
     devices=None,
     options: RenderOptions | None = None,
+    cache: AssetCache | None = None,
     **overrides,
 ) -> jax.Array:
     """Render B variants of `scene` in one jitted, vmapped call -> (B, H, W, 3).
@@ -135,8 +137,8 @@ def render_batch(
       with `jax.sharding` (shard_map over a 1-D mesh "batch"); each device renders its share in
       chunks. Results equal the single-device path to float rounding (measured: at most 1 ulp;
       the per-device programs are compiled separately and XLA may fuse them differently).
-    options, **overrides: as for `render`. Precomputes are shared by the whole batch (rotations and
-    intensities need none).
+    options, cache, **overrides: as for `render`. Precomputes are shared by the whole batch (rotations
+    and intensities need none).
     """
     from jax.sharding import Mesh
 
@@ -193,8 +195,9 @@ def render_batch(
     base = scene if "lights" not in b else scene.replace(lights=tuple(jax.tree_util.tree_map(lambda x: x[0], lt) for lt in b["lights"]))
     # Plan from the scene as the batch will see it (batched materials substituted, concrete).
     plan_scene = _substitute(base, {"materials": materials}, objects_idx) if materials is not None else base
-    p_plan = plan(plan_scene, options=opts)
-    assets = _env_assets(base.environment, p_plan, opts) if p_plan.ibl else None
+    cache = cache_or_default(cache)
+    p_plan = plan(plan_scene, options=opts, cache=cache)
+    assets = _env_assets(base.environment, p_plan, opts, cache) if p_plan.ibl else None
 
     if devices is None:
         devices = jax.local_devices()

@@ -23,6 +23,9 @@ from ..io.atomic import atomic_write
 class AssetCache:
     """LRU cache of precomputed IBL maps keyed by (environment content hash, kind, parameters).
 
+    `render`, `render_batch`, `bake` and `plan` take one as `cache=`; without it they use the
+    process's default instance, `ASSETS`. Each cache keeps its own entries and counts.
+
     It only ever holds concrete arrays: `get` runs the precompute outside any trace
     (`_numerics.outside_traces`), and the renderer caches nothing for a traced environment.
 
@@ -123,7 +126,18 @@ class AssetCache:
             pass
 
 
+#: The process's default cache: `render`, `render_batch`, `bake` and `plan` use it unless given
+#: another (`cache=`).
 ASSETS = AssetCache()
+
+
+def cache_or_default(cache: AssetCache | None) -> AssetCache:
+    """`cache`, or the default `ASSETS` when it is None."""
+    if cache is None:
+        return ASSETS
+    if not isinstance(cache, AssetCache):
+        raise TypeError(f"cache must be a jaxpbr.rendering.cache.AssetCache or None, got {type(cache).__name__}")
+    return cache
 
 
 _KEYS: dict = {}  # (id(level-0 array), "sha1") -> (weakref to it, content key)

@@ -22,13 +22,16 @@ from .assets import (
     _env_assets,
     _env_key,
 )
+from .cache import AssetCache, cache_or_default
 from .options import RenderOptions, _options
 from .plan import RenderPlan, _env_split, check_memory, plan
 from .scene import Scene
 from .stages import _render_jit, _render_pass
 
 
-def render(scene: Scene, *, options: RenderOptions | None = None, progress=None, **overrides) -> jax.Array:
+def render(
+    scene: Scene, *, options: RenderOptions | None = None, progress=None, cache: AssetCache | None = None, **overrides
+) -> jax.Array:
     """Render `scene` to linear HDR radiance (H, W, 3) (Rec.709 primaries, scene-referred).
 
     options: a `RenderOptions` value (default: `RenderOptions()`).
@@ -39,17 +42,20 @@ def render(scene: Scene, *, options: RenderOptions | None = None, progress=None,
       irradiance_method, prefilter_size, prefilter_samples, lut_size, mapping, dtype,
       extract_lights), applied on top of `options`: `render(scene, options=opts, model="learnopengl")` renders with
       `dataclasses.replace(opts, model="learnopengl")`.
+    cache: the `AssetCache` the environment's precomputed maps come from and go into (None: the
+      process's default, `ASSETS`).
     Differentiable with respect to every array in the scene (materials, textures, lights, camera,
     environment texels).
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"render expects a jaxpbr.Scene, got {type(scene).__name__}")
     opts = _options(options, overrides, "render")
+    cache = cache_or_default(cache)
     check_memory(scene, options=opts)  # before any work (a huge size aborted inside XLA)
-    p = plan(scene, options=opts)
+    p = plan(scene, options=opts, cache=cache)
     env = scene.environment
     if not _staged():
-        out = _render_jit(scene, _env_assets(env, p, opts) if p.ibl else None, p, opts)
+        out = _render_jit(scene, _env_assets(env, p, opts, cache) if p.ibl else None, p, opts)
         if progress is not None:
             progress(1, 1)
         return out
@@ -58,21 +64,21 @@ def render(scene: Scene, *, options: RenderOptions | None = None, progress=None,
         # on two worker threads while this one traces, compiles and runs the geometry and
         # direct-lighting stages, which do not need them: on a cold start the compilations and
         # runs overlap (XLA compiles and runs without holding the GIL).
-        env_lights, env = _env_split(env, opts) if p.env_lights else (None, env)
+        env_lights, env = _env_split(env, opts, cache) if p.env_lights else (None, env)
         key = _env_key(env, p)
         pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxpbr-assets")
         try:
-            pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key)))
-            irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key)))
-            sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts)))
-            lut = _asset_lut(env, opts)
+            pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key, cache)))
+            irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key, cache)))
+            sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
+            lut = _asset_lut(env, opts, cache)
             return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(
                 sc, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()), pb, opts, off, staged=True), progress)
         finally:
             # On success both maps were used; on an error or an interrupt do not wait for a
             # precompute still running (`with` would join it).
             pool.shutdown(wait=False, cancel_futures=True)
-    assets = _env_assets(env, p, opts) if p.ibl else None
+    assets = _env_assets(env, p, opts, cache) if p.ibl else None
     return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), progress)
 
 

@@ -25,7 +25,7 @@ from ..ibl import extract, specular
 from ..shading import shipped_luts
 from ..shading.lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
 from ..shading.material import EXTENSIONS
-from .cache import ASSETS, content_key
+from .cache import AssetCache, cache_or_default, content_key
 from .mesh import MAX_BLEND_LAYERS, Mesh
 from .options import RenderOptions, _lut_smith, _options
 from .scene import Environment, Scene, TexturedMaterial, texels
@@ -165,8 +165,9 @@ def _prefilter_size(env: Environment, opts: RenderOptions) -> int:
 
 
 @keyword_only("options")
-def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> RenderPlan:
-    """The RenderPlan of `scene` (what `render` will trace and precompute); options as for `render`."""
+def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCache | None = None, **overrides) -> RenderPlan:
+    """The RenderPlan of `scene` (what `render` will trace and precompute); options and cache as for
+    `render` (the suns split out of the environment are counted, and that extraction is cached)."""
     opts = _options(options, overrides, "plan")
     if scene.gbuffer is not None:
         mats = [scene.gbuffer.material]
@@ -195,7 +196,7 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, **overrides) -> 
             # NumPy: this runs at trace time, possibly inside a jit.
             levels = specular.levels_for_roughness(r_max, M, mapping=opts.mapping)
         diffuse = opts.compensates or met_min < 1.0
-        env_lights = _env_split(env, opts)[0]
+        env_lights = _env_split(env, opts, cache)[0]
         n_env_lights = 0 if env_lights is None else len(env_lights)
         charlie_size = _charlie_size(env) if "sheen" in extensions else 0
     else:
@@ -234,12 +235,12 @@ def _charlie_size(env: Environment) -> int:
     return min(sheen_prefilter.DEFAULT_CHARLIE_SIZE, env.radiance.face_size)
 
 
-def _env_split(env: Environment, opts: RenderOptions):
+def _env_split(env: Environment, opts: RenderOptions, cache: AssetCache | None = None):
     """(tuple of disc `DirectionalLight`s | None, the environment whose maps the split sum reads).
 
     The environment's own `lights` when it has them; else, for a concrete environment without
     given maps and `opts.extract_lights`, `extract.extract_lights` (cached per content in
-    `ASSETS`); else (None, env)."""
+    `cache`, default `ASSETS`); else (None, env)."""
     if env.lights is not None:
         return env.lights, env
     given = env.irradiance is not None or env.prefiltered is not None
@@ -251,8 +252,9 @@ def _env_split(env: Environment, opts: RenderOptions):
         ex = extract.extract_lights(src)
         return (ex.lights or None), ex.residual
 
-    lights, residual = ASSETS.get("extract", (content_key(src), extract.DEFAULT_THRESHOLD, extract.DEFAULT_MIN_POWER_SHARE,
-                                              extract.DEFAULT_MAX_ANGULAR_RADIUS, extract.DEFAULT_MAX_LIGHTS), compute)
+    key = (content_key(src), extract.DEFAULT_THRESHOLD, extract.DEFAULT_MIN_POWER_SHARE, extract.DEFAULT_MAX_ANGULAR_RADIUS,
+           extract.DEFAULT_MAX_LIGHTS)
+    lights, residual = cache_or_default(cache).get("extract", key, compute)
     if lights is None:
         return None, env
     return lights, env.replace(radiance=residual)
