@@ -59,7 +59,9 @@ def _rows(n=4, **extra):
 
 
 def _job_file(folder: Path, rows) -> Path:
-    (folder / "scenes_mod.py").write_text(FACTORY)
+    mod = folder / "scenes_mod.py"
+    if not mod.exists() or mod.read_text() != FACTORY:  # rewriting it would change the jobs' keys
+        mod.write_text(FACTORY)
     p = folder / "jobs.jsonl"
     p.write_text("\n".join(json.dumps(r) for r in rows) + "\n")
     return p
@@ -188,6 +190,13 @@ def test_local_run_outputs_records_and_resume(tmp_path):
     after = _checksums(out)
     assert after["img/0.png"] == before["img/0.png"]  # redone to the same bytes
     assert after["img/1.png"] != before["img/1.png"]  # a different camera
+
+    # Editing the factory module (its file is part of the key) redoes the jobs built by it.
+    mod = tmp_path / "scenes_mod.py"
+    st = mod.stat()
+    os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    s = run_batch(load_jobs(tmp_path / "jobs.jsonl"), out)
+    assert s["counts"]["done"] == 4 and s["counts"]["skipped"] == 0
 
 
 def test_failed_job_is_reported_and_the_run_goes_on(tmp_path, capsys):

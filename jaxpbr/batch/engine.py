@@ -43,7 +43,7 @@ def run_batch(jobs, out, *, engine: str = "local", address: str | None = None, w
     `out/batch-summary.json`).
 
     engine: "local" (in this process) or "ray" (`ray_engine.run_ray`: actors on a local cluster,
-        or the cluster at `address`; `workers` actors, default one per CPU of the cluster;
+        or the cluster at `address`; `workers` actors, default one per node, holding its CPUs;
         `retries`: how often a job whose worker died is tried again; `chunk`: jobs sent together).
     progress: optional callable(done, total): once before any job (done = the jobs found
         complete), then after each job.

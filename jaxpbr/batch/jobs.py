@@ -33,9 +33,12 @@ from typing import Any
 
 from ..errors import InputError
 from ..ibl.baked import write_baked
+from ..ibl.diffuse import IRRADIANCE_METHODS
+from ..ibl.specular import LOD_BLENDS, MAPPINGS, PREFILTER_METHODS
 from ..rendering.aovs import AOVS
 from ..rendering.renderer import RenderOptions
 from ..rendering.scene import MAX_SUPERSAMPLE
+from ..shading.lut import SMITH_VARIANTS
 from ..shading.material import Material
 
 __all__ = ["BakeJob", "JobFileError", "RenderJob", "load_jobs", "parse_jobs"]
@@ -216,11 +219,13 @@ def _parse_row(obj: dict, row: int, base: Path, bad: list, stamps: dict):
         elif not (isinstance(scene, Path) and scene.suffix == ".toml"):
             bad.append("environment_intensity/environment_rotation: the job has no environment; add 'environment' or drop them")
     material = _material(obj.get("material"), bad)
-    options = _options(obj.get("options", {}), bad)
+    options = _options(obj.get("options", {}), bad, _file_render(scene))
     formats, aovs, display = _output(obj.get("output", {}), bad)
     if bad or name is None:
         return None
-    key = _key(obj, [scene if isinstance(scene, Path) else None, Path(environment) if environment and not environment.startswith("procedural:") else None], stamps)
+    inputs = [scene if isinstance(scene, Path) else _factory_file(scene),
+              Path(environment) if environment and not environment.startswith("procedural:") else None]
+    key = _key(obj, inputs, stamps)
     return RenderJob(row=row, name=name, scene=scene, width=width, height=height, supersample=supersample,
                      camera=camera, environment=environment, environment_intensity=intensity,
                      environment_rotation=rotation, material=material, options=options, formats=formats,
@@ -258,8 +263,8 @@ def _parse_bake(obj: dict, row: int, name, base: Path, bad: list, stamps: dict):
         else:
             options[k] = v
     for k, choices in (("container", ("ktx2", "exr")), ("ktx_format", ("rgba16f", "rgba32f")),
-                       ("irradiance_method", ("exact", "sh9")), ("smith", ("correlated", "separable", "schlick_ggx")),
-                       ("mapping", ("linear", "quadratic"))):
+                       ("irradiance_method", IRRADIANCE_METHODS), ("smith", SMITH_VARIANTS),
+                       ("mapping", MAPPINGS), ("lod_blend", LOD_BLENDS), ("method", PREFILTER_METHODS)):
         if k in options and options[k] not in choices:
             bad.append(f"{k}: {options[k]!r} is not one of {', '.join(choices)}")
     for k in ("face_size", "size", "irradiance_size", "lut_size"):
@@ -389,7 +394,21 @@ def _material(mat, bad):
     return dict(mat)
 
 
-def _options(opts, bad):
+def _file_render(scene) -> dict:
+    """A TOML scene's [render] table (the job's options are merged over it), or {}; the scene file
+    itself is checked when the job loads it."""
+    if not (isinstance(scene, Path) and scene.suffix.lower() == ".toml"):
+        return {}
+    import tomllib
+
+    try:
+        table = tomllib.loads(scene.read_text()).get("render", {})
+    except (OSError, ValueError):
+        return {}
+    return {k: v for k, v in table.items() if k in _RENDER_OPTIONS} if isinstance(table, dict) else {}
+
+
+def _options(opts, bad, base=None):
     if not isinstance(opts, dict):
         bad.append(f"options: expected an object of RenderOptions keywords, got {opts!r}")
         return {}
@@ -399,9 +418,10 @@ def _options(opts, bad):
     if unknown:
         return {}
     try:
-        RenderOptions(**opts)
+        RenderOptions(**{**(base or {}), **opts})
     except (TypeError, ValueError) as e:
-        bad.append(f"options: {e}")
+        with_file = " (merged over the scene file's [render] table)" if base else ""
+        bad.append(f"options: {e}{with_file}")
         return {}
     return dict(opts)
 
@@ -441,6 +461,20 @@ def _output(out, bad):
         else:
             display["bits"] = out["bits"]
     return tuple(formats), tuple(aovs), display
+
+
+def _factory_file(scene) -> Path | None:
+    """The source file of a factory scene's module (found without importing it), for the key."""
+    if not isinstance(scene, tuple):
+        return None
+    import importlib.machinery
+
+    top, _, rest = scene[1].partition(":")[0].partition(".")
+    spec = importlib.machinery.PathFinder.find_spec(top, [scene[3]])
+    if spec is None or not spec.origin or not rest:
+        return Path(spec.origin) if spec is not None and spec.origin and Path(spec.origin).is_file() else None
+    p = Path(spec.origin).parent.joinpath(*rest.split(".")).with_suffix(".py")
+    return p if p.is_file() else None
 
 
 def _key(obj: dict, files, stamps: dict) -> str:

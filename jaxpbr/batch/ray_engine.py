@@ -1,8 +1,9 @@
 """The Ray engine: the jobs of a batch run on actors of a Ray cluster (`pip install 'jaxpbr[ray]'`).
 
-One actor per CPU slot (or `workers`), each holding a `Worker` (its compiled programs, loaded
+One actor per node (or `workers` actors sharing the cluster's CPUs), each holding a `Worker` (its compiled programs, loaded
 scenes and baked environments stay with it across chunks). The driver sends chunks of up to
-`chunk` jobs of one group and receives only their records: workers write the output files and
+`chunk` jobs of one group (to an actor that ran the group before, where one is idle) and
+receives only their records: workers write the output files and
 the completion records themselves, atomically, into the output folder, which every worker must
 see at the same path (one machine, or a shared file system on a cluster).
 
@@ -59,6 +60,15 @@ def _chunks(jobs, size: int) -> collections.deque:
     return out
 
 
+def _take(pending: collections.deque, group) -> list:
+    """The next chunk for an actor: the first pending chunk of the group it ran last, else the next."""
+    for k, js in enumerate(pending):
+        if js[0].group == group:
+            del pending[k]
+            return js
+    return pending.popleft()
+
+
 def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, retries: int = 2, chunk: int = 4,
             worker_setup=None) -> dict:
     """Run ordered jobs on Ray actors; `report(name, result)` for each. -> {"workers", "pids",
@@ -81,18 +91,25 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
                 ray.init(address=address, **kw)
     actors: list = []
     try:
-        n = workers or max(1, int(ray.cluster_resources().get("CPU", 1)))
-        remote = ray.remote(num_cpus=1, max_restarts=0)(BatchActor)
+        # XLA spreads one render over every core of its machine: by default one actor per node,
+        # holding the node's CPUs (two actors on a 2-core machine ran at half the rate of one).
+        cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        nodes = max(1, sum(1 for nd in ray.nodes() if nd.get("Alive")))
+        n = workers or nodes
+        remote = ray.remote(num_cpus=max(1, cpus // n), max_restarts=0)(BatchActor)
         pending = _chunks(jobs, max(1, chunk))
         attempts = collections.Counter()
         actors = [remote.remote(str(folder.root), worker_setup) for _ in range(min(n, len(pending)))]
         pids = set()
         idle = list(actors)
         inflight: dict = {}
+        last: dict = {}  # actor -> the group of its last chunk (its scene and environment are loaded)
         replaced = 0
         while pending or inflight:
             while idle and pending:
-                actor, js = idle.pop(), pending.popleft()
+                actor = idle.pop()
+                js = _take(pending, last.get(actor))
+                last[actor] = js[0].group
                 for j in js:
                     attempts[j.name] += 1
                 fut = actor.run_chunk.remote(js, {j.name: attempts[j.name] for j in js})

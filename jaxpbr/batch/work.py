@@ -155,8 +155,9 @@ class Worker:
     def scene(self, job: RenderJob):
         """The job's scene -> (Scene, the scene file's render options, its display settings)."""
         W, H = job.width, job.height
+        own_env = job.environment is None  # the demo's sky is not built for a job that replaces it
         base, file_options, file_display = self._scenes.get_or(
-            (repr(job.scene), W, H), lambda: self._load_scene(job.scene, W, H))
+            (repr(job.scene), W, H, own_env), lambda: self._load_scene(job.scene, W, H, environment=own_env))
         cam = base.camera
         if cam is not None:
             changes = {}
@@ -193,9 +194,9 @@ class Worker:
             base = base.replace(objects=[_with_material(o, job.material) for o in base.objects])
         return base, file_options, file_display
 
-    def _load_scene(self, source, W, H):
+    def _load_scene(self, source, W, H, *, environment: bool = True):
         if source == "demo":
-            return demo_scene(W or 1280, H or 720), {}, {}
+            return demo_scene(W or 1280, H or 720, environment=environment), {}, {}
         if isinstance(source, tuple):  # ("factory", "module:function", args-json, folder)
             _, target, args, folder = source
             import json

@@ -26,7 +26,7 @@ def add_command(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
     p.add_argument("--engine", choices=ENGINES, default="local", help="local: in this process (default); ray: Ray actors (pip install 'jaxpbr[ray]')")
     p.add_argument("--address", default=None, metavar="ADDR", help="ray: the cluster to join (default: start a local one)")
-    p.add_argument("--workers", type=positive_int_arg, default=None, metavar="N", help="ray: actors (default: one per CPU of the cluster)")
+    p.add_argument("--workers", type=positive_int_arg, default=None, metavar="N", help="ray: actors (default: one per node, each holding the node's CPUs)")
     p.add_argument("--retries", type=nonnegative_int_arg, default=2, metavar="N", help="ray: further attempts of a job whose worker died (default: %(default)s)")
     p.add_argument("--chunk", type=positive_int_arg, default=4, metavar="N", help="ray: jobs of one group sent to a worker together (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress line")
