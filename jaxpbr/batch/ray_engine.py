@@ -86,7 +86,7 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
             # Ray starts its processes with fork + exec (no Python runs in the forked child).
             warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
             if address is None:
-                ray.init(num_cpus=workers or os.cpu_count() or 1, **kw)
+                ray.init(num_cpus=os.cpu_count() or 1, **kw)
             else:
                 ray.init(address=address, **kw)
     actors: list = []
