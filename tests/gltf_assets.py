@@ -390,9 +390,11 @@ def leaf_quad():
     return pos, np.tile([0.0, 0.0, 1.0], (4, 1)), uv, np.array([[0, 2, 1], [0, 3, 2]])
 
 
-def alpha_mask_leaf(out: Path) -> Path:
+def alpha_mask_leaf(out: Path, mag_filter: int = LINEAR) -> Path:
+    """The leaf; mag_filter NEAREST writes the variant alpha_mask_leaf_nearest.glb (the same
+    texture and quad, magnified texel by texel)."""
     b = Builder("jaxpbr test assets")
-    s = b.add("samplers", {"wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE, "magFilter": LINEAR,
+    s = b.add("samplers", {"wrapS": CLAMP_TO_EDGE, "wrapT": CLAMP_TO_EDGE, "magFilter": mag_filter,
                            "minFilter": LINEAR_MIPMAP_LINEAR})
     t = _png_texture(b, leaf_texture(), sampler=s, name="leaf")
     m = b.add("materials", {"name": "leaf", "alphaMode": "MASK", "alphaCutoff": LEAF_CUTOFF, "doubleSided": True,
@@ -402,7 +404,8 @@ def alpha_mask_leaf(out: Path) -> Path:
     mesh = b.add("meshes", {"name": "leaf", "primitives": [
         {"attributes": _attributes(b, pos, nrm, uv), "indices": _indices(b, tri), "material": m}]})
     _scene(b, [b.add("nodes", {"name": "leaf", "mesh": mesh})])
-    return b.write(Path(out) / "alpha_mask_leaf.glb", mode="glb")
+    name = "alpha_mask_leaf.glb" if mag_filter == LINEAR else "alpha_mask_leaf_nearest.glb"
+    return b.write(Path(out) / name, mode="glb")
 
 
 # ---------------------------------------------------------------------------------------------

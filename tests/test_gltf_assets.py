@@ -222,6 +222,51 @@ def test_alpha_mask_leaf_cut_out_follows_the_silhouette(assets, side):
     assert np.all(g[:, 1] > g[:, 0]) and np.all(g[:, 1] > g[:, 2])  # green, unlike the background
 
 
+def _nearest_alpha(u, v):
+    """The texture's alpha at (u, v) under GL NEAREST on level 0, CLAMP_TO_EDGE: the texel
+    (floor(v n), floor(u n)) of the uint8 texture written."""
+    a = A.leaf_texture()[..., 3] / 255.0
+    n = a.shape[0]
+    return a[np.clip(np.floor(v * n).astype(int), 0, n - 1), np.clip(np.floor(u * n).astype(int), 0, n - 1)]
+
+
+@renders
+def test_alpha_mask_leaf_nearest_cut_out_follows_the_texels(tmp_path):
+    """The leaf with its sampler's magFilter NEAREST: the cut-out follows the texels, as the colour
+    does -- a pixel shows the background exactly where the alpha of the texel its ray lands in is
+    below alphaCutoff, and the leaf where it is above (rays within 1e-3 texel of a texel edge, and
+    texels within 0.01 of the cutoff, are left out). Pixels where the bilinear and the nearest
+    silhouettes disagree are in the picture, both ways."""
+    W = H = 48
+    cam_pos, fov = np.array([0.0, 0.0, 3.0]), 45.0
+    cam = jp.Camera(position=tuple(cam_pos), target=(0.0, 0.0, 0.0), fov_y_deg=fov, width=W, height=H)
+    light = jp.DirectionalLight(direction=(0.0, -0.2, -1.0), intensity=3.0)
+    path = A.alpha_mask_leaf(tmp_path, mag_filter=A.NEAREST)
+    scene = jp.load_gltf(path, camera=cam, lights=[light], background=_BG)
+    (mesh,) = scene.objects
+    assert mesh.material.base_color_texture.texture.mag_filter == "nearest"
+    img = np.asarray(jp.render(scene))
+    o, d = rays(cam_pos, (0, 0, 0), fov, W, H)
+    t = -o[2] / d[..., 2]
+    x, y = o[0] + t * d[..., 0], o[1] + t * d[..., 1]
+    h, n = A.LEAF_HALF_SIZE, A.LEAF_TEXELS
+    u, v = (x + h) / (2 * h), (h - y) / (2 * h)
+    on_quad = (np.abs(x) < h - 1e-3) & (np.abs(y) < h - 1e-3)
+    un, vn = np.clip(u, 0, 1) * n, np.clip(v, 0, 1) * n
+    inside_texel = (np.abs(un - np.round(un)) > 1e-3) & (np.abs(vn - np.round(vn)) > 1e-3)
+    alpha = np.where(on_quad, _nearest_alpha(np.clip(u, 0, 1), np.clip(v, 0, 1)), 0.0)
+    sure = inside_texel & (np.abs(alpha - A.LEAF_CUTOFF) > 0.01)
+    clear = sure & (alpha < A.LEAF_CUTOFF)
+    leaf = sure & on_quad & (alpha > A.LEAF_CUTOFF)
+    lin = np.where(on_quad, _bilinear_alpha(np.clip(u, 0, 1), np.clip(v, 0, 1)), 0.0)
+    assert (clear & on_quad & (lin > A.LEAF_CUTOFF)).sum() > 5 and (leaf & (lin < A.LEAF_CUTOFF)).sum() > 5
+    assert leaf.sum() > 150 and (clear & on_quad).sum() > 300
+    np.testing.assert_array_equal(img[clear], np.broadcast_to(np.float32(_BG), img[clear].shape))
+    assert np.all(img[leaf] != np.float32(_BG))
+    g = img[leaf]
+    assert np.all(g[:, 1] > g[:, 0]) and np.all(g[:, 1] > g[:, 2])
+
+
 # ---------------------------------------------------------------------------------------------
 # (6) The KHR extension row
 # ---------------------------------------------------------------------------------------------
@@ -347,15 +392,17 @@ def test_khr_row_rendered_in_light_along_the_view(assets):
 
 @renders
 def test_khr_row_back_light_transmission_and_emissive_strength(assets):
-    """A directional light from behind the row: the plain sphere's visible pixels face away from
-    it (black), the transmissive spheres let it through; the volume's attenuationColor
-    (1, 0.5, 0.25) tints what comes through red > green > blue. Shadows off: a transmissive mesh
-    occludes shadow rays as an opaque one does, itself included. emissive_strength s multiplies the
-    emission: that sphere's pixels exceed the same material without the extension by
-    (s - 1) emissiveFactor x the emissive texel (sRGB-decoded)."""
+    """A directional light from behind the row, shadows on: the plain sphere's visible pixels face
+    away from it (black), the transmissive spheres let it through; the volume's attenuationColor
+    (1, 0.5, 0.25) tints what comes through red > green > blue. On its way in, the light crosses
+    the sphere's back wall, a thin-walled transmissive surface: it keeps transmission x base colour
+    = 1 x 0.8 of itself, so each transmissive sphere's pixels are 0.8 x the same render without
+    shadows. emissive_strength s multiplies the emission: that sphere's pixels exceed the same
+    material without the extension by (s - 1) emissiveFactor x the emissive texel (sRGB-decoded)."""
     light = jp.DirectionalLight(direction=(0.0, 0.0, 1.0), intensity=3.0)
-    ext, plain, m = _row_renders(assets["khr_extension_spheres"], light,
-                                 ("plain", "transmission", "volume", "emissive_strength"), shadows=False)
+    names = ("plain", "transmission", "volume", "emissive_strength")
+    ext, plain, m = _row_renders(assets["khr_extension_spheres"], light, names)
+    unshadowed, _, _ = _row_renders(assets["khr_extension_spheres"], light, names, shadows=False)
     for name in ("plain", "transmission", "volume"):
         assert m[name].sum() > 80 and np.all(plain[m[name]] == 0.0), name
     assert np.all(ext[m["plain"]] == 0.0)
@@ -363,6 +410,9 @@ def test_khr_row_back_light_transmission_and_emissive_strength(assets):
     assert np.all(t > 0) and t.mean() > 0.5
     v = ext[m["volume"]]
     assert np.all(v[:, 0] > v[:, 1]) and np.all(v[:, 1] > v[:, 2]) and np.all(v[:, 2] > 0)
+    through = A.KHR_CORE["baseColorFactor"][0] * A.KHR_DATA_TEXEL[0] / 255  # transmission 1 x its texture's R 1
+    for name in ("transmission", "volume"):
+        np.testing.assert_allclose(ext[m[name]], through * unshadowed[m[name]], rtol=1e-5, err_msg=name)
     e = np.asarray(A.KHR_EMISSIVE) * srgb(np.asarray(A.KHR_COLOUR_TEXEL) / 255.0)
     s = {k: b for k, _, b, _ in A.KHR_SPHERES[1:]}["emissive_strength"]["emissiveStrength"]
     em = m["emissive_strength"]

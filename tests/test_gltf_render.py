@@ -324,6 +324,30 @@ def test_extracted_sun_casts_shadows():
     assert (img.sum(-1) <= lit.sum(-1) * (1 + 1e-5) + 1e-7).all()  # shadows only remove light
 
 
+def test_extracted_sun_shines_through_a_transmissive_sphere():
+    """Under the procedural sky, the sun split out of the environment is the only shadowed light
+    (image-based lighting is not shadowed), so with the sphere transmissive (t, base colour c) the
+    ground is B + (t c)^2 (A - B) per channel: A the render without shadows, B with the sphere
+    shadowing fully (transmission 0), the sun's light crossing the sphere's two walls. All three
+    renders use materials with the transmission extension (one shading path)."""
+    env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(32))
+    scene, cam = _shadow_scene(False, jp.PointLight((0, 50, 0), intensity=0.0))
+    scene = scene.replace(environment=env, lights=())
+    floor, ball = scene.objects
+    t, c = 0.6, np.asarray(ball.material.base_color, np.float64)
+
+    def with_transmission(x):
+        return scene.replace(objects=(floor, ball.replace(material=ball.material.replace(transmission=x))))
+
+    lit = np.asarray(jp.render(with_transmission(t), shadows=False))
+    opaque = np.asarray(jp.render(with_transmission(0.0)))
+    img = np.asarray(jp.render(with_transmission(t)))
+    ground, _, _ = _ground_shadow_oracle(cam, (0.0, -1.0, 0.0))  # (its shadow mask is for another light)
+    assert (ground & (opaque.sum(-1) < 0.8 * lit.sum(-1))).sum() > 10  # the sun's shadow
+    want = opaque + (t * c) ** 2 * (lit - opaque)
+    np.testing.assert_allclose(img[ground], want[ground], rtol=1e-5, atol=1e-6)
+
+
 # ------------------------------------------------------------------------------------------
 # Alpha: MASK cut-outs and BLEND layers
 # ------------------------------------------------------------------------------------------
@@ -367,6 +391,59 @@ def test_mask_cuts_out_by_the_alpha_cutoff():
     np.testing.assert_allclose(img[:, cols_right], opaque[:, cols_right], rtol=1e-6, atol=1e-7)
 
 
+def _gl_wrap(i, n, mode):
+    """GL wrap of integer texel indices (OpenGL 4.6, Table 8.20)."""
+    if mode == "repeat":
+        return np.mod(i, n)
+    if mode == "clamp":
+        return np.clip(i, 0, n - 1)
+    m = np.mod(i, 2 * n) - n  # MIRRORED_REPEAT: (n - 1) - mirror((i mod 2n) - n)
+    return (n - 1) - np.where(m >= 0, m, -(1 + m))
+
+
+@pytest.mark.parametrize("mag", ["nearest", "linear"])
+def test_cut_out_alpha_is_looked_up_with_the_samplers_filter_and_wraps(mag):
+    """The alpha a MASK mesh is cut by, at hits with uv far outside [0, 1] under every pair of wrap
+    modes and a texture transform: with a NEAREST magFilter the A of the texel (floor(v H),
+    floor(u W)) after GL wrapping; with LINEAR the bilinear mix of the four texels around
+    (u W - 1/2, v H - 1/2), each wrapped (both computed here from the GL rules); and equal to
+    what the colour path's sampler returns there (`texture.sample`, magnified)."""
+    from jaxpbr.rendering import texture as T
+
+    rng = np.random.default_rng(3)
+    Hh, Ww = 5, 7
+    rgba = rng.uniform(0.0, 1.0, (Hh, Ww, 4)).astype(np.float32)
+    b = rng.uniform(0.0, 1.0, (400, 2))
+    b = np.where(b.sum(-1, keepdims=True) > 1, 1 - b, b)  # inside the triangle
+    xform = np.array([[1.5, 0.2, 0.3], [-0.1, 1.2, -0.4], [0, 0, 1]])
+    # One triangle whose uv spans [-1.5, 2.5]^2: uv = (-1.5 + 4 b1, -1.5 + 4 b2).
+    uv = np.array([[-1.5, -1.5], [2.5, -1.5], [-1.5, 2.5]], np.float32)
+    st = np.stack([-1.5 + 4 * b[:, 0], -1.5 + 4 * b[:, 1], np.ones(len(b))], -1) @ xform.T
+    u, v = st[:, 0], st[:, 1]
+    for ws in ("repeat", "clamp", "mirror"):
+        for wt in ("repeat", "clamp", "mirror"):
+            tex = jp.Texture.from_image(rgba, srgb=False, wrap_s=ws, wrap_t=wt, mag_filter=mag)
+            mat = jp.TexturedMaterial(factors=_GREEN, base_color_texture=jp.TextureSlot(texture=tex, transform=xform))
+            mesh = Mesh(positions=np.eye(3, dtype=np.float32), triangles=np.array([[0, 1, 2]], np.int32), texcoords=uv,
+                        material=mat, alpha_mode="MASK")
+            arrays = mesh_mod.concat_meshes([mesh], jnp.float64)
+            _, got = mesh_mod.host_alpha(arrays["alpha"], np.array([[0, 1, 2]]), np.zeros(len(b), np.int32), b[:, 0], b[:, 1])
+            a = rgba[..., 3].astype(np.float64)
+            if mag == "nearest":
+                want = a[_gl_wrap(np.floor(v * Hh).astype(int), Hh, wt), _gl_wrap(np.floor(u * Ww).astype(int), Ww, ws)]
+            else:
+                x, y = u * Ww - 0.5, v * Hh - 0.5
+                x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+                fx, fy = x - x0, y - y0
+                xa, xb = _gl_wrap(x0, Ww, ws), _gl_wrap(x0 + 1, Ww, ws)
+                ya, yb = _gl_wrap(y0, Hh, wt), _gl_wrap(y0 + 1, Hh, wt)
+                want = ((1 - fx) * (1 - fy) * a[ya, xa] + fx * (1 - fy) * a[ya, xb]
+                        + (1 - fx) * fy * a[yb, xa] + fx * fy * a[yb, xb])
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7, err_msg=f"{ws} {wt}")
+            colour = np.asarray(T.sample(tex, jnp.asarray(st[:, :2], jnp.float32)))[:, 3]
+            np.testing.assert_allclose(got, colour, rtol=1e-5, atol=1e-5, err_msg=f"{ws} {wt}")
+
+
 def test_blend_composites_layers_front_to_back():
     """BLEND: C = a1 C1 + (1 - a1) a2 C2 + (1 - a1)(1 - a2) C_behind, each C the surface drawn
     opaque on its own (shadows off: blended surfaces cast none, opaque stand-ins would)."""
@@ -402,6 +479,101 @@ def test_cut_out_and_blended_surfaces_cast_no_shadows():
     masked = scene(_BACK, _wall(3.0, material=_GREEN, alpha_mode="MASK", alpha=0.2))
     assert opaque.sum() < 0.5 * masked.sum()
     np.testing.assert_allclose(masked, alone, rtol=1e-6, atol=1e-7)
+
+
+# A point light over a Lambertian floor (specularFactor 0), seen from below the occluders' height.
+_FLOOR_MAT = jp.Material(base_color=(0.6, 0.6, 0.6), metallic=0.0, roughness=1.0, specular=0.0)
+_LAMP = np.array([0.1, 3.0, 0.05])
+_LAMP_CD = 10.0
+_GLASS_T, _GLASS_BASE = 0.6, np.array([0.9, 0.5, 0.2])
+_GLASS = jp.Material(base_color=tuple(_GLASS_BASE), metallic=0.0, roughness=0.3, transmission=_GLASS_T)
+
+
+def _floor_render(*occluders, analytic=False, **kw):
+    """The floor (a mesh quad, or an analytic plane) lit by the point light, 48 x 40 pixels, and
+    per pixel: its floor point (closed form, NaN off the floor) and the Lambert radiance
+    base / pi x I cos(theta) / d^2 there."""
+    W, H = 48, 40
+    cam_pos, target, fov = np.array([0.0, 0.8, 3.2]), (0.0, 0.0, 0.0), 50.0
+    cam = jp.Camera(position=tuple(cam_pos), target=target, fov_y_deg=fov, width=W, height=H)
+    half = 3.0
+    floor = (jp.Plane(point=(0, 0, 0), normal=(0, 1, 0), material=_FLOOR_MAT) if analytic
+             else Mesh(positions=np.array([[-half, 0, half], [half, 0, half], [half, 0, -half], [-half, 0, -half]], np.float32),
+                       triangles=np.array([[0, 1, 2], [0, 2, 3]], np.int32), normals=np.tile(np.float32([0, 1, 0]), (4, 1)),
+                       material=_FLOOR_MAT))
+    scene = jp.Scene(camera=cam, objects=[floor, *occluders], lights=[jp.PointLight(tuple(_LAMP), intensity=_LAMP_CD)])
+    img = np.asarray(jp.render(scene, **kw))
+    f = target - cam_pos
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0, 1, 0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    tn = math.tan(math.radians(fov) / 2)
+    x = (2 * (np.arange(W) + 0.5) / W - 1) * tn * W / H
+    y = (1 - 2 * (np.arange(H) + 0.5) / H) * tn
+    d = f + x[None, :, None] * r + y[:, None, None] * u
+    t = -cam_pos[1] / d[..., 1]
+    p = cam_pos + t[..., None] * d
+    on = (t > 0) & (np.abs(p[..., [0, 2]]).max(-1) < half - 0.05)
+    p[~on] = np.nan
+    to = _LAMP - p
+    dist = np.linalg.norm(to, axis=-1)
+    lambert = np.asarray(_FLOOR_MAT.base_color) / math.pi * (_LAMP_CD * to[..., 1] / dist ** 3)[..., None]
+    return img, p, lambert
+
+
+def _glass_quad(material, y=1.0, half=0.5):
+    """A horizontal quad at height y, facing up (double-sided: a thin sheet)."""
+    pos = np.array([[-half, y, half], [half, y, half], [half, y, -half], [-half, y, -half]], np.float32)
+    return Mesh(positions=pos, triangles=np.array([[0, 1, 2], [0, 2, 3]], np.int32), normals=np.tile(np.float32([0, 1, 0]), (4, 1)),
+                material=material, double_sided=True)
+
+
+def test_transmissive_quad_tints_its_shadow_by_transmission_times_base_colour():
+    """A thin transmissive quad (KHR_materials_transmission t, base colour c) between a point light
+    and a Lambertian floor: under it the floor shows the Lambert radiance times t c (the light
+    kept by one thin-walled crossing), elsewhere the Lambert radiance itself. The same quad opaque,
+    or with transmission 0, shadows fully. The floor points under the quad: those whose segment to
+    the light crosses y = 1 inside it (closed form; a 0.03 band around its edge left out)."""
+    img, p, lambert = _floor_render(_glass_quad(_GLASS))
+    s = (1.0 - p[..., 1]) / (_LAMP[1] - p[..., 1])
+    cross = p + s[..., None] * (_LAMP - p)
+    reach = np.abs(cross[..., [0, 2]]).max(-1)
+    under, clear = reach < 0.5 - 0.03, reach > 0.5 + 0.03
+    assert under.sum() > 40 and clear.sum() > 500
+    tr = _GLASS_T * _GLASS_BASE
+    np.testing.assert_allclose(img[under], lambert[under] * tr, rtol=1e-4)
+    np.testing.assert_allclose(img[clear], lambert[clear], rtol=1e-4)
+    opaque = jp.Material(base_color=tuple(_GLASS_BASE), metallic=0.0, roughness=0.3)
+    zero = jp.Material(base_color=tuple(_GLASS_BASE), metallic=0.0, roughness=0.3, transmission=0.0)
+    for m in (opaque, zero):
+        img, _, _ = _floor_render(_glass_quad(m))
+        np.testing.assert_array_equal(img[under], 0.0)
+        np.testing.assert_allclose(img[clear], lambert[clear], rtol=1e-4)
+
+
+@pytest.mark.parametrize("analytic", [False, True], ids=["mesh", "sphere+plane"])
+def test_transmissive_sphere_tints_its_shadow_once_per_wall(analytic):
+    """A transmissive sphere between the light and the floor (a UV-sphere mesh over a mesh floor,
+    or an analytic sphere over a plane): a shadow ray through it crosses two thin walls, so the
+    floor under it shows the Lambert radiance times (t c)^2; elsewhere the Lambert radiance.
+    Under it: floor points whose segment to the light passes within r - 0.03 of the centre."""
+    centre, r = np.array([0.0, 1.3, 0.0]), 0.5
+    if analytic:
+        ball = jp.Sphere(center=tuple(centre), radius=r, material=_GLASS)
+    else:
+        pos, nrm, _, tri = uv_sphere(24, 48, radius=r)
+        ball = Mesh(positions=(pos + centre).astype(np.float32), triangles=tri.astype(np.int32), normals=nrm.astype(np.float32),
+                    material=_GLASS)
+    img, p, lambert = _floor_render(ball, analytic=analytic, shadows=True)
+    seg = _LAMP - p
+    k = np.clip(np.einsum("...i,...i->...", centre - p, seg) / np.einsum("...i,...i->...", seg, seg), 0, 1)
+    miss = np.linalg.norm(p + k[..., None] * seg - centre, axis=-1)
+    under, clear = miss < r - 0.03, miss > r + 0.03
+    assert under.sum() > 40 and clear.sum() > 500
+    tr = _GLASS_T * _GLASS_BASE
+    np.testing.assert_allclose(img[under], lambert[under] * tr ** 2, rtol=1e-4)
+    np.testing.assert_allclose(img[clear], lambert[clear], rtol=1e-4)
 
 
 def test_mipmapped_texture_aliases_less_than_plain_bilinear():

@@ -246,3 +246,31 @@ def test_cap_irradiance_gradient_matches_finite_differences():
         for c0, s0 in [(0.8, 0.3), (0.1, 0.3), (-0.2, 0.5), (0.0, 0.05)]:
             x = np.array([c0, s0])
             check_partials(lambda v: jp.shading.lights.cap_irradiance(v[0], v[1]), x, [0, 1], step=1e-6, atol=1e-7, rtol=1e-6)
+
+
+@pytest.mark.parametrize("count", [3, UNROLL_MAX_LIGHTS + 3], ids=["unrolled", "scanned"])
+def test_visibility_per_light_and_per_channel_weights_each_lights_term(count):
+    """shade_direct is linear in the lights: with visibility (..., L) it is sum_i w_i x (light i
+    alone), with (..., L, 3) sum_i w_ic x (light i alone) per channel c -- point and disc lights
+    mixed (two groups in packed order), unrolled and scanned."""
+    rng = np.random.default_rng(7)
+    P = 5
+    n = rng.normal(size=(P, 3))
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    v = n + 0.4 * rng.normal(size=(P, 3))
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    p = rng.normal(size=(P, 3)) * 0.2
+    lights = []
+    for i in range(count):
+        if i % 3 == 2:
+            lights.append(jp.DirectionalLight(direction=tuple(-rng.uniform(0.2, 1.0, 3)), intensity=2.0, angular_radius=0.05))
+        else:
+            lights.append(jp.PointLight(tuple(rng.normal(size=3) * 3 + np.array([0, 0, 4.0])), intensity=5.0))
+    m = jp.Material(base_color=(0.7, 0.4, 0.2), metallic=0.3, roughness=0.5)
+    alone = np.stack([np.asarray(jp.shade_direct(p, n, v, m, [lt])) for lt in lights], 1)  # (P, L, 3)
+    w1 = rng.uniform(0, 1, (P, count))
+    w3 = rng.uniform(0, 1, (P, count, 3))
+    got1 = np.asarray(jp.shade_direct(p, n, v, m, lights, visibility=w1))
+    got3 = np.asarray(jp.shade_direct(p, n, v, m, lights, visibility=w3))
+    np.testing.assert_allclose(got1, np.sum(w1[..., None] * alone, 1), rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(got3, np.sum(w3 * alone, 1), rtol=1e-5, atol=1e-7)

@@ -315,48 +315,92 @@ def concat_meshes(meshes, dtype):
     out["flat"] = jnp.asarray([m.normals is None for m in meshes])[out["tri_object"]]
     out["cull_back"] = jnp.asarray([not m.double_sided for m in meshes])[out["tri_object"]]
     out["alpha"] = _alpha_arrays(meshes, out, dtype) if any(m.alpha_mode != "OPAQUE" for m in meshes) else None
+    out["transmit"] = _transmit_arrays(meshes, out, dtype) if any(transmits(m.material) for m in meshes) else None
     return out
 
 
 _WRAPS = {"repeat": 0, "clamp": 1, "mirror": 2}
 
 
-def _alpha_arrays(meshes, arrays, dtype):
-    """What the host needs to evaluate alpha at a hit (MASK cut-outs, BLEND layers): per mesh the
-    mode (0 opaque, 1 mask, 2 blend), cutoff, factor, the base colour texture's alpha (level 0;
-    a 1x1 of ones without one), its texture-coordinate set, wrap modes and transform; per vertex the
-    texture coordinates and COLOR_0's alpha."""
-    from .textured import TexturedMaterial, TextureSlot
+def transmits(material) -> bool:
+    """Whether a material has KHR_materials_transmission (static: the group's presence)."""
+    f = material.factors if isinstance(material, TexturedMaterial) else material
+    return "transmission" in f.extensions
 
-    mode, cutoff, factor, tset, wrap, xform, tex = [], [], [], [], [], [], []
-    for m in meshes:
-        mode.append(ALPHA_MODES.index(m.alpha_mode))
-        cutoff.append(m.alpha_cutoff)
-        factor.append(jnp.asarray(m.alpha, dtype))
-        bc = m.material.base_color_texture if isinstance(m.material, TexturedMaterial) else None
-        img, s, w, x = None, 0, (0, 0), np.eye(3)
-        if isinstance(bc, TextureSlot):
-            lv = bc.texture.levels[0]
-            img = lv[..., 3] if lv.shape[-1] == 4 else None
-            s = bc.texcoord
-            w = (_WRAPS[bc.texture.wrap_s], _WRAPS[bc.texture.wrap_t])
-            x = bc.transform if bc.transform is not None else np.eye(3)
-        elif bc is not None and np.shape(bc)[-1] == 4:
-            img = jnp.asarray(bc)[..., 3]
-        tex.append(jnp.asarray(img, dtype) if img is not None else jnp.ones((1, 1), dtype))
+
+def _slot_tables(slots, channels, dtype):
+    """What the host needs to look a material texture up at hits, per mesh (`_host_lookup`): the
+    texels of level 0 in `channels` ((H, W, len(channels)); a 1x1 of ones for a mesh without the
+    texture, or whose texture lacks those channels), its texture-coordinate set, wrap modes,
+    transform and whether its magnification filter is nearest. A plain (H, W, C) array is sampled
+    as the colour path samples it: bilinear, repeat."""
+    from .textured import TextureSlot
+
+    tex, tset, wrap, xform, nearest = [], [], [], [], []
+    for x in slots:
+        img, s, w, m, nn = None, 0, (0, 0), np.eye(3), False
+        if isinstance(x, TextureSlot):
+            lv = x.texture.levels[0]
+            img = lv[..., list(channels)] if lv.shape[-1] > max(channels) else None
+            s = x.texcoord
+            w = (_WRAPS[x.texture.wrap_s], _WRAPS[x.texture.wrap_t])
+            m = x.transform if x.transform is not None else np.eye(3)
+            nn = x.texture.mag_filter == "nearest"
+        elif x is not None and np.shape(x)[-1] > max(channels):
+            img = jnp.asarray(x)[..., list(channels)]
+        tex.append(jnp.asarray(img, dtype) if img is not None else jnp.ones((1, 1, len(channels)), dtype))
         tset.append(s)
         wrap.append(w)
-        xform.append(jnp.asarray(x, dtype))
+        xform.append(jnp.asarray(m, dtype))
+        nearest.append(nn)
+    return {"textures": tuple(tex), "texcoord": jnp.asarray(tset, jnp.int32), "wrap": jnp.asarray(wrap, jnp.int32),
+            "transform": jnp.stack(xform), "nearest": jnp.asarray(nearest)}
+
+
+def _vertex_tables(arrays, dtype):
     V = arrays["positions"].shape[0]
     zeros2 = jnp.zeros((V, 2), dtype)
+    return {
+        "uv0": arrays["texcoords"] if arrays["texcoords"] is not None else zeros2,
+        "uv1": arrays["texcoords1"] if arrays["texcoords1"] is not None else zeros2,
+        "color": arrays["colors"] if arrays["colors"] is not None else jnp.ones((V, 4), dtype),
+        "tri_mesh": arrays["tri_object"],
+    }
+
+
+def _base_color_texture(m):
+    return m.material.base_color_texture if isinstance(m.material, TexturedMaterial) else None
+
+
+def _alpha_arrays(meshes, arrays, dtype):
+    """What the host needs to evaluate alpha at a hit (MASK cut-outs, BLEND layers): per mesh the
+    mode (0 opaque, 1 mask, 2 blend), cutoff, factor and the base colour texture's A (`_slot_tables`);
+    per vertex the texture coordinates and COLOR_0."""
     return dict(
-        mode=jnp.asarray(mode, jnp.int32), cutoff=jnp.asarray(cutoff, dtype), factor=jnp.stack(factor),
-        texcoord=jnp.asarray(tset, jnp.int32), wrap=jnp.asarray(wrap, jnp.int32), transform=jnp.stack(xform),
-        textures=tuple(tex),
-        uv0=arrays["texcoords"] if arrays["texcoords"] is not None else zeros2,
-        uv1=arrays["texcoords1"] if arrays["texcoords1"] is not None else zeros2,
-        color_a=arrays["colors"][:, 3] if arrays["colors"] is not None else jnp.ones((V,), dtype),
-        tri_mesh=arrays["tri_object"],
+        mode=jnp.asarray([ALPHA_MODES.index(m.alpha_mode) for m in meshes], jnp.int32),
+        cutoff=jnp.asarray([m.alpha_cutoff for m in meshes], dtype),
+        factor=jnp.stack([jnp.asarray(m.alpha, dtype) for m in meshes]),
+        tex=_slot_tables([_base_color_texture(m) for m in meshes], (3,), dtype),
+        **_vertex_tables(arrays, dtype),
+    )
+
+
+def _transmit_arrays(meshes, arrays, dtype):
+    """What the host needs for the transmittance of a shadow ray's crossing of a surface
+    (`host_transmittance`): per mesh the transmission factor (0 without the extension) and its
+    texture's R, the base colour factor and its texture's RGB (`_slot_tables`); per vertex the
+    texture coordinates and COLOR_0."""
+    factors, base = [], []
+    for m in meshes:
+        f = m.material.factors if isinstance(m.material, TexturedMaterial) else m.material
+        factors.append(jnp.asarray(f.transmission if transmits(m.material) else 0.0, dtype).reshape(()))
+        base.append(jnp.broadcast_to(jnp.asarray(f.base_color, dtype), (3,)))
+    ttex = [m.material.transmission_texture if isinstance(m.material, TexturedMaterial) else None for m in meshes]
+    return dict(
+        transmission=jnp.stack(factors), base_color=jnp.stack(base),
+        transmission_tex=_slot_tables(ttex, (0,), dtype),
+        base_color_tex=_slot_tables([_base_color_texture(m) for m in meshes], (0, 1, 2), dtype),
+        **_vertex_tables(arrays, dtype),
     )
 
 
@@ -370,11 +414,49 @@ def _wrap_host(x, n, mode):
     return np.mod(x, n)
 
 
+def _host_lookup(table, tables, ms, tri, w):
+    """(n, C) float64 texels of the per-mesh textures `table` (`_slot_tables`) at n hits on meshes
+    ms (n,) in triangles tri (n, 3) with barycentric weights w (n, 3): level 0, the sampler's
+    magnification filter (nearest: the texel floor(u W), floor(v H); linear: bilinear between the
+    four nearest texel centres), wrap modes and the slot's transform, as `texture.sample` magnifies."""
+    C = np.asarray(table["textures"][0]).shape[-1]
+    out = np.ones((len(ms), C), np.float64)
+    for k in np.unique(ms):
+        rows = ms == k
+        img = np.asarray(table["textures"][k], np.float64)
+        if img.shape[:2] == (1, 1) and np.all(img == 1.0):
+            continue
+        uvs = tables["uv0"] if table["texcoord"][k] == 0 else tables["uv1"]
+        uv = np.sum(w[rows][..., None] * uvs[tri[rows]], 1)
+        M = table["transform"][k]
+        u = M[0, 0] * uv[:, 0] + M[0, 1] * uv[:, 1] + M[0, 2]
+        v = M[1, 0] * uv[:, 0] + M[1, 1] * uv[:, 1] + M[1, 2]
+        H, W = img.shape[:2]
+        ws, wt = table["wrap"][k]
+        if table["nearest"][k]:
+            xi = _wrap_host(np.floor(u * W).astype(np.int64), W, ws)
+            yi = _wrap_host(np.floor(v * H).astype(np.int64), H, wt)
+            out[rows] = img[yi, xi]
+            continue
+        x, y = u * W - 0.5, v * H - 0.5
+        x0, y0 = np.floor(x), np.floor(y)
+        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+        xi = [_wrap_host(x0.astype(np.int64) + i, W, ws) for i in (0, 1)]
+        yi = [_wrap_host(y0.astype(np.int64) + i, H, wt) for i in (0, 1)]
+        out[rows] = ((1 - fx) * (1 - fy) * img[yi[0], xi[0]] + fx * (1 - fy) * img[yi[0], xi[1]]
+                     + (1 - fx) * fy * img[yi[1], xi[0]] + fx * fy * img[yi[1], xi[1]])
+    return out
+
+
+def _numpy(tables):
+    return {k: (_numpy(v) if isinstance(v, dict) else v if isinstance(v, tuple) else np.asarray(v)) for k, v in tables.items()}
+
+
 def host_alpha(alpha, triangles, prim, b1, b2):
     """(mode, alpha) at hits (prim >= 0, barycentrics b1, b2) on the host, NumPy: the glTF alpha
-    factor x the base colour texture's A (bilinear, level 0, the texture's wrap modes and
-    transform) x the interpolated COLOR_0 A."""
-    a = {k: (np.asarray(v) if not isinstance(v, tuple) else v) for k, v in alpha.items()}
+    factor x the base colour texture's A (`_host_lookup`: level 0 with the sampler's magnification
+    filter, wrap modes and the slot's transform) x the interpolated COLOR_0 A."""
+    a = _numpy(alpha)
     p = np.maximum(prim, 0)
     mesh = a["tri_mesh"][p]
     mode = np.where(prim >= 0, a["mode"][mesh], 0)
@@ -385,30 +467,26 @@ def host_alpha(alpha, triangles, prim, b1, b2):
     ps, ms = p[sel], mesh[sel]
     w = np.stack([1.0 - b1[sel] - b2[sel], b1[sel], b2[sel]], -1)
     tri = triangles[ps]
-    ca = np.sum(w * a["color_a"][tri], -1)
-    val = a["factor"][ms] * ca
-    for k in np.unique(ms):
-        rows = ms == k
-        img = np.asarray(a["textures"][k], np.float64)
-        if img.shape == (1, 1) and img[0, 0] == 1.0:
-            continue
-        uvs = a["uv0"] if a["texcoord"][k] == 0 else a["uv1"]
-        uv = np.sum(w[rows][..., None] * uvs[tri[rows]], 1)
-        M = a["transform"][k]
-        u = M[0, 0] * uv[:, 0] + M[0, 1] * uv[:, 1] + M[0, 2]
-        v = M[1, 0] * uv[:, 0] + M[1, 1] * uv[:, 1] + M[1, 2]
-        H, W = img.shape
-        x, y = u * W - 0.5, v * H - 0.5
-        x0, y0 = np.floor(x), np.floor(y)
-        fx, fy = x - x0, y - y0
-        ws, wt = a["wrap"][k]
-        xi = [_wrap_host(x0.astype(np.int64) + i, W, ws) for i in (0, 1)]
-        yi = [_wrap_host(y0.astype(np.int64) + i, H, wt) for i in (0, 1)]
-        s = ((1 - fx) * (1 - fy) * img[yi[0], xi[0]] + fx * (1 - fy) * img[yi[0], xi[1]]
-             + (1 - fx) * fy * img[yi[1], xi[0]] + fx * fy * img[yi[1], xi[1]])
-        val[rows] = val[rows] * s
-    out[sel] = val
+    ca = np.sum(w * a["color"][tri, 3], -1)
+    out[sel] = a["factor"][ms] * ca * _host_lookup(a["tex"], a, ms, tri, w)[:, 0]
     return mode, out
+
+
+def host_transmittance(transmit, triangles, prim, b1, b2):
+    """(n, 3) the fraction of light a shadow ray keeps crossing the surface at hits (prim >= 0,
+    barycentrics b1, b2) on the host, NumPy: thin-walled transmission lets transmission x base
+    colour through (transmissionFactor x its texture's R; baseColorFactor x its texture's RGB x
+    COLOR_0's RGB; textures as `_host_lookup`); 0 where the material has no transmission."""
+    a = _numpy(transmit)
+    p = np.maximum(prim, 0)
+    ms = a["tri_mesh"][p]
+    w = np.stack([1.0 - b1 - b2, b1, b2], -1)
+    tri = triangles[p]
+    t = a["transmission"][ms] * _host_lookup(a["transmission_tex"], a, ms, tri, w)[:, 0]
+    base = a["base_color"][ms] * np.sum(w[..., None] * a["color"][tri, :3], 1)
+    base = base * _host_lookup(a["base_color_tex"], a, ms, tri, w)
+    out = np.clip(t, 0.0, 1.0)[:, None] * np.clip(base, 0.0, 1.0)
+    return np.where((prim >= 0)[:, None], out, 0.0)
 
 
 def triangle_hit(v0, v1, v2, o, d):

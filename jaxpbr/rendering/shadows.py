@@ -12,6 +12,13 @@ Binder (`visibility.offset_ray_origin`: 256 float32 units in the last place of e
 so that neither a tiny object nor a far one self-shadows; the rays are float32, the ray engine's
 precision, also in float64 renders. Visibility has no derivative (the blocked/unblocked choice);
 the gradient of a shadowed image flows through the lit pixels' shading.
+
+MASK cut-outs and BLEND surfaces let the light through. Transmissive surfaces (KHR_materials_transmission,
+thin-walled) let part of it through: each crossing multiplies it by transmission x base colour (on meshes
+with their textures and COLOR_0, looked up on the host as the MASK alpha is; on spheres, crossed twice,
+and planes, the factors), up to the first opaque surface. Fresnel reflection at the wall, the spread of
+rough transmission and a volume's attenuation are left out. Visibility is then (..., L, 3), one factor per
+light and channel (`shade_direct` takes either form); without transmissive objects it is (..., L).
 """
 
 from __future__ import annotations
@@ -22,76 +29,153 @@ import numpy as np
 
 from .._numerics import vdot, vnormalize
 from ..shading.lights import pack_lights
-from .mesh import ACCELS, MAX_CULLED_HITS, Mesh, _embree, host_alpha
+from .mesh import (
+    ACCELS,
+    MAX_CULLED_HITS,
+    Mesh,
+    _embree,
+    host_alpha,
+    host_transmittance,
+    transmits,
+)
 from .scene import Plane, Sphere, intersect_plane, intersect_sphere
+from .textured import TexturedMaterial
 from .visibility import offset_ray_origin
 
 __all__ = ["shadow_visibility"]
 
-def _host_occluded(vertices, triangles, o, d, tfar, alpha=None):
+def _host_occluded(vertices, triangles, o, d, tfar, alpha=None, transmit=None):
+    """Without `transmit`: (...,) bool, the segment meets an opaque point. With it: (..., 3) the
+    fraction of the light left after every crossing of the segment (0 where an opaque point
+    blocks it; transmissive crossings multiply it by `host_transmittance`)."""
     vertices = np.ascontiguousarray(vertices, np.float32)
     triangles = np.ascontiguousarray(triangles, np.int32)
+    walk = alpha is not None or transmit is not None
+    # The primary rays' structure (exact ties where cut-outs and blended layers need them).
     accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax", exact_ties=alpha is not None)
     shape = np.shape(o)[:-1]
     o = np.asarray(o, np.float32).reshape(-1, 3)
-    d = np.asarray(d, np.float32).reshape(-1, 3)
-    tfar = np.asarray(tfar, np.float32).reshape(-1)
-    if alpha is None:
+    # A direction (3,) shared by every ray (a sun) is one per ray in the walk below.
+    d = np.broadcast_to(np.asarray(d, np.float32), shape + (3,)).reshape(-1, 3)
+    tfar = np.broadcast_to(np.asarray(tfar, np.float32), shape).reshape(-1)
+    if not walk:
         return np.asarray(accel.occluded(o, d, tnear=0.0, tfar=tfar), bool).reshape(shape)
-    # Cut-outs (MASK below the cutoff) and blended surfaces let the light through: walk the hits.
-    blocked = np.zeros(len(o), bool)
-    todo = np.arange(len(o))
-    tnear = np.zeros(len(o), np.float32)
-    after = np.full(len(o), -1, np.int32)
-    cutoff = np.asarray(alpha["cutoff"])
-    tri_mesh = np.asarray(alpha["tri_mesh"])
-    for _ in range(MAX_CULLED_HITS + 1):
+    # Cut-outs (MASK below the cutoff) and blended surfaces let the light through, transmissive
+    # ones part of it: walk the hits.
+    n = len(o)
+    left = np.ones((n, 3), np.float64)
+    todo = np.arange(n)
+    tnear = np.zeros(n, np.float32)
+    after = np.full(n, -1, np.int32)
+    tri_mesh = np.asarray((alpha if alpha is not None else transmit)["tri_mesh"])
+    for _ in range(MAX_SHADOW_CROSSINGS):
         if todo.size == 0:
             break
         h = accel.intersect(o[todo], d[todo], tnear=tnear[todo], tfar=tfar[todo], after_prim=after[todo])
         p = np.asarray(h.prim, np.int32)
+        t = np.asarray(h.t, np.float32)
+        b1, b2 = np.asarray(h.b1), np.asarray(h.b2)
         hit = p >= 0
-        mode, a = host_alpha(alpha, triangles, p, np.asarray(h.b1), np.asarray(h.b2))
-        through = hit & ((mode == 2) | ((mode == 1) & (a < cutoff[tri_mesh[np.maximum(p, 0)]])))
-        blocked[todo[hit & ~through]] = True
-        nxt = todo[through]
-        tnear[nxt] = np.asarray(h.t, np.float32)[through]
-        after[nxt] = p[through]
+        through = np.zeros_like(hit)
+        if alpha is not None:
+            mode, a = host_alpha(alpha, triangles, p, b1, b2)
+            cutoff = np.asarray(alpha["cutoff"])
+            through = hit & ((mode == 2) | ((mode == 1) & (a < cutoff[tri_mesh[np.maximum(p, 0)]])))
+        factor = np.zeros((len(p), 3))
+        if transmit is not None:
+            factor = host_transmittance(transmit, triangles, p, b1, b2)
+            # A segment through the edge shared by two triangles of one surface meets both at the
+            # same distance: one crossing, not two.
+            prev = after[todo]
+            same = (prev >= 0) & (tri_mesh[np.maximum(prev, 0)] == tri_mesh[np.maximum(p, 0)]) & (
+                np.abs(t - tnear[todo]) <= 1e-6 * np.maximum(1.0, np.abs(t)))
+            factor[same] = 1.0
+        factor[through] = 1.0
+        rows = todo[hit]
+        left[rows] *= factor[hit]
+        go = hit & np.any(factor > 0, -1)
+        nxt = todo[go]
+        tnear[nxt] = t[go]
+        after[nxt] = p[go]
         todo = nxt
-    return blocked.reshape(shape)
+    if transmit is None:
+        return np.all(left == 0.0, -1).reshape(shape)
+    return left.astype(np.float32).reshape(shape + (3,))
+
+
+#: Most surfaces a shadow ray crosses (cut-outs, blended and transmissive surfaces) before it is
+#: taken as reaching the light.
+MAX_SHADOW_CROSSINGS = MAX_CULLED_HITS + 1
 
 
 def _mesh_occluded(arrays, o, d, tfar):
     """(...,) bool: the segment o + t d, 0 < t < tfar, meets an opaque point of a mesh triangle
-    (either face; MASK cut-outs and BLEND surfaces let the light through)."""
+    (either face; MASK cut-outs and BLEND surfaces let the light through). With transmissive meshes
+    (`arrays["transmit"]`): (..., 3) float32, the fraction of the light left along the segment."""
     o = jax.lax.stop_gradient(o).astype(jnp.float32)
     d = jax.lax.stop_gradient(d).astype(jnp.float32)
     tfar = jax.lax.stop_gradient(tfar).astype(jnp.float32)
     verts = jax.lax.stop_gradient(arrays["positions"]).astype(jnp.float32)
     alpha = jax.lax.stop_gradient(arrays["alpha"]) if arrays["alpha"] is not None else None
-    out = jax.ShapeDtypeStruct(o.shape[:-1], jnp.bool_)
-    return jax.pure_callback(_host_occluded, out, verts, arrays["triangles"], o, d, tfar, alpha, vmap_method="sequential")
+    transmit = arrays.get("transmit")
+    transmit = jax.lax.stop_gradient(transmit) if transmit is not None else None
+    if transmit is None:
+        out = jax.ShapeDtypeStruct(o.shape[:-1], jnp.bool_)
+    else:
+        out = jax.ShapeDtypeStruct(o.shape[:-1] + (3,), jnp.float32)
+    return jax.pure_callback(_host_occluded, out, verts, arrays["triangles"], o, d, tfar, alpha, transmit,
+                             vmap_method="sequential")
+
+
+def _transmittance(material, dtype):
+    """(3,) what one crossing of a transmissive analytic surface lets through: transmission x
+    base colour (the factors; textures are not looked up for shadow rays on spheres and planes)."""
+    f = material.factors if isinstance(material, TexturedMaterial) else material
+    t = jnp.clip(jnp.asarray(f.transmission, dtype), 0.0, 1.0)
+    return t * jnp.clip(jnp.broadcast_to(jnp.asarray(f.base_color, dtype), (3,)), 0.0, 1.0)
 
 
 def _analytic_occluded(objects, o, d, tfar, dtype):
+    """(blocked (...) bool, left (..., 3) or None): opaque spheres and planes met by the segment,
+    and the light left after crossing transmissive ones (None without any)."""
     blocked = jnp.zeros(tfar.shape, bool)
+    left = None
     for ob in objects:
         if isinstance(ob, Sphere):
             c = tuple(jnp.asarray(ob.center, dtype)[i] for i in range(3))
-            t, ok = intersect_sphere(o, d, c, jnp.asarray(ob.radius, dtype))
+            r = jnp.asarray(ob.radius, dtype)
+            if transmits(ob.material):
+                # Both crossings of the sphere: the roots t0 <= t1 (intersect_sphere's forms).
+                oc = tuple(o[i] - c[i] for i in range(3))
+                b = vdot(oc, d)
+                cc = vdot(oc, oc) - r * r
+                disc = b * b - cc
+                t1 = -b + jnp.sqrt(jnp.maximum(disc, 0.0))
+                t0 = jnp.where(t1 != 0, cc / jnp.where(t1 != 0, t1, 1.0), 0.0)
+                ins = [((disc > 0) & (x > 0) & (x < tfar))[..., None] for x in (t0, t1)]
+                tr = _transmittance(ob.material, dtype)
+                k = jnp.where(ins[0], tr, 1.0) * jnp.where(ins[1], tr, 1.0)
+                left = k if left is None else left * k
+                continue
+            t, ok = intersect_sphere(o, d, c, r)
         elif isinstance(ob, Plane):
             pt = tuple(jnp.asarray(ob.point, dtype)[i] for i in range(3))
             nn = tuple(jnp.asarray(ob.normal, dtype)[i] for i in range(3))
             t, ok = intersect_plane(o, d, pt, nn)
+            if transmits(ob.material):
+                k = jnp.where((ok & (t < tfar))[..., None], _transmittance(ob.material, dtype), 1.0)
+                left = k if left is None else left * k
+                continue
         else:
             continue
         blocked = blocked | (ok & (t < tfar))
-    return blocked
+    return blocked, left
 
 
 def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_only: bool = False):
     """(..., L) visibility (1 lit, 0 shadowed) of each light from the surface points `pos` with
-    geometric normals `ng` (Vec3s): lights as for `shade_direct` (their packed order). arrays: the
+    geometric normals `ng` (Vec3s), or (..., L, 3) per channel when some object is transmissive
+    (see the module docstring): lights as for `shade_direct` (their packed order). arrays: the
     meshes' concatenated arrays (`mesh.concat_meshes`) or None. directions_only: the lights are
     directions to the light (Vec3 list, e.g. rotated suns) rather than light objects."""
     if directions_only:
@@ -108,6 +192,8 @@ def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_onl
             l = tuple(jnp.where(directional, -axis[j], to[j] / jnp.maximum(dist, 1e-30)) for j in range(3))
             dirs.append((l, jnp.where(directional, jnp.inf, dist)))
     analytic = [ob for ob in objects if not isinstance(ob, Mesh)]
+    # Coloured visibility (..., L, 3) where some surface lets part of the light through (static).
+    rgb = any(transmits(ob.material) for ob in objects if isinstance(ob, (Mesh, Sphere, Plane)))
     out = []
     for l, dist in dirs:
         side = jnp.where(vdot(ng, l) < 0, -1.0, 1.0)
@@ -119,8 +205,13 @@ def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_onl
         tfar = jnp.broadcast_to(big if dist is None else jnp.minimum(jax.lax.stop_gradient(dist), big), pos[0].shape)
         # A point light's own position is not an occluder: stop a hair short of it.
         tfar = tfar * (1 - 8 * jnp.finfo(dtype).eps)
-        blocked = _analytic_occluded(analytic, o, l, tfar, dtype) if analytic else jnp.zeros(pos[0].shape, bool)
+        blocked, left = _analytic_occluded(analytic, o, l, tfar, dtype) if analytic else (jnp.zeros(pos[0].shape, bool), None)
         if arrays is not None:
-            blocked = blocked | _mesh_occluded(arrays, o32, jnp.stack(l, -1), tfar)
-        out.append(jnp.where(blocked, 0.0, 1.0).astype(dtype))
-    return jnp.stack(out, -1)
+            m = _mesh_occluded(arrays, o32, jnp.stack(l, -1), tfar)
+            if m.dtype == jnp.bool_:
+                blocked = blocked | m
+            else:
+                left = m.astype(dtype) if left is None else left * m.astype(dtype)
+        vis = jnp.where(blocked, 0.0, 1.0).astype(dtype)
+        out.append(vis if not rgb else vis[..., None] * (left if left is not None else 1.0))
+    return jnp.stack(out, -2 if rgb else -1)

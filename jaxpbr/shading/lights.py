@@ -381,7 +381,9 @@ def shade_direct(
         model, bit for bit as before.
       visibility: optional (..., L) factors in [0, 1], one per light in the order of `lights`
         (a LightSet's lights in its order): the fraction of each light that reaches the point
-        (shadows; `jaxpbr.render` computes it with shadow rays). Default: every light visible.
+        (shadows; `jaxpbr.render` computes it with shadow rays), or (..., L, 3) per colour channel
+        (light tinted by transmissive occluders) with every batch axis of p, n, v present. Default:
+        every light visible.
     """
     unknown = set(brdf_options) - {"smith", "diffuse", "shader_epsilon"}
     if unknown:
@@ -420,10 +422,13 @@ def shade_direct(
         offs = np.cumsum([0] + sizes)
         cols = {id(x): np.arange(offs[k], offs[k + 1]) for k, x in enumerate(items)}
         vis = jnp.asarray(visibility)
-        if vis.shape[-1] != offs[-1]:
-            raise ValueError(f"visibility has {vis.shape[-1]} columns for {offs[-1]} lights")
+        batch_ndim = max(jnp.ndim(x) for x in (p, n, v)) - 1
+        rgb = vis.ndim == batch_ndim + 2 and vis.shape[-1] == 3  # (..., L, 3): per channel
+        lights_axis = -2 if rgb else -1
+        if vis.shape[lights_axis] != offs[-1]:
+            raise ValueError(f"visibility has {vis.shape[lights_axis]} columns for {offs[-1]} lights")
         group_vis = [
-            vis[..., np.concatenate([cols[id(x)] for x in g])]
+            jnp.take(vis, np.concatenate([cols[id(x)] for x in g]), axis=lights_axis)
             for g in (point_items, disc_items) if g
         ]
     batch_shape("shade_direct", ("p", p, 1), ("n", n, 1), ("v", v, 1), material=m)
@@ -508,12 +513,17 @@ def shade_direct(
         return tuple(x + y for x, y in zip(a, b))
 
     def seen(c: Vec3, w) -> Vec3:
-        return c if w is None else tuple(x * w for x in c)
+        if w is None:
+            return c
+        if rgb:  # w (..., 3): one factor per channel
+            return tuple(c[k] * w[..., k] for k in range(3))
+        return tuple(x * w for x in c)
 
+    rgb = visibility is not None and lights_axis == -2
     out = None
     for (ls, disc), gv in zip(groups, group_vis):
         take = lambda i, ls=ls: jax.tree_util.tree_map(lambda x: x[i], ls)  # noqa: E731
-        col = lambda i, gv=gv: None if gv is None else gv[..., i]  # noqa: E731
+        col = lambda i, gv=gv: None if gv is None else (gv[..., i, :] if rgb else gv[..., i])  # noqa: E731
         num = ls.num_lights
         acc = seen(one(take(0), disc), col(0))
         if num <= UNROLL_MAX_LIGHTS:
@@ -526,7 +536,7 @@ def shade_direct(
             if gv is None:
                 acc, _ = jax.lax.scan(lambda a, light, disc=disc: (add(a, one(light, disc)), None), acc, rest)
             else:
-                vrest = jnp.moveaxis(gv[..., 1:], -1, 0)
+                vrest = jnp.moveaxis(gv[..., 1:, :], -2, 0) if rgb else jnp.moveaxis(gv[..., 1:], -1, 0)
                 acc, _ = jax.lax.scan(
                     lambda a, xs, disc=disc: (add(a, seen(one(xs[0], disc), xs[1])), None), acc, (rest, vrest)
                 )

@@ -112,7 +112,8 @@ def disc_multiscatter(n, v, m: Material, lut, suns, *, visibility=None) -> jax.A
     (`multiscatter_weight`) times their irradiance / pi at n, as `shade_ibl(multiscatter=True)`
     gives the residual environment's, so splitting a sun out leaves the compensation unchanged (up
     to the extensions `multiscatter_weight` leaves out). n, v (..., 3) unit; suns: a list of DirectionalLights or a LightSet;
-    visibility: optional (..., L) fraction of each sun that reaches the point (shadows). Occlusion applied."""
+    visibility: optional (..., L) fraction of each sun that reaches the point (shadows), or
+    (..., L, 3) per colour channel with every batch axis of n present. Occlusion applied."""
     n3 = unpack3(n)
     ls = pack_lights(suns if not isinstance(suns, tuple) else list(suns))
     ebar = None
@@ -121,9 +122,12 @@ def disc_multiscatter(n, v, m: Material, lut, suns, *, visibility=None) -> jax.A
         light = jax.tree_util.tree_map(lambda x, i=i: x[i], ls)
         l3, e = light_incidence_soa(light, zero)
         k = cap_factor(vdot(n3, l3), light.sin_radius) / jnp.pi
-        if visibility is not None:
-            k = k * visibility[..., i]
-        term = pack3(tuple(e[c] * k for c in range(3)))
+        if visibility is not None and jnp.ndim(visibility) == jnp.ndim(n) + 1:  # (..., L, 3)
+            term = pack3(tuple(e[c] * k * visibility[..., i, c] for c in range(3)))
+        else:
+            if visibility is not None:
+                k = k * visibility[..., i]
+            term = pack3(tuple(e[c] * k for c in range(3)))
         ebar = term if ebar is None else ebar + term
     nov = jnp.clip(jnp.sum(n * v, -1), MIN_N_DOT_V, 1.0)
     return multiscatter_weight(nov, m, lut) * ebar * m.occlusion[..., None]
