@@ -9,7 +9,6 @@ grid (with shadows) to docs/gltf_sphere_grid.png (or --out).
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -17,26 +16,13 @@ from pathlib import Path
 import numpy as np
 
 import jaxpbr as jp
-from jaxpbr.rendering.demo import demo_scene
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from gltf_writer import Writer, uv_sphere  # noqa: E402  (the tests' small glTF writer)
+from jaxpbr.rendering.demo import demo_scene, write_demo_glb
 
 
 def write_grid(path: Path, n_lat: int) -> Path:
-    """The demo grid as a .glb: one UV sphere mesh instanced by 49 nodes, 49 materials."""
-    w = Writer()
-    P, N, UV, T = uv_sphere(n_lat, 2 * n_lat)
-    spheres = demo_scene(16, 16).objects
-    for s in spheres:
-        m = s.material
-        mat = w.material(pbrMetallicRoughness={
-            "baseColorFactor": [*map(float, np.asarray(m.base_color)), 1.0],
-            "metallicFactor": float(m.metallic), "roughnessFactor": float(m.roughness),
-        })
-        mesh = w.mesh(P, T, normals=N, uv=UV, material=mat)
-        w.node(mesh=mesh, translation=[float(c) for c in np.asarray(s.center)])
-    return w.save(path)
+    """The demo grid as a .glb: one UV sphere (n_lat x 2 n_lat) shared by 49 meshes, 49 materials;
+    no lights or camera (this script passes the demo's)."""
+    return write_demo_glb(path, lat=n_lat, lights=False, camera=False).path
 
 
 def timed(f):
@@ -68,7 +54,7 @@ def main(argv=None):
             path = write_grid(Path(d) / f"grid{n}.glb", n)
             scene = jp.load_gltf(path, camera=ref_scene.camera, environment=ref_scene.environment, lights=ref_scene.lights)
             img, t = timed(lambda scene=scene: jp.render(scene, shadows=False))
-            lum = lambda x: x @ np.array([0.2126, 0.7152, 0.0722])  # noqa: E731
+            lum = lambda x: x @ np.array([0.2126, 0.7152, 0.0722])
             rel = np.abs(lum(img) - lum(ref))[inner] / np.maximum(lum(ref)[inner], 1e-3)
             tris = sum(m.num_triangles for m in scene.objects)
             cov = int(((img.sum(-1) > 0) != hit).sum())

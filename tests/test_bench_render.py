@@ -316,3 +316,131 @@ def test_cli_bench_render_defaults_and_errors(capsys):
             p.parse_args(["bench", "render", *bad])
         assert e.value.code == 2
     assert "integer" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------------------
+# --gltf: the demo grid as a glTF asset of meshes against the analytic spheres
+# ------------------------------------------------------------------------------------------
+
+
+def _read_glb(path):
+    """(JSON document, BIN chunk) of a .glb, parsed with struct alone (independent of jaxpbr's reader)."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    magic, version, length = struct.unpack_from("<III", data, 0)
+    assert (magic, version, length) == (0x46546C67, 2, len(data))
+    jlen, jtype = struct.unpack_from("<II", data, 12)
+    assert jtype == 0x4E4F534A and jlen % 4 == 0
+    doc = json.loads(data[20 : 20 + jlen])
+    blen, btype = struct.unpack_from("<II", data, 20 + jlen)
+    assert btype == 0x004E4942 and 28 + jlen + blen == len(data)
+    return doc, data[28 + jlen :]
+
+
+def test_write_demo_glb_is_the_demo_grid(tmp_path):
+    from gltf_writer import assert_valid
+
+    from jaxpbr.rendering.demo import demo_grid_lat, demo_scene, write_demo_glb
+
+    # The tessellation closest to the count asked for: 4 n (n - 1) triangles a sphere, 49 spheres.
+    assert [demo_grid_lat(t) for t in (0, 1000, 196 * 12 * 11, 1_000_000, 10_000_000)] == [2, 3, 12, 72, 226]
+    a = write_demo_glb(tmp_path / "grid.glb", lat=6)
+    assert_valid(a.path)  # the Khronos glTF Validator, when installed
+    doc, binary = _read_glb(a.path)
+    assert (a.lat, a.triangles, a.vertices) == (6, 49 * 4 * 6 * 5, 49 * 7 * 13)
+
+    def read(i, dtype, width):
+        acc = doc["accessors"][i]
+        view = doc["bufferViews"][acc["bufferView"]]
+        x = np.frombuffer(binary, dtype, acc["count"] * width, view["byteOffset"] + acc.get("byteOffset", 0))
+        return x.reshape(acc["count"], width)
+
+    ref = demo_scene(16, 16)
+    spheres = [n for n in doc["nodes"] if "mesh" in n]
+    assert len(spheres) == 49 == len(ref.objects)
+    for node, s in zip(spheres, ref.objects):
+        np.testing.assert_allclose(node["translation"], np.asarray(s.center), atol=0)
+        prim = doc["meshes"][node["mesh"]]["primitives"][0]
+        pbr = doc["materials"][prim["material"]]["pbrMetallicRoughness"]
+        np.testing.assert_allclose(pbr["baseColorFactor"][:3], np.asarray(s.material.base_color), rtol=1e-7)
+        assert pbr["metallicFactor"] == pytest.approx(float(s.material.metallic))
+        assert pbr["roughnessFactor"] == pytest.approx(float(s.material.roughness))
+        P = read(prim["attributes"]["POSITION"], "<f4", 3).astype(np.float64)
+        N = read(prim["attributes"]["NORMAL"], "<f4", 3).astype(np.float64)
+        T = read(prim["indices"], "<u4", 1).reshape(-1, 3)
+        assert len(T) == 4 * 6 * 5 and T.max() < len(P)
+        np.testing.assert_allclose(np.linalg.norm(P, axis=1), 1.0, atol=1e-6)  # on the unit sphere
+        np.testing.assert_allclose(N, P, atol=1e-6)  # smooth normals of a unit sphere
+        tri = P[T]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        assert np.all(np.einsum("ij,ij->i", cross, tri.mean(1)) > 0)  # counter-clockwise seen from outside
+    lights = doc["extensions"]["KHR_lights_punctual"]["lights"]
+    placed = {tuple(n["translation"]): lights[n["extensions"]["KHR_lights_punctual"]["light"]] for n in doc["nodes"] if "extensions" in n}
+    assert placed == {tuple(float(c) for c in np.asarray(lt.position)): {"type": "point", "color": [1.0, 1.0, 1.0], "intensity": 300.0}
+                      for lt in ref.lights}
+    cam = next(n for n in doc["nodes"] if "camera" in n)
+    assert cam["translation"] == [0.0, 0.0, 24.0] and "rotation" not in cam  # looks down -Z
+    assert doc["cameras"][0]["perspective"]["yfov"] == pytest.approx(np.radians(45.0))
+
+
+def test_bench_gltf_tiny(tmp_path):
+    from jaxpbr.cli import bench_gltf as bg
+
+    r = bg.bench_gltf(3000, 40, 24, repeats=1, cold_runs=0)
+    assert (r.triangles, r.vertices, r.rays) == (2352, 2205, 40 * 24)
+    values = [*r.steps.values(), r.visibility_s, r.mesh_s, r.mesh_shadows_s, r.analytic_s, r.analytic_shadows_s,
+              r.ratio, r.ratio_shadows, r.peak_rss]
+    assert all(np.isfinite(v) and v > 0 for v in values), values
+    assert set(r.steps) == {"write", "load", "build", "first_mesh", "first_analytic"}
+    text = r.report()
+    assert "jaxpbr bench render --gltf: the demo grid as 2,352 triangles" in text and "40x24" in text
+    for s in ("load_gltf", "acceleration structure", "visibility of 960 primary rays", "without shadows", "with shadows",
+              "target <= 0.5 s", "<= 1.5x", "peak resident memory"):
+        assert s in text, s
+    assert "whole process" not in text  # cold_runs=0
+    # A whole-process run, here one the command line refuses at once: wall time, own peak memory, message.
+    run = bg.run_process(["render", "--width", "0"], cache_dir=tmp_path, log_dir=tmp_path)
+    assert run.returncode == 2 and "--width" in run.message
+    assert np.isfinite(run.peak_rss) and run.peak_rss > 0 and run.wall_s > 0
+    with pytest.raises(ValueError, match="triangles"):
+        bg.bench_gltf(0)
+
+
+def test_cli_bench_gltf_arguments(capsys):
+    p = _parser()
+    a = p.parse_args(["bench", "render", "--gltf"])
+    assert (a.gltf, a.triangles, a.cold_runs, a.process_width, a.process_height, a.memory_triangles, a.repeats) == (
+        True, 1_000_000, 3, 1280, 720, [], None)
+    a = p.parse_args(["bench", "render", "--gltf", "--triangles", "5000", "--memory-triangles", "1000000,10_000_000"])
+    assert (a.triangles, a.memory_triangles) == (5000, [1_000_000, 10_000_000])
+    for bad in (["--memory-triangles", "0"], ["--triangles", "x"], ["--cold-runs", "-1"]):
+        with pytest.raises(SystemExit) as e:
+            p.parse_args(["bench", "render", "--gltf", *bad])
+        assert e.value.code == 2
+
+
+@pytest.mark.slow  # four cold and warm `jaxpbr render` processes and one more for the memory row
+def test_cli_bench_gltf_processes(capsys, monkeypatch):
+    from jaxpbr.cli import bench_gltf as bg
+
+    args = _parser().parse_args(["bench", "render", "--gltf", "--triangles", "2000", "--width", "32", "--height", "18",
+                                 "--repeats", "1", "--cold-runs", "1", "--process-width", "32", "--process-height", "18",
+                                 "--memory-triangles", "5000"])
+    results = []
+    real = bg.bench_gltf
+    monkeypatch.setattr(bg, "bench_gltf", lambda *a, **k: results.append(real(*a, **k)) or results[-1])
+    assert args.func(args) == 0
+    (r,) = results
+    assert r.report() in capsys.readouterr().out
+    for store in (r.cold, r.warm):
+        assert set(store) == {"demo", "asset"}
+        for runs in store.values():
+            assert len(runs) == 1 and runs[0].returncode == 0 and runs[0].wall_s > 0 and runs[0].peak_rss > 0
+    (m,) = r.memory
+    assert (m.triangles, m.width, m.height) == (49 * 4 * 6 * 5, 32, 18) and m.run.returncode == 0 and m.run.peak_rss > 0
+    text = r.report()
+    for s in ("jaxpbr render --width 32 --height 18", "jaxpbr render ASSET.glb --environment procedural:sky", "cold", "warm",
+              "asset - demo", "target <= 2.0 s", "memory, 5,880 triangles"):
+        assert s in text, s

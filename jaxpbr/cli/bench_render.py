@@ -9,6 +9,9 @@ cube pyramid lookup of `Cubemap.sample`, the LUT lookup of `lut_lookup` and the 
 `shade_ibl`). The IBL precompute (environment, irradiance, prefiltered mips, BRDF LUT) is timed
 separately; JIT compile time is reported apart from the median run time.
 
+`--gltf` (`jaxpbr.cli.bench_gltf`) renders the same sphere grid as a glTF asset of triangle meshes
+against the analytic spheres, with the asset's cold start and memory as whole processes.
+
 `bench_batch` measures material-batch throughput: N materials on one ray-cast sphere under IBL +
 lights as one `jp.render_batch` call (a jitted `vmap` over materials, chunked by
 `jax.lax.map(..., batch_size=)` to bound memory), against a Python loop of `jp.render` calls.
@@ -343,7 +346,7 @@ def bench_batch(
     compile_s, batch_s = bt.first, bt.median
 
     singles = [
-        scene.replace(objects=[Sphere(material=jax.tree_util.tree_map(lambda x: x[i], batch_mat))])
+        scene.replace(objects=[Sphere(material=jax.tree_util.tree_map(lambda x, i=i: x[i], batch_mat))])
         for i in range(num_materials)
     ]
     t0 = time.perf_counter()
@@ -379,6 +382,9 @@ BYTES_PER_PIXEL = 600.0
 
 
 def _cmd_bench_render(args) -> int:
+    if args.gltf:
+        return _cmd_bench_gltf(args)
+    repeats = args.repeats or 10
     require_environment(args.face_size)
     require_memory(f"a {args.width}x{args.height} G-buffer", BYTES_PER_PIXEL * args.width * args.height, "lower --width/--height")
     if args.batch:
@@ -386,13 +392,39 @@ def _cmd_bench_render(args) -> int:
                        render_bytes(args.batch_size, args.batch_size)["width/height"] * min(args.chunk, args.batch), "lower --batch-size/--chunk")
     ibl = make_ibl(args.face_size)
     result = bench_render_gbuffer(
-        args.width, args.height, repeats=args.repeats, numpy_repeats=args.numpy_repeats, face_size=args.face_size, ibl=ibl
+        args.width, args.height, repeats=repeats, numpy_repeats=args.numpy_repeats, face_size=args.face_size, ibl=ibl
     )
     print(result.report(), flush=True)
     if args.batch:
-        res = bench_batch(args.batch, args.batch_size, args.chunk, repeats=args.repeats, face_size=args.face_size, ibl=ibl)
+        res = bench_batch(args.batch, args.batch_size, args.chunk, repeats=repeats, face_size=args.face_size, ibl=ibl)
         print(res.report(), flush=True)
     return 0
+
+
+def _cmd_bench_gltf(args) -> int:
+    import sys
+
+    from ..rendering.demo import demo_grid_lat
+    from .bench_gltf import bench_gltf, estimate_bytes, grid_counts
+
+    tri, vert = grid_counts(demo_grid_lat(args.triangles))
+    # This process holds the mesh scene and renders it (the memory asked for by --memory-triangles
+    # is the child processes' own, refused there by `jaxpbr render`'s guard if it does not fit).
+    require_memory(f"a {tri:,}-triangle asset rendered at {args.width}x{args.height}",
+                   estimate_bytes(tri, vert, args.width, args.height), "lower --triangles")
+    result = bench_gltf(
+        args.triangles, args.width, args.height, repeats=args.repeats or 3, cold_runs=args.cold_runs,
+        process_size=(args.process_width, args.process_height), memory_triangles=tuple(args.memory_triangles),
+        log=lambda text: print(f"bench render --gltf: {text}", file=sys.stderr, flush=True),
+    )
+    print(result.report(), flush=True)
+    return 0
+
+
+def _int_list_arg(text: str) -> list[int]:
+    """argparse type: comma-separated positive integers (an empty string: none)."""
+    out = [positive_int_arg(x.strip().replace("_", "")) for x in text.split(",") if x.strip()]
+    return out
 
 
 def add_command(bench_subparsers) -> argparse.ArgumentParser:
@@ -407,12 +439,29 @@ def add_command(bench_subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--width", type=positive_int_arg, default=1920)
     p.add_argument("--height", type=positive_int_arg, default=1080)
-    p.add_argument("--repeats", type=positive_int_arg, default=10, help="timed JAX runs (median)")
+    p.add_argument("--repeats", type=positive_int_arg, default=None, help="timed JAX runs (median; default 10, with --gltf 3)")
     p.add_argument("--numpy-repeats", type=positive_int_arg, default=3, help="timed NumPy runs (median)")
     p.add_argument("--face-size", type=positive_int_arg, default=128, help="environment cube face size")
     p.add_argument("--batch", type=nonnegative_int_arg, default=256, metavar="N",
                    help="materials in the batch-throughput run (0: skip it)")
     p.add_argument("--batch-size", type=positive_int_arg, default=256, metavar="S", help="batch image size S x S")
     p.add_argument("--chunk", type=positive_int_arg, default=16, help="materials per vmapped chunk (lax.map batch_size)")
+    g = p.add_argument_group(
+        "glTF asset (--gltf)",
+        "The demo grid written as a .glb of UV-sphere meshes (in a temporary folder) against the analytic spheres at "
+        "--width x --height, 4 point lights + IBL: load, acceleration structure, visibility of the primary rays, warm "
+        "frame times and their ratios with and without shadows; then whole processes: cold and warm start of "
+        "`jaxpbr render ASSET.glb --environment procedural:sky` against the demo's `jaxpbr render`, peak memory. "
+        "Replaces the G-buffer and batch runs.",
+    )
+    g.add_argument("--gltf", action="store_true", help="run the glTF asset benchmark instead")
+    g.add_argument("--triangles", type=positive_int_arg, default=1_000_000, metavar="N", help="triangles of the asset, about (default: %(default)s)")
+    g.add_argument("--cold-runs", type=nonnegative_int_arg, default=3, metavar="K",
+                   help="cold + warm whole-process runs of the asset and the demo each (0: skip; default: %(default)s)")
+    g.add_argument("--process-width", type=positive_int_arg, default=1280, help="image width of the whole-process runs (default: jaxpbr render's %(default)s)")
+    g.add_argument("--process-height", type=positive_int_arg, default=720, help="image height of the whole-process runs (default: %(default)s)")
+    g.add_argument("--memory-triangles", type=_int_list_arg, default=[], metavar="N[,N...]",
+                   help="also render assets of these triangle counts in processes of their own and report their peak "
+                   "memory, or the memory guard's refusal (e.g. 10000000)")
     p.set_defaults(func=_cmd_bench_render)
     return p

@@ -1,9 +1,15 @@
 """Built-in scenes: the default demo (sphere grid under a procedural sky + sun, plus lights) and
-the LearnOpenGL lighting-chapter scene. Everything is generated in code (no files needed)."""
+the LearnOpenGL lighting-chapter scene. Everything is generated in code (no files needed);
+`write_demo_glb` writes the demo grid as a glTF 2.0 asset of triangle meshes (`jaxpbr bench render
+--gltf`)."""
 
 from __future__ import annotations
 
+import json
 import math
+import struct
+from dataclasses import dataclass
+from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
@@ -13,7 +19,10 @@ from ..shading.lights import PointLight
 from ..shading.material import Material
 from .scene import Camera, Environment, Scene, Sphere
 
-__all__ = ["DEMO_BASE_COLOR", "DEMO_ENV_ROTATION", "demo_scene", "learnopengl_scene", "sphere_grid"]
+__all__ = [
+    "DEMO_BASE_COLOR", "DEMO_ENV_ROTATION", "DemoAsset", "demo_grid_lat", "demo_scene", "learnopengl_scene",
+    "sphere_grid", "uv_sphere", "write_demo_glb",
+]
 
 #: Base colour of the demo spheres (linear RGB; a warm gold-like albedo).
 DEMO_BASE_COLOR = (0.95, 0.64, 0.37)
@@ -77,3 +86,112 @@ def learnopengl_scene(width: int = 1280, height: int = 720) -> Scene:
         ambient=0.03,
         background=jnp.zeros(3),
     )
+
+
+# ------------------------------------------------------------------------------------------
+# The demo grid as a glTF asset
+# ------------------------------------------------------------------------------------------
+
+
+def uv_sphere(n_lat: int, n_lon: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(positions, normals, triangles) of a unit UV sphere: `n_lat` latitude bands, `n_lon`
+    (default 2 n_lat) longitude segments, (n_lat + 1)(n_lon + 1) vertices (the seam column and
+    the poles repeated), 2 n_lon (n_lat - 1) triangles, counter-clockwise seen from outside;
+    float32 / uint32."""
+    n_lat = int(n_lat)
+    n_lon = 2 * n_lat if n_lon is None else int(n_lon)
+    if n_lat < 2 or n_lon < 3:
+        raise ValueError(f"a UV sphere needs n_lat >= 2 and n_lon >= 3, got {n_lat} and {n_lon}")
+    th, ph = np.meshgrid(np.linspace(0.0, np.pi, n_lat + 1), np.linspace(0.0, 2.0 * np.pi, n_lon + 1), indexing="ij")
+    n = np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)], -1).reshape(-1, 3)
+    W = n_lon + 1
+    i, j = np.meshgrid(np.arange(n_lat), np.arange(n_lon), indexing="ij")
+    a, b, c, d = i * W + j, (i + 1) * W + j, (i + 1) * W + j + 1, i * W + j + 1
+    upper = np.stack([a, b, d], -1)[1:]  # the band touching the north pole has no (a, b, d) quad half
+    lower = np.stack([b, c, d], -1)[:-1]  # nor the south pole's a (b, c, d) one
+    tris = np.concatenate([upper.reshape(-1, 3), lower.reshape(-1, 3)])
+    n = n.astype(np.float32)
+    return n, n.copy(), tris.astype(np.uint32)
+
+
+def demo_grid_lat(triangles: int) -> int:
+    """The latitude bands of the UV spheres whose 7x7 grid comes closest to `triangles` triangles
+    (49 spheres of 4 n (n - 1) triangles each; at least 2 bands)."""
+    t = float(triangles) / 196.0
+    n = max(2, round(0.5 + math.sqrt(0.25 + t)))
+    return min((k for k in (n - 1, n, n + 1) if k >= 2), key=lambda k: abs(196 * k * (k - 1) - triangles))
+
+
+@dataclass(frozen=True)
+class DemoAsset:
+    """What `write_demo_glb` wrote: the file, the latitude bands of each sphere and the totals."""
+
+    path: Path
+    lat: int
+    triangles: int
+    vertices: int
+
+
+def write_demo_glb(path, triangles: int = 1_000_000, *, lat: int | None = None, lights: bool = True,
+                   camera: bool = True) -> DemoAsset:
+    """The demo's 7x7 sphere grid (`demo_scene`: centres, radii, materials) as a binary glTF 2.0
+    file of triangle meshes: one UV sphere (`uv_sphere(lat)`, smooth normals) whose accessors the
+    49 meshes share, each with its own metallic-roughness material, placed by 49 nodes. `lat`
+    (default `demo_grid_lat(triangles)`) sets the tessellation. With `lights`, the demo's four
+    point lights (KHR_lights_punctual, 300 cd each); with `camera`, the demo's camera (at
+    (0, 0, 24) looking down -Z, 45 degrees vertical field of view). No environment: a glTF asset
+    carries none (`jaxpbr render ASSET --environment procedural:sky`)."""
+    n = demo_grid_lat(triangles) if lat is None else int(lat)
+    P, N, T = uv_sphere(n)
+    binary = bytearray()
+    views: list = []
+    accessors: list = []
+
+    def accessor(data: np.ndarray, kind: str, component: int, target: int, bounds: bool = False) -> int:
+        while len(binary) % 4:
+            binary.append(0)
+        views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": data.nbytes, "target": target})
+        binary.extend(data.tobytes())
+        acc = {"bufferView": len(views) - 1, "componentType": component, "count": int(data.shape[0]), "type": kind}
+        if bounds:
+            acc["min"], acc["max"] = data.min(0).tolist(), data.max(0).tolist()
+        accessors.append(acc)
+        return len(accessors) - 1
+
+    pos = accessor(P, "VEC3", 5126, 34962, bounds=True)  # FLOAT, ARRAY_BUFFER
+    nor = accessor(N, "VEC3", 5126, 34962)
+    idx = accessor(T.reshape(-1), "SCALAR", 5125, 34963)  # UNSIGNED_INT, ELEMENT_ARRAY_BUFFER
+    ref = demo_scene(16, 16)
+    materials, meshes, nodes = [], [], []
+    for k, s in enumerate(ref.objects):
+        m = s.material
+        materials.append({"name": f"sphere {k}", "pbrMetallicRoughness": {
+            "baseColorFactor": [*(float(x) for x in np.asarray(m.base_color)), 1.0],
+            "metallicFactor": float(m.metallic), "roughnessFactor": float(m.roughness)}})
+        meshes.append({"primitives": [{"attributes": {"POSITION": pos, "NORMAL": nor}, "indices": idx, "material": k}]})
+        nodes.append({"mesh": k, "translation": [float(c) for c in np.asarray(s.center)]})
+    doc: dict = {"asset": {"version": "2.0", "generator": "jaxpbr write_demo_glb"}, "scene": 0}
+    if camera:
+        cam = ref.camera
+        doc["cameras"] = [{"type": "perspective", "perspective": {"yfov": math.radians(cam.fov_y_deg), "znear": 0.01}}]
+        nodes.append({"camera": 0, "translation": [float(c) for c in np.asarray(cam.position)]})
+    if lights:
+        doc["extensionsUsed"] = ["KHR_lights_punctual"]
+        doc["extensions"] = {"KHR_lights_punctual": {"lights": [
+            {"type": "point", "color": [float(c) for c in np.asarray(lt.color)], "intensity": float(lt.intensity)}
+            for lt in ref.lights]}}
+        nodes += [{"translation": [float(c) for c in np.asarray(lt.position)], "extensions": {"KHR_lights_punctual": {"light": i}}}
+                  for i, lt in enumerate(ref.lights)]
+    while len(binary) % 4:
+        binary.append(0)
+    doc |= {"scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes, "meshes": meshes, "materials": materials,
+            "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(binary)}]}
+    js = json.dumps(doc, separators=(",", ":")).encode()
+    js += b" " * (-len(js) % 4)
+    path = Path(path)
+    with open(path, "wb") as f:
+        f.write(struct.pack("<III", 0x46546C67, 2, 12 + 8 + len(js) + 8 + len(binary)))  # "glTF", version 2
+        f.write(struct.pack("<II", len(js), 0x4E4F534A) + js)  # JSON chunk
+        f.write(struct.pack("<II", len(binary), 0x004E4942))  # BIN chunk
+        f.write(binary)
+    return DemoAsset(path=path, lat=n, triangles=49 * len(T), vertices=49 * len(P))
