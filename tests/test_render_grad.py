@@ -95,12 +95,15 @@ def test_grad_wrt_texture_texels():
 
 @pytest.mark.slow  # ~20 s (traced prefilter + its gradient); tests/test_precompute_grad.py checks the precomputes fast
 def test_grad_wrt_environment_texels(env_level):
-    """Through the irradiance and prefilter precomputes and the background lookup."""
+    """Through the irradiance and prefilter precomputes and the background lookup. Without the
+    sun's extraction: it runs on concrete environments only (a host-side step, not differentiable),
+    so with it the finite differences (concrete) and the gradient (traced) would be of two
+    different functions (their values differ by 2.6 % on this scene)."""
     w = weights()
     base = np.asarray(env_level)
 
     def loss(lv):
-        return jnp.sum(jp.render(make_scene(env_level=lv), **F64) * w)
+        return jnp.sum(jp.render(make_scene(env_level=lv), extract_lights=False, **F64) * w)
 
     g = np.asarray(jax.grad(loss)(jnp.asarray(base))).ravel()
     assert np.isfinite(g).all()
