@@ -297,7 +297,10 @@ def concat_meshes(meshes, dtype):
     out = {}
     offs = np.cumsum([0] + [m.num_vertices for m in meshes])
     out["positions"] = jnp.concatenate([jnp.asarray(m.positions, dtype) for m in meshes])
-    out["triangles"] = jnp.concatenate([jnp.asarray(m.triangles, jnp.int32) + int(offs[k]) for k, m in enumerate(meshes)])
+    # Concatenated, then offset by one per-mesh broadcast: an add per mesh before the concatenation
+    # made XLA:CPU compile one kernel per mesh (0.54 s for the 49 meshes of the demo grid).
+    tri_offset = jnp.concatenate([jnp.full((m.num_triangles, 1), int(offs[k]), jnp.int32) for k, m in enumerate(meshes)])
+    out["triangles"] = jnp.concatenate([jnp.asarray(m.triangles, jnp.int32) for m in meshes]) + tri_offset
     fills = {"normals": (0.0, 0.0, 1.0), "texcoords": (0.0, 0.0), "texcoords1": (0.0, 0.0), "tangents": (1.0, 0.0, 0.0, 1.0), "colors": (1.0, 1.0, 1.0, 1.0)}
     for name, fill in fills.items():
         if all(getattr(m, name) is None for m in meshes):
@@ -310,10 +313,12 @@ def concat_meshes(meshes, dtype):
         ])
     # Per-triangle tables made in the program from per-mesh values (O(meshes) constants, not O(triangles)).
     counts = np.asarray([m.num_triangles for m in meshes])
-    total = int(counts.sum())
-    out["tri_object"] = jnp.repeat(jnp.arange(len(meshes), dtype=jnp.int32), counts, total_repeat_length=total)
-    out["flat"] = jnp.asarray([m.normals is None for m in meshes])[out["tri_object"]]
-    out["cull_back"] = jnp.asarray([not m.double_sided for m in meshes])[out["tri_object"]]
+    # One broadcast per mesh: `jnp.repeat` (a cumulative sum and a scatter) took XLA:CPU ~0.9 s to
+    # compile in every program holding the tables.
+    per_tri = lambda vals, dt: jnp.concatenate([jnp.full((int(c),), v, dt) for v, c in zip(vals, counts, strict=True)])  # noqa: E731
+    out["tri_object"] = per_tri(range(len(meshes)), jnp.int32)
+    out["flat"] = per_tri([m.normals is None for m in meshes], jnp.bool_)
+    out["cull_back"] = per_tri([not m.double_sided for m in meshes], jnp.bool_)
     out["alpha"] = _alpha_arrays(meshes, out, dtype) if any(m.alpha_mode != "OPAQUE" for m in meshes) else None
     out["transmit"] = _transmit_arrays(meshes, out, dtype) if any(transmits(m.material) for m in meshes) else None
     return out

@@ -313,8 +313,10 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     return jnp.where(hit[..., None], out, bg)
 
 
-def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim=None):
-    """G-buffer of the scene (dict of Vec3 / arrays), before textures."""
+def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim=None, light_shadows: bool = True):
+    """G-buffer of the scene (dict of Vec3 / arrays), before textures. `prim`: the meshes'
+    primitive per pixel when cast already; light_shadows=False leaves the lights' shadow rays
+    (g["vis"]) to `_light_shadows`."""
     dtype = jnp.dtype(opts.dtype)
     if scene.gbuffer is not None:
         gb = scene.gbuffer
@@ -385,7 +387,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         g["alpha"] = jnp.where(hit & blend_k, a, 1.0)
     if p_plan.shadows:
         g["ng"] = ng
-        if p_plan.direct:
+        if p_plan.direct and light_shadows:
             lights = _cast_floats(list(scene.lights), dtype)
             g["vis"] = shadow_visibility(objects, arrays if meshes else None, pos, ng, lights, dtype)
     if need_uv:
@@ -473,8 +475,33 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     """
     if p_plan.blend_layers > 1:
         return _blended_pass(scene, assets, p_plan, opts, offset, staged)
-    g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset)
+    if staged and scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects):
+        g = _mesh_geometry(scene, p_plan, opts, offset, _layer_prims_jit(scene, p_plan, opts, offset, 1))
+    else:
+        g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset)
     return _shade_pass(scene, assets, p_plan, opts, g, staged)
+
+
+def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim):
+    """The staged geometry of a scene with meshes, its ray casts in programs of their own: a program
+    that calls back to the host is compiled again in every process (its persistent-cache key names
+    the callback), so the casts (small programs) are kept apart from the geometry (a large one,
+    measured 3.9 s to compile at 1 M triangles), which the persistent cache then serves."""
+    g = _geometry_jit(scene, p_plan, opts, offset, prim, light_shadows=False)
+    if p_plan.shadows and p_plan.direct:
+        g = {**g, "vis": _light_shadows_jit(scene, opts, g["pos"], g["ng"])}
+    return g
+
+
+def _light_shadows(scene: Scene, opts: RenderOptions, pos, ng):
+    """The lights' shadow rays from the surface points (`shadows.shadow_visibility`)."""
+    dtype = jnp.dtype(opts.dtype)
+    meshes = any(isinstance(ob, Mesh) for ob in scene.objects)
+    lights = _cast_floats(list(scene.lights), dtype)
+    return shadow_visibility(scene.objects, _mesh_arrays(scene, dtype) if meshes else None, pos, ng, lights, dtype)
+
+
+_light_shadows_jit = jax.jit(_light_shadows, static_argnums=(1,))
 
 
 def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool):
@@ -484,7 +511,10 @@ def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions,
     prims = (_layer_prims_jit if staged else _layer_prims)(scene, p_plan, opts, offset)
     out, keep = None, None
     for k in range(p_plan.blend_layers):
-        g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset, prims[..., k])
+        if staged:
+            g = _mesh_geometry(scene, p_plan, opts, offset, prims[..., k])
+        else:
+            g = _geometry(scene, p_plan, opts, offset, prims[..., k])
         c = _shade_pass(scene, assets, p_plan, opts, g, staged)
         a = g["alpha"][..., None]
         if k == p_plan.blend_layers - 1:
@@ -494,13 +524,15 @@ def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions,
     return out
 
 
-def _layer_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
+def _layer_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, layers: int | None = None):
+    """The meshes' primitives of the primary rays: (...) with layers=1, else (..., layers) (BLEND;
+    default the plan's layers)."""
     dtype = jnp.dtype(opts.dtype)
     o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
-    return cast(_mesh_arrays(scene, dtype), o_px, d_px, layers=p_plan.blend_layers)
+    return cast(_mesh_arrays(scene, dtype), o_px, d_px, layers=p_plan.blend_layers if layers is None else layers)
 
 
-_layer_prims_jit = jax.jit(_layer_prims, static_argnums=(1, 2))
+_layer_prims_jit = jax.jit(_layer_prims, static_argnums=(1, 2, 4))
 
 
 def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool):
@@ -541,7 +573,7 @@ def _sun_shadows(scene: Scene, opts: RenderOptions, g, env_lights):
 
 
 _sun_shadows_jit = jax.jit(_sun_shadows, static_argnums=(1,))
-_geometry_jit = jax.jit(_geometry, static_argnums=(1, 2))
+_geometry_jit = jax.jit(_geometry, static_argnums=(1, 2), static_argnames=("light_shadows",))
 _texture_jit = jax.jit(_texture, static_argnums=(1, 2))
 _shade_direct_jit = jax.jit(_shade_direct, static_argnums=(1, 2))
 _shade_rest_jit = jax.jit(_shade_rest, static_argnums=(2, 3))
