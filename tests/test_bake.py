@@ -249,6 +249,34 @@ def test_supersampling_compiles_one_geometry_program(monkeypatch):
     assert renderer._geometry_jit._cache_size() - before == 1
 
 
+def test_renders_share_the_process_worker_pool(monkeypatch):
+    """A staged render of a concrete environment computes its maps on the process's worker pool,
+    started on first use and reused by every later render: the precomputes run on its threads,
+    and renders start no pool of their own."""
+    import threading
+
+    from jaxpbr.rendering import execute
+
+    monkeypatch.setattr(renderer, "STAGED", True)  # the maps overlap the stages on the staged path
+    seen = []
+    real = execute._asset_irradiance
+
+    def spy(*a):
+        seen.append(threading.current_thread().name)
+        return real(*a)
+
+    monkeypatch.setattr(execute, "_asset_irradiance", spy)
+    scene = _scene(0.4, _env())
+    pool = execute.worker_pool()
+    for _ in range(3):
+        renderer.ASSETS.clear()  # computed again each time, on the pool
+        assert np.isfinite(np.asarray(jp.render(scene))).all()
+    assert execute.worker_pool() is pool
+    assert renderer.ASSETS.stats["irradiance"] == {"hits": 0, "misses": 1}
+    workers = {t.name for t in threading.enumerate() if t.name.startswith("jaxpbr-render")}
+    assert len(seen) == 3 and set(seen) <= workers and len(workers) <= execute.WORKERS, (seen, workers)
+
+
 @pytest.mark.parametrize("s", [1, 2])
 def test_a_large_render_runs_in_bands_equal_to_the_whole(monkeypatch, s):
     """Images above renderer.BAND_PIXELS render in bands of rows (issue 13: memory grew with the

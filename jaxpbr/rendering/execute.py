@@ -1,11 +1,17 @@
 """`render` and how it runs: staged (one compiled program per stage, on XLA:CPU) or as one
 program (elsewhere, and under transformations), in bands of rows for large images, one pass per
-sub-pixel sample, with the assets of a concrete environment computed on worker threads while
-the first stages compile and run."""
+sub-pixel sample, with the assets of a concrete environment computed on the process's worker pool
+while the first stages compile and run.
+
+`Execution` holds the settings (`EXECUTION`, the process's: `renderer.STAGED` and
+`renderer.BAND_PIXELS` read and set its fields); `worker_pool` is the one pool of worker threads,
+started on first use and kept for the life of the process."""
 
 from __future__ import annotations
 
 import dataclasses
+import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -51,10 +57,11 @@ def render(
         raise TypeError(f"render expects a jaxpbr.Scene, got {type(scene).__name__}")
     opts = _options(options, overrides, "render")
     cache = cache_or_default(cache)
+    execution = EXECUTION
     check_memory(scene, options=opts)  # before any work (a huge size aborted inside XLA)
     p = plan(scene, options=opts, cache=cache)
     env = scene.environment
-    if not _staged():
+    if not execution.is_staged():
         out = _render_jit(scene, _env_assets(env, p, opts, cache) if p.ibl else None, p, opts)
         if progress is not None:
             progress(1, 1)
@@ -66,36 +73,38 @@ def render(
         # runs overlap (XLA compiles and runs without holding the GIL).
         env_lights, env = _env_split(env, opts, cache) if p.env_lights else (None, env)
         key = _env_key(env, p)
-        pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="jaxpbr-assets")
+        pool = worker_pool()
+        futures = []
         try:
             pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key, cache)))
+            futures.append(pre)
             irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key, cache)))
+            futures.append(irr)
             sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
+            futures.append(sheen)
             lut = _asset_lut(env, opts, cache)
             return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(
-                sc, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()), pb, opts, off, staged=True), progress)
+                sc, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()), pb, opts, off, staged=True),
+                progress, execution)
         finally:
-            # On success both maps were used; on an error or an interrupt do not wait for a
-            # precompute still running (`with` would join it).
-            pool.shutdown(wait=False, cancel_futures=True)
+            # On success every map was used; on an error or an interrupt the precomputes not
+            # started yet are dropped, and one still running is not waited for.
+            for f in futures:
+                f.cancel()
     assets = _env_assets(env, p, opts, cache) if p.ibl else None
-    return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), progress)
+    return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), progress, execution)
 
 
-#: `render` (staged) renders images larger than this in bands of about this many pixels, so its
-#: memory is the image plus one band's G-buffer (~150 bytes per pixel on the CPU) at any size.
-BAND_PIXELS = 1 << 21
-
-
-def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None):
-    """`_supersampled` over the whole image, or band by band (rows of ~BAND_PIXELS pixels, one
-    compiled program per stage for every band: the band's first row is an argument) into one
-    host buffer when the image is larger; a user G-buffer is rendered whole. progress: per pass
-    (bands x sub-pixel samples), the last once the image is ready."""
+def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None, execution: Execution | None = None):
+    """`_supersampled` over the whole image, or band by band (rows of ~`execution.band_pixels`
+    pixels, one compiled program per stage for every band: the band's first row is an argument)
+    into one host buffer when the image is larger; a user G-buffer is rendered whole. progress: per
+    pass (bands x sub-pixel samples), the last once the image is ready."""
+    band_pixels = (EXECUTION if execution is None else execution).band_pixels
     H, W = scene.image_shape
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
-    whole = scene.gbuffer is not None or H * W <= BAND_PIXELS
-    rows = H if whole else max(1, BAND_PIXELS // W)
+    whole = scene.gbuffer is not None or H * W <= band_pixels
+    rows = H if whole else max(1, band_pixels // W)
     total = -(-H // rows) * s * s
     if whole:
         out = _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off), progress=_passes(progress, 0, total))
@@ -144,17 +153,56 @@ def _supersampled(scene: Scene, opts: RenderOptions, one_pass, row0: int | None 
     return acc if s == 1 else acc / (s * s)
 
 
-#: How `render` runs outside transformations: True = staged (geometry, textures, direct, IBL as
-#: separate programs), False = one program, None = the backend decides (staged on XLA:CPU only).
-STAGED: bool | None = None
+@dataclasses.dataclass
+class Execution:
+    """How `render` and `render_batch` run outside transformations.
+
+    staged: True = the stages (geometry, each textured object, direct lighting, IBL + background)
+      as separate programs, False = one program, None = the backend decides (`is_staged`).
+    band_pixels: `render` (staged) renders images larger than this in bands of about this many
+      pixels, so its memory is the image plus one band's G-buffer (~150 bytes per pixel on the
+      CPU) at any size.
+    """
+
+    staged: bool | None = None
+    band_pixels: int = 1 << 21
+
+    def is_staged(self) -> bool:
+        """`staged`, or when it is None whether the backend is XLA:CPU. XLA:CPU fuses producers into
+        every consumer and recomputes them there (see `stages._render_pass`), so on the CPU the
+        stages run as separate programs. GPUs do not pay that: one program per render there, no
+        intermediate G-buffer round trips through memory and one dispatch instead of four (measured
+        2.24 ms staged against 0.33 ms fused for a 1080p G-buffer on an H100)."""
+        if self.staged is not None:
+            return bool(self.staged)
+        return jax.default_backend() == "cpu"
+
+
+#: The process's execution settings (`renderer.STAGED` / `renderer.BAND_PIXELS` are its fields).
+EXECUTION = Execution()
 
 
 def _staged() -> bool:
-    """XLA:CPU fuses producers into every consumer and recomputes them there (see `_render_pass`),
-    so on the CPU the stages run as separate programs. GPUs do not pay that: one program per render
-    there, no intermediate G-buffer round trips through memory and one dispatch instead of four
-    (issue 10 measured 2.24 ms staged against 0.33 ms fused for a 1080p G-buffer on an H100)."""
-    if STAGED is not None:
-        return bool(STAGED)
-    return jax.default_backend() == "cpu"
+    return EXECUTION.is_staged()
+
+
+#: Threads of the worker pool: one render submits up to three precomputes (prefiltered,
+#: irradiance, sheen maps); two run at once while the render's own thread compiles and runs stages.
+WORKERS = 2
+_pool: ThreadPoolExecutor | None = None
+_pool_pid = 0
+_pool_lock = threading.Lock()
+
+
+def worker_pool() -> ThreadPoolExecutor:
+    """The process's worker pool, started on first use and reused by every render (no threads are
+    started per call; idle workers cost nothing). A forked child starts its own (the parent's
+    threads do not exist there). Work submitted to it must not wait for other work submitted to it:
+    with all workers waiting, nothing would run."""
+    global _pool, _pool_pid
+    with _pool_lock:
+        if _pool is None or _pool_pid != os.getpid():
+            _pool = ThreadPoolExecutor(max_workers=WORKERS, thread_name_prefix="jaxpbr-render")
+            _pool_pid = os.getpid()
+        return _pool
 

@@ -31,8 +31,9 @@ other modules and users import from it:
 * `execute`: `render` and how it runs (staged or one program, bands, sub-pixel passes, workers);
 * `batching`: `render_batch`.
 
-The execution settings `STAGED` and `BAND_PIXELS` are read and set through this module too
-(`renderer.STAGED = False` sets the execution module's value).
+The execution settings `STAGED` and `BAND_PIXELS` are read and set through this module too: they
+are the fields `staged` and `band_pixels` of `execute.EXECUTION` (`renderer.STAGED = False` sets
+`EXECUTION.staged`).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from . import execute as _execute
 from .assets import _env_assets, bake  # noqa: F401
 from .batching import BATCH_CHUNK_PIXELS, _batched, render_batch  # noqa: F401
 from .cache import ASSETS, AssetCache, content_key  # noqa: F401
-from .execute import render
+from .execute import EXECUTION, Execution, render, worker_pool  # noqa: F401
 from .options import RenderOptions, _options  # noqa: F401
 from .plan import (  # noqa: F401
     DEFAULT_PREFILTER_SIZE,
@@ -83,14 +84,14 @@ __all__ = [
     "render_batch",
 ]
 
-def _forwarded(name: str) -> property:
-    """A setting of the execution module, read and set through this module."""
-    return property(lambda self: getattr(_execute, name), lambda self, value: setattr(_execute, name, value))
+def _forwarded(field: str) -> property:
+    """A field of the process's execution settings (`execute.EXECUTION`), read and set here."""
+    return property(lambda self: getattr(_execute.EXECUTION, field), lambda self, value: setattr(_execute.EXECUTION, field, value))
 
 
 class _Facade(types.ModuleType):
-    STAGED = _forwarded("STAGED")
-    BAND_PIXELS = _forwarded("BAND_PIXELS")
+    STAGED = _forwarded("staged")
+    BAND_PIXELS = _forwarded("band_pixels")
 
 
 sys.modules[__name__].__class__ = _Facade
