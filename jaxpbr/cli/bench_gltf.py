@@ -253,7 +253,7 @@ def bench_gltf(
     with tempfile.TemporaryDirectory(prefix="jaxpbr-bench-gltf-") as tmp:
         d = Path(tmp)
         t0 = time.perf_counter()
-        asset = write_demo_glb(d / "grid.glb", triangles)
+        asset = write_demo_glb(d / "grid.glb", triangles=triangles)
         steps["write"] = time.perf_counter() - t0
         say(f"wrote {asset.triangles:,} triangles ({asset.path.stat().st_size / 1e6:.0f} MB)")
         t0 = time.perf_counter()

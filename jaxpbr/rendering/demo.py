@@ -93,7 +93,7 @@ def learnopengl_scene(width: int = 1280, height: int = 720) -> Scene:
 # ------------------------------------------------------------------------------------------
 
 
-def uv_sphere(n_lat: int, n_lon: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def uv_sphere(n_lat: int, *, n_lon: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(positions, normals, triangles) of a unit UV sphere: `n_lat` latitude bands, `n_lon`
     (default 2 n_lat) longitude segments, (n_lat + 1)(n_lon + 1) vertices (the seam column and
     the poles repeated), 2 n_lon (n_lat - 1) triangles, counter-clockwise seen from outside;
@@ -132,7 +132,7 @@ class DemoAsset:
     vertices: int
 
 
-def write_demo_glb(path, triangles: int = 1_000_000, *, lat: int | None = None, lights: bool = True,
+def write_demo_glb(path, *, triangles: int = 1_000_000, lat: int | None = None, lights: bool = True,
                    camera: bool = True) -> DemoAsset:
     """The demo's 7x7 sphere grid (`demo_scene`: centres, radii, materials) as a binary glTF 2.0
     file of triangle meshes: one UV sphere (`uv_sphere(lat)`, smooth normals) whose accessors the
