@@ -801,3 +801,39 @@ def test_memory_guard_counts_the_meshes(monkeypatch):
         check_memory(scene)
     small = jp.Scene(camera=jp.Camera(width=64, height=36), objects=[Mesh(positions=P[:3], triangles=T[:1])])
     check_memory(small)
+
+
+def test_concurrent_requests_for_one_content_build_it_once(monkeypatch):
+    """Primary and shadow casts (and batch workers) may ask for a structure at the same time: the
+    later callers wait for the first one's build instead of building it again."""
+    import threading
+    import time
+
+    from jaxpbr.rendering import visibility
+    from jaxpbr.rendering.mesh import _Accels
+
+    real = visibility.TriangleAccel.build.__func__
+
+    def slow_build(cls, *a, **k):  # a build long enough for every caller to arrive meanwhile
+        time.sleep(0.3)
+        return real(cls, *a, **k)
+
+    monkeypatch.setattr(visibility.TriangleAccel, "build", classmethod(slow_build))
+
+    P, _, _, T = uv_sphere(24, 48)
+    verts, tris = np.ascontiguousarray(P, np.float32), np.ascontiguousarray(T, np.int32)
+    accels = _Accels()
+    start = threading.Barrier(4)
+    got = []
+
+    def ask():
+        start.wait()
+        got.append(accels.get(verts, tris, "jax"))
+
+    threads = [threading.Thread(target=ask) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert accels.builds == 1 and len(got) == 4 and all(a is got[0] for a in got)
+    assert not accels.building

@@ -167,6 +167,7 @@ class _Accels:
         self.capacity = capacity
         self.entries: OrderedDict[bytes, Any] = OrderedDict()
         self.lock = threading.Lock()
+        self.building: dict[bytes, threading.Event] = {}  # content being built by another thread
         self.builds = 0  # counted by tests: one build per mesh content
 
     def get(self, vertices: np.ndarray, triangles: np.ndarray, backend: str, *, exact_ties: bool = False):
@@ -179,22 +180,33 @@ class _Accels:
         h.update(vertices.tobytes())
         h.update(triangles.tobytes())
         digest = h.digest()
-        with self.lock:
-            if digest in self.entries:
-                self.entries.move_to_end(digest)
-                return self.entries[digest]
+        while True:  # one build per content: a second caller waits for the first one's build
+            with self.lock:
+                if digest in self.entries:
+                    self.entries.move_to_end(digest)
+                    return self.entries[digest]
+                pending = self.building.get(digest)
+                if pending is None:
+                    self.building[digest] = threading.Event()
+                    break
+            pending.wait()  # then found in the entries (or built here if that build failed)
         from .visibility import TriangleAccel
 
-        accel = TriangleAccel.build(vertices, triangles, backend=backend, **({"exact_ties": exact_ties} if backend == "embree" else {}))
-        with self.lock:
-            self.builds += 1
-            self.entries[digest] = accel
-            while len(self.entries) > self.capacity:
-                self.entries.popitem(last=False)
+        try:
+            accel = TriangleAccel.build(vertices, triangles, backend=backend, **({"exact_ties": exact_ties} if backend == "embree" else {}))
+            with self.lock:
+                self.builds += 1
+                self.entries[digest] = accel
+                while len(self.entries) > self.capacity:
+                    self.entries.popitem(last=False)
+        finally:
+            with self.lock:
+                self.building.pop(digest).set()
         return accel
 
 
 ACCELS = _Accels()
+
 
 #: Most continuations of a ray through culled back faces before it is declared a miss.
 MAX_CULLED_HITS = 16
