@@ -399,7 +399,9 @@ class _EmbreeBackend:
         v, f = _bvh._as_mesh(vertices, triangles)
         self.n_tri = len(f)
         self.tri = v[f]  # (T, 3, 3) float32, caller's order
-        valid = _bvh.valid_triangles(self.tri)
+        t64 = self.tri.astype(np.float64)
+        nrm64 = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
+        valid = np.isfinite(t64).all(axis=(1, 2)) & (np.abs(nrm64).max(axis=1) > 0)  # = bvh.valid_triangles
         self.ids = np.nonzero(valid)[0].astype(np.int32)  # embree primID -> triangle id
         self.scene = EmbreeScene()
         if self.ids.size:
@@ -412,14 +414,14 @@ class _EmbreeBackend:
         self._pool = None
         self._lock = threading.Lock()
         self._local = threading.local()  # set on worker threads that run whole chunks
-        t64 = self.tri.astype(np.float64)
         # altitudes (distance of each vertex from the opposite edge) for the near-edge test
-        area2 = np.linalg.norm(np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0]), axis=1)
+        area2 = np.linalg.norm(nrm64, axis=1)
         edge = np.stack([np.linalg.norm(t64[:, (i + 2) % 3] - t64[:, (i + 1) % 3], axis=1) for i in range(3)], 1)
         with np.errstate(divide="ignore", invalid="ignore"):
             self.alt = np.where(edge > 0, area2[:, None] / edge, 0.0)
         # adjacency by welded vertex, and the near pairs that share no vertex
-        welded = _weld(self.tri.reshape(-1, 3)).reshape(-1, 3)
+        # welded per vertex, then per corner: the same partition as welding the 3 T corners, on V rows
+        welded = _weld(v)[f] if len(v) else np.zeros((0, 3), np.int64)
         nv = int(welded.max()) + 1 if welded.size else 0
         corner_tri = np.repeat(np.arange(self.n_tri), 3)
         corner_ok = np.repeat(valid, 3)
