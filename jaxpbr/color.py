@@ -26,6 +26,9 @@ from __future__ import annotations
 
 import warnings
 
+import functools
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -36,6 +39,7 @@ __all__ = [
     "TRANSFERS",
     "aces_fitted",
     "aces_narkowicz",
+    "display",
     "encode",
     "exposure",
     "gamma_decode",
@@ -403,3 +407,14 @@ def srgb_decode_np(c):
       NumPy array of linear values, same shape; same floating dtype as the input (integers give float64).
     """
     return _cctf_np(c, "cctf_decoding")
+
+
+_tonemap = tonemap  # `display`'s keyword of the same name hides the function inside it
+
+
+@functools.partial(jax.jit, static_argnames=("tonemap", "encoding"))
+def display(hdr, ev, *, tonemap: str, encoding: str):
+    """Linear HDR -> display values: `exposure` by `ev` stops, `tonemap`, then `encode`, as one
+    compiled program (op by op they were a dozen compilations; the host-side sRGB of
+    `jaxpbr.io.image.write` imports colour-science)."""
+    return encode(_tonemap(exposure(hdr, ev), tonemap), encoding)

@@ -31,6 +31,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+from ..color import TONEMAP_OPERATORS, TRANSFERS
 from ..errors import InputError
 from ..ibl.baked import write_baked
 from ..ibl.diffuse import IRRADIANCE_METHODS
@@ -48,8 +49,8 @@ RENDER_FIELDS = ("kind", "name", "scene", "width", "height", "supersample", "cam
 CAMERA_FIELDS = ("position", "target", "up", "fov_y")
 OUTPUT_FIELDS = ("formats", "aovs", "exposure", "tonemap", "encoding", "bits")
 FORMATS = ("png", "exr")
-TONEMAPS = ("reinhard", "aces", "aces_narkowicz", "clamp")
-ENCODINGS = ("srgb", "gamma2.2", "linear")
+TONEMAPS = TONEMAP_OPERATORS
+ENCODINGS = TRANSFERS
 #: `write_baked` keywords a bake row may set (everything but the environment, the folder and the
 #: caller's hooks), with their defaults: derived from the function's signature.
 BAKE_OPTIONS = {

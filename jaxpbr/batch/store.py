@@ -27,7 +27,7 @@ import filelock
 
 from .._version import __version__
 from ..errors import InputError
-from ..io.atomic import write_json
+from ..io.atomic import atomic_write, write_json
 
 __all__ = ["STATE_DIR", "SUMMARY", "OutputFolder", "RunLocked", "sha256_file"]
 
@@ -77,7 +77,8 @@ class OutputFolder:
             raise RunLocked(f"another jaxpbr batch run is writing {str(self.root)!r}{owner}; "
                             f"wait for it to finish or give another --out") from None
         self._lock = lock
-        (self.state / "owner").write_text(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        owner = f"pid {os.getpid()} on {socket.gethostname()}\n"
+        atomic_write(self.state / "owner", lambda tmp: Path(tmp).write_text(owner))
         self._remove_leftovers()
 
     def release(self) -> None:

@@ -13,7 +13,6 @@ one job with the `compute` of the next.
 
 from __future__ import annotations
 
-import functools
 import importlib
 import math
 import os
@@ -34,7 +33,7 @@ from ..ibl.baked import STEMS, write_baked
 from ..ibl.cubeio import load_environment
 from ..io import image
 from ..io.atomic import OutputSet
-from ..rendering.aovs import AOVS, aovs
+from ..rendering.aovs import aovs, exr_layers
 from ..rendering.demo import demo_scene
 from ..rendering.gltf_scene import load_gltf
 from ..rendering.renderer import RenderOptions, check_memory, plan, render
@@ -45,16 +44,10 @@ from ..shading.material import Material
 from .jobs import BakeJob, RenderJob
 from .store import OutputFolder
 
-__all__ = ["Worker", "display_transform", "failure"]
+__all__ = ["Worker", "failure"]
 
 #: Scenes and environments a worker keeps (least recently used dropped first).
 KEEP = 4
-
-
-@functools.partial(jax.jit, static_argnames=("tonemap", "encoding"))
-def display_transform(hdr, ev, *, tonemap: str, encoding: str):
-    """Exposure, tone map and display encoding as one program on the device."""
-    return color.encode(color.tonemap(color.exposure(hdr, ev), tonemap), encoding)
 
 
 class _LRU(OrderedDict):
@@ -105,7 +98,7 @@ class Worker:
         hdr = render(scene, options=opts)
         out = {"hdr": hdr, "display": display, "options": opts, "plan": plan(scene, options=opts).describe()}
         if "png" in job.formats:
-            out["ldr"] = display_transform(hdr, float(display["exposure"]), tonemap=display["tonemap"],
+            out["ldr"] = color.display(hdr, float(display["exposure"]), tonemap=display["tonemap"],
                                            encoding=display["encoding"])
         if job.aovs:
             out["aovs"] = aovs(scene, job.aovs, options=opts)
@@ -140,13 +133,8 @@ class Worker:
             if "exr" in job.formats:
                 path = root / f"{job.name}.exr"
                 meta = {**metadata, "jaxpbr:content": "linear scene-referred radiance, Rec.709 primaries"}
-                layers = {}
-                for aov in job.aovs:
-                    chans, what = AOVS[aov]
-                    v = np.asarray(pending["aovs"][aov])
-                    for i, ch in enumerate(chans):
-                        layers[ch] = v if v.ndim == 2 else v[..., i]
-                    meta[f"jaxpbr:aov:{aov}"] = f"{', '.join(chans)}: {what}"
+                layers, aov_meta = exr_layers(pending["aovs"], job.aovs) if job.aovs else ({}, {})
+                meta |= aov_meta
                 outs.add(path)
                 image.write(path, hdr, metadata=meta, layers=layers)
                 files.append(f"{job.name}.exr")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import functools
 import math
 import time
 from pathlib import Path
@@ -18,9 +17,9 @@ from ..io.atomic import OutputSet
 from ..rendering.demo import demo_scene
 from ..rendering.renderer import BAND_PIXELS, RenderOptions, check_memory, plan, render
 from ..rendering.scene import MAX_SUPERSAMPLE
+from ..rendering.scene_file import load_scene
 from ..shading.brdf_terms import MODELS
 from ._common import CLIError, Progress, positive_int_arg, raise_pending
-from ..rendering.scene_file import load_scene
 
 __all__ = ["add_command", "cmd_render"]
 
@@ -110,14 +109,6 @@ def _finite_float_arg(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
     return value
-
-
-@functools.partial(jax.jit, static_argnames=("tonemap", "encoding"))
-def _display(hdr, ev, *, tonemap: str, encoding: str):
-    """Exposure, tone map and display encoding as one program on the device (op by op they were
-    a dozen compilations; the host-side sRGB encoding of `image.write` imports colour-science,
-    0.8 s of a warm run)."""
-    return color.encode(color.tonemap(color.exposure(hdr, ev), tonemap), encoding)
 
 
 def _vec3_arg(text: str) -> tuple[float, float, float]:
@@ -261,7 +252,7 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     # A bar only when there is more than one pass (bands of a large image, sub-pixel samples).
     passes = scene.camera.supersample ** 2 * (1 if W * H <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W)))
     hdr_device = render(scene, options=opts, progress=Progress("render") if passes > 1 else None)
-    display = np.asarray(_display(hdr_device, ev, tonemap=tonemap, encoding=encoding))
+    display = np.asarray(color.display(hdr_device, ev, tonemap=tonemap, encoding=encoding))
     hdr = np.asarray(hdr_device)  # one device -> host copy of each image
     t_render = time.perf_counter() - t0
     if not np.all(np.isfinite(hdr)):
@@ -289,15 +280,10 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         hdr_meta["jaxpbr:content"] = "linear scene-referred radiance, Rec.709 primaries"
         layers = {}
         if args.aov:
-            from ..rendering.aovs import AOVS, aovs
+            from ..rendering.aovs import aovs, exr_layers
 
-            values = aovs(scene, args.aov, options=opts)
-            for name in args.aov:
-                chans, what = AOVS[name]
-                v = values[name]
-                for i, ch in enumerate(chans):
-                    layers[ch] = v if v.ndim == 2 else v[..., i]
-                hdr_meta[f"jaxpbr:aov:{name}"] = f"{', '.join(chans)}: {what}"
+            layers, aov_meta = exr_layers(aovs(scene, args.aov, options=opts), args.aov)
+            hdr_meta |= aov_meta
         outs.add(exr)
         image.write(exr, hdr, metadata=hdr_meta, layers=layers)  # a failure here removes the PNG too
         print(f"wrote {exr} (linear HDR, float32{'; AOVs ' + ', '.join(args.aov) if args.aov else ''})")

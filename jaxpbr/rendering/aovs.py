@@ -12,10 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numerics import vdot
-from .renderer import RenderOptions, _geometry_jit, _lean, _options, _texture_jit, plan
+from .options import RenderOptions, _options
+from .plan import plan
 from .scene import Scene, camera_basis
+from .stages import _lean, _texture_jit, staged_geometry
 
-__all__ = ["AOVS", "aovs"]
+__all__ = ["AOVS", "aovs", "exr_layers"]
 
 #: The AOVs: name -> (EXR channel names, what they hold).
 AOVS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -41,7 +43,7 @@ def aovs(scene: Scene, names=tuple(AOVS), *, options: RenderOptions | None = Non
     opts = _options(options, overrides, "aovs")
     p = plan(scene, options=opts)
     dtype = jnp.dtype(opts.dtype)
-    g = _geometry_jit(scene, p, opts, jnp.asarray((0.5, 0.5), dtype))
+    g = staged_geometry(scene, p, opts, jnp.asarray((0.5, 0.5), dtype), light_shadows=False)
     if "base_color" in names or "normal" in names:
         lean = _lean(scene)
         for k in p.textured:
@@ -68,3 +70,16 @@ def aovs(scene: Scene, names=tuple(AOVS), *, options: RenderOptions | None = Non
         prim = g.get("prim")
         out["primitive_id"] = (jnp.full(hit.shape, -1, dtype) if prim is None else jnp.where(hit, prim, -1).astype(dtype))
     return {k: np.asarray(v, np.float32) for k, v in out.items()}
+
+
+def exr_layers(values: dict, names) -> tuple[dict, dict]:
+    """AOV arrays (`aovs`) as EXR layers -> ({channel: (H, W) array}, {"jaxpbr:aov:<name>": what the
+    channels hold}), the layers and header attributes `jaxpbr.io.image.write(..., layers=)` takes."""
+    layers, meta = {}, {}
+    for name in names:
+        chans, what = AOVS[name]
+        v = np.asarray(values[name])
+        for i, ch in enumerate(chans):
+            layers[ch] = v if v.ndim == 2 else v[..., i]
+        meta[f"jaxpbr:aov:{name}"] = f"{', '.join(chans)}: {what}"
+    return layers, meta

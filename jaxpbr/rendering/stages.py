@@ -475,20 +475,27 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     """
     if p_plan.blend_layers > 1:
         return _blended_pass(scene, assets, p_plan, opts, offset, staged)
-    if staged and scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects):
-        g = _mesh_geometry(scene, p_plan, opts, offset, _layer_prims_jit(scene, p_plan, opts, offset, 1))
-    else:
-        g = (_geometry_jit if staged else _geometry)(scene, p_plan, opts, offset)
+    g = staged_geometry(scene, p_plan, opts, offset) if staged else _geometry(scene, p_plan, opts, offset)
     return _shade_pass(scene, assets, p_plan, opts, g, staged)
 
 
-def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim):
+def staged_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, *, light_shadows: bool = True):
+    """The geometry stage as compiled programs (outside transformations): with meshes, their
+    primary rays cast in a program of their own (`_mesh_geometry`). light_shadows=False leaves the
+    lights' shadow rays out (the G-buffer and AOVs do not need them)."""
+    if scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects):
+        prim = _layer_prims_jit(scene, p_plan, opts, offset, 1)
+        return _mesh_geometry(scene, p_plan, opts, offset, prim, light_shadows=light_shadows)
+    return _geometry_jit(scene, p_plan, opts, offset, light_shadows=light_shadows)
+
+
+def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim, *, light_shadows: bool = True):
     """The staged geometry of a scene with meshes, its ray casts in programs of their own: a program
     that calls back to the host is compiled again in every process (its persistent-cache key names
     the callback), so the casts (small programs) are kept apart from the geometry (a large one,
     measured 3.9 s to compile at 1 M triangles), which the persistent cache then serves."""
     g = _geometry_jit(scene, p_plan, opts, offset, prim, light_shadows=False)
-    if p_plan.shadows and p_plan.direct:
+    if light_shadows and p_plan.shadows and p_plan.direct:
         g = {**g, "vis": _light_shadows_jit(scene, opts, g["pos"], g["ng"])}
     return g
 
@@ -616,7 +623,7 @@ def gbuffer(scene: Scene, *, options: RenderOptions | None = None, **overrides):
     bare = evolve(scene, lights=(), environment=None, camera=evolve(scene.camera, supersample=1))
     p = plan(bare, options=opts)
     dtype = jnp.dtype(opts.dtype)
-    g = _geometry_jit(bare, p, opts, jax.device_put(np.asarray((0.5, 0.5), dtype)))
+    g = staged_geometry(bare, p, opts, jax.device_put(np.asarray((0.5, 0.5), dtype)), light_shadows=False)
     lean = _lean(bare)
     for k in p.textured:
         g = _texture_jit(lean, k, opts, g)
