@@ -56,6 +56,7 @@ import pygltflib
 
 import jaxpbr as jp
 from jaxpbr.ibl.cubeio import load_environment
+from jaxpbr.rendering.demo import uv_sphere as _uv_sphere
 
 TRUE_ROUGHNESS = 0.35
 START_ROUGHNESS = 0.8
@@ -69,21 +70,12 @@ SHARED_DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data"
 
 
 def uv_sphere(n_lat: int = 24, n_lon: int = 48):
-    """(positions, normals, uv, triangles) of a unit UV sphere, counter-clockwise seen from outside;
-    u = longitude / 2 pi, v = colatitude / pi (glTF: v runs down the image, v = 0 at the north pole)."""
-    th, ph = np.meshgrid(np.linspace(0, np.pi, n_lat + 1), np.linspace(0, 2 * np.pi, n_lon + 1), indexing="ij")
-    n = np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)], -1).reshape(-1, 3)
-    uv = np.stack([ph / (2 * np.pi), th / np.pi], -1).reshape(-1, 2)
-    W = n_lon + 1
-    tris = []
-    for i in range(n_lat):
-        for j in range(n_lon):
-            a, b, c, d = i * W + j, (i + 1) * W + j, (i + 1) * W + j + 1, i * W + j + 1
-            if i != 0:
-                tris.append((a, b, d))
-            if i != n_lat - 1:
-                tris.append((b, c, d))
-    return n.astype(np.float32), n.astype(np.float32), uv.astype(np.float32), np.asarray(tris, np.uint32)
+    """(positions, normals, uv, triangles) of the library's unit UV sphere (`jaxpbr.rendering.demo.uv_sphere`)
+    with texture coordinates u = longitude / 2 pi, v = colatitude / pi (glTF: v runs down the image, v = 0
+    at the north pole), on its (n_lat + 1) x (n_lon + 1) vertex grid."""
+    pos, nrm, tris = _uv_sphere(n_lat, n_lon=n_lon)
+    v, u = np.meshgrid(np.linspace(0.0, 1.0, n_lat + 1), np.linspace(0.0, 1.0, n_lon + 1), indexing="ij")
+    return pos, nrm, np.stack([u, v], -1).reshape(-1, 2).astype(np.float32), tris
 
 
 def pattern(n: int) -> np.ndarray:
