@@ -280,11 +280,10 @@ def test_sigterm_stops_cleanly_and_the_rerun_completes(tmp_path):
 
 # -- the Ray engine --------------------------------------------------------------------------
 
-ray = pytest.importorskip("ray", reason="the Ray engine needs ray (pip install 'jaxpbr[ray]')")
-
-
 @pytest.fixture(scope="module")
 def ray_cluster():
+    # Skips only the Ray tests when ray is missing (a module-level importorskip here would skip the whole file).
+    ray = pytest.importorskip("ray", reason="the Ray engine needs ray (pip install 'jaxpbr[ray]')")
     with warnings.catch_warnings():  # Ray starts its processes with fork + exec
         warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
         ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
