@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numerics import is_concrete, with_callers_context
-from .._pytree import evolve
+from .._pytree import evolve, fields_of
 from .assets import (
     _asset_irradiance,
     _asset_lut,
@@ -32,7 +32,8 @@ from .cache import AssetCache, cache_or_default
 from .options import RenderOptions, _options
 from .plan import RenderPlan, _env_split, check_memory, plan
 from .scene import Scene
-from .stages import _render_jit, _render_pass
+from .mesh import Mesh, device_accel
+from .stages import AccelScene, _render_jit, _render_pass
 
 
 def render(
@@ -62,7 +63,7 @@ def render(
     p = plan(scene, options=opts, cache=cache)
     env = scene.environment
     if not execution.is_staged():
-        out = _render_jit(scene, _env_assets(env, p, opts, cache) if p.ibl else None, p, opts)
+        out = _render_jit(_with_device_accel(scene, execution), _env_assets(env, p, opts, cache) if p.ibl else None, p, opts)
         if progress is not None:
             progress(1, 1)
         return out
@@ -166,6 +167,18 @@ class Execution:
 
     staged: bool | None = None
     band_pixels: int = 1 << 21
+    device_visibility: bool | None = None
+
+    def traces_on_device(self) -> bool:
+        """`device_visibility`, or when it is None whether the backend is not the CPU: a render run
+        as one program then traces the rays of opaque meshes in the program, through a BVH built on
+        the host (`mesh.device_accel`), instead of calling the host's ray engine (Embree) through a
+        callback, whose round trip of the rays dominated a GPU frame (measured on an H100 at 1 M
+        triangles, 1080p: 0.44 s a frame against 0.009 s for analytic spheres). On the CPU Embree
+        answers faster than the JAX traversal (4.4 against 0.6-0.8 M rays/s on 2 cores)."""
+        if self.device_visibility is not None:
+            return bool(self.device_visibility)
+        return jax.default_backend() != "cpu"
 
     def is_staged(self) -> bool:
         """`staged`, or when it is None whether the backend is XLA:CPU. XLA:CPU fuses producers into
@@ -176,6 +189,17 @@ class Execution:
         if self.staged is not None:
             return bool(self.staged)
         return jax.default_backend() == "cpu"
+
+
+def _with_device_accel(scene: Scene, execution: Execution) -> Scene:
+    """The scene with its opaque meshes' device BVH (`stages.AccelScene`) where `execution` traces
+    on the device and the meshes allow it (`mesh.device_accel`), else the scene itself."""
+    if scene.gbuffer is not None or not execution.traces_on_device():
+        return scene
+    accel = device_accel([ob for ob in scene.objects if isinstance(ob, Mesh)])
+    if accel is None:
+        return scene
+    return AccelScene(**{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel)
 
 
 #: The process's execution settings (`renderer.STAGED` / `renderer.BAND_PIXELS` are its fields).

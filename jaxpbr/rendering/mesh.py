@@ -284,9 +284,12 @@ def cast(arrays, o, d, *, layers: int = 1):
     """The primitive ids (int32, -1 = miss) each ray (..., 3) sees, from inside a trace:
     `jax.pure_callback` to the host ray engine, (...) or with layers > 1 the nearest `layers`
     surfaces (..., layers) (BLEND). Rays and vertices are passed with their gradients stopped
-    (visibility has none)."""
+    (visibility has none). With `arrays["bvh"]` (`device_accel`: opaque meshes rendered as one
+    program off the CPU) the rays are traced in the program instead (`_device_cast`)."""
     o = jax.lax.stop_gradient(o).astype(jnp.float32)
     d = jax.lax.stop_gradient(d).astype(jnp.float32)
+    if arrays.get("bvh") is not None and layers == 1 and arrays["alpha"] is None:
+        return _device_cast(arrays, o, d)
     verts = jax.lax.stop_gradient(arrays["positions"]).astype(jnp.float32)
     alpha = jax.lax.stop_gradient(arrays["alpha"]) if arrays["alpha"] is not None else None
     out = jax.ShapeDtypeStruct(o.shape[:-1] + ((layers,) if layers > 1 else ()), jnp.int32)
@@ -294,6 +297,74 @@ def cast(arrays, o, d, *, layers: int = 1):
         functools.partial(_host_cast, layers=layers), out, verts, arrays["triangles"], arrays["cull_back"], o, d, alpha,
         vmap_method="sequential",
     )
+
+
+#: Rays in flight in the in-program traversal (`bvh._trace`'s lanes): `TriangleAccel`'s choice
+#: off the CPU.
+DEVICE_LANES = 1 << 17
+
+
+def _device_cast(arrays, o, d):
+    """`_host_cast` for opaque meshes (one layer, no alpha) in the program: the JAX BVH
+    (`arrays["bvh"]`, built on the host from the same float32 triangles) traced on the device, with
+    the same continuation through the back faces of single-sided meshes (the next hit after
+    (t, prim), at most MAX_CULLED_HITS times): no host round trip."""
+    from .bvh import intersect_bvh
+
+    bvh = arrays["bvh"]
+    shape = o.shape[:-1]
+    o = o.reshape(-1, 3)
+    d = jnp.broadcast_to(d, shape + (3,)).reshape(-1, 3)
+    n = o.shape[0]
+    verts = jax.lax.stop_gradient(arrays["positions"]).astype(jnp.float32)
+    tri = arrays["triangles"]
+    v0, v1, v2 = verts[tri[:, 0]], verts[tri[:, 1]], verts[tri[:, 2]]
+    face_normal = jnp.cross(v1 - v0, v2 - v0)
+    cull = arrays["cull_back"]
+    lanes = min(DEVICE_LANES, n)
+
+    def body(state):
+        k, prim, tnear, after, todo = state
+        h = intersect_bvh(bvh, o, d, tnear=tnear, tfar=jnp.where(todo, jnp.inf, -jnp.inf), after_prim=after, lanes=lanes)
+        p = h.prim
+        hit = todo & (p >= 0)
+        q = jnp.maximum(p, 0)
+        skip = hit & cull[q] & (jnp.sum(face_normal[q] * d, -1) > 0)
+        prim = jnp.where(todo & ~skip, jnp.where(hit, p, -1), prim)
+        tnear = jnp.where(skip, h.t, tnear)
+        after = jnp.where(skip, p, after)
+        return k + 1, prim, tnear, after, skip
+
+    state = (jnp.int32(0), jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.float32), jnp.full(n, -1, jnp.int32),
+             jnp.ones(n, bool))
+    state = jax.lax.while_loop(lambda s: (s[0] <= MAX_CULLED_HITS) & jnp.any(s[4]), body, state)
+    return state[1].reshape(shape)
+
+
+def device_occluded(arrays, o, d, tfar):
+    """`_host_occluded` for opaque meshes in the program (`arrays["bvh"]`): whether the segment
+    o + t d, 0 <= t <= tfar, meets a triangle (either face)."""
+    from .bvh import occluded_bvh
+
+    shape = jnp.broadcast_shapes(o.shape, d.shape)[:-1]
+    n = int(np.prod(shape, dtype=np.int64))
+    return occluded_bvh(arrays["bvh"], o, d, 0.0, tfar, lanes=max(1, min(DEVICE_LANES, n)))
+
+
+def device_accel(meshes):
+    """The JAX BVH (device arrays) of `meshes` concatenated as `concat_meshes` concatenates them
+    (float32 positions, triangle ids in that order), or None where the in-program traversal does
+    not apply: a mesh with a traced position, a MASK or BLEND mesh, a transmissive one (those
+    walk their hits on the host). Built once per content (`ACCELS`)."""
+    if not meshes or any(m.alpha_mode != "OPAQUE" or transmits(m.material) for m in meshes):
+        return None
+    if not all(is_concrete(m.positions) and is_concrete(m.triangles) for m in meshes):
+        return None
+    offs = np.cumsum([0] + [m.num_vertices for m in meshes])
+    verts = np.ascontiguousarray(np.concatenate([np.asarray(m.positions, np.float32) for m in meshes]))
+    tris = np.ascontiguousarray(np.concatenate(
+        [np.asarray(m.triangles, np.int64) + offs[k] for k, m in enumerate(meshes)]).astype(np.int32))
+    return ACCELS.get(verts, tris, "jax").bvh
 
 
 # ------------------------------------------------------------------------------------------

@@ -34,6 +34,7 @@ from .mesh import (
     MAX_CULLED_HITS,
     Mesh,
     _embree,
+    device_occluded,
     host_alpha,
     host_transmittance,
     transmits,
@@ -115,6 +116,8 @@ def _mesh_occluded(arrays, o, d, tfar):
     o = jax.lax.stop_gradient(o).astype(jnp.float32)
     d = jax.lax.stop_gradient(d).astype(jnp.float32)
     tfar = jax.lax.stop_gradient(tfar).astype(jnp.float32)
+    if arrays.get("bvh") is not None and arrays["alpha"] is None and arrays.get("transmit") is None:
+        return device_occluded(arrays, o, d, tfar)
     verts = jax.lax.stop_gradient(arrays["positions"]).astype(jnp.float32)
     alpha = jax.lax.stop_gradient(arrays["alpha"]) if arrays["alpha"] is not None else None
     transmit = arrays.get("transmit")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +18,7 @@ import numpy as np
 
 from .._api import keyword_only
 from .._numerics import pack3, small_sq, unpack3, vcross, vdot, vnormalize
-from .._pytree import evolve, fields_of, unchecked
+from .._pytree import evolve, fields_of, subtree, unchecked
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..shading.layered import emission_soa
 from ..shading.lights import shade_direct
@@ -250,9 +251,22 @@ def _shade_direct(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g):
 
 
 def _mesh_arrays(scene: Scene, dtype):
-    """The scene's meshes concatenated (`mesh.concat_meshes`), or None without meshes."""
+    """The scene's meshes concatenated (`mesh.concat_meshes`), or None without meshes; with the
+    device BVH of an `AccelScene` as "bvh"."""
     meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
-    return concat_meshes(meshes, dtype) if meshes else None
+    if not meshes:
+        return None
+    arrays = concat_meshes(meshes, dtype)
+    arrays["bvh"] = scene.accel if isinstance(scene, AccelScene) else None
+    return arrays
+
+
+class AccelScene(Scene):
+    """A scene carrying the device BVH of its meshes (`mesh.device_accel`) as arrays of the pytree:
+    `render` makes one where it runs as one program off the CPU, so that its opaque meshes are traced
+    in the program rather than through a host callback (`execute.Execution.device_visibility`)."""
+
+    accel: Any = subtree(None)
 
 
 def _layer_kwargs(g, m: Material, dtype) -> dict:
@@ -344,7 +358,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         n_an = n
         idx = jnp.asarray(analytic, jnp.int32)[idx] if len(analytic) < len(objects) else idx
     if meshes:
-        arrays = concat_meshes([objects[k] for k in meshes], dtype)
+        arrays = _mesh_arrays(scene, dtype)
         if prim is None:  # (BLEND layers pass the layer's primitives, cast once for all layers)
             prim = cast(arrays, o_px, d_px)
         ddir = _ray_differentials(scene.camera, d, dtype) if need_uv else None

@@ -1,0 +1,96 @@
+"""Opaque meshes traced in the program (`Execution.device_visibility`, the default off the CPU): the
+same image as the host ray engine's callback, with no callback left in the program."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxpbr as jp
+from jaxpbr.rendering import execute, mesh, stages
+from jaxpbr.rendering.demo import uv_sphere
+from jaxpbr.rendering.options import RenderOptions
+from jaxpbr.rendering.plan import plan
+from jaxpbr.rendering.scene import primary_rays
+
+
+def _quad(z, half, normal_z):
+    """Two triangles at depth z, facing +z (normal_z > 0) or -z."""
+    p = np.array([[-half, -half, z], [half, -half, z], [half, half, z], [-half, half, z]], np.float32)
+    t = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    return p, (t if normal_z > 0 else t[:, ::-1].copy())
+
+
+def _scene(width=40, height=30):
+    """Seen from z = -6 looking along +z: a single-sided quad facing away (its back is culled and
+    the rays continue), a double-sided quad behind it on the left (its back is seen), a
+    single-sided sphere behind both; a point light between the camera and the quads (the culled
+    quad still casts a shadow: shadow rays meet either face)."""
+    red = jp.Material(base_color=(0.8, 0.1, 0.1), metallic=0.0, roughness=0.5)
+    green = jp.Material(base_color=(0.1, 0.8, 0.1), metallic=0.0, roughness=0.5)
+    grey = jp.Material(base_color=(0.7, 0.7, 0.7), metallic=0.0, roughness=0.4)
+    p0, t0 = _quad(0.0, 0.6, +1)  # faces +z: the camera at -z sees its back
+    p1, t1 = _quad(1.0, 0.5, +1)
+    p1 = p1 + np.float32([-0.7, 0.0, 0.0])
+    P, N, T = uv_sphere(12)
+    objects = (
+        jp.Mesh(positions=p0, triangles=t0, material=red),
+        jp.Mesh(positions=p1, triangles=t1, material=green, double_sided=True),
+        jp.Mesh(positions=P * 1.2 + np.float32([0.3, 0.0, 3.0]), normals=N, triangles=T.astype(np.int32), material=grey),
+    )
+    cam = jp.Camera(position=(0.0, 0.0, -6.0), target=(0.0, 0.0, 0.0), fov_y_deg=40.0, width=width, height=height)
+    light = jp.PointLight((0.2, 0.3, -2.0), intensity=40.0)
+    return jp.Scene(objects=objects, lights=[light], camera=cam)
+
+
+@pytest.fixture
+def one_program():
+    saved = (execute.EXECUTION.staged, execute.EXECUTION.device_visibility)
+    execute.EXECUTION.staged = False
+    yield execute.EXECUTION
+    execute.EXECUTION.staged, execute.EXECUTION.device_visibility = saved
+
+
+def test_device_traversal_renders_what_the_host_engine_renders(one_program):
+    scene = _scene()
+    one_program.device_visibility = False
+    host = np.asarray(jp.render(scene))
+    one_program.device_visibility = True
+    device = np.asarray(jp.render(scene))
+    assert np.isfinite(device).all()
+    np.testing.assert_array_equal(device, host)
+    # Not a vacuous equality: the rays went through the culled quad to the sphere, the double-sided
+    # quad shows its back, and the culled quad's shadow falls on the sphere.
+    prim = np.asarray(mesh.cast(stages._mesh_arrays(scene, jnp.float32), *primary_rays(scene.camera, dtype=jnp.float32)))
+    tri_object = np.asarray(mesh.concat_meshes(list(scene.objects), jnp.float32)["tri_object"])
+    assert set(tri_object[prim[prim >= 0]].tolist()) == {1, 2}  # the quad facing away is never seen
+    sphere = (prim >= 0) & (tri_object[np.maximum(prim, 0)] == 2)
+    dark = sphere & (device.sum(-1) == 0.0)  # no environment: a sphere pixel is black only in shadow
+    assert 0 < dark.sum() < sphere.sum()
+    # ... and the dark part is the culled quad's shadow: without the quad, those pixels are lit
+    no_quad = np.asarray(jp.render(scene.replace(objects=tuple(scene.objects[1:]))))
+    assert (no_quad.sum(-1)[dark] > 0).mean() > 0.9
+
+
+def test_the_device_program_holds_no_host_callback(one_program):
+    one_program.device_visibility = True
+    scene = _scene(8, 6)
+    opts = RenderOptions()
+    p = plan(scene, options=opts)
+    accel_scene = execute._with_device_accel(scene, one_program)
+    assert isinstance(accel_scene, stages.AccelScene)
+    text = str(jax.make_jaxpr(stages._render_traced, static_argnums=(2, 3))(accel_scene, None, p, opts))
+    assert "callback" not in text
+    # the same scene without the BVH calls the host engine (the check above can fail)
+    text = str(jax.make_jaxpr(stages._render_traced, static_argnums=(2, 3))(scene, None, p, opts))
+    assert "callback" in text
+
+
+def test_meshes_that_walk_their_hits_keep_the_host_engine(one_program):
+    one_program.device_visibility = True
+    scene = _scene(8, 6)
+    masked = scene.objects[0].replace(alpha_mode="MASK")
+    s2 = scene.replace(objects=(masked,) + tuple(scene.objects[1:]))
+    assert execute._with_device_accel(s2, one_program) is s2
+    one_program.device_visibility = False
+    assert execute._with_device_accel(scene, one_program) is scene
