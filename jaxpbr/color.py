@@ -142,8 +142,28 @@ def exposure(c, ev):
     e = jnp.exp2(f)
     # exactly 1 at f = 0 (1 - e is exact there, Sterbenz), with exp2's derivative kept
     e = e + jax.lax.stop_gradient(jnp.where(f == 0, 1.0 - e, 0.0))
-    out = jnp.ldexp(c * e, jnp.clip(n, -4096, 4096).astype(jnp.int32))
+    out = _scale_pow2(c * e, n)
     return jnp.where(finite, out, c * 2.0**ev)  # +-inf stops: inf or 0, as 2**ev gives
+
+
+def _scale_pow2(x, n):
+    """x * 2**n, exact wherever the result is a normal float: n (integer-valued, any float dtype)
+    is applied as three multiplications by powers of two made from their bit patterns.
+    `jnp.ldexp` is not exact off the CPU: it computes the power as a float `2 ** e`."""
+    if x.dtype == jnp.float64:
+        mant, bias, itype = 52, 1023, jnp.int64
+    elif x.dtype == jnp.float32:
+        mant, bias, itype = 23, 127, jnp.int32
+    else:  # half precisions: through float32, whose range holds every result of theirs
+        return _scale_pow2(x.astype(jnp.float32), n).astype(x.dtype)
+    step = bias - 1  # 2**k is a normal float for |k| <= bias - 1
+    # Past +-(2 step + mant + 2) every finite x is scaled to 0 or inf: three steps reach that far.
+    rest = jnp.clip(n, -(2 * step + mant + 2), 2 * step + mant + 2).astype(itype)
+    for _ in range(3):
+        k = jnp.clip(rest, -step, step)
+        x = x * jax.lax.bitcast_convert_type((k + bias) << mant, x.dtype)
+        rest = rest - k
+    return x
 
 
 # --------------------------------------------------------------------------------------------------- tone maps
