@@ -94,3 +94,33 @@ def test_meshes_that_walk_their_hits_keep_the_host_engine(one_program):
     assert execute._with_device_accel(s2, one_program) is s2
     one_program.device_visibility = False
     assert execute._with_device_accel(scene, one_program) is scene
+
+
+def test_a_stored_bvh_is_loaded_by_a_later_process_instead_of_built(tmp_path, monkeypatch):
+    """`ACCELS.use_directory`: the JAX backend's BVH goes to disk once; a fresh cache (as a new
+    process has) loads it, traces the same hits, and does not call the builder."""
+    from jaxpbr.rendering import bvh as bvh_mod
+    from jaxpbr.rendering import visibility
+
+    P, _, T = uv_sphere(8)
+    verts, tris = np.ascontiguousarray(P, np.float32), np.ascontiguousarray(T, np.int32)
+    first = mesh._Accels()
+    first.use_directory(tmp_path)
+    built = first.get(verts, tris, "jax")
+    files = list(tmp_path.glob("bvh-*.npz"))
+    assert len(files) == 1
+    later = mesh._Accels()
+    later.use_directory(tmp_path)
+    monkeypatch.setattr(visibility, "build_bvh", lambda *a, **k: pytest.fail("built again"))
+    loaded = later.get(verts, tris, "jax")
+    for a, b in zip(built.bvh, loaded.bvh, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    o = np.tile(np.float32([[0.1, 0.2, 5.0]]), (16, 1))
+    d = np.random.default_rng(0).normal(size=(16, 3)).astype(np.float32) * 0.05 + np.float32([0, 0, -1])
+    np.testing.assert_array_equal(np.asarray(built.intersect(o, d).prim), np.asarray(loaded.intersect(o, d).prim))
+    # a damaged file is built again, not trusted
+    files[0].write_bytes(b"not an npz")
+    monkeypatch.setattr(visibility, "build_bvh", bvh_mod.build_bvh)
+    again = mesh._Accels()
+    again.use_directory(tmp_path)
+    assert again.get(verts, tris, "jax").num_triangles == len(tris)

@@ -89,6 +89,7 @@ def prune(path: Path, max_bytes: int = MAX_BYTES) -> None:
 
 def enable_assets() -> Path | None:
     """Keep the renderer's computed IBL maps on disk; returns the directory or None."""
+    from ..rendering.mesh import ACCELS
     from ..rendering.renderer import ASSETS
 
     path = asset_dir()
@@ -99,6 +100,7 @@ def enable_assets() -> Path | None:
             return None
         prune(path)
     ASSETS.use_directory(path)
+    ACCELS.use_directory(path)  # the JAX backend's mesh BVHs beside the maps (pruned with them)
     return path
 
 

@@ -22,6 +22,7 @@ import functools
 import hashlib
 import threading
 from collections import OrderedDict
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -169,6 +170,52 @@ class _Accels:
         self.lock = threading.Lock()
         self.building: dict[bytes, threading.Event] = {}  # content being built by another thread
         self.builds = 0  # counted by tests: one build per mesh content
+        self.directory: Path | None = None  # `use_directory`
+
+    def use_directory(self, directory) -> None:
+        """Keep the JAX backend's BVHs in `directory` too (None: memory only), as `bvh-<digest>.npz`
+        (about 100 bytes per triangle): a later process loads one instead of building it (the NumPy
+        build takes about 7 s per million triangles; Embree's structures cannot be stored and are
+        built each time). The command line turns it on beside its IBL maps."""
+        self.directory = None if directory is None else Path(directory)
+
+    def _file(self, digest: bytes) -> Path | None:
+        if self.directory is None:
+            return None
+        from .._version import __version__
+
+        return self.directory / f"bvh-{__version__}-{digest.hex()}.npz"
+
+    def _load(self, digest: bytes, n_tri: int):
+        path = self._file(digest)
+        if path is None or not path.is_file():
+            return None
+        from .bvh import BVH
+        from .visibility import TriangleAccel
+
+        try:
+            with np.load(path) as z:
+                bvh = BVH(*(z[f] for f in BVH._fields))
+        except (OSError, ValueError, KeyError):  # damaged or foreign: build it again
+            return None
+        return TriangleAccel("jax", bvh.to_device(), n_tri)
+
+    def _store(self, digest: bytes, accel) -> None:
+        path = self._file(digest)
+        if path is None:
+            return
+        from ..io.atomic import atomic_write
+
+        arrays = {f: np.asarray(a) for f, a in zip(accel.bvh._fields, accel.bvh, strict=True)}
+
+        def write(tmp):
+            with open(tmp, "wb") as f:
+                np.savez(f, **arrays)
+
+        try:
+            atomic_write(path, write)
+        except OSError:  # a full or read-only cache only costs the next process a build
+            pass
 
     def get(self, vertices: np.ndarray, triangles: np.ndarray, backend: str, *, exact_ties: bool = False):
         """The structure of this content; `exact_ties` (the embree engine's build-time search for
@@ -193,7 +240,11 @@ class _Accels:
         from .visibility import TriangleAccel
 
         try:
-            accel = TriangleAccel.build(vertices, triangles, backend=backend, **({"exact_ties": exact_ties} if backend == "embree" else {}))
+            accel = self._load(digest, int(triangles.shape[0])) if backend == "jax" else None
+            if accel is None:
+                accel = TriangleAccel.build(vertices, triangles, backend=backend, **({"exact_ties": exact_ties} if backend == "embree" else {}))
+                if backend == "jax":
+                    self._store(digest, accel)
             with self.lock:
                 self.builds += 1
                 self.entries[digest] = accel
