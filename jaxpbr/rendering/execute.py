@@ -33,7 +33,7 @@ from .options import RenderOptions, _options
 from .plan import RenderPlan, _env_split, check_memory, plan
 from .scene import Scene
 from .mesh import Mesh, device_accel
-from .stages import AccelScene, _render_jit, _render_pass
+from .stages import AccelScene, PendingAssets, _render_jit, _render_pass
 
 
 def render(
@@ -84,9 +84,9 @@ def render(
             sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
             futures.append(sheen)
             lut = _asset_lut(env, opts, cache)
-            return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(
-                sc, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()), pb, opts, off, staged=True),
-                progress, execution)
+            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()))
+            return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True),
+                           progress, execution)
         finally:
             # On success every map was used; on an error or an interrupt the precomputes not
             # started yet are dropped, and one still running is not waited for.

@@ -563,11 +563,27 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     for k in p_plan.textured:
         g = (_texture_jit if staged else _texture)(lean, k, opts, g)
     direct = (_shade_direct_jit if staged else _shade_direct)(lean, p_plan, opts, g)
-    if callable(assets):  # staged: assets still being computed on another thread
-        assets = assets()
     if p_plan.shadows and p_plan.env_lights:
-        g = {**g, "vis_env": (_sun_shadows_jit if staged else _sun_shadows)(scene, opts, g, assets[3])}
+        # The suns are known before the maps: their shadow rays run while the maps are still being
+        # computed on the worker threads (staged: `PendingAssets`).
+        env_lights = assets.env_lights if isinstance(assets, PendingAssets) else assets[3]
+        g = {**g, "vis_env": (_sun_shadows_jit if staged else _sun_shadows)(scene, opts, g, env_lights)}
+    if isinstance(assets, PendingAssets):
+        assets = assets()
     return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
+
+
+class PendingAssets:
+    """The environment's assets of a staged render while worker threads compute its maps: the
+    suns split out of it (`env_lights`) now, the (irradiance, prefiltered, LUT, suns, sheen) tuple
+    when called (waiting for the maps)."""
+
+    def __init__(self, env_lights, resolve):
+        self.env_lights = env_lights
+        self._resolve = resolve
+
+    def __call__(self):
+        return self._resolve()
 
 
 def _lean(scene: Scene) -> Scene:
