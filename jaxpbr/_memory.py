@@ -73,13 +73,15 @@ _PER_TEXTURE_VALUE = 10.0
 
 #: reading a texture file: per value (see `texture_load_bytes`).
 _PER_TEXTURE_LOAD_VALUE = 64.0
-#: render: the scene's triangle meshes (CPU backend, Embree; a 64x36 render of 243 k / 498 k /
-#: 977 k triangle grids with 0.12 / 0.25 / 0.49 M vertices after the same render of a small mesh:
-#: +0.93 / 1.34 / 2.05 GB; 498 k triangles unwelded to 1.49 M vertices: 1.51 GB). ~1.5 kB per
-#: triangle, ~130 B per vertex, ~0.55 GB whatever the size; rounded up.
-_MESH_FIXED = 600e6
-_PER_TRIANGLE = 2000.0
-_PER_MESH_VERTEX = 200.0
+#: render: the scene's triangle meshes, by the engine that answers their rays. Measured 2026-11-25
+#: (`write_demo_glb` grids rendered at 64x36, peak RSS above the same process with a 22 k-triangle
+#: grid): Embree +0.09 / 0.55 / 2.49 / 6.26 GB at 0.25 / 1.0 / 4.0 / 10.0 M triangles with half as
+#: many vertices, ~0.64 kB per triangle with its vertices; the JAX BVH's NumPy build alone peaks at
+#: +4.47 GB for 4.0 M triangles (1.12 kB each), and its arrays (~110 B per triangle) stay on the
+#: device. Rounded up by about a quarter.
+_MESH_FIXED = 300e6
+_PER_TRIANGLE = {"embree": 700.0, "jax": 1400.0}
+_PER_MESH_VERTEX = 160.0
 
 
 class MemoryLimitError(InputError):
@@ -212,12 +214,13 @@ def texture_load_bytes(shape) -> dict:
     return {"texture": float(math.prod(shape)) * _PER_TEXTURE_LOAD_VALUE}
 
 
-def mesh_bytes(vertices: int, triangles: int) -> dict:
+def mesh_bytes(vertices: int, triangles: int, engine: str = "jax") -> dict:
     """A render's triangle meshes: `vertices` and `triangles` summed over the scene's meshes (the
-    ray engine, its acceleration structure and the meshes' copies); {} without triangles."""
+    ray engine, its acceleration structure and the meshes' copies); {} without triangles. engine:
+    "embree" (the host engine on the CPU) or "jax" (the NumPy-built BVH: the larger)."""
     if not triangles:
         return {}
-    return {"triangles": _MESH_FIXED + float(triangles) * _PER_TRIANGLE + float(vertices) * _PER_MESH_VERTEX}
+    return {"triangles": _MESH_FIXED + float(triangles) * _PER_TRIANGLE[engine] + float(vertices) * _PER_MESH_VERTEX}
 
 
 def render_bytes(width: int, height: int, texture_shapes=()) -> dict:

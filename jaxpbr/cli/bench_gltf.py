@@ -224,7 +224,10 @@ def _render_argv(asset: Path | None, out: Path, size: tuple[int, int]) -> list[s
 
 def estimate_bytes(triangles: int, vertices: int, width: int, height: int) -> float:
     """The memory guard's estimate of a render's meshes and image (the IBL precomputes apart)."""
-    return float(sum(_memory.mesh_bytes(vertices, triangles).values()) + sum(_memory.render_bytes(width, height).values()))
+    from ..rendering.plan import mesh_engine
+
+    return float(sum(_memory.mesh_bytes(vertices, triangles, mesh_engine()).values())
+                 + sum(_memory.render_bytes(width, height).values()))
 
 
 def bench_gltf(

@@ -26,7 +26,7 @@ from ..shading import shipped_luts
 from ..shading.lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
 from ..shading.material import EXTENSIONS
 from .cache import AssetCache, cache_or_default, content_key
-from .mesh import MAX_BLEND_LAYERS, Mesh
+from .mesh import MAX_BLEND_LAYERS, Mesh, _embree
 from .options import RenderOptions, _lut_smith, _options
 from .scene import Environment, Scene, TexturedMaterial, texels
 
@@ -277,7 +277,7 @@ def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: s
                     textures[id(x)] = np.shape(texels(x))
     parts = _memory.render_bytes(W, H, textures.values())
     meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)] if scene.gbuffer is None else []
-    parts |= _memory.mesh_bytes(sum(m.num_vertices for m in meshes), sum(m.num_triangles for m in meshes))
+    parts |= _memory.mesh_bytes(sum(m.num_vertices for m in meshes), sum(m.num_triangles for m in meshes), mesh_engine())
     parts = {
         ("Camera.width/height" if k == "width/height" else "the textures' resolution" if k == "textures"
          else "the meshes' triangle count" if k == "triangles" else k): v
@@ -289,6 +289,12 @@ def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: s
         parts |= _asset_bytes(env, plan(scene, options=dataclasses.replace(opts, extract_lights=False)), opts, where)
     what = f"rendering {W}x{H}" + (f" with {len(textures)} texture(s)" if textures else "") + (" and the environment's IBL maps" if env is not None else "")
     _memory.require(what, parts, where=where, names=names)
+
+
+def mesh_engine() -> str:
+    """The engine whose memory the guard counts for meshes: "embree" where JAX runs on the CPU and
+    embreex imports, else "jax" (the NumPy-built BVH, which opaque meshes take off the CPU)."""
+    return "embree" if (jax.default_backend() == "cpu" and _embree()) else "jax"
 
 
 def _asset_bytes(env: Environment, p: RenderPlan, opts: RenderOptions, where: str) -> dict:
