@@ -124,3 +124,22 @@ def test_a_stored_bvh_is_loaded_by_a_later_process_instead_of_built(tmp_path, mo
     again = mesh._Accels()
     again.use_directory(tmp_path)
     assert again.get(verts, tris, "jax").num_triangles == len(tris)
+
+
+def test_render_batch_over_cameras_traces_on_the_device_as_single_renders_do(one_program, monkeypatch):
+    """render_batch (one program off the CPU) carries the BVH too: no host cast, and each image
+    equals the host engine's single render of that camera."""
+    one_program.device_visibility = True
+    scene = _scene(16, 12)
+    cams = [scene.camera, scene.camera.replace(position=(0.5, 0.3, -6.0))]
+    batch = jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *cams)
+    calls = []
+    host_cast = mesh._host_cast
+    monkeypatch.setattr(mesh, "_host_cast", lambda *a, **k: calls.append(1) or host_cast(*a, **k))
+    out = np.asarray(jp.render_batch(scene, cameras=batch))
+    assert not calls
+    one_program.device_visibility = False
+    jp.render(scene.replace(camera=cams[1], lights=[]))
+    assert calls  # (the counter sees the host engine when it is used)
+    for k, cam in enumerate(cams):
+        np.testing.assert_allclose(out[k], np.asarray(jp.render(scene.replace(camera=cam))), rtol=2e-6, atol=1e-7)

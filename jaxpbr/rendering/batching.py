@@ -17,7 +17,7 @@ from .._validate import check_values, positive_int
 from ..shading.material import Material
 from .assets import _env_assets
 from .cache import AssetCache, cache_or_default
-from .execute import _staged, _supersampled
+from .execute import EXECUTION, _staged, _supersampled, _with_device_accel
 from .options import RenderOptions, _options
 from .plan import plan
 from .scene import Scene, TexturedMaterial
@@ -222,7 +222,8 @@ def render_batch(
     leaves = jax.tree_util.tree_leaves((base, b))
     if mesh is None and _staged() and all(is_concrete(x) for x in leaves):
         return _render_batch_staged(base, assets, b, p_plan, opts, objects_idx, chunk)[:B]
-    out = _batch_jit(base, assets, b, p_plan, opts, objects_idx, chunk, mesh)
+    # Off the CPU, opaque meshes are traced in the program (the BVH is shared by every image).
+    out = _batch_jit(_with_device_accel(base, EXECUTION), assets, b, p_plan, opts, objects_idx, chunk, mesh)
     return out[:B]
 
 
