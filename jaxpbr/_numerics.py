@@ -225,9 +225,23 @@ def outside_traces(compute):
     thread, so on another thread they compile and run as their own programs and return concrete
     arrays. (`jax.ensure_compile_time_eval` would also give concrete values, but it evaluates jitted
     functions op by op: hundreds of dispatches and compilations.) The caller's thread-local x64
-    mode and default device are carried over."""
+    mode and default device are carried over.
+
+    Outside any trace (the common case: `render` of a concrete scene) compute() runs right here, on
+    the caller's thread: no thread is started."""
+    if _trace_state_clean():
+        return compute()
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-assets") as pool:
         return pool.submit(with_callers_context(compute)).result()
+
+
+def _trace_state_clean() -> bool:
+    """Whether no JAX trace (jit, grad, vmap, ...) is active on this thread."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:  # a JAX without it: take every call as traced (a thread each, always correct)
+        return False
+    return bool(trace_state_clean())
 
 
 def with_callers_context(compute):
