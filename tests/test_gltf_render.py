@@ -671,6 +671,43 @@ def test_aovs_against_closed_forms(tmp_path):
     np.testing.assert_array_equal(ny, ref["normal"][..., 1])
 
 
+def test_render_with_aovs_shares_the_render_s_geometry(monkeypatch):
+    """render_with_aovs: the image and the AOVs equal separate `render` and `aovs` calls, with the
+    meshes' primary rays cast once instead of twice (and twice again where the passes differ:
+    supersampling)."""
+    from jaxpbr.rendering import mesh as mesh_mod
+    from jaxpbr.rendering.aovs import aovs, render_with_aovs
+
+    pos, tri, uv, nrm = _quad(size=40.0)
+    grey = jp.Material(base_color=(0.25, 0.5, 0.75), metallic=0.0, roughness=0.5)
+    ball = jp.Sphere(center=(0.0, 0.5, 0.0), radius=0.5, material=grey)
+    scene = jp.Scene(camera=_camera(40, 30, pos=(0.0, 3.0, 5.0)),
+                     objects=[ball, Mesh(positions=pos, triangles=tri, normals=nrm, material=grey)], lights=[SUN])
+    names = ("depth", "normal", "base_color", "mask", "object_id", "primitive_id")
+    casts = []
+    accels = mesh_mod.ACCELS
+
+    class Counted:  # the host cast asks the structure cache once per call (a compiled program keeps
+        def get(self, *a, **k):  # the callback it was traced with, so that is not patched)
+            casts.append(1)
+            return accels.get(*a, **k)
+
+    monkeypatch.setattr(mesh_mod, "ACCELS", Counted())
+    hdr, a = render_with_aovs(scene, names)
+    assert len(casts) == 1
+    np.testing.assert_array_equal(np.asarray(hdr), np.asarray(jp.render(scene)))
+    ref = aovs(scene, names)
+    assert set(a) == set(ref)
+    for k in names:
+        np.testing.assert_array_equal(a[k], ref[k], err_msg=k)
+    assert a["mask"].sum() > 100 and {0.0, 1.0} <= set(np.unique(a["object_id"]).tolist())
+    casts.clear()
+    ss = scene.replace(camera=scene.camera.replace(supersample=2))
+    hdr2, a2 = render_with_aovs(ss, ("depth",))
+    assert len(casts) == 4 + 1  # the 2 x 2 sub-pixel passes, then the AOVs' own pass
+    np.testing.assert_array_equal(a2["depth"], aovs(ss, ("depth",))["depth"])
+
+
 def test_toml_scene_includes_a_gltf_asset(tmp_path):
     """[[objects]] type = "gltf": the asset's meshes and lights join the scene file's objects; the
     render equals the same scene built in Python; a missing file is one error naming the key."""

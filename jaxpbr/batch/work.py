@@ -33,7 +33,7 @@ from ..ibl.baked import STEMS, write_baked
 from ..ibl.cubeio import load_environment
 from ..io import image
 from ..io.atomic import OutputSet
-from ..rendering.aovs import aovs, exr_layers
+from ..rendering.aovs import exr_layers, render_with_aovs
 from ..rendering.demo import demo_scene
 from ..rendering.gltf_scene import load_gltf
 from ..rendering.renderer import RenderOptions, check_memory, plan, render
@@ -95,13 +95,16 @@ class Worker:
         display = {"exposure": 0.0, "bits": 8, **file_display, **job.display}
         display.setdefault("tonemap", "reinhard" if opts.model == "learnopengl" else "aces")
         display.setdefault("encoding", "gamma2.2" if opts.model == "learnopengl" else "srgb")
-        hdr = render(scene, options=opts)
+        if job.aovs:  # one geometry pass for the image and its AOVs where it can be shared
+            hdr, job_aovs = render_with_aovs(scene, job.aovs, options=opts)
+        else:
+            hdr = render(scene, options=opts)
         out = {"hdr": hdr, "display": display, "options": opts, "plan": plan(scene, options=opts).describe()}
         if "png" in job.formats:
             out["ldr"] = color.display(hdr, float(display["exposure"]), tonemap=display["tonemap"],
                                            encoding=display["encoding"])
         if job.aovs:
-            out["aovs"] = aovs(scene, job.aovs, options=opts)
+            out["aovs"] = job_aovs
         return out
 
     def write(self, job: RenderJob, pending: dict, *, t0: float, attempt: int = 1) -> dict:

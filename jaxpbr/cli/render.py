@@ -251,7 +251,13 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     the_plan = plan(scene, options=opts)
     # A bar only when there is more than one pass (bands of a large image, sub-pixel samples).
     passes = scene.camera.supersample ** 2 * (1 if W * H <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W)))
-    hdr_device = render(scene, options=opts, progress=Progress("render") if passes > 1 else None)
+    progress = Progress("render") if passes > 1 else None
+    if args.aov:  # one geometry pass for the image and its AOVs where it can be shared
+        from ..rendering.aovs import render_with_aovs
+
+        hdr_device, aov_values = render_with_aovs(scene, args.aov, options=opts, progress=progress)
+    else:
+        hdr_device = render(scene, options=opts, progress=progress)
     display = np.asarray(color.display(hdr_device, ev, tonemap=tonemap, encoding=encoding))
     hdr = np.asarray(hdr_device)  # one device -> host copy of each image
     t_render = time.perf_counter() - t0
@@ -280,9 +286,9 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         hdr_meta["jaxpbr:content"] = "linear scene-referred radiance, Rec.709 primaries"
         layers = {}
         if args.aov:
-            from ..rendering.aovs import aovs, exr_layers
+            from ..rendering.aovs import exr_layers
 
-            layers, aov_meta = exr_layers(aovs(scene, args.aov, options=opts), args.aov)
+            layers, aov_meta = exr_layers(aov_values, args.aov)
             hdr_meta |= aov_meta
         outs.add(exr)
         image.write(exr, hdr, metadata=hdr_meta, layers=layers)  # a failure here removes the PNG too

@@ -15,9 +15,9 @@ from .._numerics import vdot
 from .options import RenderOptions, _options
 from .plan import plan
 from .scene import Scene, camera_basis
-from .stages import _lean, _texture_jit, staged_geometry
+from .stages import GEOMETRY_SINK, _lean, _texture_jit, staged_geometry
 
-__all__ = ["AOVS", "aovs", "exr_layers"]
+__all__ = ["AOVS", "aovs", "exr_layers", "render_with_aovs"]
 
 #: The AOVs: name -> (EXR channel names, what they hold).
 AOVS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -35,11 +35,7 @@ AOVS: dict[str, tuple[tuple[str, ...], str]] = {
 def aovs(scene: Scene, names=tuple(AOVS), *, options: RenderOptions | None = None, **overrides) -> dict[str, np.ndarray]:
     """The AOVs `names` (keys of `AOVS`) of a scene with a camera, as float32 NumPy arrays (H, W) or
     (H, W, 3). Ids are exact integers in float32 (up to 2^24)."""
-    unknown = [n for n in names if n not in AOVS]
-    if unknown:
-        raise ValueError(f"unknown AOV(s) {unknown}; available: {list(AOVS)}")
-    if scene.gbuffer is not None:
-        raise ValueError("aovs needs a scene with a camera and objects, not a G-buffer")
+    _check_names(scene, names)
     opts = _options(options, overrides, "aovs")
     p = plan(scene, options=opts)
     dtype = jnp.dtype(opts.dtype)
@@ -48,6 +44,45 @@ def aovs(scene: Scene, names=tuple(AOVS), *, options: RenderOptions | None = Non
         lean = _lean(scene)
         for k in p.textured:
             g = _texture_jit(lean, k, opts, g)
+    return _values(scene, names, g, dtype)
+
+
+def render_with_aovs(scene: Scene, names, *, options: RenderOptions | None = None, cache=None, progress=None):
+    """(`render(scene)`, `aovs(scene, names)`), equal to the two calls, from one geometry pass where
+    the render's pass is the AOVs' own: staged (XLA:CPU), one sample per pixel, the image in one
+    band and no blended layers; otherwise the two calls. Saves the primary rays' cast and the
+    geometry and texture stages (with a million triangles at 1080p, the larger part of a frame)."""
+    from .execute import EXECUTION, render
+
+    _check_names(scene, names)
+    opts = _options(options, {}, "render_with_aovs")
+    H, W = scene.image_shape
+    p = plan(scene, options=opts)
+    shared = (EXECUTION.is_staged() and scene.camera.supersample == 1 and H * W <= EXECUTION.band_pixels
+              and p.blend_layers == 1)
+    if not shared:
+        return render(scene, options=opts, cache=cache, progress=progress), aovs(scene, names, options=opts)
+    kept: list = []
+    token = GEOMETRY_SINK.set(kept)
+    try:
+        hdr = render(scene, options=opts, cache=cache, progress=progress)
+    finally:
+        GEOMETRY_SINK.reset(token)
+    if len(kept) != 1:  # (a path that did not pass through one staged pass)
+        return hdr, aovs(scene, names, options=opts)
+    return hdr, _values(scene, names, kept[0], jnp.dtype(opts.dtype))
+
+
+def _check_names(scene: Scene, names) -> None:
+    unknown = [n for n in names if n not in AOVS]
+    if unknown:
+        raise ValueError(f"unknown AOV(s) {unknown}; available: {list(AOVS)}")
+    if scene.gbuffer is not None:
+        raise ValueError("aovs needs a scene with a camera and objects, not a G-buffer")
+
+
+def _values(scene: Scene, names, g, dtype) -> dict[str, np.ndarray]:
+    """The AOVs `names` of the (textured) G-buffer `g` of the pixel centres."""
     hit = g["hit"]
     out = {}
     zero = lambda x: jnp.where(hit, x, 0.0)  # noqa: E731

@@ -8,6 +8,7 @@ environment at mip 0 (or `Scene.background`)."""
 
 from __future__ import annotations
 
+import contextvars
 import functools
 import math
 from typing import Any
@@ -562,6 +563,9 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     lean = _lean(scene)
     for k in p_plan.textured:
         g = (_texture_jit if staged else _texture)(lean, k, opts, g)
+    sink = GEOMETRY_SINK.get()
+    if sink is not None and staged:
+        sink.append(g)  # the textured G-buffer, for AOVs of the same pass (`aovs.render_with_aovs`)
     direct = (_shade_direct_jit if staged else _shade_direct)(lean, p_plan, opts, g)
     if p_plan.shadows and p_plan.env_lights:
         # The suns are known before the maps: their shadow rays run while the maps are still being
@@ -571,6 +575,11 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     if isinstance(assets, PendingAssets):
         assets = assets()
     return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
+
+
+#: A list that staged passes append their textured G-buffer to (None: not kept); set only by
+#: `aovs.render_with_aovs` around one render, on the caller's thread.
+GEOMETRY_SINK: contextvars.ContextVar[list | None] = contextvars.ContextVar("jaxpbr_geometry_sink", default=None)
 
 
 class PendingAssets:
