@@ -51,12 +51,22 @@ def one_program():
     execute.EXECUTION.staged, execute.EXECUTION.device_visibility = saved
 
 
-def test_device_traversal_renders_what_the_host_engine_renders(one_program):
+def test_device_traversal_renders_what_the_host_engine_renders(one_program, monkeypatch):
     scene = _scene()
     one_program.device_visibility = False
     host = np.asarray(jp.render(scene))
     one_program.device_visibility = True
+    accels, embree_calls = mesh.ACCELS, []
+
+    class Counted:  # the host engine's casts ask for Embree's structure (the device path, the JAX BVH)
+        def get(self, *a, **k):
+            embree_calls.append(a[2] == "embree")
+            return accels.get(*a, **k)
+
+    monkeypatch.setattr(mesh, "ACCELS", Counted())
     device = np.asarray(jp.render(scene))
+    monkeypatch.setattr(mesh, "ACCELS", accels)
+    assert embree_calls and not any(embree_calls)  # the JAX BVH was fetched, no host cast ran
     assert np.isfinite(device).all()
     np.testing.assert_array_equal(device, host)
     # Not a vacuous equality: the rays went through the culled quad to the sphere, the double-sided
@@ -118,24 +128,34 @@ def test_a_stored_bvh_is_loaded_by_a_later_process_instead_of_built(tmp_path, mo
     o = np.tile(np.float32([[0.1, 0.2, 5.0]]), (16, 1))
     d = np.random.default_rng(0).normal(size=(16, 3)).astype(np.float32) * 0.05 + np.float32([0, 0, -1])
     np.testing.assert_array_equal(np.asarray(built.intersect(o, d).prim), np.asarray(loaded.intersect(o, d).prim))
-    # a damaged file is built again, not trusted
-    files[0].write_bytes(b"not an npz")
+    # a damaged file (garbage, or a truncated zip) is built again, not trusted
+    good = files[0].read_bytes()
     monkeypatch.setattr(visibility, "build_bvh", bvh_mod.build_bvh)
-    again = mesh._Accels()
-    again.use_directory(tmp_path)
-    assert again.get(verts, tris, "jax").num_triangles == len(tris)
+    for bad in (b"not an npz", good[: len(good) // 2]):
+        files[0].write_bytes(bad)
+        again = mesh._Accels()
+        again.use_directory(tmp_path)
+        assert again.get(verts, tris, "jax").num_triangles == len(tris)
 
 
 def test_render_batch_over_cameras_traces_on_the_device_as_single_renders_do(one_program, monkeypatch):
     """render_batch (one program off the CPU) carries the BVH too: no host cast, and each image
     equals the host engine's single render of that camera."""
+    pytest.importorskip("embreex")  # the host engine counted below
     one_program.device_visibility = True
     scene = _scene(16, 12)
     cams = [scene.camera, scene.camera.replace(position=(0.5, 0.3, -6.0))]
     batch = jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *cams)
     calls = []
-    host_cast = mesh._host_cast
-    monkeypatch.setattr(mesh, "_host_cast", lambda *a, **k: calls.append(1) or host_cast(*a, **k))
+    accels = mesh.ACCELS
+
+    class Counted:  # the host cast asks the structure cache for Embree's once per call
+        def get(self, *a, **k):
+            if a[2] == "embree":  # (the device path asks for the JAX BVH: not a host cast)
+                calls.append(1)
+            return accels.get(*a, **k)
+
+    monkeypatch.setattr(mesh, "ACCELS", Counted())
     out = np.asarray(jp.render_batch(scene, cameras=batch))
     assert not calls
     one_program.device_visibility = False

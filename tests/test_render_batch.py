@@ -182,3 +182,24 @@ def test_staged_batch_equals_a_loop_of_renders(monkeypatch):
         objs = [o.replace(material=m) for o in scene.objects]
         one = np.asarray(jp.render(scene.replace(objects=objs)))
         np.testing.assert_allclose(imgs[i], one, rtol=2e-6, atol=1e-7)
+
+
+def test_staged_batch_shadows_the_suns_split_out_of_the_environment(monkeypatch):
+    """A sun split out of the environment casts shadows in render_batch as in render (staged: the
+    suns' shadow stage runs per chunk, as `render`'s does)."""
+    from jaxpbr.rendering import renderer
+
+    monkeypatch.setattr(renderer, "STAGED", True)
+    sky = jp.envs.sky_with_sun_cubemap(16)
+    scene = base_scene().replace(environment=jp.Environment(radiance=sky), lights=[])
+    from jaxpbr.rendering.options import RenderOptions
+    from jaxpbr.rendering.plan import plan
+
+    opts = RenderOptions(shadows=True)
+    p = plan(scene, options=opts)
+    assert p.shadows and p.env_lights
+    imgs = np.asarray(jp.render_batch(scene, env_intensity=np.asarray([1.0, 0.5], np.float32), options=opts))
+    one = np.asarray(jp.render(scene, options=opts))
+    np.testing.assert_allclose(imgs[0], one, rtol=2e-6, atol=1e-6)
+    unshadowed = np.asarray(jp.render(scene))
+    assert np.abs(one - unshadowed).max() > 0.05 * np.abs(unshadowed).max()  # the shadows are visible

@@ -21,7 +21,7 @@ from .execute import EXECUTION, _staged, _supersampled, _with_device_accel
 from .options import RenderOptions, _options
 from .plan import plan
 from .scene import Scene, TexturedMaterial
-from .stages import _geometry, _render_traced, _shade_direct, _shade_rest, _texture
+from .stages import _geometry, _render_traced, _shade_direct, _shade_rest, _sun_shadows, _texture
 
 #: Default pixels per chunk of `render_batch` (images x pixels x samples), bounding memory.
 BATCH_CHUNK_PIXELS = 1 << 21
@@ -247,6 +247,15 @@ def _direct_chunk(scene, bc, g, *, p_plan, opts, objects_idx):
 
 
 @functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
+def _sun_chunk(scene, bc, g, env_lights, *, p_plan, opts, objects_idx):
+    """The shadows of the suns split out of the environment (`stages._sun_shadows`), per image."""
+    def one(x, gx):
+        return {**gx, "vis_env": _sun_shadows(_substitute(scene, x, objects_idx), opts, gx, env_lights)}
+
+    return jax.vmap(one)(bc, g)
+
+
+@functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
 def _rest_chunk(scene, bc, g, assets, direct, *, p_plan, opts, objects_idx):
     def one(x, gx, dx):
         return _shade_rest(_substitute(scene, x, objects_idx), assets, p_plan, opts, gx, dx)
@@ -268,7 +277,10 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
             g = _geometry_chunk(sc, bc, off, **kw)
             for t in p_plan.textured:
                 g = _texture_chunk(sc, bc, g, k=t, **kw)
-            return _rest_chunk(sc, bc, g, assets, _direct_chunk(sc, bc, g, **kw), **kw)
+            direct = _direct_chunk(sc, bc, g, **kw)
+            if p_plan.shadows and p_plan.env_lights:  # as `stages._shade_pass` does
+                g = _sun_chunk(sc, bc, g, assets[3], **kw)
+            return _rest_chunk(sc, bc, g, assets, direct, **kw)
 
         return run
 

@@ -195,8 +195,8 @@ class _Accels:
 
         try:
             with np.load(path) as z:
-                bvh = BVH(*(z[f] for f in BVH._fields))
-        except (OSError, ValueError, KeyError):  # damaged or foreign: build it again
+                bvh = BVH(*(np.asarray(z[f]) for f in BVH._fields))
+        except Exception:  # noqa: BLE001 -- damaged, truncated or foreign (zipfile, pickle, format errors): build it again
             return None
         return TriangleAccel("jax", bvh.to_device(), n_tri)
 

@@ -292,9 +292,13 @@ def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: s
 
 
 def mesh_engine() -> str:
-    """The engine whose memory the guard counts for meshes: "embree" where JAX runs on the CPU and
-    embreex imports, else "jax" (the NumPy-built BVH, which opaque meshes take off the CPU)."""
-    return "embree" if (jax.default_backend() == "cpu" and _embree()) else "jax"
+    """The engine whose memory the guard counts for meshes: "embree" where renders run staged on
+    the CPU (`execute.Execution`) and embreex imports, else "jax" (the NumPy-built BVH, which
+    opaque meshes take when traced in the program)."""
+    from .execute import EXECUTION
+
+    device = not EXECUTION.is_staged() and EXECUTION.traces_on_device()
+    return "embree" if (jax.default_backend() == "cpu" and _embree() and not device) else "jax"
 
 
 def _asset_bytes(env: Environment, p: RenderPlan, opts: RenderOptions, where: str) -> dict:
