@@ -27,6 +27,7 @@ from .assets import (
     _asset_sheen,
     _env_assets,
     _env_key,
+    _stand_ins,
 )
 from .cache import AssetCache, cache_or_default
 from .options import RenderOptions, _options
@@ -84,7 +85,10 @@ def render(
             sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
             futures.append(sheen)
             lut = _asset_lut(env, opts, cache)
-            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()))
+            # Stand-ins only where compiled programs are kept on disk (`PendingAssets.prepare`).
+            stand_ins = _stand_ins(env, p, opts, lut, env_lights) if jax.config.jax_compilation_cache_dir else None
+            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()),
+                                    futures, stand_ins)
             return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True),
                            progress, execution)
         finally:
