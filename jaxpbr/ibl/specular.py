@@ -180,15 +180,20 @@ def default_sample_counts(base: int, size: int, num_levels: int, max_samples: in
 # ------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("n",))
-def _ggx_lobe_samples(alpha, *, n: int):
-    """n GGX half vectors (Hammersley points through `sample_ggx_h`) and the density of their
-    reflected directions p_l = p_h / (4 n.h) for n = v = +z, as one program per n (the sample
-    counts are few: one compile each, not one per level and per operation)."""
+@functools.partial(jax.jit, static_argnames=("capacity",))
+def _ggx_lobe_samples(alpha, n, *, capacity: int):
+    """GGX half vectors of the n-point Hammersley set (through `sample_ggx_h`) and the density of
+    their reflected directions p_l = p_h / (4 n.h) for n = v = +z, in `capacity` >= n rows (the
+    caller keeps the first n): one program for every count up to the capacity (the default chains'
+    256, 1024 and 4096 samples compiled three before)."""
     dt = jnp.result_type(float)
-    h = sample_ggx_h(hammersley(n, dt), alpha)
+    h = sample_ggx_h(hammersley(capacity, dt, total=n), alpha)
     cos_h = h[:, 2]
     return h, pdf_ggx_h(cos_h, alpha) / (4.0 * cos_h)
+
+
+#: Rows of the sample program for counts up to it (counts above it: the next power of two).
+LOBE_SAMPLE_CAPACITY = 4096
 
 
 @functools.lru_cache(maxsize=64)
@@ -202,8 +207,9 @@ def _fis_samples(alpha: float, n: int, src_size: int, num_src_levels: int, lod_b
     """
     def run():
         with jax.enable_x64(True):
-            h, pdf = _ggx_lobe_samples(np.float64(alpha), n=n)
-            return np.asarray(h, np.float64), np.asarray(pdf, np.float64)
+            capacity = max(LOBE_SAMPLE_CAPACITY, 1 << (int(n) - 1).bit_length())
+            h, pdf = _ggx_lobe_samples(np.float64(alpha), np.float64(n), capacity=capacity)
+            return np.asarray(h, np.float64)[:n], np.asarray(pdf, np.float64)[:n]
 
     h, pdf = outside_traces(run)
     cos_h = h[:, 2]

@@ -87,11 +87,13 @@ def radical_inverse(i: jax.Array, dtype=jnp.float32) -> jax.Array:
     return (bits >> jnp.uint32(8)).astype(dtype) * (2.0**-24)
 
 
-def hammersley(n: int, dtype=jnp.float32) -> jax.Array:
+def hammersley(n: int, dtype=jnp.float32, *, total=None) -> jax.Array:
     """The n-point Hammersley set `x_i = (i / n, Phi_2(i))`, i = 0 .. n-1, shape (n, 2), in [0, 1).
 
     docs/math.md §3.1 (Filament doc, LearnOpenGL). `n` is static (it is a shape): a positive Python int.
-    Column 0 is used as `phi / (2 pi)`, column 1 for the polar angle.
+    Column 0 is used as `phi / (2 pi)`, column 1 for the polar angle. With `total` (a number or a
+    traced scalar), the first n points of the `total`-point set, `x_i = (i / total, Phi_2(i))`: one
+    compiled program serves several point counts (rows i >= total are not points of the set).
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n <= 0:
         raise ValueError(f"hammersley: n must be a positive int (the number of points), got {n!r}")
@@ -102,7 +104,7 @@ def hammersley(n: int, dtype=jnp.float32) -> jax.Array:
     # In float32, i / n rounds up to 1.0 once n > 2^24: clamp to the largest value below 1 so the
     # [0, 1) contract holds for every n.
     below_one = 1.0 - float(jnp.finfo(dtype).epsneg)
-    x0 = jnp.minimum(jnp.arange(n, dtype=dtype) / jnp.asarray(n, dtype), below_one)
+    x0 = jnp.minimum(jnp.arange(n, dtype=dtype) / jnp.asarray(n if total is None else total, dtype), below_one)
     return jnp.stack([x0, radical_inverse(i, dtype)], axis=-1)
 
 
