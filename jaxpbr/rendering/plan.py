@@ -26,6 +26,7 @@ from ..shading import shipped_luts
 from ..shading.lut import DEFAULT_SAMPLES as DEFAULT_LUT_SAMPLES
 from ..shading.material import EXTENSIONS
 from .cache import AssetCache, cache_or_default, content_key
+from .execution import EXECUTION
 from .mesh import MAX_BLEND_LAYERS, Mesh, _embree
 from .options import RenderOptions, _lut_smith, _options
 from .scene import Environment, Scene, TexturedMaterial, texels
@@ -295,8 +296,6 @@ def mesh_engine() -> str:
     """The engine whose memory the guard counts for meshes: "embree" where renders run staged on
     the CPU (`execute.Execution`) and embreex imports, else "jax" (the NumPy-built BVH, which
     opaque meshes take when traced in the program)."""
-    from .execute import EXECUTION
-
     device = not EXECUTION.is_staged() and EXECUTION.traces_on_device()
     return "embree" if (jax.default_backend() == "cpu" and _embree() and not device) else "jax"
 
