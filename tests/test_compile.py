@@ -95,13 +95,17 @@ def test_asset_cache_on_disk_round_trip(disk_assets, monkeypatch):
     first = np.asarray(jp.render(_scene(env)))
     files = sorted(p.name.split("-")[0] for p in disk_assets.iterdir())
     assert files == ["irradiance", "prefilter"]
-    # A new process (memory cache empty) loads the maps instead of computing them.
+    # A new process (memory cache empty) loads the maps instead of computing them, and marks the
+    # files as used (pruning deletes the oldest modification times first).
     renderer.ASSETS.clear()
+    for p in disk_assets.iterdir():
+        os.utime(p, (1000, 1000))
     monkeypatch.setattr(jp.ibl.specular, "prefilter", lambda *a, **k: pytest.fail("prefilter recomputed"))
     monkeypatch.setattr(jp.ibl.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance recomputed"))
     again = np.asarray(jp.render(_scene(env)))
     np.testing.assert_array_equal(again, first)
     assert renderer.ASSETS.stats["prefilter"]["disk"] == 1 and renderer.ASSETS.stats["irradiance"]["disk"] == 1
+    assert all(p.stat().st_mtime > 1000 for p in disk_assets.iterdir())
 
 
 def test_asset_cache_disk_hit_inside_a_trace_stores_no_tracer(disk_assets, monkeypatch):

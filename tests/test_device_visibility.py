@@ -1,6 +1,8 @@
 """Opaque meshes traced in the program (`Execution.device_visibility`, the default off the CPU): the
 same image as the host ray engine's callback, with no callback left in the program."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -122,7 +124,9 @@ def test_a_stored_bvh_is_loaded_by_a_later_process_instead_of_built(tmp_path, mo
     later = mesh._Accels()
     later.use_directory(tmp_path)
     monkeypatch.setattr(visibility, "build_bvh", lambda *a, **k: pytest.fail("built again"))
+    os.utime(files[0], (1000, 1000))
     loaded = later.get(verts, tris, "jax")
+    assert files[0].stat().st_mtime > 1000  # marked as used: pruning (oldest first) keeps it
     for a, b in zip(built.bvh, loaded.bvh, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     o = np.tile(np.float32([[0.1, 0.2, 5.0]]), (16, 1))

@@ -133,12 +133,12 @@ def test_default_report_runs(tmp_path):
 
 @pytest.mark.slow
 def test_report_with_the_sun_extracted_meets_the_issue_targets():
-    """Issue 11's targets, reproduced from `report render` (sky + 3000-radiance sun, face 64,
+    """The sun-extraction targets, reproduced from `report render` (sky + 3000-radiance sun, face 64,
     48^2 px): with the sun split out, metals <= 10 % and dielectrics <= 3 % mean relative error
     for r >= 0.3; the split sum alone is far off on the r = 0.3 and 0.5 metals (29 % and 28 %
     measured: the check can fail). At r = 1 the split sum alone meets the metal target too since
     the prefiltered map is read at the lobe's dominant direction and bright texels are convolved
-    exactly (7.8 % measured, was 55 %); there the check is that the extraction still lowers the
+    exactly (7.8 % measured); there the check is that the extraction still lowers the
     error severalfold (0.7 % measured).
     (r <= 0.15 is left out: there the sun's mirror image is sub-pixel and one sample per pixel
     decides the number for the reference and the render alike; see docs/ibl.md.)"""

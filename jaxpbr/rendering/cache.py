@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import threading
 from collections import OrderedDict
 from pathlib import Path
@@ -108,9 +109,11 @@ class AssetCache:
                 n = int(z["num_levels"])
                 levels = [jax.device_put(z[f"level{i}"]) for i in range(n)]
                 info = json.loads(str(z["info"]))
-            return Cubemap(levels, info)
+            value = Cubemap(levels, info)
         except Exception:  # noqa: BLE001 -- unreadable or from an incompatible writer: compute it again
             return None
+        _touch(path)
+        return value
 
     def _save(self, kind, key, value) -> None:
         path = self._path(kind, key)
@@ -158,3 +161,11 @@ def content_key(cube: Cubemap) -> str:
 
     return remember_per_array(_KEYS, lv, "sha1", digest)
 
+
+def _touch(path) -> None:
+    """Mark a file of the cache as just used: the command line's pruning (`cli._cache.prune`) deletes
+    the oldest modification times first, so a map or BVH read often stays."""
+    try:
+        os.utime(path)
+    except OSError:  # a read-only cache: nothing to mark
+        pass

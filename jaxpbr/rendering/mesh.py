@@ -198,6 +198,9 @@ class _Accels:
                 bvh = BVH(*(np.asarray(z[f]) for f in BVH._fields))
         except Exception:  # noqa: BLE001 -- damaged, truncated or foreign (zipfile, pickle, format errors): build it again
             return None
+        from .cache import _touch
+
+        _touch(path)
         return TriangleAccel("jax", bvh.to_device(), n_tri)
 
     def _store(self, digest: bytes, accel) -> None:
