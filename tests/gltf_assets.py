@@ -36,6 +36,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gltf_writer import (
     ARRAY_BUFFER,
+    CUBE_FACES,
     ELEMENT_ARRAY_BUFFER,
     FLOAT,
     UINT,
@@ -157,19 +158,11 @@ def _scene(b: Builder, roots):
 # ---------------------------------------------------------------------------------------------
 # Geometry
 # ---------------------------------------------------------------------------------------------
-_FACES = [  # (normal, u axis, v axis) with u x v = normal: counter-clockwise seen from outside
-    ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
-    ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
-    ((0, 1, 0), (0, 0, 1), (1, 0, 0)),
-    ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
-    ((0, 0, 1), (1, 0, 0), (0, 1, 0)),
-    ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
-]
 
 
 def cube_face(f: int, uv_range=(0.0, 1.0)):
     """(positions, normals, uv, triangles) of face f of the unit cube centred at the origin."""
-    n, u, v = (np.array(a, np.float64) for a in _FACES[f])
+    n, u, v = (np.array(a, np.float64) for a in CUBE_FACES[f])
     lo, hi = uv_range
     pos, uv = [], []
     for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):

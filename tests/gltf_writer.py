@@ -282,6 +282,18 @@ def assert_valid(*paths):
         assert report[str(p)]["numErrors"] == 0, report[str(p)]["errors"]
 
 
+#: The unit cube's faces: (normal, u axis, v axis) with u x v = normal, counter-clockwise seen from
+#: outside (the cube fixtures of the loader tests and the named assets).
+CUBE_FACES = (
+    ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
+    ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
+    ((0, 1, 0), (0, 0, 1), (1, 0, 0)),
+    ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
+    ((0, 0, 1), (1, 0, 0), (0, 1, 0)),
+    ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
+)
+
+
 def uv_sphere(n_lat: int = 24, n_lon: int = 48, radius: float = 1.0):
     """(positions, normals, uv, triangles) of a UV sphere, counter-clockwise seen from outside."""
     lat = np.linspace(0, np.pi, n_lat + 1)

@@ -172,35 +172,3 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
 
     assert CubeInfo((("lod_blend", "roughness"),)) != CubeInfo((("lod_blend", "mean_cosine"),))
     assert CubeInfo((("lod_blend", "roughness"), ("environment", "x"))) == CubeInfo((("lod_blend", "roughness"),))
-
-
-@pytest.mark.parametrize("mapping", ["linear", "quadratic"])
-def test_the_stand_ins_compile_the_program_that_reads_the_maps(mapping):
-    """`PendingAssets.prepare` compiles the IBL stage for zeros of the maps' shapes and lookup
-    metadata while the maps are computed: that program must be the one the real maps are read
-    by (the same lowered module, so the later call is a persistent-cache hit)."""
-    import jax.numpy as jnp
-
-    from jaxpbr.rendering import stages
-    from jaxpbr.rendering.assets import _env_assets, _stand_ins
-    from jaxpbr.rendering.cache import AssetCache
-    from jaxpbr.rendering.demo import demo_scene
-    from jaxpbr.rendering.options import RenderOptions
-    from jaxpbr.rendering.plan import _env_split, plan
-
-    scene = demo_scene(24, 16, face_size=32)
-    opts = RenderOptions(mapping=mapping)
-    cache = AssetCache()
-    p = plan(scene, options=opts, cache=cache)
-    real = _env_assets(scene.environment, p, opts, cache)
-    lights, env = _env_split(scene.environment, opts, cache)
-    stand = _stand_ins(env, p, opts, real[2], lights)
-    assert stand is not None
-    g = stages.staged_geometry(scene, p, opts, jnp.asarray((0.5, 0.5), jnp.float32))
-    lean = stages._lean(scene)
-    direct = stages._shade_direct_jit(lean, p, opts, g)
-    text = lambda a: stages._shade_rest_jit.lower(lean, a, p, opts, g, direct).as_text()  # noqa: E731
-    assert text(stand) == text(real)
-    # (not vacuous: a chain one level shorter is another program)
-    wrong = (stand[0], type(stand[1])(stand[1].levels[:-1], stand[1].info)) + stand[2:]
-    assert text(wrong) != text(real)

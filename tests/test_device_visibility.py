@@ -167,3 +167,33 @@ def test_render_batch_over_cameras_traces_on_the_device_as_single_renders_do(one
     assert calls  # (the counter sees the host engine when it is used)
     for k, cam in enumerate(cams):
         np.testing.assert_allclose(out[k], np.asarray(jp.render(scene.replace(camera=cam))), rtol=2e-6, atol=1e-7)
+
+
+def test_device_accel_is_remembered_for_the_same_jax_arrays_and_rebuilt_for_new_ones(monkeypatch):
+    """A render loop over the same JAX position arrays fetches the BVH once; new positions, triangles
+    changed in place, or NumPy positions go through the content-keyed cache again."""
+    P, _, T = uv_sphere(6)
+    grey = jp.Material(base_color=(0.5, 0.5, 0.5))
+    m = jp.Mesh(positions=jnp.asarray(P), triangles=jnp.asarray(T.astype(np.int32)), material=grey)
+    accels, asked = mesh.ACCELS, []
+
+    class Counted:
+        def get(self, *a, **k):
+            asked.append(1)
+            return accels.get(*a, **k)
+
+    monkeypatch.setattr(mesh, "ACCELS", Counted())
+    first = mesh.device_accel([m])
+    assert mesh.device_accel([m]) is first and len(asked) == 1
+    moved = m.replace(positions=jnp.asarray(P) + 1.0)
+    assert mesh.device_accel([moved]) is not first and len(asked) == 2
+    assert mesh.device_accel([moved]) is not None and len(asked) == 2
+    tri = np.array(moved.triangles)
+    tri[0] = tri[0][::-1]
+    mesh.device_accel([moved.replace(triangles=tri)])  # other triangles, the same positions
+    assert len(asked) == 3
+    host = jp.Mesh(positions=np.array(P), triangles=T.astype(np.int32), material=grey)
+    n = len(asked)
+    mesh.device_accel([host])
+    mesh.device_accel([host])
+    assert len(asked) == n + 2

@@ -19,6 +19,7 @@ from gltf_writer import (  # the writer and validator runner these tests share
     _NP,
     ARRAY_BUFFER,
     BYTE,
+    CUBE_FACES,
     ELEMENT_ARRAY_BUFFER,
     FLOAT,
     SHORT,
@@ -80,19 +81,11 @@ def unit(v):
 # ---------------------------------------------------------------------------------------------
 # The cube: 24 vertices interleaved (POSITION, NORMAL, TEXCOORD_0, TANGENT; byteStride 48)
 # ---------------------------------------------------------------------------------------------
-_FACES = [  # (normal, u, v) with u x v = normal
-    ((1, 0, 0), (0, 1, 0), (0, 0, 1)),
-    ((-1, 0, 0), (0, 0, 1), (0, 1, 0)),
-    ((0, 1, 0), (0, 0, 1), (1, 0, 0)),
-    ((0, -1, 0), (1, 0, 0), (0, 0, 1)),
-    ((0, 0, 1), (1, 0, 0), (0, 1, 0)),
-    ((0, 0, -1), (0, 1, 0), (1, 0, 0)),
-]
 
 
 def cube_arrays():
     pos, nrm, uv, tan, bit, idx = [], [], [], [], [], []
-    for f, (n, u, v) in enumerate(_FACES):
+    for f, (n, u, v) in enumerate(CUBE_FACES):
         n, u, v = (np.array(a, np.float64) for a in (n, u, v))
         for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1)):
             pos.append(0.5 * n + 0.5 * su * u + 0.5 * sv * v)

@@ -23,7 +23,7 @@ from gradcheck import check_partials  # noqa: E402
 from jaxpbr.ibl.cubemap import Cubemap  # noqa: E402
 from jaxpbr.ibl.diffuse import irradiance  # noqa: E402
 from jaxpbr.ibl.envs import sky_with_sun_cubemap  # noqa: E402
-from jaxpbr.ibl.specular import level_roughness, lobe_normalizer, prefilter  # noqa: E402
+from jaxpbr.ibl.specular import level_roughness, lobe_normalizer, prefilter, split_bright  # noqa: E402
 
 S = 16
 M = 5
@@ -32,23 +32,6 @@ LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 ref_solid_angles = ref.solid_angles
-
-
-def old_split_bright(level0, max_texels, min_ratio=4.0):
-    """The NumPy selection prefilter used before it was traceable (jaxpbr.ibl.specular.split_bright)."""
-    L = np.asarray(level0, np.float64)
-    S, C = L.shape[1], L.shape[-1]
-    lum = L @ LUMA if C == 3 else L.mean(-1)
-    mean = float(np.sum(lum * ref_solid_angles(S)) / (4.0 * math.pi))
-    flat = lum.reshape(-1)
-    if max_texels <= 0 or mean <= 0 or flat.size <= max_texels:
-        return L, np.zeros(0, np.int64), np.zeros((0, C))
-    tau = max(min_ratio * mean, float(np.partition(flat, -max_texels - 1)[-max_texels - 1]))
-    idx = np.nonzero(flat > tau)[0]
-    scale = np.ones_like(flat)
-    scale[idx] = tau / flat[idx]
-    resid = (L.reshape(-1, C) * scale[:, None]).reshape(L.shape)
-    return resid, idx, L.reshape(-1, C)[idx] - resid.reshape(-1, C)[idx]
 
 
 def exact_bright_np(idx, bright, S0, alpha, dirs):
@@ -96,7 +79,7 @@ def pf(lv, exact_texels=256):
 @pytest.mark.parametrize("exact_texels", [3, 256])
 def test_eager_matches_previous_selection(dtype, rtol, exact_texels):
     lv = make_env(dtype)
-    resid, idx, bright = old_split_bright(np.asarray(lv), exact_texels)
+    resid, idx, bright = split_bright(np.asarray(lv), exact_texels)
     n = len(idx)
     assert (n == 3) if exact_texels == 3 else (5 < n < 20), n  # the 5 hot texels and the sun's brightest
     out = prefilter(Cubemap((lv,)), num_levels=M, samples=SAMPLES, exact_texels=exact_texels)
@@ -170,7 +153,7 @@ def test_prefilter_grad_matches_finite_differences(exact_texels):
         return sum(jnp.sum(wm * lm) for wm, lm in zip(w[1:], levels[1:]))
 
     def selection(x):
-        return old_split_bright(x, exact_texels)[1]
+        return split_bright(x, exact_texels)[1]
 
     probes = probe_texels(lv, exact_texels, rng)
     assert len({p[0] for p in probes} & set(selection(np.asarray(lv)).tolist())) == 3  # 3 selected texels

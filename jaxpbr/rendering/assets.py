@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 
 import jax.numpy as jnp
-import numpy as np
 
 from .. import _memory
 from .._api import keyword_only
@@ -41,31 +40,6 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions, cache: Ass
         _asset_irradiance(env, p, opts, key, cache), _asset_prefiltered(env, p, opts, key, cache),
         _asset_lut(env, opts, cache), lights, _asset_sheen(env, p, opts, cache),
     )
-
-
-def _stand_ins(env: Environment, p: RenderPlan, opts: RenderOptions, lut, lights):
-    """The (irradiance, prefiltered, LUT, disc lights, sheen) tuple with zeros of the final shapes,
-    dtypes and lookup metadata in place of the maps still to be computed: what a program that reads
-    them is compiled for, before their values exist (`stages.PendingAssets.prepare`). None where
-    that is not known ahead (the sheen maps)."""
-    from ..ibl.lod import DEFAULT_LOD_BLEND, lookup_metadata
-
-    if p.charlie_size:
-        return None
-    dtype = np.dtype(opts.dtype)
-    C = env.radiance.levels[0].shape[-1]
-    zeros = lambda s: np.zeros((6, s, s, C), dtype)  # noqa: E731 -- NumPy: no XLA program for a stand-in
-    irr = None
-    if p.ibl_diffuse:
-        irr = env.irradiance if env.irradiance is not None else Cubemap(
-            (zeros(opts.irradiance_size),), {"irradiance_method": opts.irradiance_method})
-    pre = env.prefiltered
-    if pre is None:
-        S, M = p.prefilter_size, p.mapping_levels
-        info = {"roughness_mapping": opts.mapping, "mapping_levels": str(M),
-                **lookup_metadata(M, mapping=opts.mapping, lod_blend=DEFAULT_LOD_BLEND, face_size=S)}
-        pre = Cubemap([zeros(max(1, S >> m)) for m in range(p.prefilter_levels)], info)
-    return _in_dtype(irr, opts), _in_dtype(pre, opts), lut, lights, None
 
 
 def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions, cache: AssetCache | None = None):

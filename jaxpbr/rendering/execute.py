@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numerics import is_concrete, with_callers_context
-from .._pytree import evolve, fields_of
+from .._pytree import evolve, fields_of, unchecked
 from .assets import (
     _asset_irradiance,
     _asset_lut,
@@ -27,7 +27,6 @@ from .assets import (
     _asset_sheen,
     _env_assets,
     _env_key,
-    _stand_ins,
 )
 from .cache import AssetCache, cache_or_default
 from .execution import EXECUTION, Execution
@@ -86,10 +85,7 @@ def render(
             sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
             futures.append(sheen)
             lut = _asset_lut(env, opts, cache)
-            # Stand-ins only where compiled programs are kept on disk (`PendingAssets.prepare`).
-            stand_ins = _stand_ins(env, p, opts, lut, env_lights) if jax.config.jax_compilation_cache_dir else None
-            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()),
-                                    futures, stand_ins)
+            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()))
             return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True),
                            progress, execution)
         finally:
@@ -167,7 +163,7 @@ def _with_device_accel(scene: Scene, execution: Execution) -> Scene:
     accel = device_accel([ob for ob in scene.objects if isinstance(ob, Mesh)])
     if accel is None:
         return scene
-    return AccelScene(**{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel)
+    return unchecked(AccelScene, **{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel)
 
 
 

@@ -573,7 +573,6 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         env_lights = assets.env_lights if isinstance(assets, PendingAssets) else assets[3]
         g = {**g, "vis_env": (_sun_shadows_jit if staged else _sun_shadows)(scene, opts, g, env_lights)}
     if isinstance(assets, PendingAssets):
-        assets.prepare(lambda stand_ins: _shade_rest_jit.lower(lean, stand_ins, p_plan, opts, g, direct).compile())
         assets = assets()
     return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
 
@@ -586,30 +585,14 @@ GEOMETRY_SINK: contextvars.ContextVar[list | None] = contextvars.ContextVar("jax
 class PendingAssets:
     """The environment's assets of a staged render while worker threads compute its maps: the
     suns split out of it (`env_lights`) now, the (irradiance, prefiltered, LUT, suns, sheen) tuple
-    when called (waiting for the maps).
+    when called (waiting for the maps)."""
 
-    `prepare(compile_with)`: while the maps are still being computed and compiled programs are kept
-    on disk (JAX's persistent cache), compile the program that reads them now, on this thread,
-    for stand-ins of the same shapes and lookup metadata (`assets._stand_ins`): the call that
-    follows loads it from the cache instead of compiling it after the maps (a cold start's last
-    compile, ~1.7 s on 2 CPU cores, overlaps the prefilter instead of following it)."""
-
-    def __init__(self, env_lights, resolve, futures=(), stand_ins=None):
+    def __init__(self, env_lights, resolve):
         self.env_lights = env_lights
         self._resolve = resolve
-        self._futures = tuple(futures)
-        self._stand_ins = stand_ins
 
     def __call__(self):
         return self._resolve()
-
-    def prepare(self, compile_with) -> bool:
-        """compile_with(stand_ins) when that can shorten the wait; True when it ran."""
-        if self._stand_ins is None or all(f.done() for f in self._futures) or not jax.config.jax_compilation_cache_dir:
-            return False
-        compile_with(self._stand_ins)
-        self._stand_ins = None  # once per render
-        return True
 
 
 def _lean(scene: Scene) -> Scene:
