@@ -55,6 +55,16 @@ for name in ("demo", "gltf"):
 EOF
 fi
 
+step "float64 exactness checks that differ on CUDA (exposure stops, shipped sheen LUT)"
+timeout 90 python3 -m pytest -q -p no:randomly tests/test_color.py -k "exposure" 2>&1 | tail -3
+
+step "asset cache: 1 M-triangle glTF rendered twice (the second process loads the built BVH)"
+python3 -c "from jaxpbr.rendering.demo import write_demo_glb; write_demo_glb('$CACHE/grid1m.glb')"
+for i in 1 2; do
+  /usr/bin/time -f "asset run $i: %e s wall, %M KB peak" timeout 120 jaxpbr render "$CACHE/grid1m.glb" \
+    --environment procedural:sky --width 640 --height 360 --output "$CACHE/g$i.png" 2>&1 | grep -E "asset run|render "
+done
+
 step "visibility: JAX BVH on the GPU, 1920x1080 primary and shadow rays"
 timeout 120 python3 examples/bench_visibility.py --subdiv 6 8 --backends jax --shadow --repeats 5 2>&1 | tail -12
 
