@@ -674,9 +674,13 @@ def test_aovs_against_closed_forms(tmp_path):
 def test_render_with_aovs_shares_the_render_s_geometry(monkeypatch):
     """render_with_aovs: the image and the AOVs equal separate `render` and `aovs` calls, with the
     meshes' primary rays cast once instead of twice (and twice again where the passes differ:
-    supersampling)."""
+    supersampling). The shared pass is the staged one (XLA:CPU's default), so the test stages on
+    any backend."""
     from jaxpbr.rendering import mesh as mesh_mod
     from jaxpbr.rendering.aovs import aovs, render_with_aovs
+    from jaxpbr.rendering.execution import EXECUTION
+
+    monkeypatch.setattr(EXECUTION, "staged", True)
 
     pos, tri, uv, nrm = _quad(size=40.0)
     grey = jp.Material(base_color=(0.25, 0.5, 0.75), metallic=0.0, roughness=0.5)
