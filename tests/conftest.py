@@ -57,6 +57,15 @@ def pytest_collection_modifyitems(config, items):
     listed = {
         line.strip() for line in SLOW_LIST.read_text().splitlines() if line.strip() and not line.startswith("#")
     }
+    seen = set()
     for item in items:
         if item.nodeid in listed:
             item.add_marker(pytest.mark.slow)
+            seen.add(item.nodeid)
+    # A renamed test or a changed parameter id would silently move a slow test into the default
+    # suite: a run that collects every test file names the stale entries.
+    if not config.args or [Path(a).resolve() for a in config.args] == [Path(config.rootpath, "tests").resolve()]:
+        stale = sorted(listed - seen)
+        if stale:
+            raise pytest.UsageError(f"{SLOW_LIST.name} names {len(stale)} test(s) that were not collected "
+                                    f"(renamed or removed? update the list): {stale[:5]}")
