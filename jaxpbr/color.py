@@ -26,13 +26,12 @@ from __future__ import annotations
 
 import warnings
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._numerics import as_float as _as_float
+from ._program_cache import cached_jit
 
 __all__ = [
     "TONEMAP_OPERATORS",
@@ -437,9 +436,12 @@ def srgb_decode_np(c):
 _tonemap = tonemap  # `display`'s keyword of the same name hides the function inside it
 
 
-@functools.partial(jax.jit, static_argnames=("tonemap", "encoding"))
-def display(hdr, ev, *, tonemap: str, encoding: str):
+def _display(hdr, ev, *, tonemap: str, encoding: str):
     """Linear HDR -> display values: `exposure` by `ev` stops, `tonemap`, then `encode`, as one
     compiled program (op by op they were a dozen compilations; the host-side sRGB of
-    `jaxpbr.io.image.write` imports colour-science)."""
+    `jaxpbr.io.image.write` imports colour-science). Kept on disk with the render stages where the
+    command line keeps them (`jaxpbr._program_cache`)."""
     return encode(_tonemap(exposure(hdr, ev), tonemap), encoding)
+
+
+display = cached_jit(_display, static_argnames=("tonemap", "encoding"))

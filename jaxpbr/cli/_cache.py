@@ -29,6 +29,8 @@ from pathlib import Path
 
 import jax
 
+from .. import _program_cache
+
 #: Largest cache size kept; beyond it the oldest files are deleted down to half.
 MAX_BYTES = 1 << 30
 
@@ -101,6 +103,9 @@ def enable_assets() -> Path | None:
         prune(path)
     ASSETS.use_directory(path)
     ACCELS.use_directory(path)  # the JAX backend's mesh BVHs beside the maps (pruned with them)
+    # the render stages' compiled programs too (`jaxpbr._program_cache`): a warm run loads them
+    # instead of tracing, lowering and compiling them
+    _program_cache.use_directory(path)
     return path
 
 

@@ -36,6 +36,7 @@ from .._api import keyword_only
 from .._interp import bilinear, lerp2
 from .._memory import cube_bytes, require
 from .._numerics import HIGHEST, is_concrete
+from .._program_cache import cached_jit
 from .._pytree import Pytree, leaf, static
 from .._validate import positive_int
 
@@ -396,6 +397,27 @@ class CubeInfo(tuple):
         return hash(_lookup_part(self))
 
 
+
+def _filtered(fn, d, wt):
+    """The solid-angle-weighted mean of fn over each texel's sub-texel points (d, wt)."""
+    vals = jnp.asarray(fn(d), jnp.float64)
+    if vals.ndim == d.ndim - 1:
+        vals = vals[..., None]
+    if vals.shape[:-1] != d.shape[:-1]:
+        raise ValueError(
+            f"fn returned shape {vals.shape} for directions of shape {d.shape}; "
+            "expected (..., C) radiance for (..., 3) directions"
+        )
+    return jnp.sum(vals * wt[None, ..., None], axis=-2)
+
+
+def _filtered_level(coords, fn, S, q, kw):
+    return _filtered(functools.partial(fn, **dict(kw)), *_subtexel_grid(S, q, jnp, coords))
+
+
+#: `Cubemap.from_function` of a named function with plain keyword values (the procedural sky).
+_FILTERED_LEVEL = cached_jit(_filtered_level, static_argnums=(1, 2, 3, 4))
+
 class Cubemap(Pytree):
     """Six square faces with an optional mip chain: `levels[m]` is (6, S >> m, S >> m, C).
 
@@ -511,11 +533,15 @@ class Cubemap(Pytree):
     # constructors -----------------------------------------------------------------------------
     @classmethod
     def from_function(
-        cls, fn: Callable, face_size: int, *, supersample: int = 4, dtype=jnp.float32, info: Any = ()
+        cls, fn: Callable, face_size: int, *, supersample: int = 4, dtype=jnp.float32, info: Any = (),
+        fn_kwargs: dict | None = None,
     ) -> "Cubemap":
         """Area-filtered cube map of a radiance function.
 
-        fn: (..., 3) unit directions (float64 NumPy-compatible jax array) -> (..., C) radiance.
+        fn: (..., 3) unit directions (float64 NumPy-compatible jax array) -> (..., C) radiance,
+        called as fn(d, **fn_kwargs) when fn_kwargs is given: then fn must be a module-level
+        function and the values hashable (numbers, strings, tuples), and the filtering program
+        is shared by every call with the same function and values.
         Each texel is the solid-angle-weighted mean of fn over `supersample`^2 points of its
         footprint (supersample=1: point samples at texel centres).
         """
@@ -523,21 +549,18 @@ class Cubemap(Pytree):
         q = positive_int("supersample", supersample)
         require(f"a {S}^2 cube at supersample {q}", cube_bytes(S, supersample=q), where="Cubemap.from_function")
 
+        call = fn if fn_kwargs is None else functools.partial(fn, **fn_kwargs)
+
         def filtered(d, wt):
-            vals = jnp.asarray(fn(d), jnp.float64)
-            if vals.ndim == d.ndim - 1:
-                vals = vals[..., None]
-            if vals.shape[:-1] != d.shape[:-1]:
-                raise ValueError(
-                    f"fn returned shape {vals.shape} for directions of shape {d.shape}; "
-                    "expected (..., C) radiance for (..., 3) directions"
-                )
-            return jnp.sum(vals * wt[None, ..., None], axis=-2)
+            return _filtered(call, d, wt)
 
         with jax.enable_x64(True):
             try:  # one compiled program: the sub-texel grid, fn and the filter
                 coords = jax.device_put(_subtexel_coords(S, q))
-                level = jax.jit(lambda c: filtered(*_subtexel_grid(S, q, jnp, c)))(coords)
+                if fn_kwargs is not None:  # a named function and plain values: one program kept on disk
+                    level = _FILTERED_LEVEL(coords, fn, S, q, tuple(sorted(fn_kwargs.items())))
+                else:
+                    level = jax.jit(lambda c: filtered(*_subtexel_grid(S, q, jnp, c)))(coords)
             except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
                     jax.errors.TracerIntegerConversionError):
                 # fn needs concrete values (e.g. NumPy inside): eagerly, on the host grid

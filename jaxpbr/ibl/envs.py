@@ -50,10 +50,15 @@ def sky_with_sun(
 
 def sky_with_sun_cubemap(face_size: int = 256, *, supersample: int = 4, dtype=jnp.float32, **kwargs) -> Cubemap:
     """`sky_with_sun` as an area-filtered Cubemap (see `Cubemap.from_function`)."""
+    try:
+        hash(tuple(kwargs.items()))
+        named = dict(fn=sky_with_sun, fn_kwargs=kwargs)
+    except TypeError:  # (arrays among the values: a program of its own)
+        named = dict(fn=lambda d: sky_with_sun(d, **kwargs))
     return Cubemap.from_function(
-        lambda d: sky_with_sun(d, **kwargs),
-        face_size,
+        face_size=face_size,
         supersample=supersample,
         dtype=dtype,
         info={"environment": "procedural sky_with_sun", **{k: str(v) for k, v in kwargs.items()}},
+        **named,
     )

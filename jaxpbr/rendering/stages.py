@@ -19,6 +19,7 @@ import numpy as np
 
 from .._api import keyword_only
 from .._numerics import pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from .._program_cache import cached_jit
 from .._pytree import evolve, fields_of, subtree, unchecked
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..shading.layered import emission_soa
@@ -618,11 +619,13 @@ def _sun_shadows(scene: Scene, opts: RenderOptions, g, env_lights):
     return shadow_visibility(scene.objects, _mesh_arrays(scene, dtype), g["pos"], g["ng"], to_sun, dtype, directions_only=True)
 
 
-_sun_shadows_jit = jax.jit(_sun_shadows, static_argnums=(1,))
-_geometry_jit = jax.jit(_geometry, static_argnums=(1, 2), static_argnames=("light_shadows",))
-_texture_jit = jax.jit(_texture, static_argnums=(1, 2))
-_shade_direct_jit = jax.jit(_shade_direct, static_argnums=(1, 2))
-_shade_rest_jit = jax.jit(_shade_rest, static_argnums=(2, 3))
+# The staged programs, kept on disk where a trace cache directory is set (the command line's):
+# a later process loads them instead of tracing, lowering and compiling them (`_program_cache`).
+_sun_shadows_jit = cached_jit(_sun_shadows, static_argnums=(1,))
+_geometry_jit = cached_jit(_geometry, static_argnums=(1, 2), static_argnames=("light_shadows",))
+_texture_jit = cached_jit(_texture, static_argnums=(1, 2))
+_shade_direct_jit = cached_jit(_shade_direct, static_argnums=(1, 2))
+_shade_rest_jit = cached_jit(_shade_rest, static_argnums=(2, 3))
 
 
 def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):

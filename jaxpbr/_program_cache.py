@@ -1,0 +1,323 @@
+"""Compiled render stages kept on disk, so that a later process neither traces, lowers nor compiles
+them: it loads the executable.
+
+`cached_jit(fn, static_argnums=..., static_argnames=...)` behaves as `jax.jit(fn, ...)`. While a
+directory is set (`use_directory`; the command line sets its asset cache, the library sets none),
+a call outside any transformation looks for the compiled program under a key of everything the
+program depends on:
+
+* the function (module and qualified name) and a digest of every file of the jaxpbr package
+  (sources and data: any change to the code gives new keys);
+* jax / jaxlib versions, the backend, its devices (kind and count), the host's processor
+  (architecture and instruction-set flags: an executable is compiled for them), `XLA_FLAGS`, and
+  the JAX settings that change what a trace produces (`jax_enable_x64`, dtype and rank promotion,
+  default matmul precision, ...);
+* the static arguments and the tree structure of the others (their auxiliary data included),
+  written out by a strict encoder that accepts only plain values (numbers, strings, booleans,
+  None, tuples, lists, dicts, dataclasses, enums, dtypes, and jaxpbr's own module-level
+  functions, whose code the digest covers): anything else, a closure or an array among the static
+  values, makes the call uncached rather than risk two programs sharing a key;
+* each array argument's shape, dtype and weak type.
+
+A program holding a host callback (the host ray engine's) is never stored: it names Python objects
+of its process; it is compiled for the process only. Anything that fails to serialize runs
+through `jax.jit`, and the process remembers that. A damaged or foreign file is ignored and rewritten. Files are written atomically
+and marked as used when read (the command line prunes the directory oldest first).
+
+The executable comes from `jax.experimental.serialize_executable`, the XLA backend's own
+serialization (what JAX's persistent compilation cache stores), wrapped with the argument and
+result trees. A stage is compiled for this cache without JAX's persistent compilation cache (an
+executable read from that cache serializes incompletely), so the first run after a change of the
+package compiles the stages even where JAX's cache holds them."""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import os
+import pickle
+import platform
+import threading
+import types
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import numpy as np
+
+__all__ = ["cached_jit", "directory", "use_directory"]
+
+_STATE: dict = {"dir": None}
+_DIGEST: list[str] = []
+_CONFIG = (
+    "jax_enable_x64",
+    "jax_numpy_rank_promotion",
+    "jax_numpy_dtype_promotion",
+    "jax_default_matmul_precision",
+    "jax_enable_checks",
+    "jax_debug_nans",
+    "jax_debug_infs",
+    "jax_default_prng_impl",
+    "jax_threefry_partitionable",
+)
+#: File name prefix in the cache directory.
+PREFIX = "program-"
+
+
+def use_directory(path) -> None:
+    """Keep compiled stages under `path` (None: off, the default)."""
+    _STATE["dir"] = None if path is None else Path(path)
+
+
+def directory() -> Path | None:
+    return _STATE["dir"]
+
+
+class _Uncacheable(Exception):
+    pass
+
+
+def _canon(x) -> str:
+    """A string that names `x` exactly, for plain values only (else _Uncacheable)."""
+    if x is None or isinstance(x, (bool, int, str)):
+        return f"{type(x).__name__}:{x!r}"
+    if isinstance(x, float):
+        return f"float:{x.hex()}"
+    if isinstance(x, np.generic):
+        return f"{type(x).__name__}:{_canon(x.item())}"
+    if isinstance(x, np.dtype):
+        return f"dtype:{x.str}"
+    if isinstance(x, type) and issubclass(x, np.generic):
+        return f"dtype:{np.dtype(x).str}"
+    if isinstance(x, enum.Enum):
+        return f"{type(x).__module__}.{type(x).__qualname__}.{x.name}"
+    if isinstance(x, (tuple, list, frozenset)):
+        items = sorted(_canon(e) for e in x) if isinstance(x, frozenset) else [_canon(e) for e in x]
+        return f"{type(x).__name__}({','.join(items)})"
+    if isinstance(x, dict):
+        pairs = sorted((_canon(k), _canon(v)) for k, v in x.items())
+        return "dict(" + ",".join(f"{k}={v}" for k, v in pairs) + ")"
+    if (isinstance(x, types.FunctionType) and x.__module__.startswith("jaxpbr.") and x.__closure__ is None
+            and "<" not in x.__qualname__):
+        # a module-level jaxpbr function: its code is in the package digest
+        return f"function:{x.__module__}.{x.__qualname__}"
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        t = type(x)
+        fields = ",".join(f"{f.name}={_canon(getattr(x, f.name))}" for f in dataclasses.fields(x))
+        return f"{t.__module__}.{t.__qualname__}({fields})"
+    raise _Uncacheable(type(x).__name__)
+
+
+def _canon_tree(td) -> str:
+    """The tree structure with every node's type and auxiliary data, through `_canon`."""
+    data = td.node_data()
+    if data is None:
+        return "*"
+    t, aux = data
+    return f"{t.__module__}.{t.__qualname__}[{_canon(aux)}](" + ",".join(_canon_tree(c) for c in td.children()) + ")"
+
+
+def _package_digest() -> str:
+    """sha256 over the relative paths and contents of every file of the jaxpbr package."""
+    if not _DIGEST:
+        root = Path(__file__).resolve().parent
+        h = hashlib.sha256()
+        for p in sorted(root.rglob("*")):
+            if p.is_file() and "__pycache__" not in p.parts:
+                h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+        _DIGEST.append(h.hexdigest())
+    return _DIGEST[0]
+
+
+def _host_cpu() -> str:
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith(("flags", "Features")):
+                    flags = " ".join(sorted(line.split(":", 1)[1].split()))
+                    break
+    except OSError:
+        pass
+    return f"{platform.machine()} {platform.processor()} {flags}"
+
+
+def _environment_key() -> str:
+    import jaxlib
+
+    devs = jax.devices()
+    cfg = ",".join(f"{n}={_canon(getattr(jax.config, n, None))}" for n in _CONFIG)
+    return "\n".join([
+        f"jax {jax.__version__} jaxlib {jaxlib.__version__}",
+        f"{jax.default_backend()} {devs[0].device_kind} {len(devs)} {getattr(devs[0].client, 'platform_version', '')}",
+        _host_cpu(),
+        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}",
+        cfg,
+    ])
+
+
+def _has_callback(jaxpr) -> bool:
+    """Whether a (closed) jaxpr or any jaxpr inside it calls back into Python."""
+    from jax.extend.core import ClosedJaxpr, Jaxpr
+
+    stack = [jaxpr.jaxpr if hasattr(jaxpr, "jaxpr") else jaxpr]
+    while stack:
+        j = stack.pop()
+        for eqn in j.eqns:
+            if "callback" in eqn.primitive.name:
+                return True
+            for v in eqn.params.values():
+                for sub in v if isinstance(v, (tuple, list)) else (v,):
+                    if isinstance(sub, ClosedJaxpr):
+                        stack.append(sub.jaxpr)
+                    elif isinstance(sub, Jaxpr):
+                        stack.append(sub)
+    return False
+
+
+class cached_jit:
+    """`jax.jit(fn, static_argnums=..., static_argnames=...)` whose compiled programs are kept in
+    `directory()` (see the module docstring)."""
+
+    def __init__(self, fn: Callable, *, static_argnums=(), static_argnames=()):
+        self._fn = fn
+        self._static_argnums = tuple(static_argnums) if isinstance(static_argnums, (tuple, list)) else (static_argnums,)
+        self._static_argnames = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
+        self._jit = jax.jit(fn, static_argnums=self._static_argnums, static_argnames=self._static_argnames)
+        self._mem: dict[str, object] = {}  # key -> (compiled, out_tree), or None: through jax.jit
+        self._lock = threading.Lock()
+        self.__wrapped__ = fn
+        self.__name__ = getattr(fn, "__name__", "cached_jit")
+        self.__qualname__ = getattr(fn, "__qualname__", self.__name__)
+        self.__doc__ = fn.__doc__
+
+    def lower(self, *args, **kwargs):
+        return self._jit.lower(*args, **kwargs)
+
+    def _cache_size(self) -> int:
+        """Programs this process holds: jax.jit's, plus the ones loaded or stored here."""
+        return self._jit._cache_size() + sum(1 for v in self._mem.values() if v is not None)
+
+    def clear_cache(self) -> None:
+        self._jit.clear_cache()
+        self._mem.clear()
+
+    def __call__(self, *args, **kwargs):
+        root = _STATE["dir"]
+        if root is None:
+            return self._jit(*args, **kwargs)
+        statics = {i: args[i] for i in self._static_argnums if i < len(args)}
+        static_kw = {k: v for k, v in kwargs.items() if k in self._static_argnames}
+        dyn = (tuple(a for i, a in enumerate(args) if i not in statics),
+               {k: v for k, v in kwargs.items() if k not in static_kw})
+        leaves, treedef = jax.tree_util.tree_flatten(dyn)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return self._jit(*args, **kwargs)
+        # Python numbers as the weakly typed arrays jax.jit makes of them
+        leaves = [jax.numpy.asarray(x) if isinstance(x, (bool, int, float, complex)) else x for x in leaves]
+        try:
+            parts = [
+                f"{self._fn.__module__}.{self._fn.__qualname__}",
+                _package_digest(),
+                _environment_key(),
+                _canon(sorted(statics.items())),
+                _canon(sorted(static_kw.items())),
+                _canon_tree(treedef),
+                ";".join(_aval(x) for x in leaves),
+            ]
+        except _Uncacheable:
+            return self._jit(*args, **kwargs)
+        key = hashlib.sha256("\n".join(parts).encode()).hexdigest()
+        entry = self._mem.get(key, False)
+        if entry is False:
+            with self._lock:
+                entry = self._mem.get(key, False)
+                if entry is False:
+                    entry = self._load(root, key)
+                    if entry is False:
+                        entry = self._compile(root, key, len(args), statics, static_kw, leaves, treedef)
+                    self._mem[key] = entry
+        if entry is None:
+            return self._jit(*args, **kwargs)
+        compiled, out_tree = entry
+        return jax.tree_util.tree_unflatten(out_tree, compiled(*leaves))
+
+    # -- disk ---------------------------------------------------------------------------------
+    @staticmethod
+    def _path(root: Path, key: str) -> Path:
+        return root / f"{PREFIX}{key[:40]}.bin"
+
+    def _load(self, root, key):
+        from jax.experimental import serialize_executable
+
+        path = self._path(root, key)
+        try:
+            blob = path.read_bytes()
+        except OSError:
+            return False
+        try:
+            stored_key, payload, in_tree, out_tree, result_tree = pickle.loads(blob)
+            if stored_key != key:
+                return False
+            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        except Exception:  # noqa: BLE001 (a damaged or foreign file: compiled again and rewritten)
+            return False
+        try:
+            os.utime(path)
+        except OSError:
+            pass
+        return compiled, result_tree
+
+    def _compile(self, root, key, n_args, statics, static_kw, leaves, treedef):
+        """Trace, lower and compile the flat program of `leaves` (JAX's persistent compilation
+        cache still serves the compile), store it; None where it must go through jax.jit."""
+        from jax.experimental import serialize_executable
+
+        fn = self._fn
+        trees = []
+
+        def flat(*xs):
+            dyn_args, dyn_kwargs = jax.tree_util.tree_unflatten(treedef, xs)
+            it = iter(dyn_args)
+            full = [statics[i] if i in statics else next(it) for i in range(n_args)]
+            out, tree = jax.tree_util.tree_flatten(fn(*full, **dyn_kwargs, **static_kw))
+            trees.append(tree)
+            return out
+
+        # A name of its own: the program must not be a jax.jit program of this process that JAX
+        # holds in memory (possibly read from its persistent cache, see below).
+        flat.__name__ = flat.__qualname__ = f"{self.__name__}_stored"
+        try:
+            traced = jax.jit(flat).trace(*leaves)
+            if _has_callback(traced.jaxpr):  # this process's program only (traced once, not twice)
+                return traced.lower().compile(), trees[-1]
+            # Compiled here, not read from JAX's persistent cache: an executable loaded from that
+            # cache serializes without its kernels (it fails when called after loading: measured
+            # with jax 0.10). The context is thread-local.
+            from jax._src.config import enable_compilation_cache
+
+            with enable_compilation_cache(False):
+                compiled = traced.lower().compile()
+            payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+            blob = pickle.dumps((key, payload, in_tree, out_tree, trees[-1]))
+        except Exception:  # noqa: BLE001 (not serializable here: run through jax.jit)
+            return None
+        path = self._path(root, key)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            tmp.write_bytes(blob)
+            os.replace(tmp, path)
+        except OSError:
+            try:
+                tmp.unlink()
+            except OSError:
+                pass
+        return compiled, trees[-1]
+
+
+def _aval(x) -> str:
+    if isinstance(x, (jax.Array, np.ndarray, np.generic)):
+        return f"{tuple(x.shape)}/{np.dtype(x.dtype).str}/{int(bool(getattr(x, 'weak_type', False)))}"
+    raise _Uncacheable(type(x).__name__)

@@ -1,0 +1,146 @@
+"""jaxpbr._program_cache: compiled stages kept on disk give the programs jax.jit gives, are keyed by
+everything they depend on, and are loaded by a later process instead of traced and compiled."""
+
+import dataclasses
+import math
+import os
+import re
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxpbr import _program_cache as pc
+
+
+@pytest.fixture
+def cache_dir(tmp_path):
+    pc.use_directory(tmp_path)
+    yield tmp_path
+    pc.use_directory(None)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Opts:
+    scale: float
+    mode: str
+
+
+def _f(x, opts, *, flip=False):
+    y = jnp.sin(x) * opts.scale + (jnp.cos(x) if opts.mode == "cos" else 0.0)
+    return {"y": -y if flip else y, "sum": jnp.sum(y)}
+
+
+def _files(d):
+    return sorted(p.name for p in d.iterdir() if p.name.startswith(pc.PREFIX))
+
+
+def test_stored_program_equals_jit_and_is_loaded_not_compiled(cache_dir, monkeypatch):
+    f = pc.cached_jit(_f, static_argnums=(1,), static_argnames=("flip",))
+    x = np.linspace(-3, 3, 101, dtype=np.float32)
+    ref = jax.jit(_f, static_argnums=(1,), static_argnames=("flip",))(x, _Opts(2.0, "cos"), flip=True)
+    out = f(x, _Opts(2.0, "cos"), flip=True)
+    assert len(_files(cache_dir)) == 1
+    np.testing.assert_array_equal(out["y"], ref["y"])
+    np.testing.assert_array_equal(out["sum"], ref["sum"])
+    # a new process is a fresh object: it must load the file, not compile
+    g = pc.cached_jit(_f, static_argnums=(1,), static_argnames=("flip",))
+    monkeypatch.setattr(pc.cached_jit, "_compile", lambda *a, **k: pytest.fail("compiled instead of loaded"))
+    again = g(x, _Opts(2.0, "cos"), flip=True)
+    np.testing.assert_array_equal(again["y"], ref["y"])
+    assert again["y"].dtype == ref["y"].dtype and isinstance(again, dict)
+
+
+def test_the_key_follows_statics_shapes_dtypes_and_settings(cache_dir):
+    f = pc.cached_jit(_f, static_argnums=(1,), static_argnames=("flip",))
+    x = np.ones(8, np.float32)
+    f(x, _Opts(2.0, "cos"))
+    f(x, _Opts(2.0, "cos"))  # the same key: no new file
+    assert len(_files(cache_dir)) == 1
+    f(x, _Opts(2.0000002, "cos"))  # a float that differs in the last bits
+    f(x, _Opts(2.0, "sin"))
+    f(x, _Opts(2.0, "cos"), flip=True)
+    f(np.ones(9, np.float32), _Opts(2.0, "cos"))
+    f(np.ones(8, np.float64), _Opts(2.0, "cos"))
+    f(jnp.asarray(1.0), _Opts(2.0, "cos"))  # weakly typed scalar
+    f(jnp.asarray(1.0, jnp.float64), _Opts(2.0, "cos"))  # its strong twin
+    with jax.numpy_rank_promotion("raise"):
+        f(x, _Opts(2.0, "cos"))
+    assert len(_files(cache_dir)) == 9
+    # each call gives what jax.jit gives for its own inputs
+    h = jax.jit(_f, static_argnums=(1,), static_argnames=("flip",))
+    for xs, o, flip in [(np.ones(9, np.float32), _Opts(2.0, "cos"), False), (x, _Opts(2.0000002, "cos"), False)]:
+        np.testing.assert_array_equal(f(xs, o, flip=flip)["y"], h(xs, o, flip=flip)["y"])
+
+
+def test_what_cannot_be_named_exactly_or_stored_runs_through_jit(cache_dir):
+    f = pc.cached_jit(_f, static_argnums=(1,))
+    x = np.ones(4, np.float32)
+
+    # a lambda among the static values cannot be named by its code: not stored
+    assert f(x, _Opts(1.0, lambda: "cos"))["y"].shape == (4,)
+    assert _files(cache_dir) == []
+    # a host callback names objects of this process: not stored, and remembered as such
+    cb = pc.cached_jit(lambda v: jax.pure_callback(lambda a: np.asarray(a) * 2, jax.ShapeDtypeStruct(v.shape, v.dtype), v))
+    np.testing.assert_array_equal(cb(x), 2 * x)
+    np.testing.assert_array_equal(cb(x), 2 * x)
+    assert _files(cache_dir) == []
+    # under a transformation the arguments are tracers: jax.jit, and gradients flow
+    g = jax.grad(lambda v: f(v, _Opts(3.0, "sin"))["sum"])(x)
+    np.testing.assert_allclose(g, 3.0 * np.cos(x), rtol=1e-6)
+    assert _files(cache_dir) == []
+    with pytest.raises(pc._Uncacheable):
+        pc._canon(_Opts(1.0, lambda: 0))
+    with pytest.raises(pc._Uncacheable):
+        pc._canon((np.ones(3),))
+
+
+def test_a_damaged_or_foreign_file_is_compiled_again_and_rewritten(cache_dir):
+    f = pc.cached_jit(_f, static_argnums=(1,))
+    x = np.arange(5, dtype=np.float32)
+    ref = np.asarray(f(x, _Opts(1.5, "cos"))["y"])
+    (path,) = cache_dir.iterdir()
+    for junk in (b"", b"not a pickle", path.read_bytes()[: len(path.read_bytes()) // 2]):
+        path.write_bytes(junk)
+        g = pc.cached_jit(_f, static_argnums=(1,))
+        np.testing.assert_array_equal(g(x, _Opts(1.5, "cos"))["y"], ref)
+        assert path.stat().st_size > 1000  # rewritten whole
+
+
+def test_settings_that_change_a_trace_are_in_the_key():
+    base = pc._environment_key()
+    with jax.numpy_dtype_promotion("strict"):
+        assert pc._environment_key() != base
+    with jax.enable_x64(not jax.config.jax_enable_x64):
+        assert pc._environment_key() != base
+    assert pc._canon(0.1) != pc._canon(math.nextafter(0.1, 1.0))
+    assert pc._canon((1, 2)) != pc._canon([1, 2]) != pc._canon((1.0, 2.0))
+    assert pc._canon(pc._package_digest) == "function:jaxpbr._program_cache._package_digest"
+
+
+@pytest.mark.slow  # two processes, the first compiling every stage without JAX's cache: 10-20 s
+def test_a_warm_command_line_render_loads_its_stages(tmp_path):
+    """Two `jaxpbr render` processes on one asset cache: the second traces no render stage and
+    writes the same image."""
+    env = dict(os.environ, JAXPBR_ASSET_CACHE=str(tmp_path / "assets"), JAX_LOG_COMPILES="1")
+    outs = []
+    for i in range(2):
+        out = tmp_path / f"demo{i}.png"
+        r = subprocess.run([sys.executable, "-c", "import sys; from jaxpbr.cli import main; sys.exit(main(sys.argv[1:]))",
+                            "render", "--width", "48", "--height", "27", "--hdr", "-o", str(out)],
+                           env=env, capture_output=True, text=True, check=False)
+        assert r.returncode == 0, r.stderr[-2000:]
+        outs.append((out, r.stderr))
+    traced = lambda log, name: re.search(rf"Finished tracing (\+ transforming )?{name}(_stored)? for ", log) is not None  # noqa: E731
+    for stage in ("_geometry", "_shade_direct", "_shade_rest", "_display", "_filtered_level"):
+        assert traced(outs[0][1], stage), stage
+        assert not traced(outs[1][1], stage), stage
+    assert len(_files(tmp_path / "assets")) == 5  # the three stages, the display and the sky's cube
+    from jaxpbr.io import image
+
+    a = image.read(outs[0][0].with_suffix(".exr"))
+    b = image.read(outs[1][0].with_suffix(".exr"))
+    np.testing.assert_array_equal(a, b)
