@@ -52,9 +52,9 @@ def sky_with_sun_cubemap(face_size: int = 256, *, supersample: int = 4, dtype=jn
     """`sky_with_sun` as an area-filtered Cubemap (see `Cubemap.from_function`)."""
     try:
         hash(tuple(kwargs.items()))
-        named = dict(fn=sky_with_sun, fn_kwargs=kwargs)
+        named = {"fn": sky_with_sun, "fn_kwargs": kwargs}
     except TypeError:  # (arrays among the values: a program of its own)
-        named = dict(fn=lambda d: sky_with_sun(d, **kwargs))
+        named = {"fn": lambda d: sky_with_sun(d, **kwargs)}
     return Cubemap.from_function(
         face_size=face_size,
         supersample=supersample,
