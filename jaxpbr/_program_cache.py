@@ -19,7 +19,9 @@ program depends on:
   values, makes the call uncached rather than risk two programs sharing a key;
 * each array argument's shape, dtype and weak type.
 
-A program holding a host callback (the host ray engine's) is never stored: it names Python objects
+Only XLA:CPU programs are kept (the staged execution that runs the stages one by one is the CPU's;
+a GPU runs a render as one program through `jax.jit`). A program holding a host callback (the host
+ray engine's) is never stored: it names Python objects
 of its process; it is compiled for the process only. Anything that fails to serialize runs
 through `jax.jit`, and the process remembers that. A damaged or foreign file is ignored and rewritten. Files are written atomically
 and marked as used when read (the command line prunes the directory oldest first).
@@ -205,7 +207,7 @@ class cached_jit:
 
     def __call__(self, *args, **kwargs):
         root = _STATE["dir"]
-        if root is None:
+        if root is None or jax.default_backend() != "cpu":  # (measured and tested on XLA:CPU only)
             return self._jit(*args, **kwargs)
         statics = {i: args[i] for i in self._static_argnums if i < len(args)}
         static_kw = {k: v for k, v in kwargs.items() if k in self._static_argnames}
@@ -241,7 +243,16 @@ class cached_jit:
         if entry is None:
             return self._jit(*args, **kwargs)
         compiled, out_tree = entry
-        return jax.tree_util.tree_unflatten(out_tree, compiled(*leaves))
+        try:
+            out = compiled(*leaves)
+        except Exception:  # noqa: BLE001 (an executable that loads but does not run: dropped, jax.jit)
+            self._mem[key] = None
+            try:
+                self._path(root, key).unlink()
+            except OSError:
+                pass
+            return self._jit(*args, **kwargs)
+        return jax.tree_util.tree_unflatten(out_tree, out)
 
     # -- disk ---------------------------------------------------------------------------------
     @staticmethod

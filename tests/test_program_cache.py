@@ -144,3 +144,18 @@ def test_a_warm_command_line_render_loads_its_stages(tmp_path):
     a = image.read(outs[0][0].with_suffix(".exr"))
     b = image.read(outs[1][0].with_suffix(".exr"))
     np.testing.assert_array_equal(a, b)
+
+
+def test_a_loaded_program_that_fails_to_run_is_dropped_for_jit(cache_dir):
+    f = pc.cached_jit(_f, static_argnums=(1,))
+    x = np.arange(6, dtype=np.float32)
+    ref = np.asarray(f(x, _Opts(0.5, "sin"))["y"])
+    (key,) = f._mem
+    (path,) = cache_dir.iterdir()
+
+    def broken(*a):  # as an executable that loads but misses its kernels fails
+        raise RuntimeError("NOT_FOUND: Function fusion not found")
+
+    f._mem[key] = (broken, f._mem[key][1])
+    np.testing.assert_array_equal(f(x, _Opts(0.5, "sin"))["y"], ref)
+    assert f._mem[key] is None and not path.exists()
