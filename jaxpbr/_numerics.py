@@ -65,13 +65,38 @@ def as_float(x) -> jax.Array:
     if isinstance(x, (list, tuple)):
         flat = _python_numbers(x)
         if flat is not None and 0 < len(flat) <= 16:
-            return jnp.stack([jnp.asarray(float(e)) for e in flat]).reshape(np.shape(x))
+            key = (tuple(float(e).hex() for e in flat), np.shape(x), *_memo_context())
+            out = _WEAK.get(key)
+            if out is None:
+                out = _remember(key, jnp.stack([jnp.asarray(float(e)) for e in flat]).reshape(np.shape(x)))
+            return out
+    if type(x) is float:  # (not NumPy scalars, whose dtype is strong; ints take the path below)
+        key = (x.hex(), *_memo_context())
+        out = _WEAK.get(key)
+        return out if out is not None else _remember(key, jnp.asarray(x))
     x = jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
         raise TypeError(f"expected real values, got a {x.dtype} array (take .real explicitly if that is meant)")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
+
+
+#: The weakly typed arrays of Python numbers and short tuples already converted (scene objects repeat
+#: the same colours and factors; each conversion is a few eager dispatches): arrays are immutable,
+#: so one array serves every object that gave the same values. Keyed by the exact values (float hex:
+#: -0.0 and 0.0 apart), the default float width and the default device; tracers are not kept.
+_WEAK: dict = {}
+
+
+def _memo_context() -> tuple:
+    return bool(jax.config.jax_enable_x64), str(jax.config.jax_default_device)
+
+
+def _remember(key, value):
+    if not isinstance(value, jax.core.Tracer) and len(_WEAK) < 4096:
+        _WEAK[key] = value
+    return value
 
 
 def _python_numbers(x) -> list | None:
