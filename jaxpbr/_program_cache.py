@@ -21,10 +21,11 @@ program depends on:
 
 Only XLA:CPU programs are kept (the staged execution that runs the stages one by one is the CPU's;
 a GPU runs a render as one program through `jax.jit`). A program holding a host callback (the host
-ray engine's) is never stored: it names Python objects
-of its process; it is compiled for the process only. Anything that fails to serialize runs
-through `jax.jit`, and the process remembers that. A damaged or foreign file is ignored and rewritten. Files are written atomically
-and marked as used when read (the command line prunes the directory oldest first).
+ray engine's) is never stored: it names Python objects of its process; it is compiled for the
+process only. Anything that fails to serialize runs through `jax.jit`, and the process remembers
+that; so does a loaded executable that fails to run (its file is deleted). A damaged or foreign
+file is ignored and rewritten. Files are written atomically (a temporary file renamed over) and
+marked as used when read (the command line prunes the directory oldest first).
 
 The executable comes from `jax.experimental.serialize_executable`, the XLA backend's own
 serialization (what JAX's persistent compilation cache stores), wrapped with the argument and
@@ -36,6 +37,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import hashlib
 import os
 import pickle
@@ -132,7 +134,9 @@ def _package_digest() -> str:
     return _DIGEST[0]
 
 
+@functools.lru_cache(maxsize=1)
 def _host_cpu() -> str:
+    """The processor an executable is compiled for (read once per process)."""
     flags = ""
     try:
         with open("/proc/cpuinfo") as f:
@@ -145,18 +149,25 @@ def _host_cpu() -> str:
     return f"{platform.machine()} {platform.processor()} {flags}"
 
 
-def _environment_key() -> str:
+@functools.lru_cache(maxsize=1)
+def _platform_key() -> str:
+    """What is fixed once JAX's backend is up: versions, devices, the host processor."""
     import jaxlib
 
     devs = jax.devices()
-    cfg = ",".join(f"{n}={_canon(getattr(jax.config, n, None))}" for n in _CONFIG)
     return "\n".join([
         f"jax {jax.__version__} jaxlib {jaxlib.__version__}",
         f"{jax.default_backend()} {devs[0].device_kind} {len(devs)} {getattr(devs[0].client, 'platform_version', '')}",
         _host_cpu(),
-        f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}",
-        cfg,
     ])
+
+
+def _environment_key() -> str:
+    """`_platform_key` and what may change while a process runs: XLA_FLAGS (read when a backend
+    starts, so in practice fixed too) and the JAX settings that change a trace (contexts such as
+    `jax.enable_x64` included)."""
+    cfg = ",".join(f"{n}={_canon(getattr(jax.config, n, None))}" for n in _CONFIG)
+    return "\n".join([_platform_key(), f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')}", cfg])
 
 
 def _has_callback(jaxpr) -> bool:
@@ -281,8 +292,9 @@ class cached_jit:
         return compiled, result_tree
 
     def _compile(self, root, key, n_args, statics, static_kw, leaves, treedef):
-        """Trace, lower and compile the flat program of `leaves` (JAX's persistent compilation
-        cache still serves the compile), store it; None where it must go through jax.jit."""
+        """Trace, lower and compile the flat program of `leaves` (without JAX's persistent
+        compilation cache, see below) and store it; a program with a host callback is compiled for
+        this process only; None where it must go through jax.jit."""
         from jax.experimental import serialize_executable
 
         fn = self._fn

@@ -159,3 +159,29 @@ def test_a_loaded_program_that_fails_to_run_is_dropped_for_jit(cache_dir):
     f._mem[key] = (broken, f._mem[key][1])
     np.testing.assert_array_equal(f(x, _Opts(0.5, "sin"))["y"], ref)
     assert f._mem[key] is None and not path.exists()
+
+
+def test_the_command_line_keeps_stages_in_its_asset_cache_and_off_turns_it_off(tmp_path, monkeypatch):
+    from jaxpbr.cli import _cache
+
+    try:
+        monkeypatch.setenv("JAXPBR_ASSET_CACHE", str(tmp_path / "assets"))
+        assert _cache.enable_assets() == tmp_path / "assets"
+        assert pc.directory() == tmp_path / "assets"
+        monkeypatch.setenv("JAXPBR_ASSET_CACHE", "off")
+        assert _cache.enable_assets() is None and pc.directory() is None
+    finally:
+        pc.use_directory(None)
+        from jaxpbr.rendering.mesh import ACCELS
+        from jaxpbr.rendering.renderer import ASSETS
+
+        ASSETS.use_directory(None)
+        ACCELS.use_directory(None)
+
+
+def test_the_platform_part_of_the_key_is_read_once():
+    pc._platform_key()
+    before = pc._platform_key.cache_info().hits
+    for _ in range(3):
+        pc._environment_key()
+    assert pc._platform_key.cache_info().hits == before + 3
