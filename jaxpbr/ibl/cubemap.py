@@ -396,6 +396,10 @@ class CubeInfo(tuple):
     def __hash__(self):
         return hash(_lookup_part(self))
 
+    def _program_key(self) -> tuple:
+        """What the stored programs' keys name (`jaxpbr._program_cache`): the lookup pairs."""
+        return _lookup_part(self)
+
 
 
 def _filtered(fn, d, wt):
