@@ -61,7 +61,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-__all__ = ["active", "cached_jit", "directory", "is_preparing", "prepare", "preparing", "use_directory"]
+__all__ = ["active", "cached_jit", "directory", "is_preparing", "package_digest", "prepare", "preparing", "use_directory"]
 
 _STATE: dict = {"dir": None}
 _DIGEST: list[str] = []
@@ -138,6 +138,12 @@ def _canon_tree(td) -> str:
         return "*"
     t, aux = data
     return f"{t.__module__}.{t.__qualname__}[{_canon(aux)}](" + ",".join(_canon_tree(c) for c in td.children()) + ")"
+
+
+def package_digest() -> str:
+    """sha256 over every file of the installed jaxpbr package (read once per process): a key part
+    for anything computed by the package's code and kept across processes."""
+    return _package_digest()
 
 
 def _package_digest() -> str:

@@ -108,6 +108,19 @@ def test_asset_cache_on_disk_round_trip(disk_assets, monkeypatch):
     assert all(p.stat().st_mtime > 1000 for p in disk_assets.iterdir())
 
 
+def test_the_demo_sky_is_kept_in_the_asset_cache(disk_assets, monkeypatch):
+    from jaxpbr.rendering import demo
+
+    first = demo.demo_sky(8)
+    np.testing.assert_array_equal(first.levels[0], jp.envs.sky_with_sun_cubemap(8).levels[0])
+    assert [p.name.split("-")[0] for p in disk_assets.iterdir()] == ["sky"]
+    renderer.ASSETS.clear()  # a new process: read from the file, not filtered again
+    monkeypatch.setattr(demo, "sky_with_sun_cubemap", lambda *a, **k: pytest.fail("sky filtered again"))
+    again = demo.demo_sky(8)
+    np.testing.assert_array_equal(again.levels[0], first.levels[0])
+    assert dict(again.info) == dict(first.info) and renderer.ASSETS.stats["sky"]["disk"] == 1
+
+
 def test_asset_cache_disk_hit_inside_a_trace_stores_no_tracer(disk_assets, monkeypatch):
     """A map loaded from disk while the caller traces (jit of a one-program render) is loaded on
     another thread: device_put on the tracing thread returned a tracer, which the cache kept."""

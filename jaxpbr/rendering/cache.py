@@ -40,7 +40,7 @@ class AssetCache:
     write one never fails the render. `stats[kind]["disk"]` counts the maps loaded from it.
     """
 
-    DISK_KINDS = ("irradiance", "prefilter")
+    DISK_KINDS = ("irradiance", "prefilter", "sky")
 
     def __init__(self, maxsize: int = 16, directory=None):
         self.maxsize = maxsize

@@ -14,9 +14,12 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
+from .._program_cache import package_digest
+from ..ibl.cubemap import Cubemap
 from ..ibl.envs import sky_with_sun_cubemap
 from ..shading.lights import PointLight
 from ..shading.material import Material
+from .cache import ASSETS
 from .scene import Camera, Environment, Scene, Sphere
 
 __all__ = [
@@ -61,13 +64,21 @@ def demo_scene(width: int = 1280, height: int = 720, *, face_size: int = 128, su
     behind the camera, plus four point lights of 300 cd at (+-10, +-10, 10)."""
     env = None
     if environment:
-        env = Environment(radiance=sky_with_sun_cubemap(face_size), rotation=DEMO_ENV_ROTATION)
+        env = Environment(radiance=demo_sky(face_size), rotation=DEMO_ENV_ROTATION)
     return Scene(
         camera=Camera(position=(0.0, 0.0, 24.0), fov_y_deg=45.0, width=width, height=height, supersample=supersample),
         objects=sphere_grid(),
         lights=_four_lights() if lights else (),
         environment=env,
     )
+
+
+def demo_sky(face_size: int = 128) -> Cubemap:
+    """The demo's procedural sky (`sky_with_sun_cubemap(face_size)`) through the process's asset
+    cache (`cache.ASSETS`, on disk where the command line keeps one), keyed by the face size and a
+    digest of the package's code: a warm start reads the cube instead of filtering it again."""
+    face_size = int(face_size)
+    return ASSETS.get("sky", ("sky_with_sun", face_size, package_digest()), lambda: sky_with_sun_cubemap(face_size))
 
 
 def learnopengl_scene(width: int = 1280, height: int = 720) -> Scene:
