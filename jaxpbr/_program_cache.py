@@ -27,14 +27,6 @@ that; so does a loaded executable that fails to run (its file is deleted). A dam
 file is ignored and rewritten. Files are written atomically (a temporary file renamed over) and
 marked as used when read (the command line prunes the directory oldest first).
 
-`preparing()` / `prepare(fn, ...)`: a call on abstract arguments (inside `jax.eval_shape`) starts
-the program on the compile threads (loading it, or tracing and lowering it on the caller's thread
-and compiling it there) and returns zeros of its result's shapes; the concrete call waits for it. A
-staged render runs its pass this way first (`rendering.stages.prepare_pass`), so its stages
-compile or load side by side and beside the environment's precomputes; the command line prepares
-the display transform before the render. A file holds the key, the executable, its trees and the
-result's shapes (`_FORMAT`; a file of another layout is compiled again and rewritten).
-
 The executable comes from `jax.experimental.serialize_executable`, the XLA backend's own
 serialization (what JAX's persistent compilation cache stores), wrapped with the argument and
 result trees. A stage is compiled for this cache without JAX's persistent compilation cache (an
@@ -43,8 +35,6 @@ package compiles the stages even where JAX's cache holds them."""
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import dataclasses
 import enum
 import functools
@@ -55,13 +45,12 @@ import platform
 import threading
 import types
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import jax
 import numpy as np
 
-__all__ = ["active", "cached_jit", "directory", "is_preparing", "package_digest", "prepare", "preparing", "use_directory"]
+__all__ = ["cached_jit", "directory", "package_digest", "use_directory"]
 
 _STATE: dict = {"dir": None}
 _DIGEST: list[str] = []
@@ -78,8 +67,6 @@ _CONFIG = (
 )
 #: File name prefix in the cache directory.
 PREFIX = "program-"
-#: Layout of a stored file (another is compiled again and rewritten).
-_FORMAT = "jaxpbr-program-2"
 
 
 def use_directory(path) -> None:
@@ -213,84 +200,6 @@ def _has_callback(jaxpr) -> bool:
     return False
 
 
-class _Entry:
-    """A program of one key: `future` gives the executable (None: the call goes through jax.jit);
-    `out_tree` and `out_avals` (flat (shape, dtype, weak) triples) are known before it is ready."""
-
-    __slots__ = ("future", "out_tree", "out_avals")
-
-    def __init__(self, future: Future, out_tree, out_avals):
-        self.future, self.out_tree, self.out_avals = future, out_tree, out_avals
-
-
-def _done(value) -> Future:
-    f: Future = Future()
-    f.set_result(value)
-    return f
-
-
-_POOL: dict = {"pool": None, "pid": 0}
-_POOL_LOCK = threading.Lock()
-
-
-def _compile_pool() -> ThreadPoolExecutor:
-    """Threads that compile and load the programs started by `preparing` (XLA compiles without
-    the GIL): one per core, started on first use and kept; a forked child starts its own."""
-    with _POOL_LOCK:
-        if _POOL["pool"] is None or _POOL["pid"] != os.getpid():
-            _POOL["pool"] = ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 2), thread_name_prefix="jaxpbr-compile")
-            _POOL["pid"] = os.getpid()
-        return _POOL["pool"]
-
-
-_PREPARING: contextvars.ContextVar[bool] = contextvars.ContextVar("jaxpbr_preparing", default=False)
-
-
-def active() -> bool:
-    """Whether calls of `cached_jit` functions use the directory (set, and XLA:CPU)."""
-    return _STATE["dir"] is not None and jax.default_backend() == "cpu"
-
-
-@contextlib.contextmanager
-def preparing():
-    """Within: a `cached_jit` function called on traced arguments (inside `jax.eval_shape`, say)
-    starts loading or compiling its program for their shapes on the compile threads, and returns
-    zeros of its result's shapes at once; the concrete call later waits for that program. A
-    staged render runs its stages once this way before the first one (`stages.prepare_pass`): the
-    programs then compile side by side, and beside the precomputes, instead of one after another."""
-    token = _PREPARING.set(True)
-    try:
-        yield
-    finally:
-        _PREPARING.reset(token)
-
-
-def is_preparing() -> bool:
-    """Whether this thread is inside `preparing()`."""
-    return _PREPARING.get()
-
-
-def prepare(fn: Callable, *args, **kwargs):
-    """fn(*args, **kwargs) run abstractly (`jax.eval_shape`, args: arrays or `jax.ShapeDtypeStruct`)
-    within `preparing()`: the `cached_jit` programs it calls start loading or compiling on the
-    compile threads. Returns the result's shapes; None (and nothing started) while no directory is
-    in use."""
-    if not active():
-        return None
-    abstract = lambda a: bool(jax.tree_util.tree_leaves(a)) and all(  # noqa: E731
-        isinstance(x, (jax.ShapeDtypeStruct, jax.Array, np.ndarray)) for x in jax.tree_util.tree_leaves(a))
-    pos = [i for i, a in enumerate(args) if abstract(a)]
-
-    def call(*dyn):
-        full = list(args)
-        for i, x in zip(pos, dyn):
-            full[i] = x
-        return fn(*full, **kwargs)
-
-    with preparing():  # (the other arguments, statics and numbers, as they are)
-        return jax.eval_shape(call, *[args[i] for i in pos])
-
-
 class cached_jit:
     """`jax.jit(fn, static_argnums=..., static_argnames=...)` whose compiled programs are kept in
     `directory()` (see the module docstring)."""
@@ -300,7 +209,7 @@ class cached_jit:
         self._static_argnums = tuple(static_argnums) if isinstance(static_argnums, (tuple, list)) else (static_argnums,)
         self._static_argnames = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
         self._jit = jax.jit(fn, static_argnums=self._static_argnums, static_argnames=self._static_argnames)
-        self._mem: dict[str, _Entry | None] = {}  # None: through jax.jit
+        self._mem: dict[str, object] = {}  # key -> (compiled, out_tree), or None: through jax.jit
         self._lock = threading.Lock()
         self.__wrapped__ = fn
         self.__name__ = getattr(fn, "__name__", "cached_jit")
@@ -319,17 +228,15 @@ class cached_jit:
         self._mem.clear()
 
     def __call__(self, *args, **kwargs):
-        if not active():  # (measured and tested on XLA:CPU only)
-            return self._jit(*args, **kwargs)
         root = _STATE["dir"]
+        if root is None or jax.default_backend() != "cpu":  # (measured and tested on XLA:CPU only)
+            return self._jit(*args, **kwargs)
         statics = {i: args[i] for i in self._static_argnums if i < len(args)}
         static_kw = {k: v for k, v in kwargs.items() if k in self._static_argnames}
         dyn = (tuple(a for i, a in enumerate(args) if i not in statics),
                {k: v for k, v in kwargs.items() if k not in static_kw})
         leaves, treedef = jax.tree_util.tree_flatten(dyn)
-        traced = any(isinstance(x, jax.core.Tracer) for x in leaves)
-        preparing = traced and _PREPARING.get()
-        if traced and not preparing:
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return self._jit(*args, **kwargs)
         # Python numbers as the weakly typed arrays jax.jit makes of them
         leaves = [jax.numpy.asarray(x) if isinstance(x, (bool, int, float, complex)) else x for x in leaves]
@@ -351,22 +258,13 @@ class cached_jit:
             with self._lock:
                 entry = self._mem.get(key, False)
                 if entry is False:
-                    avals = [jax.ShapeDtypeStruct(x.shape, x.dtype, weak_type=_weak(x)) for x in leaves]
-                    entry = self._start(root, key, len(args), statics, static_kw, avals, treedef, background=preparing)
+                    entry = self._load(root, key)
+                    if entry is False:
+                        entry = self._compile(root, key, len(args), statics, static_kw, leaves, treedef)
                     self._mem[key] = entry
-        if preparing:
-            if entry is None:
-                return self._jit(*args, **kwargs)
-            return jax.tree_util.tree_unflatten(entry.out_tree, [_zeros(*a) for a in entry.out_avals])
         if entry is None:
             return self._jit(*args, **kwargs)
-        try:
-            compiled = entry.future.result()
-        except Exception:  # noqa: BLE001 (a program that failed to compile or load here: jax.jit)
-            compiled = None
-        if compiled is None:
-            self._mem[key] = None
-            return self._jit(*args, **kwargs)
+        compiled, out_tree = entry
         try:
             out = compiled(*leaves)
         except Exception:  # noqa: BLE001 (an executable that loads but does not run: dropped, jax.jit)
@@ -376,55 +274,38 @@ class cached_jit:
             except OSError:
                 pass
             return self._jit(*args, **kwargs)
-        return jax.tree_util.tree_unflatten(entry.out_tree, out)
+        return jax.tree_util.tree_unflatten(out_tree, out)
 
     # -- disk ---------------------------------------------------------------------------------
     @staticmethod
     def _path(root: Path, key: str) -> Path:
         return root / f"{PREFIX}{key[:40]}.bin"
 
-    def _start(self, root, key, n_args, statics, static_kw, avals, treedef, *, background: bool):
-        """The entry of `key`: the stored program (loaded), else the program traced and lowered on
-        this thread and compiled (and stored); the loading or compiling runs on the compile
-        threads when `background`, else here. None where it must go through jax.jit."""
-        run = _compile_pool().submit if background else (lambda f: _done(f()))
-        stored = self._read(root, key)
-        if stored is not None:
-            payload, in_tree, out_tree, result_tree, out_avals = stored
-            path = self._path(root, key)
-            return _Entry(run(lambda: self._deserialize(path, payload, in_tree, out_tree)), result_tree, out_avals)
-        return self._compile(root, key, n_args, statics, static_kw, avals, treedef, run)
+    def _load(self, root, key):
+        from jax.experimental import serialize_executable
 
-    def _read(self, root, key):
         path = self._path(root, key)
         try:
             blob = path.read_bytes()
         except OSError:
-            return None
+            return False
         try:
-            fmt, stored_key, payload, in_tree, out_tree, result_tree, out_avals = pickle.loads(blob)
+            stored_key, payload, in_tree, out_tree, result_tree = pickle.loads(blob)
+            if stored_key != key:
+                return False
+            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
         except Exception:  # noqa: BLE001 (a damaged or foreign file: compiled again and rewritten)
-            return None
-        if fmt != _FORMAT or stored_key != key:
-            return None
-        return payload, in_tree, out_tree, result_tree, out_avals
-
-    @staticmethod
-    def _deserialize(path, payload, in_tree, out_tree):
-        from jax.experimental import serialize_executable
-
-        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+            return False
         try:
             os.utime(path)
         except OSError:
             pass
-        return compiled
+        return compiled, result_tree
 
-    def _compile(self, root, key, n_args, statics, static_kw, avals, treedef, run):
-        """Trace and lower the flat program of the argument `avals` here, then (through `run`)
-        compile it without JAX's persistent compilation cache (see below) and store it; a program
-        with a host callback is compiled for this process only. None where it must go through
-        jax.jit."""
+    def _compile(self, root, key, n_args, statics, static_kw, leaves, treedef):
+        """Trace, lower and compile the flat program of `leaves` (without JAX's persistent
+        compilation cache, see below) and store it; a program with a host callback is compiled for
+        this process only; None where it must go through jax.jit."""
         from jax.experimental import serialize_executable
 
         fn = self._fn
@@ -442,60 +323,35 @@ class cached_jit:
         # holds in memory (possibly read from its persistent cache, see below).
         flat.__name__ = flat.__qualname__ = f"{self.__name__}_stored"
         try:
-            traced = jax.jit(flat).trace(*avals)
-            lowered = traced.lower()
-        except Exception:  # noqa: BLE001 (not traceable here: jax.jit raises the error itself)
-            return None
-        result_tree = trees[-1]
-        out_avals = tuple((tuple(o.shape), np.dtype(o.dtype).str, bool(o.weak_type)) for o in traced.out_info)
-        if _has_callback(traced.jaxpr):  # this process's program only (traced once, not twice)
-            return _Entry(run(lowered.compile), result_tree, out_avals)
-        path = self._path(root, key)
-
-        def compile_and_store():
+            traced = jax.jit(flat).trace(*leaves)
+            if _has_callback(traced.jaxpr):  # this process's program only (traced once, not twice)
+                return traced.lower().compile(), trees[-1]
             # Compiled here, not read from JAX's persistent cache: an executable loaded from that
             # cache serializes without its kernels (it fails when called after loading: measured
             # with jax 0.10). The context is thread-local.
             from jax._src.config import enable_compilation_cache
 
             with enable_compilation_cache(False):
-                compiled = lowered.compile()
+                compiled = traced.lower().compile()
+            payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+            blob = pickle.dumps((key, payload, in_tree, out_tree, trees[-1]))
+        except Exception:  # noqa: BLE001 (not serializable here: run through jax.jit)
+            return None
+        path = self._path(root, key)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            tmp.write_bytes(blob)
+            os.replace(tmp, path)
+        except OSError:
             try:
-                payload, in_tree, out_tree = serialize_executable.serialize(compiled)
-                blob = pickle.dumps((_FORMAT, key, payload, in_tree, out_tree, result_tree, out_avals))
-            except Exception:  # noqa: BLE001 (not serializable: this process's program only)
-                return compiled
-            tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
-            try:
-                root.mkdir(parents=True, exist_ok=True)
-                tmp.write_bytes(blob)
-                os.replace(tmp, path)
+                tmp.unlink()
             except OSError:
-                try:
-                    tmp.unlink()
-                except OSError:
-                    pass
-            return compiled
-
-        return _Entry(run(compile_and_store), result_tree, out_avals)
-
-
-def _weak(x) -> bool:
-    aval = getattr(x, "aval", None)
-    return bool(getattr(aval if aval is not None else x, "weak_type", False))
-
-
-def _zeros(shape, dtype, weak):
-    """Zeros of an aval inside a trace, weak type included (the next stage's key reads it)."""
-    z = jax.numpy.zeros(shape, dtype)
-    if weak:
-        from jax._src.lax.lax import _convert_element_type
-
-        z = _convert_element_type(z, np.dtype(dtype), weak_type=True)
-    return z
+                pass
+        return compiled, trees[-1]
 
 
 def _aval(x) -> str:
-    if isinstance(x, (jax.Array, np.ndarray, np.generic, jax.core.Tracer)):
-        return f"{tuple(x.shape)}/{np.dtype(x.dtype).str}/{int(_weak(x))}"
+    if isinstance(x, (jax.Array, np.ndarray, np.generic)):
+        return f"{tuple(x.shape)}/{np.dtype(x.dtype).str}/{int(bool(getattr(x, 'weak_type', False)))}"
     raise _Uncacheable(type(x).__name__)

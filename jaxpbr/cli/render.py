@@ -10,7 +10,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from .. import _program_cache, color
+from .. import color
 from ..conventions import CONVENTIONS
 from ..io import image
 from ..io.atomic import OutputSet
@@ -252,8 +252,6 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     # A bar only when there is more than one pass (bands of a large image, sub-pixel samples).
     passes = scene.camera.supersample ** 2 * (1 if W * H <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W)))
     progress = Progress("render") if passes > 1 else None
-    # The display transform's program loads or compiles while the render runs.
-    _program_cache.prepare(color.display, jax.ShapeDtypeStruct((H, W, 3), np.dtype(opts.dtype)), ev, tonemap=tonemap, encoding=encoding)
     if args.aov:  # one geometry pass for the image and its AOVs where it can be shared
         from ..rendering.aovs import render_with_aovs
 

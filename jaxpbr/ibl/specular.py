@@ -352,17 +352,6 @@ _reference_sum = functools.partial(lobe_reference_sum, lobe=_ggx_kernel)
 # ------------------------------------------------------------------------------------------
 
 
-def chain_lookup_info(face_size: int, num_levels: int, *, mapping: str, lod_blend: str = DEFAULT_LOD_BLEND) -> dict:
-    """The metadata of a prefiltered chain of `num_levels` levels (face `face_size`) that says how it
-    is looked up: "roughness_mapping", "mapping_levels" and `lookup_metadata` (what `prefilter`
-    records, and what a program reading the chain is compiled for)."""
-    return {
-        "roughness_mapping": mapping,
-        "mapping_levels": str(num_levels),
-        **lookup_metadata(num_levels, mapping=mapping, lod_blend=lod_blend, face_size=face_size),
-    }
-
-
 def prefilter(
     env: Cubemap,
     size: int | None = None,
@@ -533,13 +522,12 @@ def prefilter(
             levels.append(jnp.asarray(ld.reshape(6, Sm, Sm, -1), env.dtype))
             if progress is not None:
                 progress(m, last)
-    lookup = chain_lookup_info(S, M, mapping=mapping, lod_blend=lod_blend)
     info = {
         "quantity": "LD(R, r_m) = int L D (R.l)+ dl / int D (R.l)+ dl, n = v = R (Karis split sum)",
-        "roughness_mapping": lookup.pop("roughness_mapping"),
-        "mapping_levels": lookup.pop("mapping_levels"),
+        "roughness_mapping": mapping,
+        "mapping_levels": str(M),
         "level_roughness": ",".join(f"{x:.9g}" for x in rough),
-        **lookup,
+        **lookup_metadata(M, mapping=mapping, lod_blend=lod_blend, face_size=S),
         "prefilter_method": method,
     }
     if method == "fis":

@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 
 import jax.numpy as jnp
-import numpy as np
 
 from .. import _memory
 from .._api import keyword_only
@@ -41,27 +40,6 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions, cache: Ass
         _asset_irradiance(env, p, opts, key, cache), _asset_prefiltered(env, p, opts, key, cache),
         _asset_lut(env, opts, cache), lights, _asset_sheen(env, p, opts, cache),
     )
-
-
-def _stand_ins(env: Environment, p: RenderPlan, opts: RenderOptions, lut, lights):
-    """The (irradiance, prefiltered, LUT, disc lights, sheen) tuple of a staged render with zeros of
-    the final shapes and dtypes, and the lookup metadata, in place of the maps still to be
-    computed: what the IBL stage is compiled for before their values exist
-    (`stages.prepare_pass`). None where that is not known ahead (the sheen maps)."""
-    if p.charlie_size:
-        return None
-    dtype = np.dtype(opts.dtype)
-    C = env.radiance.levels[0].shape[-1]
-    zeros = lambda s: np.zeros((6, s, s, C), dtype)  # noqa: E731 -- NumPy: no XLA program for a stand-in
-    irr = None
-    if p.ibl_diffuse:
-        irr = env.irradiance if env.irradiance is not None else Cubemap((zeros(opts.irradiance_size),))
-    pre = env.prefiltered
-    if pre is None:
-        S, M = p.prefilter_size, p.mapping_levels
-        pre = Cubemap([zeros(max(1, S >> m)) for m in range(p.prefilter_levels)],
-                      specular.chain_lookup_info(S, M, mapping=opts.mapping))
-    return _in_dtype(irr, opts), _in_dtype(pre, opts), lut, lights, None
 
 
 def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions, cache: AssetCache | None = None):

@@ -27,7 +27,6 @@ from .assets import (
     _asset_sheen,
     _env_assets,
     _env_key,
-    _stand_ins,
 )
 from .cache import AssetCache, cache_or_default
 from .execution import EXECUTION, Execution
@@ -35,7 +34,7 @@ from .options import RenderOptions, _options
 from .plan import RenderPlan, _env_split, check_memory, plan
 from .scene import Scene
 from .mesh import Mesh, device_accel
-from .stages import AccelScene, PendingAssets, _render_jit, _render_pass, prepare_pass
+from .stages import AccelScene, PendingAssets, _render_jit, _render_pass
 
 
 def render(
@@ -86,32 +85,16 @@ def render(
             sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
             futures.append(sheen)
             lut = _asset_lut(env, opts, cache)
-            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()),
-                                    _stand_ins(env, p, opts, lut, env_lights))
-            return _banded(scene, opts, p, _prepared(lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True),
-                                                     pending, opts), progress, execution)
+            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()))
+            return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True),
+                           progress, execution)
         finally:
             # On success every map was used; on an error or an interrupt the precomputes not
             # started yet are dropped, and one still running is not waited for.
             for f in futures:
                 f.cancel()
     assets = _env_assets(env, p, opts, cache) if p.ibl else None
-    return _banded(scene, opts, p, _prepared(lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), assets, opts),
-                   progress, execution)
-
-
-def _prepared(one_pass, assets, opts: RenderOptions):
-    """one_pass, whose first call starts every stage program of the pass first (`prepare_pass`):
-    the passes of one render (bands, sub-pixel samples) share their programs."""
-    first = [True]
-
-    def run(sc, pb, off):
-        if first[0]:
-            first[0] = False
-            prepare_pass(sc, assets, pb, opts, off)
-        return one_pass(sc, pb, off)
-
-    return run
+    return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), progress, execution)
 
 
 def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None, execution: Execution | None = None):

@@ -19,8 +19,7 @@ import numpy as np
 
 from .._api import keyword_only
 from .._numerics import pack3, small_sq, unpack3, vcross, vdot, vnormalize
-from .._program_cache import active as program_cache_active
-from .._program_cache import cached_jit, is_preparing, preparing
+from .._program_cache import cached_jit
 from .._pytree import evolve, fields_of, subtree, unchecked
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..shading.layered import emission_soa
@@ -575,12 +574,7 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         env_lights = assets.env_lights if isinstance(assets, PendingAssets) else assets[3]
         g = {**g, "vis_env": (_sun_shadows_jit if staged else _sun_shadows)(scene, opts, g, env_lights)}
     if isinstance(assets, PendingAssets):
-        if is_preparing():  # (`prepare_pass`: the maps' stand-ins, or the IBL stage later)
-            if assets.stand_ins is None:
-                return direct
-            assets = assets.stand_ins
-        else:
-            assets = assets()
+        assets = assets()
     return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
 
 
@@ -592,34 +586,14 @@ GEOMETRY_SINK: contextvars.ContextVar[list | None] = contextvars.ContextVar("jax
 class PendingAssets:
     """The environment's assets of a staged render while worker threads compute its maps: the
     suns split out of it (`env_lights`) now, the (irradiance, prefiltered, LUT, suns, sheen) tuple
-    when called (waiting for the maps). `stand_ins`: that tuple with zeros of the maps' shapes and
-    their lookup metadata (`assets._stand_ins`), or None: what `prepare_pass` compiles the IBL
-    stage for."""
+    when called (waiting for the maps)."""
 
-    def __init__(self, env_lights, resolve, stand_ins=None):
+    def __init__(self, env_lights, resolve):
         self.env_lights = env_lights
         self._resolve = resolve
-        self.stand_ins = stand_ins
 
     def __call__(self):
         return self._resolve()
-
-
-def prepare_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset) -> None:
-    """Start every stored stage program of one staged pass (`_render_pass(..., staged=True)`) on
-    the compile threads before the pass runs (`_program_cache.preparing`): the pass is traced
-    abstractly, each stage for the shapes the one before returns, so the stages' programs load or
-    compile side by side and beside the precomputes (the IBL stage for the maps' stand-ins while
-    they are computed) instead of one after another. Nothing happens while no program directory
-    is in use (the command line's asset cache)."""
-    if not program_cache_active():
-        return
-    token = GEOMETRY_SINK.set(None)
-    try:
-        with preparing():
-            jax.eval_shape(lambda off: _render_pass(scene, assets, p_plan, opts, off, staged=True), offset)
-    finally:
-        GEOMETRY_SINK.reset(token)
 
 
 def _lean(scene: Scene) -> Scene:
