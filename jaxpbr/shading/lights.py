@@ -559,6 +559,23 @@ DISC_LOBE_POINTS = 16
 
 
 def disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g, aniso=None) -> jax.Array:
+    """`_disc_lobe_ratio` (below) where the disc has a radius, else 1 (its value at sigma = 0).
+
+    The quadrature runs as a branch of a conditional on sigma > 0: XLA:CPU then keeps its result as
+    an array of its own, where inlined it was fused into every consumer and recomputed there (once
+    per colour channel): a sun's `shade_direct` at 1280x720 measured 155 ms against 216 ms."""
+    s = jnp.asarray(sin_sigma)
+    shape = jnp.broadcast_shapes(*(jnp.shape(x) for x in jax.tree_util.tree_leaves((n, v, l, s, alpha2))))
+    dtype = jnp.result_type(*jax.tree_util.tree_leaves((n, v, l, alpha2)))
+    return jax.lax.cond(
+        jnp.any(s > 0),
+        lambda o: jnp.broadcast_to(_disc_lobe_ratio(*o[:6], aniso=o[6]), shape).astype(dtype),
+        lambda o: jnp.ones(shape, dtype),
+        (n, v, l, s, alpha2, g, aniso),
+    )
+
+
+def _disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g, aniso=None) -> jax.Array:
     """Mean of the GGX D over a disc of directions (centre l, angular radius sigma), divided by D
     at the centre's half vector: the factor `shade_direct` puts on the specular lobe of a disc
     light. g: `Geometry` of (n, v, l); alpha2 = alpha^2 (floored, > 0).
