@@ -19,6 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._program_cache import cached_jit
+
 __all__ = [
     "HIGHEST",
     "Vec3",
@@ -68,18 +70,30 @@ def as_float(x) -> jax.Array:
             key = (tuple(float(e).hex() for e in flat), np.shape(x), *_memo_context())
             out = _WEAK.get(key)
             if out is None:
-                out = _remember(key, jnp.stack([jnp.asarray(float(e)) for e in flat]).reshape(np.shape(x)))
+                out = _remember(key, _weak_stack(*(jax.device_put(float(e)) for e in flat)).reshape(np.shape(x)))
             return out
     if type(x) is float:  # (not NumPy scalars, whose dtype is strong; ints take the path below)
         key = (x.hex(), *_memo_context())
         out = _WEAK.get(key)
-        return out if out is not None else _remember(key, jnp.asarray(x))
-    x = jnp.asarray(x)
+        # (device_put makes the weakly typed array of a Python float without an XLA program)
+        return out if out is not None else _remember(key, jax.device_put(x))
+    # A NumPy array is copied to the device as it is: jnp.asarray would run an XLA program for it
+    # (one per shape and dtype, each traced, lowered and looked up in the compilation cache).
+    x = jax.device_put(x) if isinstance(x, np.ndarray) and x.dtype != object else jnp.asarray(x)
     if jnp.issubdtype(x.dtype, jnp.complexfloating):
         raise TypeError(f"expected real values, got a {x.dtype} array (take .real explicitly if that is meant)")
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.result_type(float))
     return x
+
+
+def _stack(*xs):
+    return jnp.stack(xs)
+
+
+#: Weakly typed scalars stacked into a weakly typed vector: a stored program where the command
+#: line keeps them (`_program_cache`), so a warm start lowers none.
+_weak_stack = cached_jit(_stack)
 
 
 #: The weakly typed arrays of Python numbers and short tuples already converted (scene objects repeat

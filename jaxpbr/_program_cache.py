@@ -39,18 +39,20 @@ import dataclasses
 import enum
 import functools
 import hashlib
+import json
 import os
 import pickle
 import platform
 import threading
 import types
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import jax
 import numpy as np
 
-__all__ = ["cached_jit", "directory", "package_digest", "use_directory"]
+__all__ = ["cached_jit", "directory", "package_digest", "recall", "remember", "use_directory"]
 
 _STATE: dict = {"dir": None}
 _DIGEST: list[str] = []
@@ -238,8 +240,9 @@ class cached_jit:
         leaves, treedef = jax.tree_util.tree_flatten(dyn)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return self._jit(*args, **kwargs)
-        # Python numbers as the weakly typed arrays jax.jit makes of them
-        leaves = [jax.numpy.asarray(x) if isinstance(x, (bool, int, float, complex)) else x for x in leaves]
+        # Python numbers as the weakly typed arrays jax.jit makes of them (device_put: without an
+        # XLA program of its own)
+        leaves = [jax.device_put(x) if isinstance(x, (bool, int, float, complex)) else x for x in leaves]
         try:
             parts = [
                 f"{self._fn.__module__}.{self._fn.__qualname__}",
@@ -282,25 +285,17 @@ class cached_jit:
         return root / f"{PREFIX}{key[:40]}.bin"
 
     def _load(self, root, key):
-        from jax.experimental import serialize_executable
-
         path = self._path(root, key)
-        try:
-            blob = path.read_bytes()
-        except OSError:
-            return False
-        try:
-            stored_key, payload, in_tree, out_tree, result_tree = pickle.loads(blob)
-            if stored_key != key:
-                return False
-            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
-        except Exception:  # noqa: BLE001 (a damaged or foreign file: compiled again and rewritten)
+        pending = _RECALLED.pop(path.name, None)
+        loaded = pending.result() if pending is not None else _read(path)
+        if loaded is None or loaded[0] != key:
             return False
         try:
             os.utime(path)
         except OSError:
             pass
-        return compiled, result_tree
+        _USED.append(path.name)
+        return loaded[1], loaded[2]
 
     def _compile(self, root, key, n_args, statics, static_kw, leaves, treedef):
         """Trace, lower and compile the flat program of `leaves` (without JAX's persistent
@@ -343,12 +338,87 @@ class cached_jit:
             root.mkdir(parents=True, exist_ok=True)
             tmp.write_bytes(blob)
             os.replace(tmp, path)
+            _USED.append(path.name)
         except OSError:
             try:
                 tmp.unlink()
             except OSError:
                 pass
         return compiled, trees[-1]
+
+
+def _read(path: Path):
+    """(stored key, executable, result tree) of a stored program file, or None (missing, damaged
+    or foreign: the caller compiles it again and rewrites it)."""
+    from jax.experimental import serialize_executable
+
+    try:
+        stored_key, payload, in_tree, out_tree, result_tree = pickle.loads(path.read_bytes())
+        return stored_key, serialize_executable.deserialize_and_load(payload, in_tree, out_tree), result_tree
+    except Exception:  # noqa: BLE001
+        return None
+
+
+# -- recalling the programs of a repeated command -------------------------------------------------
+#: File in the directory: for each of the last `RECALL_COMMANDS` command signatures, the program
+#: files its last run used.
+MANIFEST = "program_recall.json"
+RECALL_COMMANDS = 32
+_USED: list[str] = []  # program files this process loaded or stored, in order
+_RECALLED: dict[str, Future] = {}  # file name -> Future of `_read`
+
+
+def recall(signature: str) -> int:
+    """Start reading the program files that the last run of the command `signature` used, on a
+    background thread (XLA deserializes without the GIL), while this one builds the scene: a
+    warm rerun then finds its stages loaded instead of loading each when first called (measured
+    0.2 s of 1.7 s for the demo on 2 cores). A call still checks the file's full key; a file
+    recalled in vain costs only the background read. Returns the number of files recalled."""
+    root = _STATE["dir"]
+    _USED.clear()
+    if root is None:
+        return 0
+    try:
+        names = json.loads((root / MANIFEST).read_text()).get(signature, [])
+    except (OSError, ValueError, AttributeError):
+        return 0
+    names = [n for n in names if isinstance(n, str) and n.startswith(PREFIX) and n.endswith(".bin") and "/" not in n]
+    if not names:
+        return 0
+    reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-recall")
+    for name in names:
+        _RECALLED[name] = reader.submit(_read, root / name)
+    reader.shutdown(wait=False)
+    return len(names)
+
+
+def remember(signature: str) -> None:
+    """Record the program files this process used (since `recall`) as the command `signature`'s,
+    for its next run (the last `RECALL_COMMANDS` commands are kept; written atomically)."""
+    root = _STATE["dir"]
+    _RECALLED.clear()
+    if root is None or not _USED:
+        return
+    path = root / MANIFEST
+    try:
+        table = json.loads(path.read_text())
+        if not isinstance(table, dict):
+            table = {}
+    except (OSError, ValueError):
+        table = {}
+    table.pop(signature, None)
+    table[signature] = list(dict.fromkeys(_USED))
+    while len(table) > RECALL_COMMANDS:
+        table.pop(next(iter(table)))
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(table))
+        os.replace(tmp, path)
+    except OSError:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
 
 
 def _aval(x) -> str:

@@ -123,10 +123,11 @@ def test_settings_that_change_a_trace_are_in_the_key():
 
 @pytest.mark.slow  # two processes, the first compiling every stage without JAX's cache: 10-20 s
 def test_a_warm_command_line_render_loads_its_stages(tmp_path):
-    """Two `jaxpbr render` processes on one asset cache: the second traces no render stage and
-    writes the same image."""
+    """Two `jaxpbr render` processes on one asset cache: the second lowers no program at all (the
+    stages, the display and the small conversions are loaded, the sky is read from the asset
+    cache, NumPy inputs are copied without programs of their own) and writes the same image."""
     env = dict(os.environ, JAXPBR_ASSET_CACHE=str(tmp_path / "assets"), JAX_LOG_COMPILES="1")
-    outs = []
+    outs, files = [], []
     for i in range(2):
         out = tmp_path / f"demo{i}.png"
         r = subprocess.run([sys.executable, "-c", "import sys; from jaxpbr.cli import main; sys.exit(main(sys.argv[1:]))",
@@ -134,11 +135,12 @@ def test_a_warm_command_line_render_loads_its_stages(tmp_path):
                            env=env, capture_output=True, text=True, check=False)
         assert r.returncode == 0, r.stderr[-2000:]
         outs.append((out, r.stderr))
-    traced = lambda log, name: re.search(rf"Finished tracing (\+ transforming )?{name}(_stored)? for ", log) is not None  # noqa: E731
+        files.append(_files(tmp_path / "assets"))
+    lowered = lambda log, name: re.search(rf"Finished jaxpr to MLIR module conversion jit\({name}(_stored)?\)", log) is not None  # noqa: E731
     for stage in ("_geometry", "_shade_direct", "_shade_rest", "_display", "_filtered_level"):
-        assert traced(outs[0][1], stage), stage
-        assert not traced(outs[1][1], stage), stage
-    assert len(_files(tmp_path / "assets")) == 5  # the three stages, the display and the sky's cube
+        assert lowered(outs[0][1], stage), stage
+    assert "Finished jaxpr to MLIR module conversion" not in outs[1][1], outs[1][1][-3000:]
+    assert len(files[0]) >= 5 and files[1] == files[0]  # the stages, display and sky filter; nothing new
     from jaxpbr.io import image
 
     a = image.read(outs[0][0].with_suffix(".exr"))
@@ -196,3 +198,24 @@ def test_cube_metadata_is_named_by_its_lookup_part():
     b = CubeInfo((("mapping_levels", "5"), ("roughness_mapping", "linear"), ("source", "sky.hdr")))
     c = CubeInfo((("mapping_levels", "6"), ("roughness_mapping", "linear")))
     assert pc._canon(a) == pc._canon(b) != pc._canon(c)
+
+
+def test_a_command_recalls_the_programs_its_last_run_used(cache_dir, monkeypatch):
+    f = pc.cached_jit(_f, static_argnums=(1,))
+    x = np.arange(4, dtype=np.float32)
+    pc.recall('["render"]')  # (the command's start: nothing recorded yet)
+    ref = np.asarray(f(x, _Opts(1.5, "cos"))["y"])
+    pc.remember('["render"]')
+    assert pc.recall('["other"]') == 0  # another command: nothing recalled
+    # a new process: nothing in memory; the recalled file is read on the background thread
+    g = pc.cached_jit(_f, static_argnums=(1,))
+    assert pc.recall('["render"]') == 1
+    for fut in list(pc._RECALLED.values()):
+        fut.result()
+    monkeypatch.setattr(pc, "_read", lambda path: pytest.fail("read on the caller's thread"))
+    monkeypatch.setattr(pc.cached_jit, "_compile", lambda *a, **k: pytest.fail("compiled"))
+    np.testing.assert_array_equal(g(x, _Opts(1.5, "cos"))["y"], ref)
+    assert not pc._RECALLED
+    # a damaged record is ignored
+    (cache_dir / pc.MANIFEST).write_text("{not json")
+    assert pc.recall('["render"]') == 0

@@ -8,13 +8,14 @@ stderr with a non-zero exit status (`--debug` shows the traceback instead).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import signal
 import sys
 import threading
 import warnings
 
-from .. import _entry
+from .. import _entry, _program_cache
 from .._version import __version__
 from ..io import atomic
 from . import (
@@ -170,6 +171,9 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
         _start_watchdog()
     _cache.enable()
     _cache.enable_assets()
+    # The stored programs the last run of this very command used start loading now.
+    signature = json.dumps(sys.argv[1:] if argv is None else list(argv))
+    _program_cache.recall(signature)
     previous, previous_hook = {}, sys.unraisablehook
     try:
         previous, previous_hook = _catch_signals()
@@ -177,6 +181,8 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
             warnings.showwarning = _show_warning  # the library's warnings as one line, like errors
             code = int(args.func(args) or 0)
             raise_pending()  # a signal after the outputs' commit (`atomic.OutputSet`): report it
+            if code == 0:
+                _program_cache.remember(signature)
             return code
     except KeyboardInterrupt as exc:  # SIGINT, or SIGTERM (Terminated): files already rolled back
         return _interrupted(isinstance(exc, Terminated), entry)

@@ -439,7 +439,9 @@ class Cubemap(Pytree):
         levels = self.levels
         if isinstance(levels, (jax.Array, np.ndarray)):
             levels = (levels,)
-        levels = tuple(jnp.asarray(lv) for lv in levels)
+        # (a NumPy level is copied as it is: jnp.asarray would run an XLA program per shape)
+        levels = tuple(jax.device_put(lv) if isinstance(lv, np.ndarray) and lv.dtype != object else jnp.asarray(lv)
+                       for lv in levels)
         if not levels:
             raise ValueError("a Cubemap needs at least one level")
         S = None

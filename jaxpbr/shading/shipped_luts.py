@@ -13,7 +13,6 @@ from __future__ import annotations
 import functools
 import json
 from importlib import resources
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
