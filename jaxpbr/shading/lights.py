@@ -638,29 +638,31 @@ def _disc_lobe_ratio(n: Vec3, v: Vec3, l: Vec3, sin_sigma, alpha2, g, aniso=None
     dn_ = jnp.where(d > 0, d, 1.0)
     u1, u2 = jnp.where(d > 0, b1 / dn_, 1.0), jnp.where(d > 0, b2 / dn_, 0.0)
     half = jnp.arcsin(jnp.clip(1.0 / jnp.where(inside, 2.0, dn_), 0.0, 1.0 - 1e-7))
-    # The rule's points along a trailing axis (one fused loop, not K unrolled copies).
+    # The rule's points one after another in a loop (one compiled body, not K unrolled copies),
+    # summed in a fixed order whatever the image's shape (a render in bands equals the whole image).
+    # Measured against the points along a trailing axis summed in order: a sun's shading at
+    # 1280x720 0.73x the run time (111 against 152 ms), the IBL stage holding it 0.87x; the same
+    # compile time.
     K = DISC_LOBE_POINTS
-    x = (jnp.arange(K, dtype=jnp.result_type(d)) + 0.5) / K
-    ex = lambda a: jnp.asarray(a)[..., None]  # noqa: E731
-    theta = (x - 0.5) * jnp.pi
-    ins = ex(inside)
-    phi = jnp.where(ins, 2.0 * jnp.pi * x, ex(half) * jnp.sin(theta))
-    w_phi = jnp.where(ins, 2.0 * jnp.pi / K, ex(half) * jnp.cos(theta) * (jnp.pi / K))
-    cp, sp = jnp.cos(phi), jnp.sin(phi)
-    y1, y2 = cp * ex(u1) - sp * ex(u2), sp * ex(u1) + cp * ex(u2)  # the ray's direction: c_B's rotated by phi
-    dd = ex(d)
-    p = dd * cp
-    sq = safe_sqrt(1.0 - dd * dd * sp * sp)
-    t_out = p + sq
-    t_in = jnp.where(ins, 0.0, jnp.maximum(p - sq, 0.0))
-    w2 = (ex(a11) * y1 + ex(a12) * y2) ** 2 + (ex(a21) * y1 + ex(a22) * y2) ** 2  # |A y|^2
-    dt2 = jnp.where(ins, t_out * t_out, 4.0 * p * sq)  # t_out^2 - t_in^2
-    terms = w_phi * dt2 / ((1.0 + t_out * t_out * w2) * (1.0 + t_in * t_in * w2))
-    # Summed in a fixed order (XLA's reduction order depends on the array's shape, which made a
-    # render in bands differ from the whole image in the last bit).
-    total = terms[..., 0]
-    for j in range(1, K):
-        total = total + terms[..., j]
+    dt = jnp.result_type(d)
+
+    def point(j, total):
+        x = (j.astype(dt) + 0.5) / K
+        theta = (x - 0.5) * jnp.pi
+        phi = jnp.where(inside, 2.0 * jnp.pi * x, half * jnp.sin(theta))
+        w_phi = jnp.where(inside, 2.0 * jnp.pi / K, half * jnp.cos(theta) * (jnp.pi / K))
+        cp, sp = jnp.cos(phi), jnp.sin(phi)
+        y1, y2 = cp * u1 - sp * u2, sp * u1 + cp * u2  # the ray's direction: c_B's rotated by phi
+        p = d * cp
+        sq = safe_sqrt(1.0 - d * d * sp * sp)
+        t_out = p + sq
+        t_in = jnp.where(inside, 0.0, jnp.maximum(p - sq, 0.0))
+        w2 = (a11 * y1 + a12 * y2) ** 2 + (a21 * y1 + a22 * y2) ** 2  # |A y|^2
+        dt2 = jnp.where(inside, t_out * t_out, 4.0 * p * sq)  # t_out^2 - t_in^2
+        return total + w_phi * dt2 / ((1.0 + t_out * t_out * w2) * (1.0 + t_in * t_in * w2))
+
+    shape = jnp.broadcast_shapes(*(jnp.shape(a) for a in (d, half, u1, u2, a11, a12, a21, a22)))
+    total = jax.lax.fori_loop(0, K, point, jnp.zeros(shape, dt))
     mass = jnp.abs(det_s) * total / (2.0 * jnp.pi)
     s2 = jnp.where(ok, s * s, 1.0)
     if aniso is None:
