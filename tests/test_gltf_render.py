@@ -878,3 +878,45 @@ def test_concurrent_requests_for_one_content_build_it_once(monkeypatch):
         t.join()
     assert accels.builds == 1 and len(got) == 4 and all(a is got[0] for a in got)
     assert not accels.building
+
+
+def test_a_staged_mesh_render_calls_the_ray_engine_without_callback_programs(monkeypatch):
+    """Outside transformations the primary and shadow rays go to the host ray engine between stored
+    stages: no `jax.pure_callback` is traced (its program could not be kept across processes)."""
+    light = jp.DirectionalLight(direction=(-0.5, -1.0, -0.3), intensity=3.0)
+    scene, _ = _shadow_scene(False, light)
+    callbacks = []
+    real = jax.pure_callback
+    monkeypatch.setattr(jax, "pure_callback", lambda *a, **k: callbacks.append(1) or real(*a, **k))
+    img = np.asarray(jp.render(scene, shadows=True))
+    assert not callbacks and np.isfinite(img).all() and (img == 0.0).any()  # the shadow is black
+
+
+@pytest.mark.slow  # compiles the whole render as one traced program: ~30 s
+def test_staged_render_calls_the_ray_engine_directly_and_matches_the_callback_path(monkeypatch):
+    """A render outside transformations casts its primary and shadow rays by calling the host ray
+    engine between stored stages (no program holding a callback); under jit the same rays go
+    through `jax.pure_callback` in the trace. Both give the same image: opaque, cut-out, blended
+    and transmissive meshes, a point light and the sun split out of the sky."""
+    env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16))
+    occluders = [_glass_quad(_GLASS, y=1.0), _wall(-0.5, size=1.0, material=_GREEN, alpha_mode="MASK", alpha=0.2),
+                 _wall(-1.0, size=1.0, material=_GREEN, alpha_mode="BLEND", alpha=0.5),
+                 Mesh(*(lambda P, N, UV, T: (P + np.float32([0.6, 0.5, 0.3]), T))(*uv_sphere(12, 24, radius=0.3)),
+                      material=jp.Material(base_color=(0.8, 0.3, 0.3), roughness=0.5))]
+    floor = Mesh(positions=np.array([[-3, 0, 3], [3, 0, 3], [3, 0, -3], [-3, 0, -3]], np.float32),
+                 triangles=np.array([[0, 1, 2], [0, 2, 3]], np.int32), material=_FLOOR_MAT)
+    cam = jp.Camera(position=(0.0, 2.5, 3.2), target=(0.0, 0.3, 0.0), fov_y_deg=50.0, width=32, height=24)
+    scene = jp.Scene(camera=cam, objects=[floor, *occluders], lights=[jp.PointLight(tuple(_LAMP), intensity=_LAMP_CD)],
+                     environment=env)
+    assert R.plan(scene).shadows and R.plan(scene).env_lights >= 1 and R.plan(scene).blend_layers > 1
+    callbacks = []
+    real = jax.pure_callback
+    monkeypatch.setattr(jax, "pure_callback", lambda *a, **k: callbacks.append(1) or real(*a, **k))
+    direct = np.asarray(jp.render(scene))
+    assert not callbacks  # the host engine was called directly
+    # Under jit with the floor's vertices traced (the environment stays concrete: its sun is split
+    # out as in the direct render), the casts go through the callback.
+    traced = np.asarray(jax.jit(lambda p: jp.render(scene.replace(objects=[floor.replace(positions=p), *occluders])))(floor.positions))
+    assert callbacks
+    assert np.isfinite(direct).all() and direct.max() > 0
+    np.testing.assert_allclose(direct, traced, rtol=2e-5, atol=1e-6)

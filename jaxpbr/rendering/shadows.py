@@ -43,7 +43,7 @@ from .scene import Plane, Sphere, intersect_plane, intersect_sphere
 from .textured import TexturedMaterial
 from .visibility import offset_ray_origin
 
-__all__ = ["shadow_visibility"]
+__all__ = ["colored_shadows", "host_mesh_hits", "shadow_combine", "shadow_segments", "shadow_visibility"]
 
 def _host_occluded(vertices, triangles, o, d, tfar, alpha=None, transmit=None):
     """Without `transmit`: (...,) bool, the segment meets an opaque point. With it: (..., 3) the
@@ -181,6 +181,22 @@ def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_onl
     (see the module docstring): lights as for `shade_direct` (their packed order). arrays: the
     meshes' concatenated arrays (`mesh.concat_meshes`) or None. directions_only: the lights are
     directions to the light (Vec3 list, e.g. rotated suns) rather than light objects."""
+    parts = shadow_segments(objects, pos, ng, lights, dtype, directions_only=directions_only)
+    hits = [None if arrays is None else _mesh_occluded(arrays, p["o32"], p["l"], p["tfar"]) for p in parts]
+    return shadow_combine(colored_shadows(objects), parts, hits, dtype)
+
+
+def colored_shadows(objects) -> bool:
+    """Whether visibility is per colour channel: some surface lets part of the light through."""
+    return any(transmits(ob.material) for ob in objects if isinstance(ob, (Mesh, Sphere, Plane)))
+
+
+def shadow_segments(objects, pos, ng, lights, dtype, *, directions_only: bool = False) -> list[dict]:
+    """Per light (their packed order), the shadow segment from each surface point and what the
+    analytic objects do to it: {"o32": (..., 3) float32 origins, "l": (..., 3) float32 directions,
+    "tfar": (...) float32 lengths, "blocked": (...) bool, "left": (..., 3) light left or None}. The
+    meshes' part (`_mesh_occluded`, or `host_mesh_hits` outside a trace) and `shadow_combine` make
+    the visibility."""
     if directions_only:
         dirs = [(vnormalize(lt), None) for lt in lights]
     else:
@@ -195,9 +211,7 @@ def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_onl
             l = tuple(jnp.where(directional, -axis[j], to[j] / jnp.maximum(dist, 1e-30)) for j in range(3))
             dirs.append((l, jnp.where(directional, jnp.inf, dist)))
     analytic = [ob for ob in objects if not isinstance(ob, Mesh)]
-    # Coloured visibility (..., L, 3) where some surface lets part of the light through (static).
-    rgb = any(transmits(ob.material) for ob in objects if isinstance(ob, (Mesh, Sphere, Plane)))
-    out = []
+    parts = []
     for l, dist in dirs:
         side = jnp.where(vdot(ng, l) < 0, -1.0, 1.0)
         # Rays are traced in float32 (the ray engine's precision): the offset is float32's.
@@ -209,8 +223,29 @@ def shadow_visibility(objects, arrays, pos, ng, lights, dtype, *, directions_onl
         # A point light's own position is not an occluder: stop a hair short of it.
         tfar = tfar * (1 - 8 * jnp.finfo(dtype).eps)
         blocked, left = _analytic_occluded(analytic, o, l, tfar, dtype) if analytic else (jnp.zeros(pos[0].shape, bool), None)
-        if arrays is not None:
-            m = _mesh_occluded(arrays, o32, jnp.stack(l, -1), tfar)
+        parts.append({"o32": o32.astype(jnp.float32), "l": jnp.stack(l, -1).astype(jnp.float32), "tfar": tfar.astype(jnp.float32),
+                      "blocked": blocked, "left": left})
+    return parts
+
+
+def host_mesh_hits(arrays, parts) -> list:
+    """`_mesh_occluded` of each segment of `parts` on the host, outside any trace (NumPy in, NumPy
+    out): the staged render calls the ray engine directly instead of compiling a program that
+    calls back to it. arrays: the meshes' concatenated arrays (NumPy or concrete)."""
+    tree = lambda x: None if x is None else jax.tree_util.tree_map(np.asarray, x)  # noqa: E731
+    verts, tris = np.asarray(arrays["positions"], np.float32), np.asarray(arrays["triangles"])
+    alpha, transmit = tree(arrays["alpha"]), tree(arrays.get("transmit"))
+    return [_host_occluded(verts, tris, np.asarray(p["o32"]), np.asarray(p["l"]), np.asarray(p["tfar"]), alpha, transmit)
+            for p in parts]
+
+
+def shadow_combine(rgb: bool, parts, hits, dtype):
+    """The (..., L) or (rgb) (..., L, 3) visibility from `shadow_segments` and the meshes' hits
+    (bool (...) or float (..., 3) light left; None without meshes)."""
+    out = []
+    for p, m in zip(parts, hits):
+        blocked, left = p["blocked"], p["left"]
+        if m is not None:
             if m.dtype == jnp.bool_:
                 blocked = blocked | m
             else:

@@ -26,7 +26,7 @@ from ..shading.layered import emission_soa
 from ..shading.lights import shade_direct
 from ..shading.material import Material
 from . import texture
-from .mesh import Mesh, cast, concat_meshes, mesh_surface
+from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface
 from .options import RenderOptions, _options
 from .plan import RenderPlan, plan
 from .scene import (
@@ -41,7 +41,7 @@ from .scene import (
     primary_rays,
     sample_texture,
 )
-from .shadows import shadow_visibility
+from .shadows import _mesh_occluded, colored_shadows, host_mesh_hits, shadow_combine, shadow_segments, shadow_visibility
 
 #: Up to this many spheres the ray cast is unrolled (fused by XLA); beyond, a fori_loop.
 UNROLL_MAX_SPHERES = 8
@@ -332,7 +332,7 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
 def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim=None, light_shadows: bool = True):
     """G-buffer of the scene (dict of Vec3 / arrays), before textures. `prim`: the meshes'
     primitive per pixel when cast already; light_shadows=False leaves the lights' shadow rays
-    (g["vis"]) to `_light_shadows`."""
+    (g["vis"]) to `_staged_shadows`."""
     dtype = jnp.dtype(opts.dtype)
     if scene.gbuffer is not None:
         gb = scene.gbuffer
@@ -500,7 +500,7 @@ def staged_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offse
     primary rays cast in a program of their own (`_mesh_geometry`). light_shadows=False leaves the
     lights' shadow rays out (the G-buffer and AOVs do not need them)."""
     if scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects):
-        prim = _layer_prims_jit(scene, p_plan, opts, offset, 1)
+        prim = _host_prims(scene, p_plan, opts, offset, 1)
         return _mesh_geometry(scene, p_plan, opts, offset, prim, light_shadows=light_shadows)
     return _geometry_jit(scene, p_plan, opts, offset, light_shadows=light_shadows)
 
@@ -512,26 +512,64 @@ def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset
     measured 3.9 s to compile at 1 M triangles), which the persistent cache then serves."""
     g = _geometry_jit(scene, p_plan, opts, offset, prim, light_shadows=False)
     if light_shadows and p_plan.shadows and p_plan.direct:
-        g = {**g, "vis": _light_shadows_jit(scene, opts, g["pos"], g["ng"])}
+        g = {**g, "vis": _staged_shadows(_light_segments_jit, scene, opts, g["pos"], g["ng"])}
     return g
 
 
-def _light_shadows(scene: Scene, opts: RenderOptions, pos, ng):
-    """The lights' shadow rays from the surface points (`shadows.shadow_visibility`)."""
+def _light_segments(scene: Scene, opts: RenderOptions, pos, ng):
+    """The lights' shadow segments from the surface points (`shadows.shadow_segments`) and the
+    meshes' arrays the host ray engine reads (None without meshes)."""
     dtype = jnp.dtype(opts.dtype)
-    meshes = any(isinstance(ob, Mesh) for ob in scene.objects)
     lights = _cast_floats(list(scene.lights), dtype)
-    return shadow_visibility(scene.objects, _mesh_arrays(scene, dtype) if meshes else None, pos, ng, lights, dtype)
+    return shadow_segments(scene.objects, pos, ng, lights, dtype), _host_arrays(scene, dtype)
 
 
-_light_shadows_jit = jax.jit(_light_shadows, static_argnums=(1,))
+def _sun_segments(scene: Scene, opts: RenderOptions, pos, ng, env_lights):
+    """`_light_segments` of the suns split out of the environment (`_sun_shadows`)."""
+    dtype = jnp.dtype(opts.dtype)
+    return shadow_segments(scene.objects, pos, ng, _sun_directions(scene, env_lights, dtype), dtype,
+                           directions_only=True), _host_arrays(scene, dtype)
+
+
+def _host_arrays(scene: Scene, dtype):
+    arrays = _mesh_arrays(scene, dtype)
+    if arrays is None:
+        return None
+    return {"positions": arrays["positions"].astype(jnp.float32), "triangles": arrays["triangles"],
+            "alpha": arrays["alpha"], "transmit": arrays.get("transmit")}
+
+
+def _combine(rgb: bool, dtype: str, parts, hits):
+    return shadow_combine(rgb, parts, hits, jnp.dtype(dtype))
+
+
+_light_segments_jit = cached_jit(_light_segments, static_argnums=(1,))
+_sun_segments_jit = cached_jit(_sun_segments, static_argnums=(1,))
+_combine_jit = cached_jit(_combine, static_argnums=(0, 1))
+
+
+def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args):
+    """Shadow visibility in a staged render: the segments from a stored program, the meshes' part
+    from the host ray engine called directly (`shadows.host_mesh_hits`), the two combined by a
+    stored program; no program holding a callback is compiled in every process."""
+    parts, arrays = segments(scene, opts, *args)
+    rgb = colored_shadows(scene.objects)
+    if _traced((parts, arrays)):  # (a render under jit / grad: the rays go through the callback)
+        hits = [None if arrays is None else _mesh_occluded(arrays, p["o32"], p["l"], p["tfar"]) for p in parts]
+        return shadow_combine(rgb, parts, hits, jnp.dtype(opts.dtype))
+    hits = [None] * len(parts) if arrays is None else [jax.device_put(h) for h in host_mesh_hits(arrays, parts)]
+    return _combine_jit(rgb, jnp.dtype(opts.dtype).name, parts, hits)
+
+
+def _traced(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
 def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool):
     """BLEND meshes: the nearest `blend_layers` surfaces of each pixel (cast once), each shaded as
     an image of its own by the same compiled stages, composited front to back with their alpha
     (C = sum_k a_k prod_{j<k} (1 - a_j) C_k; an opaque surface or the background ends the pixel)."""
-    prims = (_layer_prims_jit if staged else _layer_prims)(scene, p_plan, opts, offset)
+    prims = _host_prims(scene, p_plan, opts, offset) if staged else _layer_prims(scene, p_plan, opts, offset)
     out, keep = None, None
     for k in range(p_plan.blend_layers):
         if staged:
@@ -555,7 +593,32 @@ def _layer_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, 
     return cast(_mesh_arrays(scene, dtype), o_px, d_px, layers=p_plan.blend_layers if layers is None else layers)
 
 
-_layer_prims_jit = jax.jit(_layer_prims, static_argnums=(1, 2, 4))
+def _cast_inputs(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
+    """What the host ray engine reads for the primary rays (`mesh.cast`'s callback arguments): the
+    rays and the meshes' concatenated arrays, float32 where the engine traces in float32."""
+    dtype = jnp.dtype(opts.dtype)
+    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    arrays = _mesh_arrays(scene, dtype)
+    return {"o": o_px.astype(jnp.float32), "d": d_px.astype(jnp.float32), "positions": arrays["positions"].astype(jnp.float32),
+            "triangles": arrays["triangles"], "cull_back": arrays["cull_back"], "alpha": arrays["alpha"]}
+
+
+_cast_inputs_jit = cached_jit(_cast_inputs, static_argnums=(1, 2))
+
+
+def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, layers: int | None = None):
+    """`_layer_prims` of a staged render: the rays and the meshes' arrays from a stored program
+    (`_cast_inputs`), the host ray engine called directly rather than through a callback, so no
+    program holding a callback is compiled in every process (it cannot be kept: its cache key
+    names a Python object of its process)."""
+    layers = p_plan.blend_layers if layers is None else layers
+    x = _cast_inputs_jit(scene, p_plan, opts, offset)
+    if _traced(x):  # (a render under jit / grad: the cast goes through the callback in the trace)
+        return _layer_prims(scene, p_plan, opts, offset, layers)
+    alpha = None if x["alpha"] is None else jax.tree_util.tree_map(np.asarray, x["alpha"])
+    prim = _host_cast(np.asarray(x["positions"]), np.asarray(x["triangles"]), np.asarray(x["cull_back"]),
+                      np.asarray(x["o"]), np.asarray(x["d"]), alpha, layers=layers)
+    return jax.device_put(prim)
 
 
 def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool):
@@ -572,7 +635,9 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         # The suns are known before the maps: their shadow rays run while the maps are still being
         # computed on the worker threads (staged: `PendingAssets`).
         env_lights = assets.env_lights if isinstance(assets, PendingAssets) else assets[3]
-        g = {**g, "vis_env": (_sun_shadows_jit if staged else _sun_shadows)(scene, opts, g, env_lights)}
+        vis_env = (_staged_shadows(_sun_segments_jit, scene, opts, g["pos"], g["ng"], env_lights) if staged
+                   else _sun_shadows(scene, opts, g, env_lights))
+        g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
         assets = assets()
     return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
@@ -609,19 +674,22 @@ def _lean(scene: Scene) -> Scene:
     return evolve(scene, objects=objs)
 
 
-def _sun_shadows(scene: Scene, opts: RenderOptions, g, env_lights):
-    """(H, W, L) visibility of the suns split out of the environment (world directions: the
-    environment's frame turned by +rotation)."""
-    dtype = jnp.dtype(opts.dtype)
+def _sun_directions(scene: Scene, env_lights, dtype) -> list:
+    """World directions to the suns split out of the environment (its frame turned by +rotation)."""
     rot = jnp.asarray(scene.environment.rotation, dtype)
     ls = _cast_floats(list(env_lights), dtype)
-    to_sun = [_rotate_y(tuple(-jnp.asarray(s.direction, dtype)[i] for i in range(3)), rot) for s in ls]
-    return shadow_visibility(scene.objects, _mesh_arrays(scene, dtype), g["pos"], g["ng"], to_sun, dtype, directions_only=True)
+    return [_rotate_y(tuple(-jnp.asarray(s.direction, dtype)[i] for i in range(3)), rot) for s in ls]
+
+
+def _sun_shadows(scene: Scene, opts: RenderOptions, g, env_lights):
+    """(H, W, L) visibility of the suns split out of the environment."""
+    dtype = jnp.dtype(opts.dtype)
+    return shadow_visibility(scene.objects, _mesh_arrays(scene, dtype), g["pos"], g["ng"], _sun_directions(scene, env_lights, dtype),
+                             dtype, directions_only=True)
 
 
 # The staged programs, kept on disk where a trace cache directory is set (the command line's):
 # a later process loads them instead of tracing, lowering and compiling them (`_program_cache`).
-_sun_shadows_jit = cached_jit(_sun_shadows, static_argnums=(1,))
 _geometry_jit = cached_jit(_geometry, static_argnums=(1, 2), static_argnames=("light_shadows",))
 _texture_jit = cached_jit(_texture, static_argnums=(1, 2))
 _shade_direct_jit = cached_jit(_shade_direct, static_argnums=(1, 2))
