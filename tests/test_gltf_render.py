@@ -920,3 +920,21 @@ def test_staged_render_calls_the_ray_engine_directly_and_matches_the_callback_pa
     assert callbacks
     assert np.isfinite(direct).all() and direct.max() > 0
     np.testing.assert_allclose(direct, traced, rtol=2e-5, atol=1e-6)
+
+
+def test_host_shadow_hits_trace_only_the_masked_points():
+    """`shadows.host_mesh_hits` with a mask (the pixels that hit a surface) gives the unmasked
+    answer there and "not blocked" elsewhere, for a direction shared by every ray and per ray."""
+    from jaxpbr.rendering.shadows import host_mesh_hits
+
+    quad = {"positions": np.array([[-1, 1, -1], [1, 1, -1], [1, 1, 1], [-1, 1, 1]], np.float32),
+            "triangles": np.array([[0, 1, 2], [0, 2, 3]], np.int32), "alpha": None, "transmit": None}
+    o = np.array([[0.0, 0.0, 0.0], [0.5, 0.0, 0.2], [3.0, 0.0, 0.0], [-0.3, 0.0, 0.4]], np.float32).reshape(2, 2, 3)
+    tfar = np.full((2, 2), 1e30, np.float32)
+    mask = np.array([[True, False], [True, True]])
+    for d in (np.float32([0, 1, 0]), np.broadcast_to(np.float32([0, 1, 0]), (2, 2, 3))):
+        part = [{"o32": o, "l": d, "tfar": tfar}]
+        (full,) = host_mesh_hits(quad, part)
+        (masked,) = host_mesh_hits(quad, part, mask)
+        assert full.tolist() == [[True, True], [False, True]]
+        np.testing.assert_array_equal(masked, np.where(mask, full, False))

@@ -228,15 +228,29 @@ def shadow_segments(objects, pos, ng, lights, dtype, *, directions_only: bool = 
     return parts
 
 
-def host_mesh_hits(arrays, parts) -> list:
+def host_mesh_hits(arrays, parts, mask=None) -> list:
     """`_mesh_occluded` of each segment of `parts` on the host, outside any trace (NumPy in, NumPy
     out): the staged render calls the ray engine directly instead of compiling a program that
-    calls back to it. arrays: the meshes' concatenated arrays (NumPy or concrete)."""
+    calls back to it. arrays: the meshes' concatenated arrays (NumPy or concrete). mask: optional
+    (...) bool, the points to trace (the pixels that hit a surface); the others are given "not
+    blocked" (their visibility is not used)."""
     tree = lambda x: None if x is None else jax.tree_util.tree_map(np.asarray, x)  # noqa: E731
     verts, tris = np.asarray(arrays["positions"], np.float32), np.asarray(arrays["triangles"])
     alpha, transmit = tree(arrays["alpha"]), tree(arrays.get("transmit"))
-    return [_host_occluded(verts, tris, np.asarray(p["o32"]), np.asarray(p["l"]), np.asarray(p["tfar"]), alpha, transmit)
-            for p in parts]
+    out = []
+    for p in parts:
+        o, d, tfar = np.asarray(p["o32"]), np.asarray(p["l"]), np.asarray(p["tfar"])
+        if mask is None:
+            out.append(_host_occluded(verts, tris, o, d, tfar, alpha, transmit))
+            continue
+        shape = tfar.shape
+        rows = np.flatnonzero(np.broadcast_to(np.asarray(mask, bool), shape).reshape(-1))
+        d_rows = d if d.ndim == 1 else d.reshape(-1, 3)[rows]
+        hit = _host_occluded(verts, tris, o.reshape(-1, 3)[rows], d_rows, tfar.reshape(-1)[rows], alpha, transmit)
+        full = np.zeros(shape, bool) if transmit is None else np.ones(shape + (3,), np.float32)
+        full.reshape((-1,) + full.shape[len(shape):])[rows] = hit
+        out.append(full)
+    return out
 
 
 def shadow_combine(rgb: bool, parts, hits, dtype):

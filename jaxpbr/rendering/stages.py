@@ -512,7 +512,7 @@ def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset
     measured 3.9 s to compile at 1 M triangles), which the persistent cache then serves."""
     g = _geometry_jit(scene, p_plan, opts, offset, prim, light_shadows=False)
     if light_shadows and p_plan.shadows and p_plan.direct:
-        g = {**g, "vis": _staged_shadows(_light_segments_jit, scene, opts, g["pos"], g["ng"])}
+        g = {**g, "vis": _staged_shadows(_light_segments_jit, scene, opts, g["pos"], g["ng"], hit=g["hit"])}
     return g
 
 
@@ -548,7 +548,7 @@ _sun_segments_jit = cached_jit(_sun_segments, static_argnums=(1,))
 _combine_jit = cached_jit(_combine, static_argnums=(0, 1))
 
 
-def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args):
+def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args, hit=None):
     """Shadow visibility in a staged render: the segments from a stored program, the meshes' part
     from the host ray engine called directly (`shadows.host_mesh_hits`), the two combined by a
     stored program; no program holding a callback is compiled in every process."""
@@ -557,7 +557,9 @@ def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args):
     if _traced((parts, arrays)):  # (a render under jit / grad: the rays go through the callback)
         hits = [None if arrays is None else _mesh_occluded(arrays, p["o32"], p["l"], p["tfar"]) for p in parts]
         return shadow_combine(rgb, parts, hits, jnp.dtype(opts.dtype))
-    hits = [None] * len(parts) if arrays is None else [jax.device_put(h) for h in host_mesh_hits(arrays, parts)]
+    # Only the pixels that hit a surface are traced (the others show the background).
+    mask = None if hit is None else np.asarray(hit)
+    hits = [None] * len(parts) if arrays is None else [jax.device_put(h) for h in host_mesh_hits(arrays, parts, mask)]
     return _combine_jit(rgb, jnp.dtype(opts.dtype).name, parts, hits)
 
 
@@ -635,7 +637,7 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         # The suns are known before the maps: their shadow rays run while the maps are still being
         # computed on the worker threads (staged: `PendingAssets`).
         env_lights = assets.env_lights if isinstance(assets, PendingAssets) else assets[3]
-        vis_env = (_staged_shadows(_sun_segments_jit, scene, opts, g["pos"], g["ng"], env_lights) if staged
+        vis_env = (_staged_shadows(_sun_segments_jit, scene, opts, g["pos"], g["ng"], env_lights, hit=g["hit"]) if staged
                    else _sun_shadows(scene, opts, g, env_lights))
         g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
