@@ -497,8 +497,8 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
 
 def staged_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, *, light_shadows: bool = True):
     """The geometry stage as compiled programs (outside transformations): with meshes, their
-    primary rays cast in a program of their own (`_mesh_geometry`). light_shadows=False leaves the
-    lights' shadow rays out (the G-buffer and AOVs do not need them)."""
+    primary rays cast by the host ray engine first (`_host_prims`, `_mesh_geometry`).
+    light_shadows=False leaves the lights' shadow rays out (the G-buffer and AOVs do not need them)."""
     if scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects):
         prim = _host_prims(scene, p_plan, opts, offset, 1)
         return _mesh_geometry(scene, p_plan, opts, offset, prim, light_shadows=light_shadows)
@@ -506,10 +506,11 @@ def staged_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offse
 
 
 def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim, *, light_shadows: bool = True):
-    """The staged geometry of a scene with meshes, its ray casts in programs of their own: a program
-    that calls back to the host is compiled again in every process (its persistent-cache key names
-    the callback), so the casts (small programs) are kept apart from the geometry (a large one,
-    measured 3.9 s to compile at 1 M triangles), which the persistent cache then serves."""
+    """The staged geometry of a scene with meshes, `prim` cast already: the geometry program (a
+    large one, measured 3.9 s to compile at 1 M triangles) holds no call back to the host, so it is
+    kept on disk, and the lights' shadow rays go to the host ray engine between stored programs
+    (`_staged_shadows`): a program holding a callback would be compiled again in every process (its
+    cache key names the callback)."""
     g = _geometry_jit(scene, p_plan, opts, offset, prim, light_shadows=False)
     if light_shadows and p_plan.shadows and p_plan.direct:
         g = {**g, "vis": _staged_shadows(_light_segments_jit, scene, opts, g["pos"], g["ng"], hit=g["hit"])}
