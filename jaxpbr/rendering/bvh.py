@@ -64,6 +64,8 @@ import numpy as np
 
 from jaxpbr.errors import InputError
 
+from .._numerics import cross_rows
+
 __all__ = [
     "BVH",
     "Hits",
@@ -238,7 +240,7 @@ def valid_triangles(tri: np.ndarray) -> np.ndarray:
     float32 edges, evaluated in float64, not exactly zero)."""
     tri = np.asarray(tri)
     t64 = tri.astype(np.float64)
-    n = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
+    n = cross_rows(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
     return np.isfinite(t64).all(axis=(1, 2)) & (np.abs(n).max(axis=1) > 0)
 
 

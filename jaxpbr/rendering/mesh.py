@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._numerics import as_float, is_concrete, safe_div, small_sq, vcross, vdot, vnormalize
+from .._numerics import as_float, cross_rows, is_concrete, safe_div, small_sq, vcross, vdot, vnormalize
 from .._pytree import Pytree, leaf, static, subtree
 from ..shading.material import Material
 from .textured import TexturedMaterial
@@ -299,7 +299,7 @@ def _host_cast(vertices, triangles, cull_back, o, d, alpha=None, layers: int = 1
             if face_normal is None:
                 e1 = vertices[triangles[:, 1]] - vertices[triangles[:, 0]]
                 e2 = vertices[triangles[:, 2]] - vertices[triangles[:, 0]]
-                face_normal = np.cross(e1, e2)
+                face_normal = cross_rows(e1, e2)
             ph = p[hit]
             skip[hit] = cull_back[ph] & (np.einsum("ij,ij->i", face_normal[ph], d[todo[hit]]) > 0)
         blend = np.zeros_like(hit)

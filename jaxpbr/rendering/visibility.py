@@ -78,6 +78,7 @@ import numpy as np
 
 from jaxpbr.errors import InputError
 
+from .._numerics import cross_rows
 from . import bvh as _bvh
 from .bvh import (
     BVH,
@@ -218,7 +219,7 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
     ext = (hi - lo).max(1)
     h0 = max(float(np.percentile(ext, 90)), 1e-30)  # most triangles on level 0
     level = np.maximum(0, np.ceil(np.log2(np.maximum(ext / h0, 1.0)))).astype(np.int64)
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm = cross_rows(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area2 = np.linalg.norm(nrm, axis=1)
     nrm /= area2[:, None]
     longest = np.sqrt(((tri - np.roll(tri, 1, axis=1)) ** 2).sum(2)).max(1)
@@ -337,7 +338,7 @@ def _not_separated_in_plane(a, b, margin):
     """Separating-axis test in a's plane with the six edge normals of the two projected
     triangles (only decisive for coplanar pairs): True unless some axis separates them by more
     than `margin` (per pair; a negative margin asks for an overlap of at least -margin)."""
-    nrm = np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])
+    nrm = cross_rows(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])
     drop = np.argmax(np.abs(nrm), 1)
     keep = np.array([[1, 2], [0, 2], [0, 1]])[drop]  # (n, 2)
     pa = np.take_along_axis(a, keep[:, None, :], 2)
@@ -400,7 +401,7 @@ class _EmbreeBackend:
         self.n_tri = len(f)
         self.tri = v[f]  # (T, 3, 3) float32, caller's order
         t64 = self.tri.astype(np.float64)
-        nrm64 = np.cross(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
+        nrm64 = cross_rows(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
         valid = np.isfinite(t64).all(axis=(1, 2)) & (np.abs(nrm64).max(axis=1) > 0)  # = bvh.valid_triangles
         self.ids = np.nonzero(valid)[0].astype(np.int32)  # embree primID -> triangle id
         self.scene = EmbreeScene()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..._numerics import cross_rows
+
 __all__ = [
     "MODE_NAMES",
     "face_normals",
@@ -79,7 +81,7 @@ def face_normals(positions: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """(T, 3) unit normals of counter-clockwise triangles (zero for degenerate ones)."""
     p = np.asarray(positions, np.float64)
     a, b, c = p[tris[:, 0]], p[tris[:, 1]], p[tris[:, 2]]
-    return normalize_rows(np.cross(b - a, c - a))
+    return normalize_rows(cross_rows(b - a, c - a))
 
 
 def weld(arrays: list[np.ndarray], tris: np.ndarray):
