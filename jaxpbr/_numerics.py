@@ -22,11 +22,12 @@ import numpy as np
 from ._program_cache import cached_jit
 
 __all__ = [
-    "cross_rows",
     "HIGHEST",
     "Vec3",
     "as_float",
+    "computed_once",
     "cross",
+    "cross_rows",
     "dot",
     "eps",
     "is_concrete",
@@ -264,6 +265,20 @@ def safe_sqrt(x: jax.Array) -> jax.Array:
 def is_concrete(x) -> bool:
     """True if `x` holds actual values (not a tracer under jit/vmap/grad), so it can be validated."""
     return not isinstance(x, jax.core.Tracer)
+
+
+def computed_once(fn, operands, guard):
+    """`fn(operands)`, which XLA computes once, as arrays of its own.
+
+    XLA:CPU fuses elementwise producers into each of their consumers and recomputes them there (it
+    makes no multi-output loop fusions): a (..., 3) colour made from per-pixel terms evaluates them
+    once per channel, and arrays written side by side each evaluate their shared inputs again. A
+    conditional's branch is computed once. Both branches are `fn`, so the value is fn's whatever
+    the predicate, "guard is not NaN" (guard: a scalar array; the test only keeps XLA from
+    folding the conditional away). Take `guard` from an input that is not batched: under vmap a
+    batched predicate makes the conditional a select of both branches, computed twice. fn's code
+    is compiled twice."""
+    return jax.lax.cond(~jnp.isnan(guard), fn, fn, operands)
 
 
 def outside_traces(compute):

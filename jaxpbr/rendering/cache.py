@@ -19,6 +19,7 @@ from .._numerics import outside_traces, remember_per_array
 from .._version import __version__
 from ..ibl.cubemap import Cubemap
 from ..io.atomic import atomic_write
+from ..shading.lights import DirectionalLight
 
 
 class AssetCache:
@@ -35,12 +36,13 @@ class AssetCache:
 
     `directory`: optionally a folder where computed cube maps are also kept across processes
     (`use_directory`; the command line turns it on, under the user's cache dir): a map found
-    there is loaded instead of computed. Files are keyed by the SHA-1 of (kind, key, jaxpbr and
+    there is loaded instead of computed, and so are the suns split out of an environment with
+    their residual map (kind "extract"). Files are keyed by the SHA-1 of (kind, key, jaxpbr and
     jax versions), written atomically, and a file that cannot be read is recomputed; failing to
     write one never fails the render. `stats[kind]["disk"]` counts the maps loaded from it.
     """
 
-    DISK_KINDS = ("irradiance", "prefilter", "sky")
+    DISK_KINDS = ("irradiance", "prefilter", "sky", "extract")
 
     def __init__(self, maxsize: int = 16, directory=None):
         self.maxsize = maxsize
@@ -106,10 +108,7 @@ class AssetCache:
             return None
         try:
             with np.load(path, allow_pickle=False) as z:
-                n = int(z["num_levels"])
-                levels = [jax.device_put(z[f"level{i}"]) for i in range(n)]
-                info = json.loads(str(z["info"]))
-            value = Cubemap(levels, info)
+                value = _decode(z)
         except Exception:  # noqa: BLE001 -- unreadable or from an incompatible writer: compute it again
             return None
         _touch(path)
@@ -117,16 +116,52 @@ class AssetCache:
 
     def _save(self, kind, key, value) -> None:
         path = self._path(kind, key)
-        if path is None or not isinstance(value, Cubemap):
+        arrays = None if path is None else _encode(value)
+        if arrays is None:
             return
-        arrays = {f"level{i}": np.asarray(lv) for i, lv in enumerate(value.levels)}
-        arrays["num_levels"] = np.asarray(len(value.levels))
-        arrays["info"] = np.asarray(json.dumps(dict(value.info)))
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
         except OSError:  # full disk, read-only cache dir: the render goes on uncached
             pass
+
+
+#: Fields of the disc lights kept with an "extract" entry, in `DirectionalLight`'s order.
+_LIGHT_FIELDS = ("direction", "color", "intensity", "angular_radius")
+
+
+def _encode(value) -> dict | None:
+    """The arrays of a disk entry: a `Cubemap`, or the (lights | None, residual) pair of
+    `plan._env_split`'s extraction; None for anything else (kept in memory only)."""
+    if isinstance(value, Cubemap):
+        arrays = {f"level{i}": np.asarray(lv) for i, lv in enumerate(value.levels)}
+        arrays["num_levels"] = np.asarray(len(value.levels))
+        arrays["info"] = np.asarray(json.dumps(dict(value.info)))
+        return arrays
+    if isinstance(value, tuple) and len(value) == 2 and (value[0] is None or isinstance(value[0], tuple)):
+        lights, residual = value
+        if lights is None:  # nothing split off: the caller keeps its own environment
+            return {"num_lights": np.asarray(0)}
+        if not isinstance(residual, Cubemap) or not all(isinstance(x, DirectionalLight) for x in lights):
+            return None
+        arrays = {f"residual_{k}": v for k, v in _encode(residual).items()}
+        arrays["num_lights"] = np.asarray(len(lights))
+        for f in _LIGHT_FIELDS:
+            arrays[f"light_{f}"] = np.stack([np.asarray(getattr(x, f)) for x in lights])
+        return arrays
+    return None
+
+
+def _decode(z):
+    if "num_lights" not in z:
+        n = int(z["num_levels"])
+        return Cubemap([jax.device_put(z[f"level{i}"]) for i in range(n)], json.loads(str(z["info"])))
+    n = int(z["num_lights"])
+    if n == 0:
+        return None, None
+    residual = _decode({k[len("residual_"):]: z[k] for k in z.files if k.startswith("residual_")})
+    fields = {f: z[f"light_{f}"] for f in _LIGHT_FIELDS}
+    return tuple(DirectionalLight(**{f: fields[f][i] for f in _LIGHT_FIELDS}) for i in range(n)), residual
 
 
 #: The process's default cache: `render`, `render_batch`, `bake` and `plan` use it unless given

@@ -67,7 +67,14 @@ def _gather_material(stack, idx) -> Material:
 
 
 def _cast(objects, o, d, dtype):
-    """Nearest hit over all objects: (t, idx, hit), memory O(pixels)."""
+    """Nearest hit over all objects: (t, idx, hit), memory O(pixels).
+
+    Each object's hit distance (`big` where it misses) is a conditional's branch: XLA:CPU then
+    computes it once per ray, where fused it recomputed the intersection in each of the arrays the
+    nearest-hit update writes (t and idx), in the sphere loop as in the unrolled sums. The
+    predicate (a parameter of the object is not NaN; with a NaN one the intersection misses too)
+    gives the same value either way. 1280x720, the demo's 49 spheres: 42 against
+    87 ms."""
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
     shape = d[0].shape
     t_best = jnp.full(shape, big, dtype)
@@ -75,15 +82,22 @@ def _cast(objects, o, d, dtype):
     spheres = [k for k, ob in enumerate(objects) if isinstance(ob, Sphere)]
     planes = [k for k, ob in enumerate(objects) if isinstance(ob, Plane)]
 
-    def take(t, ok, k, t_best, idx):
-        better = ok & (t < t_best)
-        return jnp.where(better, t, t_best), jnp.where(better, k, idx)
+    def distance(intersect, guard, *params):
+        def near(p):
+            t, ok = intersect(o, d, *p)
+            return jnp.where(ok, t, big)
+
+        return jax.lax.cond(~jnp.isnan(guard), near, lambda p: jnp.full(shape, big, dtype), params)
+
+    def take(key, k, t_best, idx):
+        better = key < t_best
+        return jnp.where(better, key, t_best), jnp.where(better, k, idx)
 
     if len(spheres) <= UNROLL_MAX_SPHERES:
         for k in spheres:
             c = tuple(jnp.asarray(objects[k].center, dtype)[i] for i in range(3))
-            t, ok = intersect_sphere(o, d, c, jnp.asarray(objects[k].radius, dtype))
-            t_best, idx = take(t, ok, k, t_best, idx)
+            r = jnp.asarray(objects[k].radius, dtype)
+            t_best, idx = take(distance(intersect_sphere, r, c, r), k, t_best, idx)
     else:
         centers = jnp.stack([jnp.asarray(objects[k].center, dtype) for k in spheres])
         radii = jnp.stack([jnp.asarray(objects[k].radius, dtype) for k in spheres])
@@ -91,15 +105,13 @@ def _cast(objects, o, d, dtype):
 
         def body(i, carry):
             c = tuple(centers[i, j] for j in range(3))
-            t, ok = intersect_sphere(o, d, c, radii[i])
-            return take(t, ok, ids[i], *carry)
+            return take(distance(intersect_sphere, radii[i], c, radii[i]), ids[i], *carry)
 
         t_best, idx = jax.lax.fori_loop(0, len(spheres), body, (t_best, idx))
     for k in planes:
         pt = tuple(jnp.asarray(objects[k].point, dtype)[i] for i in range(3))
         nn = tuple(jnp.asarray(objects[k].normal, dtype)[i] for i in range(3))
-        t, ok = intersect_plane(o, d, pt, nn)
-        t_best, idx = take(t, ok, k, t_best, idx)
+        t_best, idx = take(distance(intersect_plane, vdot(nn, nn), pt, nn), k, t_best, idx)
     hit = t_best < big
     return jnp.where(hit, t_best, 0.0), idx, hit
 

@@ -723,6 +723,15 @@ def _cap_parts(cos_theta, sin_sigma):
     ys = jnp.where(straddle, y, 0.0)
     xs = jnp.where(straddle, x, 1.0)
     st = jnp.where(straddle, sin_t, 1.0)
-    root = jnp.sqrt(1.0 - ys * ys)
-    part = (c * jnp.arccos(ys) - xs * st * root) * s2 + jnp.arctan2(st * root, xs)
+
+    def formula(o):
+        c, s2, ys, xs, st = o
+        root = jnp.sqrt(1.0 - ys * ys)
+        return (c * jnp.arccos(ys) - xs * st * root) * s2 + jnp.arctan2(st * root, xs)
+
+    # Only where some lane straddles (the callers use `part` on those lanes only, so 0 elsewhere is
+    # exact). As a conditional's branch XLA:CPU computes it once per point; fused, every consumer
+    # (each colour channel of a shaded pixel) evaluated its arccos and arctan2 again.
+    operands = (c, s2, ys, xs, st)
+    part = jax.lax.cond(jnp.any(straddle), formula, lambda o: jnp.zeros_like(o[0]), operands)
     return c, s, straddle, part
