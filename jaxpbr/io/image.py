@@ -355,6 +355,7 @@ def _read_oiio(path: Path, ext: str):
 _PNG_COLOR_TYPES = {0: (1, (1, 2, 4, 8, 16)), 2: (3, (8, 16)), 3: (1, (1, 2, 4, 8)), 4: (2, (8, 16)), 6: (4, (8, 16))}
 _PNG_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
 _PNG_MAX_SIDE = 1_000_000  # libpng's default user limit on width and height
+_PNG_FILTER_SUB = 0x10  # libpng's PNG_FILTER_SUB flag (OpenImageIO's "png:filter" attribute)
 
 
 def _png_problem(path: Path, *, header_only: bool = False) -> str | None:
@@ -503,29 +504,44 @@ def write(path, img, *, metadata=None, half=False, bits=8, encoding="srgb", enco
         payload = _png_payload(arr, bits, "linear" if encoded else encoding)
         attrs = _png_metadata(metadata)
         attrs["oiio:UnassociatedAlpha"] = 1  # store alpha as given (OIIO would otherwise un-premultiply)
+        # libpng's "Sub" row filter for every row instead of trying all five per row: the 1280x720
+        # demo writes in 45 against 67 ms, in a file 1 % larger.
+        attrs["png:filter"] = _PNG_FILTER_SUB
         if encoding in _PNG_COLORSPACE:
             attrs["oiio:ColorSpace"] = _PNG_COLORSPACE[encoding]
         writer = lambda tmp: _write_oiio(tmp, "png", payload, attrs)  # noqa: E731
-    atomic_write(path, _read_back(writer, arr.shape))
+    atomic_write(path, _read_back(writer, arr.shape, ext[1:]))
 
 
-def _read_back(writer, shape):
+def _read_back(writer, shape, fmt=None):
     """`writer` followed by a check that the temporary file decodes to an image of `shape` (H, W).
 
     The image libraries do not always report a failed write: on a full disk OpenImageIO's PNG and
     HDR writers and OpenEXR returned normally and left 0-byte or truncated files (issue 13). Reading
     the file back before it replaces the destination turns that into an error, and the
-    destination is left as it was."""
+    destination is left as it was. A PNG is checked without decoding its pixels a second time:
+    every critical chunk's CRC, a complete zlib stream of the image data with a valid filter byte
+    on every row (`_png_problem`) and the size in its IHDR (writing the 1280x720 demo: 85 against
+    101 ms)."""
 
     def run(tmp):
         writer(tmp)
         try:
-            img, _ = _read(tmp, None, want_metadata=False)
+            if fmt == "png":
+                problem = _png_problem(Path(tmp))
+                if problem is not None:
+                    raise ValueError(problem)
+                with open(tmp, "rb") as f:
+                    width, height = struct.unpack(">II", f.read(24)[16:24])
+                got = (height, width)
+            else:
+                img, _ = _read(tmp, None, want_metadata=False)
+                got = img.shape[:2]
         except (ValueError, OSError) as e:
             raise OSError(f"the image was not written completely (is the disk full?): {e}") from e
-        if img.shape[:2] != tuple(shape[:2]):
+        if got != tuple(shape[:2]):
             raise OSError(
-                f"the image was not written completely (is the disk full?): it reads back as {img.shape[:2]}, "
+                f"the image was not written completely (is the disk full?): it reads back as {got}, "
                 f"expected {tuple(shape[:2])}"
             )
 
