@@ -180,10 +180,27 @@ def _weld(v: np.ndarray) -> np.ndarray:
 
 def _csr(keys: np.ndarray, values: np.ndarray, n: int):
     """(offsets (n+1,), values sorted by key)."""
-    order = np.argsort(keys, kind="stable")
+    order = _stable_argsort(keys, n)
     offs = np.zeros(n + 1, np.int64)
     np.cumsum(np.bincount(keys, minlength=n), out=offs[1:])
     return offs, values[order]
+
+
+def _row_norms(x: np.ndarray) -> np.ndarray:
+    """Euclidean norms of the rows of (N, 3) float64 x: what np.linalg.norm(x, axis=1) computes
+    (the same values), without its checks and copies."""
+    return np.sqrt((x * x).sum(1))
+
+
+def _stable_argsort(keys: np.ndarray, n: int) -> np.ndarray:
+    """np.argsort(keys, kind="stable") for integer keys in [0, n): below 2^32 as two stable passes
+    over 16-bit digits, which NumPy sorts by radix (3 M keys: 0.09 against 0.33 s)."""
+    if n > 1 << 32:
+        return np.argsort(keys, kind="stable")
+    low = np.argsort((keys & 0xFFFF).astype(np.uint16), kind="stable")
+    if n <= 1 << 16:
+        return low
+    return low[np.argsort((keys[low] >> 16).astype(np.uint16), kind="stable")]
 
 
 def _gather_lists(offs, vals, which):
@@ -409,15 +426,15 @@ class _EmbreeBackend:
             TriangleMesh(self.scene, v, f[self.ids].astype(np.int32))
         # commit now (embreex commits on the first query; queries then run concurrently)
         self.scene.run(np.zeros((1, 3), F32), np.ones((1, 3), F32), dists=np.ones(1, F32))
-        used = self.tri[self.ids].reshape(-1, 3) if self.ids.size else np.zeros((1, 3), F32)
-        self.scale = float(np.abs(used).max()) if self.ids.size else 1.0
+        # The largest |coordinate| of a valid triangle's vertices (per vertex, then per corner).
+        self.scale = float(np.abs(v).max(axis=1)[f[self.ids]].max()) if self.ids.size else 1.0
         self.threads = int(threads or os.cpu_count() or 1)
         self._pool = None
         self._lock = threading.Lock()
         self._local = threading.local()  # set on worker threads that run whole chunks
         # altitudes (distance of each vertex from the opposite edge) for the near-edge test
-        area2 = np.linalg.norm(nrm64, axis=1)
-        edge = np.stack([np.linalg.norm(t64[:, (i + 2) % 3] - t64[:, (i + 1) % 3], axis=1) for i in range(3)], 1)
+        area2 = _row_norms(nrm64)
+        edge = np.stack([_row_norms(t64[:, (i + 2) % 3] - t64[:, (i + 1) % 3]) for i in range(3)], 1)
         with np.errstate(divide="ignore", invalid="ignore"):
             self.alt = np.where(edge > 0, area2[:, None] / edge, 0.0)
         # adjacency by welded vertex, and the near pairs that share no vertex
