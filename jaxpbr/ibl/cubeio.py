@@ -19,7 +19,7 @@ from ..io.ktx2 import write_ktx2
 from . import envs
 from .cubemap import Cubemap, downsample
 
-__all__ = ["ENVIRONMENT_HELP", "FACE_FILE_NAMES", "default_face_size", "load_environment", "write_cubemap"]
+__all__ = ["ENVIRONMENT_HELP", "FACE_FILE_NAMES", "PROCEDURAL_FACE_SIZE", "default_face_size", "load_environment", "write_cubemap"]
 
 ENVIRONMENT_HELP = (
     "environment: one equirect panorama (.hdr/.exr, width = 2 x height), six square face images "
@@ -28,6 +28,10 @@ ENVIRONMENT_HELP = (
 )
 #: File-name suffixes of the six faces, in KTX order +X -X +Y -Y +Z -Z.
 FACE_FILE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
+
+
+#: Face size of "procedural:sky" when `load_environment` is given none.
+PROCEDURAL_FACE_SIZE = 256
 
 
 def load_environment(paths, face_size: int | None = None, *, clamp_negative: bool = False) -> Cubemap:
@@ -53,7 +57,7 @@ def load_environment(paths, face_size: int | None = None, *, clamp_negative: boo
         name = paths[0].split(":", 1)[1]
         if name != "sky":
             raise InputError(f"unknown procedural environment {name!r}; the one available is 'procedural:sky'")
-        return envs.sky_with_sun_cubemap(face_size or 256)
+        return envs.sky_with_sun_cubemap(face_size or PROCEDURAL_FACE_SIZE)
     if len(paths) not in (1, 6):
         raise InputError(
             f"expected one equirect panorama or six face images (+X -X +Y -Y +Z -Z), got {len(paths)} paths"
