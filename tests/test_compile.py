@@ -94,17 +94,20 @@ def test_asset_cache_on_disk_round_trip(disk_assets, monkeypatch):
     env = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16))
     first = np.asarray(jp.render(_scene(env)))
     files = sorted(p.name.split("-")[0] for p in disk_assets.iterdir())
-    assert files == ["irradiance", "prefilter"]
-    # A new process (memory cache empty) loads the maps instead of computing them, and marks the
-    # files as used (pruning deletes the oldest modification times first).
+    assert files == ["extract", "irradiance", "prefilter"]
+    assert jp.rendering.renderer.plan(_scene(env)).env_lights == 1  # a sun was split out and kept
+    # A new process (memory cache empty) loads the sun, its residual and the maps instead of
+    # computing them, and marks the files as used (pruning deletes the oldest modification times first).
     renderer.ASSETS.clear()
     for p in disk_assets.iterdir():
         os.utime(p, (1000, 1000))
+    monkeypatch.setattr(jp.ibl.extract, "extract_lights", lambda *a, **k: pytest.fail("sun extracted again"))
     monkeypatch.setattr(jp.ibl.specular, "prefilter", lambda *a, **k: pytest.fail("prefilter recomputed"))
     monkeypatch.setattr(jp.ibl.diffuse, "irradiance", lambda *a, **k: pytest.fail("irradiance recomputed"))
     again = np.asarray(jp.render(_scene(env)))
     np.testing.assert_array_equal(again, first)
-    assert renderer.ASSETS.stats["prefilter"]["disk"] == 1 and renderer.ASSETS.stats["irradiance"]["disk"] == 1
+    stats = renderer.ASSETS.stats
+    assert stats["prefilter"]["disk"] == 1 and stats["irradiance"]["disk"] == 1 and stats["extract"]["disk"] == 1
     assert all(p.stat().st_mtime > 1000 for p in disk_assets.iterdir())
 
 
@@ -185,3 +188,29 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
 
     assert CubeInfo((("lod_blend", "roughness"),)) != CubeInfo((("lod_blend", "mean_cosine"),))
     assert CubeInfo((("lod_blend", "roughness"), ("environment", "x"))) == CubeInfo((("lod_blend", "roughness"),))
+
+
+def test_extraction_round_trips_through_the_disk_cache(tmp_path):
+    """Kind "extract" (the suns split out of an environment and the residual map) is read back from
+    disk equal to what was computed, also when no sun was found (the caller keeps its own map)."""
+    from jaxpbr.ibl.extract import extract_lights
+    from jaxpbr.rendering.cache import AssetCache
+
+    sky = jp.envs.sky_with_sun_cubemap(16)
+    uniform = jp.Cubemap([np.full((6, 8, 8, 3), 0.5, np.float32)])
+    for name, env in (("sky", sky), ("uniform", uniform)):
+        def compute(env=env):
+            ex = extract_lights(env)
+            return (ex.lights or None), ex.residual
+
+        lights, residual = AssetCache(directory=tmp_path).get("extract", name, compute)
+        again_lights, again_residual = AssetCache(directory=tmp_path).get(
+            "extract", name, lambda: pytest.fail("extracted again"))
+        if name == "uniform":
+            assert lights is None and again_lights is None
+            continue
+        assert len(again_lights) == len(lights) == 1
+        for f in ("direction", "color", "intensity", "angular_radius"):
+            np.testing.assert_array_equal(np.asarray(getattr(again_lights[0], f)), np.asarray(getattr(lights[0], f)))
+        np.testing.assert_array_equal(np.asarray(again_residual.levels[0]), np.asarray(residual.levels[0]))
+        assert dict(again_residual.info) == dict(residual.info)

@@ -14,7 +14,6 @@ from .. import color
 from ..conventions import CONVENTIONS
 from ..io import image
 from ..io.atomic import OutputSet
-from ..ibl.cubeio import PROCEDURAL_FACE_SIZE
 from ..rendering.demo import demo_scene, demo_sky
 from ..rendering.renderer import BAND_PIXELS, RenderOptions, check_memory, plan, render
 from ..rendering.scene import MAX_SUPERSAMPLE
@@ -64,7 +63,7 @@ def add_command(sub) -> None:
     r.add_argument("--aov", default=None, metavar="LIST", help="also write arbitrary output variables as layers of the EXR (implies --hdr): comma-separated from depth, distance, normal, position, base_color, mask, object_id, primitive_id, or 'all' (docs/gltf.md)")
     r.add_argument("--no-environment", action="store_true", help="demo only: leave out the sky (no IBL)")
     g = r.add_argument_group("glTF assets")
-    g.add_argument("--environment", default=None, metavar="FILE", help="glTF: environment lighting and background: an equirect .hdr/.exr panorama or procedural:sky (default: none)")
+    g.add_argument("--environment", default=None, metavar="FILE", help="glTF: environment lighting and background: an equirect .hdr/.exr panorama or procedural:sky (the demo's sky, 128^2 faces) (default: none)")
     g.add_argument("--environment-intensity", type=_finite_float_arg, default=1.0, help="glTF: multiplier of the environment (default: %(default)s)")
     g.add_argument("--camera-position", type=_vec3_arg, default=None, metavar="X,Y,Z", help="glTF: camera position (default: the asset's first camera, else a framing of its bounds)")
     g.add_argument("--camera-target", type=_vec3_arg, default=None, metavar="X,Y,Z", help="glTF: the point the camera looks at (default: the centre of the asset's bounds)")
@@ -141,10 +140,10 @@ def _gltf_scene(args):
     W, H = args.width or 1280, args.height or 720
     env = None
     if args.environment is not None:
-        # The procedural sky through the asset cache (kind "sky"), as the demo's: a warm start reads
-        # the cube instead of filtering it again (0.4 s at 256^2).
+        # procedural:sky is the demo's sky (128^2 faces), through the asset cache (kind "sky"): its
+        # maps are the demo's, and a warm start reads the cube instead of filtering it again.
         sky = args.environment == "procedural:sky"
-        radiance = demo_sky(PROCEDURAL_FACE_SIZE) if sky else load_environment(args.environment)
+        radiance = demo_sky() if sky else load_environment(args.environment)
         env = Environment(radiance=radiance, intensity=args.environment_intensity)
     cam = None
     if args.camera_position is not None or args.camera_target is not None or args.fov_y is not None or not asset.cameras:

@@ -17,6 +17,7 @@ import numpy as np
 from .. import _memory
 from .._api import keyword_only
 from .._numerics import is_concrete, outside_traces, remember_per_array
+from .._program_cache import package_digest
 from .._pytree import fields_of
 from .._validate import positive_int
 
@@ -253,8 +254,9 @@ def _env_split(env: Environment, opts: RenderOptions, cache: AssetCache | None =
         ex = extract.extract_lights(src)
         return (ex.lights or None), ex.residual
 
+    # The package's digest too: the extraction is kept on disk by the command line (kind "extract").
     key = (content_key(src), extract.DEFAULT_THRESHOLD, extract.DEFAULT_MIN_POWER_SHARE, extract.DEFAULT_MAX_ANGULAR_RADIUS,
-           extract.DEFAULT_MAX_LIGHTS)
+           extract.DEFAULT_MAX_LIGHTS, package_digest())
     lights, residual = cache_or_default(cache).get("extract", key, compute)
     if lights is None:
         return None, env
