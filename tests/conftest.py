@@ -9,6 +9,7 @@ takes ~30% of its first); the cache key is the program, the compile options and 
 version, so a stale entry is never used, only kept: past CACHE_MAX_BYTES the oldest entries go."""
 
 import os
+import threading
 from pathlib import Path
 
 import jax
@@ -38,6 +39,7 @@ def pytest_configure(config):
         prune(path)
     # Set before the first compilation (JAX decides once per process whether the cache is used), and
     # in the environment for the Python subprocesses that tests start.
+    _write_cache_entries_atomically()
     for name, value in (
         ("jax_compilation_cache_dir", path),
         ("jax_persistent_cache_min_compile_time_secs", 0.0),
@@ -45,6 +47,40 @@ def pytest_configure(config):
     ):
         jax.config.update(name, value)
         os.environ[name.upper()] = str(value)
+
+
+def _write_cache_entries_atomically():
+    """Without a size limit JAX (0.10.2) writes a persistent-cache entry in place and reads entries
+    without a lock, so a pytest-xdist worker could deserialize an entry another worker was still
+    writing: the slow suite crashed with a segfault in `get_executable_and_time`. Each entry is
+    written to a temporary file and renamed into place instead (a reader sees all of it or none).
+    A size limit would lock every read and write, but JAX then lists the whole directory at each
+    write (thousands of entries here)."""
+    try:
+        from jax._src import lru_cache
+    except ImportError:
+        return
+    put = getattr(lru_cache.LRUCache, "put", None)
+    suffix = getattr(lru_cache, "_CACHE_SUFFIX", None)
+    if put is None or suffix is None or getattr(put, "_atomic", False):
+        return
+
+    def atomic_put(self, key, value):
+        if getattr(self, "eviction_enabled", True) or not isinstance(self.path, Path) or not key:
+            return put(self, key, value)
+        target = self.path / f"{key}{suffix}"
+        if target.exists():
+            return None
+        tmp = target.with_name(f".{target.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+        try:
+            tmp.write_bytes(value)
+            os.replace(tmp, target)
+        finally:
+            tmp.unlink(missing_ok=True)
+        return None
+
+    atomic_put._atomic = True
+    lru_cache.LRUCache.put = atomic_put
 
 
 #: Node ids of the tests marked slow by list (tests/slow_tests.txt): the measured slowest ones.

@@ -161,7 +161,8 @@ def _decode(z):
         return None, None
     residual = _decode({k[len("residual_"):]: z[k] for k in z.files if k.startswith("residual_")})
     fields = {f: z[f"light_{f}"] for f in _LIGHT_FIELDS}
-    return tuple(DirectionalLight(**{f: fields[f][i] for f in _LIGHT_FIELDS}) for i in range(n)), residual
+    # (0-d arrays, not NumPy scalars: jnp.asarray would run a program for a scalar)
+    return tuple(DirectionalLight(**{f: np.asarray(fields[f][i]) for f in _LIGHT_FIELDS}) for i in range(n)), residual
 
 
 #: The process's default cache: `render`, `render_batch`, `bake` and `plan` use it unless given
