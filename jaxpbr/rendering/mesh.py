@@ -286,20 +286,20 @@ def _host_cast(vertices, triangles, cull_back, o, d, alpha=None, layers: int = 1
     todo = np.arange(n)
     tnear = np.zeros(n, np.float32)
     after = np.full(n, -1, np.int32)
-    face_normal = None
-    for _ in range(MAX_CULLED_HITS + layers):
+    for first in [True] + [False] * (MAX_CULLED_HITS + layers - 1):
         if todo.size == 0:
             break
-        hits = accel.intersect(o[todo], d[todo], tnear=tnear[todo], after_prim=after[todo])
+        bary = alpha is not None  # (only the alpha test reads the barycentrics here)
+        if first:  # every ray: the arrays themselves, not copies gathered by index
+            hits = accel.intersect(o, d, tnear=0.0, after_prim=-1, barycentrics=bary)
+        else:
+            hits = accel.intersect(o[todo], d[todo], tnear=tnear[todo], after_prim=after[todo], barycentrics=bary)
         p = np.asarray(hits.prim, np.int32)
         t = np.asarray(hits.t, np.float32)
         hit = p >= 0
         skip = np.zeros_like(hit)
         if hit.any() and cull_back.any():
-            if face_normal is None:
-                e1 = vertices[triangles[:, 1]] - vertices[triangles[:, 0]]
-                e2 = vertices[triangles[:, 2]] - vertices[triangles[:, 0]]
-                face_normal = cross_rows(e1, e2)
+            face_normal = _face_normals(accel, vertices, triangles)
             ph = p[hit]
             skip[hit] = cull_back[ph] & (np.einsum("ij,ij->i", face_normal[ph], d[todo[hit]]) > 0)
         blend = np.zeros_like(hit)
@@ -325,6 +325,20 @@ def _host_cast(vertices, triangles, cull_back, o, d, alpha=None, layers: int = 1
         after[nxt] = p[again]
         todo = nxt
     return prim.reshape(shape + ((layers,) if layers > 1 else ()))
+
+
+_FACE_NORMALS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _face_normals(accel, vertices, triangles) -> np.ndarray:
+    """(v1 - v0) x (v2 - v0) of every triangle, float32 (T, 3): computed once per ray engine
+    (`ACCELS` builds one per content) rather than at each cast (1 M triangles: about 0.05 s)."""
+    normals = _FACE_NORMALS.get(accel)
+    if normals is None:
+        e1 = vertices[triangles[:, 1]] - vertices[triangles[:, 0]]
+        e2 = vertices[triangles[:, 2]] - vertices[triangles[:, 0]]
+        normals = _FACE_NORMALS[accel] = cross_rows(e1, e2)
+    return normals
 
 
 def _embree() -> bool:
