@@ -643,6 +643,12 @@ class _EmbreeBackend:
         parts = list(pool.map(part, itertools.pairwise(cuts)))
         return Hits(*(None if x[0] is None else np.concatenate(x) for x in zip(*parts)))
 
+    def occluded_from_origin(self, o32, d32, span32):
+        """`occluded` of float32 rays from tnear = 0 (span32: tfar as float32)."""
+        ok = span32 >= 0  # (False for NaN)
+        occ, _ = self._run(o32, d32, np.where(ok, span32, F32(0)), "OCCLUDED")
+        return occ & ok
+
     def occluded(self, o64, d64, tnear, tfar):
         shift = np.where(np.isfinite(tnear), tnear, 0.0)
         org = (o64 + shift[:, None] * d64).astype(F32)
@@ -655,6 +661,23 @@ class _EmbreeBackend:
 
 # --------------------------------------------------------------------------------------------------
 # the public class
+
+
+def _float32_rays(origins, directions, tnear):
+    """(shape, o (n, 3), d (n, 3)) float32 of NumPy float32 rays with finite directions and
+    tnear = 0, for which `_EmbreeBackend.occluded`'s float64 origin o + 0 d rounds back to o
+    itself; None otherwise."""
+    if not (isinstance(tnear, (int, float)) and tnear == 0):
+        return None
+    if not all(isinstance(x, np.ndarray) and x.dtype == F32 and x.shape[-1:] == (3,) for x in (origins, directions)):
+        return None
+    if not np.isfinite(directions).all():
+        return None
+    shape = np.broadcast_shapes(origins.shape, directions.shape)[:-1]
+    n = int(np.prod(shape, dtype=np.int64))
+    o = np.ascontiguousarray(np.broadcast_to(origins, shape + (3,)).reshape(n, 3))
+    d = np.ascontiguousarray(np.broadcast_to(directions, shape + (3,)).reshape(n, 3))
+    return shape, o, d
 
 
 def _host_rays(origins, directions, tnear, tfar, after):
@@ -803,6 +826,11 @@ class TriangleAccel:
         (embree: embree's own float32 any-hit test, which can differ from `intersect` for hits
         within float32 rounding of tnear/tfar or exactly on an edge.)"""
         if self.backend == "embree":
+            plain = _float32_rays(origins, directions, tnear)
+            if plain is not None:  # float32 rays from tnear = 0: no float64 copies (the same test)
+                shape, o, d = plain
+                tf = np.broadcast_to(np.asarray(tfar, np.float64).astype(F32), shape).reshape(-1)
+                return self._impl.occluded_from_origin(o, d, tf).reshape(shape)
             shape, o, d, tn, tf, _ = _host_rays(origins, directions, tnear, tfar, -1)
             return self._impl.occluded(o, d, tn, tf).reshape(shape)
         shape = self._shape(origins, directions)
