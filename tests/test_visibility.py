@@ -257,6 +257,35 @@ def test_occluded_matches_intersect(backend):
     np.testing.assert_allclose(t[expect], inside[expect], rtol=1e-5)
 
 
+@pytest.mark.skipif(not embree_available(), reason="embreex not installed")
+def test_embree_float32_shadow_rays_equal_the_float64_path():
+    """Float32 rays from tnear = 0 go to embree without float64 copies (`_float32_rays`); the
+    answers equal the general path's (float64 rays, tnear an array of zeros), NaN and negative
+    tfar included."""
+    v, f = MESHES["soup"]
+    o, d = rays_at(v, 4000, seed=5, spread=2.0)
+    o, d = o.astype(np.float32), d.astype(np.float32)
+    acc = _accel(v, f, "embree")
+    tfar = np.random.default_rng(3).uniform(0.0, 4.0, len(o)).astype(np.float32)
+    tfar[::37], tfar[::41] = np.nan, -1.0
+    fast = np.asarray(acc.occluded(o, d, tnear=0.0, tfar=tfar))
+    general = np.asarray(acc.occluded(o.astype(np.float64), d.astype(np.float64), tnear=np.zeros(len(o)), tfar=tfar))
+    assert fast.any() and not fast.all()
+    np.testing.assert_array_equal(fast, general)
+
+
+@pytest.mark.skipif(not embree_available(), reason="embreex not installed")
+def test_embree_intersect_without_barycentrics_gives_the_same_hits():
+    v, f = MESHES["soup"]
+    o, d = rays_at(v, 70000, seed=6, spread=2.0)  # above the size split over worker threads
+    acc = _accel(v, f, "embree")
+    full = acc.intersect(o, d)
+    lean = acc.intersect(o, d, barycentrics=False)
+    assert lean.b1 is None and lean.b2 is None
+    np.testing.assert_array_equal(np.asarray(lean.prim), np.asarray(full.prim))
+    np.testing.assert_array_equal(np.asarray(lean.t), np.asarray(full.t))
+
+
 # --------------------------------------------------------------------------------------------------
 # continuation
 
