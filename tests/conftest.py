@@ -51,11 +51,11 @@ def pytest_configure(config):
 
 def _write_cache_entries_atomically():
     """Without a size limit JAX (0.10.2) writes a persistent-cache entry in place and reads entries
-    without a lock, so a pytest-xdist worker could deserialize an entry another worker was still
-    writing: the slow suite crashed with a segfault in `get_executable_and_time`. Each entry is
-    written to a temporary file and renamed into place instead (a reader sees all of it or none).
-    A size limit would lock every read and write, but JAX then lists the whole directory at each
-    write (thousands of entries here)."""
+    without a lock, so a pytest-xdist worker could read an entry another worker is still writing.
+    Each entry is written to a temporary file and renamed into place instead (a reader sees all of
+    it or none). A size limit would lock every read and write, but JAX then lists the whole
+    directory at each write (thousands of entries here). (The Python subprocesses that tests start
+    are not patched.)"""
     try:
         from jax._src import lru_cache
     except ImportError:

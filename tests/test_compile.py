@@ -22,7 +22,8 @@ MAX_PROGRAMS = 25
 
 def _cli_env(tmp_path, **extra):
     env = dict(os.environ)
-    for name in ("JAX_COMPILATION_CACHE_DIR", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"):
+    for name in ("JAX_COMPILATION_CACHE_DIR", "JAX_COMPILATION_CACHE_MAX_SIZE", "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+                 "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"):
         env.pop(name, None)
     env.update(XDG_CACHE_HOME=str(tmp_path / "xdg"), **extra)
     return env
