@@ -73,8 +73,7 @@ def _cast(objects, o, d, dtype):
     computes it once per ray, where fused it recomputed the intersection in each of the arrays the
     nearest-hit update writes (t and idx), in the sphere loop as in the unrolled sums. The
     predicate (a parameter of the object is not NaN; with a NaN one the intersection misses too)
-    gives the same value either way. 1280x720, the demo's 49 spheres: 42 against
-    87 ms."""
+    gives the same value either way. 1280x720, the demo's 49 spheres: 36 against 87 ms."""
     big = jnp.asarray(jnp.finfo(dtype).max, dtype)
     shape = d[0].shape
     t_best = jnp.full(shape, big, dtype)
