@@ -26,6 +26,7 @@ __all__ = [
     "Vec3",
     "as_float",
     "computed_once",
+    "cpu_cond",
     "cross",
     "cross_rows",
     "dot",
@@ -268,7 +269,7 @@ def is_concrete(x) -> bool:
 
 
 def computed_once(fn, operands, guard):
-    """`fn(operands)`, which XLA computes once, as arrays of its own.
+    """`fn(operands)`, which XLA:CPU computes once, as arrays of its own.
 
     XLA:CPU fuses elementwise producers into each of their consumers and recomputes them there (it
     makes no multi-output loop fusions): a (..., 3) colour made from per-pixel terms evaluates them
@@ -276,9 +277,21 @@ def computed_once(fn, operands, guard):
     conditional's branch is computed once. Both branches are `fn`, so the value is fn's whatever
     the predicate, "guard is not NaN" (guard: a scalar array; the test only keeps XLA from
     folding the conditional away). Take `guard` from an input that is not batched: under vmap a
-    batched predicate makes the conditional a select of both branches, computed twice. fn's code
-    is compiled twice."""
-    return jax.lax.cond(~jnp.isnan(guard), fn, fn, operands)
+    batched predicate makes the conditional a select of both branches, computed twice. On the CPU
+    fn's code is compiled twice; elsewhere (`cpu_cond`) fn is inlined."""
+    return cpu_cond(~jnp.isnan(guard), fn, fn, operands)
+
+
+def cpu_cond(pred, fn, other, operands):
+    """`lax.cond(pred, fn, other, operands)` on XLA:CPU, `fn(operands)` inline on other platforms.
+
+    For conditionals that are there for XLA:CPU's sake: a branch is computed once rather than in
+    every consumer (`computed_once`), and `other` skips work whose result is not used (it must
+    equal fn's result wherever the caller reads it, so both forms give the same image). GPU
+    compilers fuse a term into several outputs at once, and a conditional there waits for its
+    predicate on the host, so the plain expression is what they get (`lax.platform_dependent`
+    lowers only the one for the platform compiled for)."""
+    return jax.lax.platform_dependent(operands, cpu=lambda ops: jax.lax.cond(pred, fn, other, ops), default=fn)
 
 
 def outside_traces(compute):
@@ -326,10 +339,13 @@ def with_callers_context(compute):
 def remember_per_array(cache: dict, x, tag, compute):
     """compute(), remembered per (array object, tag) in `cache` for as long as the array lives.
 
-    Arrays are immutable, so a value derived from one (a content hash, a range, a validity
-    check) holds while the object exists: the weak reference drops the entry with the array, and
-    the identity test guards against a new array that reuses a freed one's id. Objects that are
+    JAX arrays and read-only NumPy arrays (a Mesh's) are immutable, so a value derived from one (a
+    content hash, a range, a validity check) holds while the object exists: the weak reference
+    drops the entry with the array, and the identity test guards against a new array that reuses a
+    freed one's id. Writeable NumPy arrays (their content can change in place) and objects that are
     not weak-referenceable are not remembered."""
+    if isinstance(x, np.ndarray) and x.flags.writeable:
+        return compute()
     key = (id(x), tag)
     hit = cache.get(key)
     if hit is not None and hit[0]() is x:

@@ -169,9 +169,10 @@ def test_render_batch_over_cameras_traces_on_the_device_as_single_renders_do(one
         np.testing.assert_allclose(out[k], np.asarray(jp.render(scene.replace(camera=cam))), rtol=2e-6, atol=1e-7)
 
 
-def test_device_accel_is_remembered_for_the_same_jax_arrays_and_rebuilt_for_new_ones(monkeypatch):
-    """A render loop over the same JAX position arrays fetches the BVH once; new positions, triangles
-    changed in place, or NumPy positions go through the content-keyed cache again."""
+def test_device_accel_is_remembered_for_the_same_arrays_and_rebuilt_for_new_ones(monkeypatch):
+    """A render loop over the same position arrays (JAX, or the read-only NumPy copies a Mesh keeps)
+    fetches the BVH once; new positions or triangles go through the content-keyed cache again, and
+    the caller's NumPy array changed in place after the Mesh was made does not change the Mesh."""
     P, _, T = uv_sphere(6)
     grey = jp.Material(base_color=(0.5, 0.5, 0.5))
     m = jp.Mesh(positions=jnp.asarray(P), triangles=jnp.asarray(T.astype(np.int32)), material=grey)
@@ -192,8 +193,13 @@ def test_device_accel_is_remembered_for_the_same_jax_arrays_and_rebuilt_for_new_
     tri[0] = tri[0][::-1]
     mesh.device_accel([moved.replace(triangles=tri)])  # other triangles, the same positions
     assert len(asked) == 3
-    host = jp.Mesh(positions=np.array(P), triangles=T.astype(np.int32), material=grey)
+    mine = np.array(P, np.float32)
+    host = jp.Mesh(positions=mine, triangles=T.astype(np.int32), material=grey)
+    assert host.positions is not mine and not host.positions.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        host.positions[0, 0] = 5.0
     n = len(asked)
-    mesh.device_accel([host])
-    mesh.device_accel([host])
-    assert len(asked) == n + 2
+    kept = mesh.device_accel([host])
+    mine += 1.0  # the caller's array, not the Mesh's
+    np.testing.assert_array_equal(host.positions, P.astype(np.float32))
+    assert mesh.device_accel([host]) is kept and len(asked) == n + 1

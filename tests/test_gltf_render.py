@@ -16,6 +16,7 @@ import pytest
 import jaxpbr as jp
 from jaxpbr.rendering import mesh as mesh_mod
 from jaxpbr.rendering import renderer as R
+from jaxpbr.rendering import stages
 from jaxpbr.rendering.gltf_scene import load_gltf, scene_from_asset
 from jaxpbr.rendering.mesh import Mesh
 
@@ -890,6 +891,35 @@ def test_a_staged_mesh_render_calls_the_ray_engine_without_callback_programs(mon
     monkeypatch.setattr(jax, "pure_callback", lambda *a, **k: callbacks.append(1) or real(*a, **k))
     img = np.asarray(jp.render(scene, shadows=True))
     assert not callbacks and np.isfinite(img).all() and (img == 0.0).any()  # the shadow is black
+
+
+def test_a_staged_mesh_render_makes_the_ray_engine_s_arrays_once_per_scene(monkeypatch):
+    """The meshes' arrays the host ray engine reads (concatenated positions, triangles, culling) are
+    made by a program once per mesh content and kept on the host: a second frame and each light's
+    shadow rays reuse them, and their content is hashed once. New positions make them again, and
+    the frame follows the new geometry."""
+    light = jp.DirectionalLight(direction=(-0.5, -1.0, -0.3), intensity=3.0)
+    scene, _ = _shadow_scene(False, light)
+    made, hashed = [], []
+    real_make, real_digest = stages._host_arrays_jit, mesh_mod._content_digest
+    monkeypatch.setattr(stages, "_host_arrays_jit", lambda *a: made.append(1) or real_make(*a))
+    monkeypatch.setattr(mesh_mod, "_content_digest", lambda x: hashed.append(id(x)) or real_digest(x))
+    stages._HOST_ARRAYS.clear()
+    first = np.asarray(jp.render(scene, shadows=True))
+    assert len(made) == 1
+    digests = len(hashed)
+    again = np.asarray(jp.render(scene, shadows=True))
+    # The engine is asked with the same two array objects (positions, triangles) for every cast of
+    # both frames, so their digests are remembered (`_numerics.remember_per_array`).
+    assert len(made) == 1 and len(hashed) == 2 * digests and len(set(hashed)) == 2
+    np.testing.assert_array_equal(first, again)
+    meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
+    k = scene.objects.index(meshes[-1])
+    moved = meshes[-1].replace(positions=np.asarray(meshes[-1].positions) + np.float32([0.0, 0.0, 0.25]))
+    objs = list(scene.objects)
+    objs[k] = moved
+    shifted = np.asarray(jp.render(scene.replace(objects=objs), shadows=True))
+    assert len(made) == 2 and not np.array_equal(shifted, first)
 
 
 @pytest.mark.slow  # compiles the whole render as one traced program: ~30 s

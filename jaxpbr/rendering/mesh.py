@@ -52,7 +52,18 @@ def _int_array(name: str, x, shape_tail: tuple[int, ...]) -> Any:
         raise TypeError(f"{name} must hold integer vertex indices, got dtype {a.dtype}")
     if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail:
         raise ValueError(f"{name} must have shape (T, {', '.join(map(str, shape_tail))}), got {a.shape}")
-    return np.ascontiguousarray(a, np.int32)
+    return _frozen(a, np.int32)
+
+
+def _frozen(a: np.ndarray, dtype) -> np.ndarray:
+    """`a` as a read-only C-contiguous array of `dtype` that owns its memory (copied unless it is
+    one already): a Mesh's NumPy arrays cannot change under it, so the caches keyed by their
+    identity (content digests, the host ray engine's arrays) stay valid."""
+    if a.dtype == dtype and a.flags.c_contiguous and a.flags.owndata and not a.flags.writeable:
+        return a
+    b = np.array(a, dtype, order="C", copy=True)
+    b.setflags(write=False)
+    return b
 
 
 def _float_rows(name: str, x, width: int, rows: int | None) -> Any:
@@ -66,7 +77,7 @@ def _float_rows(name: str, x, width: int, rows: int | None) -> Any:
         raise ValueError(f"{name} must have shape {want}, got {a.shape}")
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name} contains NaN or Inf")
-    return jnp.asarray(a) if isinstance(x, jax.Array) else np.asarray(a, np.float32 if a.dtype != np.float64 else np.float64)
+    return jnp.asarray(a) if isinstance(x, jax.Array) else _frozen(a, np.float32 if a.dtype != np.float64 else np.float64)
 
 
 class Mesh(Pytree):
@@ -444,28 +455,23 @@ def device_accel(meshes):
     if not all(is_concrete(m.positions) and is_concrete(m.triangles) for m in meshes):
         return None
     # The same arrays again (a render loop, an optimiser's steps): no host copy, concatenation or
-    # hashing of the geometry per call (~30 ms at a million triangles). Positions must be JAX
-    # arrays (immutable: the same object is the same content); triangles may be NumPy (the Mesh
-    # keeps them so), which can change in place: they are compared with a copy (~5 ms at 1 M).
-    if not all(isinstance(m.positions, jax.Array) for m in meshes):
+    # hashing of the geometry per call (~30 ms at a million triangles). A Mesh's arrays are JAX
+    # arrays or read-only NumPy arrays (`_frozen`): the same object is the same content.
+    arrays = [a for m in meshes for a in (m.positions, m.triangles)]
+    if not all(_immutable(a) for a in arrays):
         return _device_accel(meshes)
-    key = tuple(id(a) for m in meshes for a in (m.positions, m.triangles))
+    key = tuple(id(a) for a in arrays)
     hit = _DEVICE_ACCELS.get(key)
-    if hit is not None and _same_geometry(meshes, hit[0]):
+    if hit is not None and all(ref() is a for ref, a in zip(hit[0], arrays, strict=True)):
         return hit[1]
     bvh = _device_accel(meshes)
-    kept = [(weakref.ref(m.positions), m.triangles if isinstance(m.triangles, jax.Array) else np.array(m.triangles))
-            for m in meshes]
     _DEVICE_ACCELS.clear()  # the latest scene only: a BVH's arrays are large
-    _DEVICE_ACCELS[key] = (kept, bvh)
+    _DEVICE_ACCELS[key] = ([weakref.ref(a) for a in arrays], bvh)
     return bvh
 
 
-def _same_geometry(meshes, kept) -> bool:
-    return all(
-        ref() is m.positions and (tri is m.triangles if isinstance(tri, jax.Array) else np.array_equal(tri, m.triangles))
-        for m, (ref, tri) in zip(meshes, kept, strict=True)
-    )
+def _immutable(a) -> bool:
+    return isinstance(a, jax.Array) or (isinstance(a, np.ndarray) and not a.flags.writeable)
 
 
 #: `device_accel`'s latest result, by the identity of the meshes' position and triangle arrays.

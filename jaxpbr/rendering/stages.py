@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextvars
 import functools
 import math
+import weakref
 from typing import Any
 
 import jax
@@ -18,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._api import keyword_only
-from .._numerics import pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from .._numerics import cpu_cond, pack3, small_sq, unpack3, vcross, vdot, vnormalize
 from .._program_cache import cached_jit
 from .._pytree import evolve, fields_of, subtree, unchecked
 from ..ibl.shade import disc_multiscatter, shade_ibl
@@ -86,7 +87,7 @@ def _cast(objects, o, d, dtype):
             t, ok = intersect(o, d, *p)
             return jnp.where(ok, t, big)
 
-        return jax.lax.cond(~jnp.isnan(guard), near, lambda p: jnp.full(shape, big, dtype), params)
+        return cpu_cond(~jnp.isnan(guard), near, lambda p: jnp.full(shape, big, dtype), params)
 
     def take(key, k, t_best, idx):
         better = key < t_best
@@ -529,26 +530,68 @@ def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset
 
 
 def _light_segments(scene: Scene, opts: RenderOptions, pos, ng):
-    """The lights' shadow segments from the surface points (`shadows.shadow_segments`) and the
-    meshes' arrays the host ray engine reads (None without meshes)."""
+    """The lights' shadow segments from the surface points (`shadows.shadow_segments`)."""
     dtype = jnp.dtype(opts.dtype)
     lights = _cast_floats(list(scene.lights), dtype)
-    return shadow_segments(scene.objects, pos, ng, lights, dtype), _host_arrays(scene, dtype)
+    return shadow_segments(scene.objects, pos, ng, lights, dtype)
 
 
 def _sun_segments(scene: Scene, opts: RenderOptions, pos, ng, env_lights):
     """`_light_segments` of the suns split out of the environment (`_sun_shadows`)."""
     dtype = jnp.dtype(opts.dtype)
-    return shadow_segments(scene.objects, pos, ng, _sun_directions(scene, env_lights, dtype), dtype,
-                           directions_only=True), _host_arrays(scene, dtype)
+    return shadow_segments(scene.objects, pos, ng, _sun_directions(scene, env_lights, dtype), dtype, directions_only=True)
 
 
-def _host_arrays(scene: Scene, dtype):
-    arrays = _mesh_arrays(scene, dtype)
-    if arrays is None:
-        return None
+def _host_arrays(meshes: tuple, dtype_name: str):
+    """What the host ray engine reads of the meshes (`mesh.concat_meshes`): float32 positions,
+    triangles, back-face culling, and the MASK / BLEND and transmission tables (None without)."""
+    arrays = concat_meshes(list(meshes), jnp.dtype(dtype_name))
     return {"positions": arrays["positions"].astype(jnp.float32), "triangles": arrays["triangles"],
-            "alpha": arrays["alpha"], "transmit": arrays.get("transmit")}
+            "cull_back": arrays["cull_back"], "alpha": arrays["alpha"], "transmit": arrays["transmit"]}
+
+
+_host_arrays_jit = cached_jit(_host_arrays, static_argnums=(1,))
+
+#: `scene_host_arrays`' latest result: [key, what the leaves were, NumPy arrays].
+_HOST_ARRAYS: list = []
+
+
+def scene_host_arrays(scene: Scene, dtype):
+    """`_host_arrays` of the scene's meshes as NumPy arrays, made once per mesh content: a render
+    loop, a second frame and each light's shadow rays read the same arrays (no program, copy or
+    hashing of the geometry per query). None without meshes, or where a mesh's leaf is traced.
+
+    Kept by the identity of the meshes' leaves: a Mesh holds read-only NumPy arrays or JAX arrays
+    (both immutable, `mesh._frozen`), so the same objects are the same content; Python numbers
+    are compared by value."""
+    meshes = tuple(ob for ob in scene.objects if isinstance(ob, Mesh))
+    if not meshes:
+        return None
+    leaves, treedef = jax.tree_util.tree_flatten(meshes)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return None
+    name = jnp.dtype(dtype).name
+    is_array = [isinstance(x, (np.ndarray, jax.Array)) for x in leaves]
+    if any(a and isinstance(x, np.ndarray) and x.flags.writeable for a, x in zip(is_array, leaves, strict=True)):
+        kept = None  # a writeable NumPy leaf (its content can change in place): not remembered
+    else:
+        kept = [weakref.ref(x) if a else x for a, x in zip(is_array, leaves, strict=True)]
+    key = (treedef, name, tuple(id(x) if a else None for a, x in zip(is_array, leaves, strict=True)))
+    if kept is not None and _HOST_ARRAYS and _HOST_ARRAYS[0] == key and all(
+        (k() is x) if a else _same_value(k, x) for a, k, x in zip(is_array, _HOST_ARRAYS[1], leaves, strict=True)
+    ):
+        return _HOST_ARRAYS[2]
+    out = jax.tree_util.tree_map(np.asarray, _host_arrays_jit(meshes, name))
+    if kept is not None:
+        _HOST_ARRAYS[:] = [key, kept, out]  # the latest scene only: the arrays are large
+    return out
+
+
+def _same_value(a, b) -> bool:
+    try:
+        return type(a) is type(b) and bool(a == b)
+    except (TypeError, ValueError):
+        return False
 
 
 def _combine(rgb: bool, dtype: str, parts, hits):
@@ -562,13 +605,17 @@ _combine_jit = cached_jit(_combine, static_argnums=(0, 1))
 
 def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args, hit=None):
     """Shadow visibility in a staged render: the segments from a stored program, the meshes' part
-    from the host ray engine called directly (`shadows.host_mesh_hits`), the two combined by a
-    stored program; no program holding a callback is compiled in every process."""
-    parts, arrays = segments(scene, opts, *args)
+    from the host ray engine called directly (`shadows.host_mesh_hits`) on the meshes' arrays made
+    once per scene (`scene_host_arrays`), the two combined by a stored program; no program holding
+    a callback is compiled in every process."""
+    parts = segments(scene, opts, *args)
     rgb = colored_shadows(scene.objects)
-    if _traced((parts, arrays)):  # (a render under jit / grad: the rays go through the callback)
+    meshes = tuple(ob for ob in scene.objects if isinstance(ob, Mesh))
+    if _traced(parts):  # (a render under jit / grad: the rays go through the callback)
+        arrays = _host_arrays(meshes, jnp.dtype(opts.dtype).name) if meshes else None
         hits = [None if arrays is None else _mesh_occluded(arrays, p["o32"], p["l"], p["tfar"]) for p in parts]
         return shadow_combine(rgb, parts, hits, jnp.dtype(opts.dtype))
+    arrays = scene_host_arrays(scene, opts.dtype)
     # Only the pixels that hit a surface are traced (the others show the background).
     mask = None if hit is None else np.asarray(hit)
     hits = [None] * len(parts) if arrays is None else [jax.device_put(h) for h in host_mesh_hits(arrays, parts, mask)]
@@ -608,30 +655,28 @@ def _layer_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, 
 
 
 def _cast_inputs(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
-    """What the host ray engine reads for the primary rays (`mesh.cast`'s callback arguments): the
-    rays and the meshes' concatenated arrays, float32 where the engine traces in float32."""
+    """The primary rays the host ray engine casts (`mesh.cast`'s callback arguments), float32 as
+    the engine traces them; the meshes' arrays come from `scene_host_arrays`."""
     dtype = jnp.dtype(opts.dtype)
     o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
-    arrays = _mesh_arrays(scene, dtype)
-    return {"o": o_px.astype(jnp.float32), "d": d_px.astype(jnp.float32), "positions": arrays["positions"].astype(jnp.float32),
-            "triangles": arrays["triangles"], "cull_back": arrays["cull_back"], "alpha": arrays["alpha"]}
+    return {"o": o_px.astype(jnp.float32), "d": d_px.astype(jnp.float32)}
 
 
 _cast_inputs_jit = cached_jit(_cast_inputs, static_argnums=(1, 2))
 
 
 def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, layers: int | None = None):
-    """`_layer_prims` of a staged render: the rays and the meshes' arrays from a stored program
-    (`_cast_inputs`), the host ray engine called directly rather than through a callback, so no
-    program holding a callback is compiled in every process (it cannot be kept: its cache key
-    names a Python object of its process)."""
+    """`_layer_prims` of a staged render: the rays from a stored program (`_cast_inputs`), the
+    meshes' arrays made once per scene (`scene_host_arrays`), the host ray engine called directly
+    rather than through a callback, so no program holding a callback is compiled in every process
+    (it cannot be kept: its cache key names a Python object of its process)."""
     layers = p_plan.blend_layers if layers is None else layers
     x = _cast_inputs_jit(scene, p_plan, opts, offset)
-    if _traced(x):  # (a render under jit / grad: the cast goes through the callback in the trace)
+    arrays = None if _traced(x) else scene_host_arrays(scene, opts.dtype)
+    if arrays is None:  # (a render under jit / grad: the cast goes through the callback in the trace)
         return _layer_prims(scene, p_plan, opts, offset, layers)
-    alpha = None if x["alpha"] is None else jax.tree_util.tree_map(np.asarray, x["alpha"])
-    prim = _host_cast(np.asarray(x["positions"]), np.asarray(x["triangles"]), np.asarray(x["cull_back"]),
-                      np.asarray(x["o"]), np.asarray(x["d"]), alpha, layers=layers)
+    prim = _host_cast(arrays["positions"], arrays["triangles"], arrays["cull_back"],
+                      np.asarray(x["o"]), np.asarray(x["d"]), arrays["alpha"], layers=layers)
     return jax.device_put(prim)
 
 
