@@ -898,6 +898,9 @@ def test_a_staged_mesh_render_makes_the_ray_engine_s_arrays_once_per_scene(monke
     made by a program once per mesh content and kept on the host: a second frame and each light's
     shadow rays reuse them, and their content is hashed once. New positions make them again, and
     the frame follows the new geometry."""
+    from jaxpbr.rendering.execution import EXECUTION
+
+    monkeypatch.setattr(EXECUTION, "staged", True)  # (XLA:CPU's default; a GPU renders as one program)
     light = jp.DirectionalLight(direction=(-0.5, -1.0, -0.3), intensity=3.0)
     scene, _ = _shadow_scene(False, light)
     made, hashed = [], []
