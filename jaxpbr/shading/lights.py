@@ -428,8 +428,11 @@ def shade_direct(
         lights_axis = -2 if rgb else -1
         if vis.shape[lights_axis] != offs[-1]:
             raise ValueError(f"visibility has {vis.shape[lights_axis]} columns for {offs[-1]} lights")
+        # Static slices, not a gather: a gather fused into the shading loop kept XLA:CPU from
+        # vectorising it (1280x720, 4 lights: 104 ms against 15 ms without visibility).
+        axis = vis.ndim + lights_axis
         group_vis = [
-            jnp.take(vis, np.concatenate([cols[id(x)] for x in g]), axis=lights_axis)
+            jnp.stack([jax.lax.index_in_dim(vis, int(j), axis, keepdims=False) for x in g for j in cols[id(x)]], axis)
             for g in (point_items, disc_items) if g
         ]
     batch_shape("shade_direct", ("p", p, 1), ("n", n, 1), ("v", v, 1), material=m)
