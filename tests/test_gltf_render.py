@@ -925,6 +925,26 @@ def test_a_staged_mesh_render_makes_the_ray_engine_s_arrays_once_per_scene(monke
     assert len(made) == 2 and not np.array_equal(shifted, first)
 
 
+def test_shadow_rays_are_cast_under_grad_of_the_vertices():
+    """Under grad with respect to a mesh's vertices the shadow segments are free of gradients (and
+    so concrete) while the vertices are traced: the shadow rays still reach the meshes (through
+    the callback), and the value equals the eager render's, shadow included."""
+    light = jp.DirectionalLight(direction=(-0.5, -1.0, -0.3), intensity=3.0)
+    scene, _ = _shadow_scene(False, light)
+    ground, ball = scene.objects
+
+    def loss(dy):
+        moved = ball.replace(positions=jnp.asarray(ball.positions) + dy * jnp.asarray([0.0, 1.0, 0.0], jnp.float32))
+        return jnp.sum(jp.render(scene.replace(objects=[ground, moved]), shadows=True))
+
+    lit = float(jnp.sum(jp.render(scene, shadows=False)))
+    eager = float(loss(0.0))
+    value, grad = jax.value_and_grad(loss)(0.0)
+    assert eager < lit  # (the ball's shadow darkens the ground)
+    np.testing.assert_allclose(float(value), eager, rtol=1e-6)
+    assert np.isfinite(float(grad))
+
+
 @pytest.mark.slow  # compiles the whole render as one traced program: ~30 s
 def test_staged_render_calls_the_ray_engine_directly_and_matches_the_callback_path(monkeypatch):
     """A render outside transformations casts its primary and shadow rays by calling the host ray

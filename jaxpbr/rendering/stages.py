@@ -611,11 +611,13 @@ def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args, hit=None
     parts = segments(scene, opts, *args)
     rgb = colored_shadows(scene.objects)
     meshes = tuple(ob for ob in scene.objects if isinstance(ob, Mesh))
-    if _traced(parts):  # (a render under jit / grad: the rays go through the callback)
-        arrays = _host_arrays(meshes, jnp.dtype(opts.dtype).name) if meshes else None
-        hits = [None if arrays is None else _mesh_occluded(arrays, p["o32"], p["l"], p["tfar"]) for p in parts]
+    arrays = None if not meshes or _traced(parts) else scene_host_arrays(scene, opts.dtype)
+    if meshes and arrays is None:
+        # A render under jit / grad: the rays go through the callback. (The segments alone can be
+        # concrete there, being free of gradients, while the meshes' vertices are traced.)
+        arrays = _host_arrays(meshes, jnp.dtype(opts.dtype).name)
+        hits = [_mesh_occluded(arrays, p["o32"], p["l"], p["tfar"]) for p in parts]
         return shadow_combine(rgb, parts, hits, jnp.dtype(opts.dtype))
-    arrays = scene_host_arrays(scene, opts.dtype)
     # Only the pixels that hit a surface are traced (the others show the background).
     mask = None if hit is None else np.asarray(hit)
     hits = [None] * len(parts) if arrays is None else [jax.device_put(h) for h in host_mesh_hits(arrays, parts, mask)]
