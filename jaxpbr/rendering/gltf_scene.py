@@ -124,10 +124,16 @@ def _concat(prims, name, width, fill):
     arrs = [getattr(p, name) for p in prims]
     if all(a is None for a in arrs):
         return None
-    return np.concatenate([
+    return _read_only(np.concatenate([
         np.asarray(a, np.float32) if a is not None else np.broadcast_to(np.float32(fill), (p.num_vertices, width))
         for a, p in zip(arrs, prims)
-    ])
+    ]))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """A new array handed to a Mesh as it is: read-only, so the Mesh keeps it without a copy."""
+    a.setflags(write=False)
+    return a
 
 
 def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
@@ -139,9 +145,9 @@ def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
     for mi, prims in by_mat.items():
         gm = asset.materials[mi]
         offs = np.cumsum([0] + [p.num_vertices for p in prims])
-        tris = np.concatenate([np.asarray(p.indices, np.int32) + int(offs[k]) for k, p in enumerate(prims)])
+        tris = _read_only(np.concatenate([np.asarray(p.indices, np.int32) + int(offs[k]) for k, p in enumerate(prims)]))
         meshes.append(Mesh(
-            positions=np.concatenate([np.asarray(p.positions, np.float32) for p in prims]),
+            positions=_read_only(np.concatenate([np.asarray(p.positions, np.float32) for p in prims])),
             triangles=tris,
             normals=_concat(prims, "normals", 3, (0.0, 0.0, 1.0)),
             texcoords=_concat(prims, "texcoord_0", 2, (0.0, 0.0)),
