@@ -102,7 +102,10 @@ class Mesh(Pytree):
         (when it has 4 channels) x COLOR_0's A.
 
     A glTF asset becomes one Mesh per material (`jaxpbr.load_gltf`); a scene may mix meshes with
-    spheres and planes.
+    spheres and planes. NumPy arrays are kept as read-only copies (a read-only array that owns its
+    memory is kept as it is): changing the array passed in does not change the Mesh, and the
+    renderer's caches keyed by the arrays' identity (the ray engine's structure, its inputs) stay
+    valid. Make a new Mesh (or `replace`) to move vertices.
     """
 
     positions: Any = leaf(rank=2)
