@@ -38,7 +38,7 @@ from .rendering.baked import read_baked
 from .rendering.gltf_scene import load_gltf
 from .rendering.scene_file import load_scene
 from .rendering.mesh import Mesh
-from .rendering.renderer import RenderOptions, bake, render, render_batch
+from .rendering.renderer import RenderOptions, bake, clear_caches, render, render_batch
 from .rendering.texture import Texture
 from .rendering.textured import TextureSlot
 from .rendering.scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
@@ -52,6 +52,7 @@ __all__ = [
     "io",
     "rendering",
     "bake",
+    "clear_caches",
     "read_baked",
     "write_baked",
     "CONVENTIONS",

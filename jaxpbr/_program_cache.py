@@ -45,6 +45,7 @@ import pickle
 import platform
 import threading
 import types
+import weakref
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -202,6 +203,22 @@ def _has_callback(jaxpr) -> bool:
     return False
 
 
+#: Every `cached_jit` of the process (for `release_programs`).
+_INSTANCES: weakref.WeakSet = weakref.WeakSet()
+
+
+def release_programs() -> int:
+    """Drop the compiled programs every `cached_jit` holds in memory, and the stored programs read
+    ahead for this command (`recall`); -> how many programs were held. The files stay: a later call
+    loads its program again."""
+    held = 0
+    for f in list(_INSTANCES):
+        held += f._cache_size()
+        f.clear_cache()
+    _RECALLED.clear()
+    return held
+
+
 class cached_jit:
     """`jax.jit(fn, static_argnums=..., static_argnames=...)` whose compiled programs are kept in
     `directory()` (see the module docstring)."""
@@ -213,6 +230,7 @@ class cached_jit:
         self._jit = jax.jit(fn, static_argnums=self._static_argnums, static_argnames=self._static_argnames)
         self._mem: dict[str, object] = {}  # key -> (compiled, out_tree), or None: through jax.jit
         self._lock = threading.Lock()
+        _INSTANCES.add(self)
         self.__wrapped__ = fn
         self.__name__ = getattr(fn, "__name__", "cached_jit")
         self.__qualname__ = getattr(fn, "__qualname__", self.__name__)

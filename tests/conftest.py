@@ -87,6 +87,34 @@ def _write_cache_entries_atomically():
 SLOW_LIST = Path(__file__).with_name("slow_tests.txt")
 
 
+#: Past this many memory mappings a worker drops the compiled programs it holds, after a test file.
+#: Each XLA:CPU program holds its own mappings (hundreds for a render stage) and Linux ends a process
+#: at `vm.max_map_count` (65,530 by default): the slow set's workers died at about 64,700
+#: (segfaults while loading a program from the persistent cache, or silently).
+MAPPINGS_HIGH = 30_000
+
+
+def _mappings() -> int | None:
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux
+        return None
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_programs_when_mappings_run_high():
+    yield
+    n = _mappings()
+    if n is not None and n > MAPPINGS_HIGH:
+        import gc
+
+        import jaxpbr
+
+        jaxpbr.clear_caches()
+        gc.collect()
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
     """Mark the listed tests slow before `-m 'not slow'` deselects by marker."""

@@ -228,3 +228,18 @@ def test_a_command_recalls_the_programs_its_last_run_used(cache_dir, monkeypatch
     # a damaged record is ignored
     (cache_dir / pc.MANIFEST).write_text("{not json")
     assert pc.recall('["render"]') == 0
+
+
+def test_clear_caches_drops_every_program_held_in_memory(cache_dir):
+    """`jaxpbr.clear_caches` empties every stored stage's in-memory programs (and JAX's caches); the
+    next call loads the program from its file and gives the same values."""
+    import jaxpbr
+
+    f = pc.cached_jit(_f, static_argnums=(1,))
+    x = np.linspace(-1, 1, 16, dtype=np.float32)
+    ref = np.asarray(f(x, _Opts(1.5, "cos"))["y"])
+    assert f._cache_size() >= 1
+    jaxpbr.clear_caches()
+    assert all(g._cache_size() == 0 for g in list(pc._INSTANCES))
+    np.testing.assert_array_equal(np.asarray(f(x, _Opts(1.5, "cos"))["y"]), ref)
+    assert f._cache_size() >= 1

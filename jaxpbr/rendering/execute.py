@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numerics import is_concrete, with_callers_context
+from .._program_cache import release_programs
 from .._pytree import evolve, fields_of, unchecked
 from .assets import (
     _asset_irradiance,
@@ -178,6 +179,20 @@ WORKERS = 2
 _pool: ThreadPoolExecutor | None = None
 _pool_pid = 0
 _pool_lock = threading.Lock()
+
+
+def clear_caches() -> None:
+    """Drop every compiled program this process holds: JAX's (`jax.clear_caches`) and the render
+    stages jaxpbr keeps in memory (`_program_cache.release_programs`). The next render loads its
+    programs from the disk caches again, or compiles them; precomputed maps, the asset cache and
+    the ray engines' structures are kept.
+
+    For long-running processes that render many differently shaped scenes: each XLA:CPU program
+    holds its own memory mappings (hundreds for a render stage), and Linux ends a process that
+    reaches `vm.max_map_count` (65,530 by default) mappings: a worker of the slow test set died
+    at 64,718."""
+    jax.clear_caches()
+    release_programs()
 
 
 def worker_pool() -> ThreadPoolExecutor:

@@ -47,7 +47,7 @@ from . import execute as _execute
 from .assets import _env_assets, bake  # noqa: F401
 from .batching import BATCH_CHUNK_PIXELS, _batched, render_batch  # noqa: F401
 from .cache import ASSETS, AssetCache, content_key  # noqa: F401
-from .execute import EXECUTION, Execution, render, worker_pool  # noqa: F401
+from .execute import EXECUTION, Execution, clear_caches, render, worker_pool  # noqa: F401
 from .options import RenderOptions, _options  # noqa: F401
 from .plan import (  # noqa: F401
     DEFAULT_PREFILTER_SIZE,
@@ -78,6 +78,7 @@ __all__ = [
     "RenderOptions",
     "RenderPlan",
     "bake",
+    "clear_caches",
     "gbuffer",
     "plan",
     "render",
