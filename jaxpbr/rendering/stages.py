@@ -552,7 +552,8 @@ def _host_arrays(meshes: tuple, dtype_name: str):
 
 _host_arrays_jit = cached_jit(_host_arrays, static_argnums=(1,))
 
-#: `scene_host_arrays`' latest result: [key, what the leaves were, NumPy arrays].
+#: `scene_host_arrays`' latest result: [(key, what the leaves were, NumPy arrays)], one tuple
+#: replaced whole (renders on several threads read a consistent entry).
 _HOST_ARRAYS: list = []
 
 
@@ -577,13 +578,14 @@ def scene_host_arrays(scene: Scene, dtype):
     else:
         kept = [weakref.ref(x) if a else x for a, x in zip(is_array, leaves, strict=True)]
     key = (treedef, name, tuple(id(x) if a else None for a, x in zip(is_array, leaves, strict=True)))
-    if kept is not None and _HOST_ARRAYS and _HOST_ARRAYS[0] == key and all(
-        (k() is x) if a else _same_value(k, x) for a, k, x in zip(is_array, _HOST_ARRAYS[1], leaves, strict=True)
+    entry = _HOST_ARRAYS[0] if _HOST_ARRAYS else None
+    if kept is not None and entry is not None and entry[0] == key and all(
+        (k() is x) if a else _same_value(k, x) for a, k, x in zip(is_array, entry[1], leaves, strict=True)
     ):
-        return _HOST_ARRAYS[2]
+        return entry[2]
     out = jax.tree_util.tree_map(np.asarray, _host_arrays_jit(meshes, name))
     if kept is not None:
-        _HOST_ARRAYS[:] = [key, kept, out]  # the latest scene only: the arrays are large
+        _HOST_ARRAYS[:] = [(key, kept, out)]  # the latest scene only: the arrays are large
     return out
 
 
