@@ -279,7 +279,17 @@ def computed_once(fn, operands, guard):
     folding the conditional away). Take `guard` from an input that is not batched: under vmap a
     batched predicate makes the conditional a select of both branches, computed twice. On the CPU
     fn's code is compiled twice; elsewhere (`cpu_cond`) fn is inlined."""
-    return cpu_cond(~jnp.isnan(guard), fn, fn, operands)
+    shapes = jax.eval_shape(fn, operands)
+    return cpu_cond(_true_at_run_time(guard), fn, lambda _: jax.tree_util.tree_map(
+        lambda s: jnp.zeros(s.shape, s.dtype), shapes), operands)
+
+
+def _true_at_run_time(guard) -> jax.Array:
+    """A predicate that is always true, computed from `guard` (a scalar array) so that XLA cannot
+    fold it: guard's bits with the lowest one set are never all zero."""
+    g = jnp.asarray(guard)
+    bits = jax.lax.bitcast_convert_type(g, jnp.dtype(f"int{8 * g.dtype.itemsize}"))
+    return (bits | 1) != 0
 
 
 def cpu_cond(pred, fn, other, operands):

@@ -13,3 +13,51 @@ def test_cross_rows_is_np_cross_bit_for_bit():
         assert out.dtype == dtype
         np.testing.assert_array_equal(out, np.cross(a, b))
     np.testing.assert_array_equal(cross_rows(a, b[0]), np.cross(a, b[0]))  # broadcast against one row
+
+
+def test_computed_once_compiles_its_function_once_and_returns_its_value():
+    """`computed_once` is a conditional whose other branch is a constant: fn's code appears once in
+    the program (both branches were fn before: the IBL stage compiled every cube lookup twice)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxpbr._numerics import computed_once
+
+    fn = lambda o: jnp.sinh(o[0]) * o[1]  # noqa: E731
+    x = jnp.linspace(-2.0, 2.0, 64, dtype=jnp.float32)
+    for guard in (jnp.float32(0.0), jnp.float32(-0.0), jnp.float32(np.nan), jnp.float32(np.inf), jnp.float32(-3.5)):
+        f = jax.jit(lambda x, g: computed_once(fn, (x, 2.0 * x), g))
+        np.testing.assert_array_equal(f(x, guard), fn((x, 2.0 * x)))  # fn's value whatever the guard
+    if jax.default_backend() == "cpu":
+        text = jax.jit(lambda x, g: computed_once(fn, (x, 2.0 * x), g)).lower(x, jnp.float32(1.0)).as_text()
+        assert text.count("sinh") == 1, text
+    # gradients flow through fn
+    g = jax.grad(lambda x: computed_once(fn, (x, x), jnp.float32(1.0)).sum())(x)
+    np.testing.assert_allclose(g, np.cosh(np.asarray(x)) * np.asarray(x) + np.sinh(np.asarray(x)), rtol=1e-5)
+
+
+def test_interp_uniform_and_interp_nodes_equal_jnp_interp_in_value_and_gradient():
+    import jax
+    import jax.numpy as jnp
+
+    from jaxpbr._interp import interp_nodes, interp_uniform
+
+    rng = np.random.default_rng(5)
+    grid = np.linspace(-1.0, 3.0, 33)
+    table = np.cumsum(rng.uniform(0.1, 1.0, 33))
+    nodes = np.array([0.0, 0.05, 0.3, 0.31, 0.9, 1.0])
+    values = np.arange(6.0)
+    # inside, on every node, outside on both sides
+    xs = np.concatenate([rng.uniform(-2.0, 4.0, 500), grid, nodes, [-1.0, 3.0, -5.0, 7.0]])
+    for dtype in (jnp.float32, jnp.float64):
+        with jax.enable_x64(dtype == jnp.float64):
+            x = jnp.asarray(xs, dtype)
+            tol = 1e-6 if dtype == jnp.float32 else 1e-13
+            ref_u = lambda x: jnp.interp(x, jnp.asarray(grid, dtype), jnp.asarray(table, dtype))  # noqa: E731
+            ref_n = lambda x: jnp.interp(x, jnp.asarray(nodes, dtype), jnp.asarray(values, dtype))  # noqa: E731
+            ours_u = lambda x: interp_uniform(x, -1.0, 3.0, jnp.asarray(table, dtype))  # noqa: E731
+            ours_n = lambda x: interp_nodes(x, nodes, values)  # noqa: E731
+            for ours, ref in ((ours_u, ref_u), (ours_n, ref_n)):
+                assert ours(x).dtype == dtype
+                np.testing.assert_allclose(ours(x), ref(x), rtol=tol, atol=tol * 10)
+                np.testing.assert_allclose(jax.vmap(jax.grad(ours))(x), jax.vmap(jax.grad(ref))(x), rtol=1e-4, atol=1e-4)

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._api import keyword_only
+from .._interp import interp_nodes, interp_uniform
 from .._validate import positive_int
 from .cubemap import (
     Cubemap,
@@ -125,7 +126,7 @@ def _one_minus_c(r, xp):
     if xp is np:
         return np.interp(r, grid, tab)
     dt = jnp.result_type(r, float)
-    return jnp.interp(r, jnp.asarray(grid, dt), jnp.asarray(tab, dt))
+    return interp_uniform(r, 0.0, 1.0, jnp.asarray(tab, dt))
 
 
 def _check_blend(lod_blend):
@@ -158,8 +159,7 @@ def roughness_to_lod(r, num_levels: int, *, mapping: str = "linear", lod_blend: 
     g = _one_minus_c(r, xp)
     if xp is np:
         return np.interp(g, g_levels, np.arange(M, dtype=np.float64))
-    dt = g.dtype
-    return jnp.interp(g, jnp.asarray(g_levels, dt), jnp.arange(M, dtype=dt))
+    return interp_nodes(g, g_levels, np.arange(M, dtype=np.float64))
 
 
 def levels_for_roughness(r_max: float, num_levels: int, *, mapping: str = "linear", lod_blend: str = DEFAULT_LOD_BLEND) -> int:

@@ -92,6 +92,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._interp import interp_nodes
 from .._numerics import HIGHEST, map_row_chunks
 from .._validate import check_radiance, positive_int
 from ..shading.brdf_terms import MIN_ROUGHNESS
@@ -201,8 +202,7 @@ def charlie_roughness_to_lod(r, num_levels: int, *, lod_blend: str = DEFAULT_CHA
     k = charlie_mean_cosine(_alpha(r, min_roughness, xp), xp)
     if xp is np:
         return np.interp(k, k_levels, np.arange(M, dtype=np.float64))
-    dt = jnp.result_type(k, float)
-    return jnp.interp(k, jnp.asarray(k_levels, dt), jnp.arange(M, dtype=dt))
+    return interp_nodes(k, k_levels, np.arange(M, dtype=np.float64))
 
 
 def charlie_lookup_metadata(num_levels: int, *, lod_blend: str, face_size: int,
