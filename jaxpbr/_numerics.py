@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._program_cache import cached_jit
+from ._program_cache import cached_jit, with_callers_context
 
 __all__ = [
     "HIGHEST",
@@ -331,19 +331,6 @@ def _trace_state_clean() -> bool:
     except ImportError:  # a JAX without it: take every call as traced (a thread each, always correct)
         return False
     return bool(trace_state_clean())
-
-
-def with_callers_context(compute):
-    """compute wrapped to run, on another thread, under the calling thread's x64 mode and default
-    device (both thread-local in JAX)."""
-    x64 = bool(jax.config.jax_enable_x64)
-    device = jax.config.jax_default_device
-
-    def run():
-        with jax.enable_x64(x64), jax.default_device(device):
-            return compute()
-
-    return run
 
 
 def remember_per_array(cache: dict, x, tag, compute):

@@ -35,6 +35,8 @@ package compiles the stages even where JAX's cache holds them."""
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import enum
 import functools
@@ -256,7 +258,10 @@ class cached_jit:
         dyn = (tuple(a for i, a in enumerate(args) if i not in statics),
                {k: v for k, v in kwargs.items() if k not in static_kw})
         leaves, treedef = jax.tree_util.tree_flatten(dyn)
+        ahead = _AHEAD.get() is not None
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            if ahead:
+                raise NotAhead(f"{self.__name__}: traced arguments")
             return self._jit(*args, **kwargs)
         # Python numbers as the weakly typed arrays jax.jit makes of them (device_put: without an
         # XLA program of its own)
@@ -271,10 +276,17 @@ class cached_jit:
                 _canon_tree(treedef),
                 ";".join(_aval(x) for x in leaves),
             ]
-        except _Uncacheable:
+        except _Uncacheable as exc:
+            if ahead:
+                raise NotAhead(f"{self.__name__}: {exc}") from None
             return self._jit(*args, **kwargs)
         key = hashlib.sha256("\n".join(parts).encode()).hexdigest()
+        if ahead:
+            return self._ahead(root, key, len(args), statics, static_kw, leaves, treedef)
         entry = self._mem.get(key, False)
+        if isinstance(entry, _Pending):
+            entry = entry.future.result()
+            self._mem[key] = entry
         if entry is False:
             with self._lock:
                 entry = self._mem.get(key, False)
@@ -317,10 +329,45 @@ class cached_jit:
 
     def _compile(self, root, key, n_args, statics, static_kw, leaves, treedef):
         """Trace, lower and compile the flat program of `leaves` (without JAX's persistent
-        compilation cache, see below) and store it; a program with a host callback is compiled for
-        this process only; None where it must go through jax.jit."""
-        from jax.experimental import serialize_executable
+        compilation cache, see `_finish`) and store it; a program with a host callback is compiled
+        for this process only; None where it must go through jax.jit."""
+        try:
+            traced, trees = self._trace(n_args, statics, static_kw, leaves, treedef)
+        except Exception:  # noqa: BLE001 (run through jax.jit)
+            return None
+        return self._finish(root, key, traced, trees)
 
+    def _ahead(self, root, key, n_args, statics, static_kw, leaves, treedef):
+        """`__call__` inside `ahead()`: the program found (in memory or on disk) or traced here and
+        handed to the compiler threads; -> its results as `jax.ShapeDtypeStruct`s, nothing run."""
+        calls = _AHEAD.get()
+        calls[0] += 1
+        with self._lock:
+            entry = self._mem.get(key, False)
+            if calls[0] == 1 and entry is not False and not isinstance(entry, _Pending):
+                # The chain's first program is held already: so, most likely, are the others (a
+                # repeated render); looking further would only cost the keys' hashing.
+                raise NotAhead(f"{self.__name__}: held already")
+            if entry is False:
+                entry = self._load(root, key)
+                if entry is False:
+                    traced, trees = self._trace(n_args, statics, static_kw, leaves, treedef)
+                    outs = jax.tree_util.tree_unflatten(trees[-1], list(_result_avals(traced)))
+                    job = with_callers_context(functools.partial(self._finish, root, key, traced, trees))
+                    entry = _Pending(_compiler().submit(job), outs)
+                self._mem[key] = entry
+        if isinstance(entry, _Pending):
+            return entry.results
+        if entry is None:
+            raise NotAhead(f"{self.__name__}: runs through jax.jit")
+        compiled, out_tree = entry
+        avals = getattr(compiled, "jaxpbr_out_avals", None)
+        if avals is None:
+            raise NotAhead(f"{self.__name__}: stored without its result shapes")
+        return jax.tree_util.tree_unflatten(out_tree, list(avals))
+
+    def _trace(self, n_args, statics, static_kw, leaves, treedef):
+        """(jax's `Traced` of the flat program of `leaves`, [its result tree])."""
         fn = self._fn
         trees = []
 
@@ -333,12 +380,19 @@ class cached_jit:
             return out
 
         # A name of its own: the program must not be a jax.jit program of this process that JAX
-        # holds in memory (possibly read from its persistent cache, see below).
+        # holds in memory (possibly read from its persistent cache, see `_finish`).
         flat.__name__ = flat.__qualname__ = f"{self.__name__}_stored"
+        return jax.jit(flat).trace(*leaves), trees
+
+    def _finish(self, root, key, traced, trees):
+        """Lower and compile `traced` and store it (see `_compile`) -> (compiled, result tree), or
+        None where it must go through jax.jit."""
+        from jax.experimental import serialize_executable
+
+        avals = _result_avals(traced)
         try:
-            traced = jax.jit(flat).trace(*leaves)
             if _has_callback(traced.jaxpr):  # this process's program only (traced once, not twice)
-                return traced.lower().compile(), trees[-1]
+                return _with_avals(traced.lower().compile(), avals), trees[-1]
             # Compiled here, not read from JAX's persistent cache: an executable loaded from that
             # cache serializes without its kernels (it fails when called after loading: measured
             # with jax 0.10). The context is thread-local.
@@ -347,7 +401,7 @@ class cached_jit:
             with enable_compilation_cache(False):
                 compiled = traced.lower().compile()
             payload, in_tree, out_tree = serialize_executable.serialize(compiled)
-            blob = pickle.dumps((key, payload, in_tree, out_tree, trees[-1]))
+            blob = pickle.dumps((key, payload, in_tree, out_tree, trees[-1], avals))
         except Exception:  # noqa: BLE001 (not serializable here: run through jax.jit)
             return None
         path = self._path(root, key)
@@ -362,7 +416,109 @@ class cached_jit:
                 tmp.unlink()
             except OSError:
                 pass
-        return compiled, trees[-1]
+        return _with_avals(compiled, avals), trees[-1]
+
+
+def with_callers_context(compute):
+    """compute wrapped to run, on another thread, under the calling thread's x64 mode and default
+    device (both thread-local in JAX)."""
+    x64 = bool(jax.config.jax_enable_x64)
+    device = jax.config.jax_default_device
+
+    def run():
+        with jax.enable_x64(x64), jax.default_device(device):
+            return compute()
+
+    return run
+
+
+# -- compiling ahead ------------------------------------------------------------------------------
+#: Inside `ahead()`: a one-item list, the number of calls looked ahead so far; else None.
+_AHEAD: contextvars.ContextVar[list | None] = contextvars.ContextVar("jaxpbr_programs_ahead", default=None)
+
+
+class NotAhead(Exception):
+    """A call inside `ahead()` that cannot be compiled ahead (traced or uncacheable arguments, a
+    program that runs through jax.jit, host work between programs): the caller stops looking ahead
+    and runs as usual."""
+
+
+class _Pending:
+    """A program being compiled on a compiler thread, and its results' shapes."""
+
+    __slots__ = ("future", "results")
+
+    def __init__(self, future: Future, results):
+        self.future = future
+        self.results = results
+
+
+@contextlib.contextmanager
+def ahead():
+    """Within, a `cached_jit` call with the stored-program directory set runs nothing: it finds its
+    program in memory or on disk, or traces it and hands the lowering and compilation to the
+    compiler threads, and returns its results as `jax.ShapeDtypeStruct`s, which later calls accept
+    as arguments. Running a chain of programs (a render's stages) this way first starts all of
+    their compilations at once, where each would otherwise wait for the previous program to
+    compile and run; the real calls then wait for their own program only. A call that cannot be
+    compiled ahead raises `NotAhead`. Only while a directory is set (else a call raises NotAhead)."""
+    if _STATE["dir"] is None:
+        raise NotAhead("no program directory")
+    token = _AHEAD.set([0])
+    try:
+        yield
+    finally:
+        _AHEAD.reset(token)
+
+
+@contextlib.contextmanager
+def running_now():
+    """Within `ahead()`: calls run as usual again (host work the look-ahead needs anyway)."""
+    token = _AHEAD.set(None)
+    try:
+        yield
+    finally:
+        _AHEAD.reset(token)
+
+
+def was_recalled() -> bool:
+    """Whether the programs of this command's last run are being read (`recall`): a warm rerun."""
+    return bool(_RECALLED)
+
+
+def is_ahead() -> bool:
+    """Whether this thread is inside `ahead()`."""
+    return _AHEAD.get() is not None
+
+
+#: Threads that compile programs ahead (`ahead`): XLA compiles a program on one thread, so two
+#: programs compile at once on two cores.
+COMPILERS = 1
+_COMPILER: dict = {"pool": None, "pid": 0}
+
+
+def _compiler() -> ThreadPoolExecutor:
+    with _READER_LOCK:
+        if _COMPILER["pool"] is None or _COMPILER["pid"] != os.getpid():
+            _COMPILER["pool"] = ThreadPoolExecutor(max_workers=COMPILERS, thread_name_prefix="jaxpbr-compile")
+            _COMPILER["pid"] = os.getpid()
+        return _COMPILER["pool"]
+
+
+def _result_avals(traced) -> tuple:
+    """The flat results' `jax.ShapeDtypeStruct`s (weak types included) of a `Traced`."""
+    return tuple(jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=bool(getattr(a, "weak_type", False)))
+                 for a in traced.out_info)
+
+
+def _with_avals(compiled, avals):
+    """compiled, carrying its flat results' shapes for `ahead` (a compiled program's own
+    `out_info` leaves out weak types)."""
+    try:
+        compiled.jaxpbr_out_avals = avals
+    except AttributeError:
+        pass
+    return compiled
 
 
 def _read(path: Path):
@@ -371,8 +527,9 @@ def _read(path: Path):
     from jax.experimental import serialize_executable
 
     try:
-        stored_key, payload, in_tree, out_tree, result_tree = pickle.loads(path.read_bytes())
-        return stored_key, serialize_executable.deserialize_and_load(payload, in_tree, out_tree), result_tree
+        stored_key, payload, in_tree, out_tree, result_tree, avals = pickle.loads(path.read_bytes())
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        return stored_key, _with_avals(compiled, avals), result_tree
     except Exception:  # noqa: BLE001
         return None
 
@@ -455,6 +612,6 @@ def remember(signature: str) -> None:
 
 
 def _aval(x) -> str:
-    if isinstance(x, (jax.Array, np.ndarray, np.generic)):
+    if isinstance(x, (jax.Array, np.ndarray, np.generic, jax.ShapeDtypeStruct)):
         return f"{tuple(x.shape)}/{np.dtype(x.dtype).str}/{int(bool(getattr(x, 'weak_type', False)))}"
     raise _Uncacheable(type(x).__name__)

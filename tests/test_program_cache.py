@@ -243,3 +243,116 @@ def test_clear_caches_drops_every_program_held_in_memory(cache_dir):
     assert all(g._cache_size() == 0 for g in list(pc._INSTANCES))
     np.testing.assert_array_equal(np.asarray(f(x, _Opts(1.5, "cos"))["y"]), ref)
     assert f._cache_size() >= 1
+
+
+@stored_on_this_backend
+def test_a_call_ahead_gives_the_results_shapes_and_the_real_call_runs_the_program_compiled_ahead(cache_dir, monkeypatch):
+    """`ahead()`: the call traces its program once and hands the compilation to the compiler thread;
+    its results come back as shapes equal to the real results' (weak types included); the real
+    call then runs that program (no second trace); a later object finds it on disk."""
+    traced = []
+    orig = pc.cached_jit._trace
+    monkeypatch.setattr(pc.cached_jit, "_trace", lambda self, *a: traced.append(self.__name__) or orig(self, *a))
+
+    def g(x, opts, k):
+        return {**_f(x, opts), "weak": k * 2.0, "n": jnp.arange(3)}
+
+    f = pc.cached_jit(g, static_argnums=(1,))
+    x = np.linspace(-3, 3, 101, dtype=np.float32)
+    with pc.ahead():
+        shapes = f(jax.ShapeDtypeStruct(x.shape, x.dtype), _Opts(2.0, "cos"), 1.5)
+    assert traced == ["g"]
+    out = f(x, _Opts(2.0, "cos"), 1.5)
+    assert traced == ["g"]  # the program compiled ahead, not traced again
+    ref = jax.jit(g, static_argnums=(1,))(x, _Opts(2.0, "cos"), 1.5)
+    for k in ref:
+        np.testing.assert_array_equal(out[k], ref[k])
+        assert isinstance(shapes[k], jax.ShapeDtypeStruct)
+        assert (shapes[k].shape, shapes[k].dtype, shapes[k].weak_type) == (ref[k].shape, ref[k].dtype, ref[k].weak_type), k
+    assert ref["weak"].weak_type  # (the case the shapes must carry)
+    # a fresh object (a later process) finds the stored program: shapes without a trace
+    h = pc.cached_jit(g, static_argnums=(1,))
+    with pc.ahead():
+        again = h(jax.ShapeDtypeStruct(x.shape, x.dtype), _Opts(2.0, "cos"), 1.5)
+    assert traced == ["g"]
+    assert {k: (s.shape, s.dtype, s.weak_type) for k, s in again.items()} == {k: (s.shape, s.dtype, s.weak_type) for k, s in shapes.items()}
+    # what cannot be looked ahead says so
+    with pc.ahead(), pytest.raises(pc.NotAhead):
+        f(jax.ShapeDtypeStruct(x.shape, x.dtype), lambda: None, 1.5)  # an uncacheable static value
+    pc.use_directory(None)
+    with pytest.raises(pc.NotAhead):
+        with pc.ahead():
+            pass
+
+
+def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():
+    """`assets.asset_shapes` (what the IBL stage is compiled for while the maps are computed) has
+    the tree, lookup metadata and leaf shapes of what `_env_assets` returns, for several options."""
+    import jaxpbr as jp
+    from jaxpbr.ibl.cubeio import load_environment
+    from jaxpbr.rendering.assets import _env_assets, asset_shapes
+    from jaxpbr.rendering.cache import AssetCache
+    from jaxpbr.rendering.options import RenderOptions
+    from jaxpbr.rendering.plan import _env_split, plan
+
+    radiance = load_environment(["procedural:sky"], 16)
+    sphere = jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=0.7))
+    cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), width=8, height=8, fov_y_deg=40.0)
+    variants = [{}, {"mapping": "quadratic"}, {"model": "learnopengl"}, {"irradiance_size": 8, "lut_size": 128},
+                {"prefilter_size": 8}, {"extract_lights": False}]
+    for kw in variants:
+        opts = RenderOptions(**kw)
+        cache = AssetCache()
+        env = jp.Environment(radiance=radiance)
+        scene = jp.Scene(camera=cam, objects=[sphere], environment=env)
+        p = plan(scene, options=opts, cache=cache)
+        real = _env_assets(env, p, opts, cache)
+        lights = _env_split(env, opts, cache)[0] if p.env_lights else None
+        shapes = asset_shapes(env, p, opts, real[2], lights)
+        assert jax.tree_util.tree_structure(shapes) == jax.tree_util.tree_structure(real), kw
+        assert pc._canon_tree(jax.tree_util.tree_structure(shapes)) == pc._canon_tree(jax.tree_util.tree_structure(real)), kw
+        got = [(tuple(x.shape), np.dtype(x.dtype)) for x in jax.tree_util.tree_leaves(shapes)]
+        want = [(tuple(x.shape), np.dtype(x.dtype)) for x in jax.tree_util.tree_leaves(real)]
+        assert got == want, kw
+
+
+@stored_on_this_backend
+def test_a_cold_staged_render_traces_and_compiles_each_stage_once_ahead(cache_dir, monkeypatch):
+    """A cold render with stored programs on (the command line's) looks ahead: every stage of a
+    mesh scene with shadows and a sun split out of the sky is traced once, compiled once (on the
+    compiler thread), and used; the image equals the render without the look-ahead."""
+    import threading
+
+    import jaxpbr as jp
+    from jaxpbr.ibl.cubeio import load_environment
+    from jaxpbr.rendering import execute
+    from jaxpbr.rendering.demo import uv_sphere
+
+    pos, nrm, tri = uv_sphere(12)
+    meshes = [jp.Mesh(positions=pos * 0.8 + np.array([x, 0.0, 0.0]), normals=nrm, triangles=tri,
+                      material=jp.Material(base_color=(0.8, 0.5, 0.3), roughness=r)) for x, r in ((-1.0, 0.3), (1.0, 0.8))]
+    floor = jp.Plane(point=(0.0, -0.8, 0.0), normal=(0.0, 1.0, 0.0), material=jp.Material(roughness=0.9))
+    scene = jp.Scene(camera=jp.Camera(position=(0.0, 1.0, 5.0), target=(0.0, 0.0, 0.0), width=40, height=24, fov_y_deg=45.0),
+                     objects=[*meshes, floor], lights=[jp.PointLight(position=(2.0, 4.0, 3.0), intensity=50.0)],
+                     environment=jp.Environment(radiance=load_environment(["procedural:sky"], 16)))
+    pc.use_directory(None)
+    plain = np.asarray(jp.render(scene, shadows=True))
+    jp.clear_caches()
+    pc.use_directory(cache_dir)
+    traced, finished = [], []
+    orig_trace, orig_finish = pc.cached_jit._trace, pc.cached_jit._finish
+    monkeypatch.setattr(pc.cached_jit, "_trace", lambda self, *a: traced.append(self.__name__) or orig_trace(self, *a))
+    monkeypatch.setattr(pc.cached_jit, "_finish", lambda self, *a: finished.append((self.__name__, threading.current_thread().name))
+                        or orig_finish(self, *a))
+    looked = []
+    orig_ahead = execute._compile_ahead
+    monkeypatch.setattr(execute, "_compile_ahead", lambda *a: looked.append(1) or orig_ahead(*a))
+    out = np.asarray(jp.render(scene, shadows=True))
+    assert looked
+    names = [n for n, _ in finished]
+    for stage in ("_cast_inputs", "_geometry", "_light_segments", "_shade_direct", "_sun_segments", "_shade_rest"):
+        assert traced.count(stage) == 1 and names.count(stage) == 1, (stage, traced, names)
+        assert dict(finished)[stage].startswith("jaxpbr-compile"), finished
+    assert sorted(traced) == sorted(names)  # nothing compiled twice or left uncompiled
+    assert not any(isinstance(e, pc._Pending) for f in list(pc._INSTANCES) for e in f._mem.values())
+    np.testing.assert_array_equal(out, plain)

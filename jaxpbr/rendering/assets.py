@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 
 from .. import _memory
 from .._api import keyword_only
 from .._numerics import is_concrete
+from .._pytree import unchecked
 
 # called through the modules: tests count precompute calls
 from ..ibl import diffuse, specular
@@ -40,6 +42,43 @@ def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions, cache: Ass
         _asset_irradiance(env, p, opts, key, cache), _asset_prefiltered(env, p, opts, key, cache),
         _asset_lut(env, opts, cache), lights, _asset_sheen(env, p, opts, cache),
     )
+
+
+def asset_shapes(env: Environment, p: RenderPlan, opts: RenderOptions, lut, env_lights):
+    """What `_env_assets` returns for the plan, as `jax.ShapeDtypeStruct` leaves in the same tree
+    (the maps' lookup metadata, which is part of a compiled program's identity, included),
+    known before the maps are computed: a staged render compiles its IBL stage while the maps
+    are still being computed (`_program_cache.ahead`). lut, env_lights: the LUT and suns (known
+    then). Raises `NotAhead` where the plan reads a sheen map still to compute."""
+    from .._program_cache import NotAhead
+    from ..ibl.cubemap import CubeInfo
+    from ..ibl.lod import lookup_metadata
+
+    dtype = jnp.dtype(opts.dtype)
+    shape = lambda x: jax.ShapeDtypeStruct(x.shape, dtype)  # noqa: E731  (after `_in_dtype`)
+    C = env.radiance.channels
+
+    def cube(sizes, info):
+        return unchecked(Cubemap, levels=tuple(jax.ShapeDtypeStruct((6, n, n, C), dtype) for n in sizes), info=CubeInfo(info))
+
+    irr = None
+    if p.ibl_diffuse:
+        irr = env.irradiance
+        irr = cube([opts.irradiance_size], ()) if irr is None else jax.tree_util.tree_map(shape, irr)
+    pre = env.prefiltered
+    if pre is None:
+        S, M = p.prefilter_size, p.mapping_levels
+        lookup = {"roughness_mapping": opts.mapping, "mapping_levels": str(M),
+                  **lookup_metadata(M, mapping=opts.mapping, lod_blend=specular.DEFAULT_LOD_BLEND, face_size=S)}
+        pre = cube([max(1, S >> m) for m in range(p.prefilter_levels)], tuple(lookup.items()))
+    else:
+        pre = jax.tree_util.tree_map(shape, pre)
+    sheen = None
+    if p.charlie_size:
+        if env.charlie is None or env.sheen_lut is None:
+            raise NotAhead("the sheen maps are still to compute")
+        sheen = shape(jnp.asarray(env.sheen_lut)), jax.tree_util.tree_map(shape, env.charlie)
+    return irr, pre, jnp.asarray(lut, dtype), env_lights, sheen
 
 
 def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions, cache: AssetCache | None = None):

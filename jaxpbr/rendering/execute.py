@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _program_cache
 from .._numerics import is_concrete, with_callers_context
 from .._program_cache import release_programs
 from .._pytree import evolve, fields_of, unchecked
@@ -28,6 +29,7 @@ from .assets import (
     _asset_sheen,
     _env_assets,
     _env_key,
+    asset_shapes,
 )
 from .cache import AssetCache, cache_or_default
 from .execution import EXECUTION, Execution
@@ -86,16 +88,49 @@ def render(
             sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
             futures.append(sheen)
             lut = _asset_lut(env, opts, cache)
-            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()))
-            return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True),
-                           progress, execution)
+            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()),
+                                    lambda: asset_shapes(env, p, opts, lut, env_lights))
+            one_pass = lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True)  # noqa: E731
+            _compile_ahead(scene, opts, p, one_pass, execution)
+            return _banded(scene, opts, p, one_pass, progress, execution)
         finally:
             # On success every map was used; on an error or an interrupt the precomputes not
             # started yet are dropped, and one still running is not waited for.
             for f in futures:
                 f.cancel()
     assets = _env_assets(env, p, opts, cache) if p.ibl else None
-    return _banded(scene, opts, p, lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True), progress, execution)
+    one_pass = lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True)  # noqa: E731
+    _compile_ahead(scene, opts, p, one_pass, execution)
+    return _banded(scene, opts, p, one_pass, progress, execution)
+
+
+def _layout(scene: Scene, execution: Execution | None):
+    """(sub-pixel samples per axis, whole image in one pass, rows per band) of `_banded`."""
+    band_pixels = (EXECUTION if execution is None else execution).band_pixels
+    H, W = scene.image_shape
+    s = 1 if scene.gbuffer is not None else scene.camera.supersample
+    whole = scene.gbuffer is not None or H * W <= band_pixels
+    return s, whole, (H if whole else max(1, band_pixels // W))
+
+
+def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, execution: Execution | None) -> None:
+    """Start compiling every stage of the render's passes at once (`_program_cache.ahead`): the
+    stages are traced here, one after another, and compiled on the compiler threads while the
+    first ones run; without it each stage's compilation waits for the previous stage to compile
+    and run, and the IBL stage's for the maps. Only on a cold start of the command line (stored
+    programs on, none recalled); a pass that cannot be looked ahead (a render under a
+    transformation, BLEND layers, sheen maps still to compute) runs as usual."""
+    if _program_cache.directory() is None or _program_cache.was_recalled() or jax.default_backend() != "cpu":
+        return
+    s, whole, rows = _layout(scene, execution)
+    sc = evolve(scene, camera=evolve(scene.camera, supersample=1)) if s > 1 else scene
+    pb = p if whole else dataclasses.replace(p, band_rows=rows)
+    offset = jax.ShapeDtypeStruct((2,) if whole else (3,), jnp.dtype(opts.dtype))
+    try:
+        with _program_cache.ahead():
+            one_pass(sc, pb, offset)
+    except Exception:  # noqa: BLE001 (NotAhead, or a pass the look-ahead cannot follow: as usual)
+        return
 
 
 def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None, execution: Execution | None = None):
@@ -103,11 +138,8 @@ def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress
     pixels, one compiled program per stage for every band: the band's first row is an argument)
     into one host buffer when the image is larger; a user G-buffer is rendered whole. progress: per
     pass (bands x sub-pixel samples), the last once the image is ready."""
-    band_pixels = (EXECUTION if execution is None else execution).band_pixels
     H, W = scene.image_shape
-    s = 1 if scene.gbuffer is not None else scene.camera.supersample
-    whole = scene.gbuffer is not None or H * W <= band_pixels
-    rows = H if whole else max(1, band_pixels // W)
+    s, whole, rows = _layout(scene, execution)
     total = -(-H // rows) * s * s
     if whole:
         out = _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off), progress=_passes(progress, 0, total))

@@ -253,6 +253,13 @@ def host_mesh_hits(arrays, parts, mask=None) -> list:
     return out
 
 
+def host_mesh_hit_shapes(arrays, parts) -> list:
+    """The shapes of `host_mesh_hits`' results with a mask (`jax.ShapeDtypeStruct`s), no ray traced."""
+    if arrays.get("transmit") is None:
+        return [jax.ShapeDtypeStruct(tuple(p["tfar"].shape), jnp.bool_) for p in parts]
+    return [jax.ShapeDtypeStruct(tuple(p["tfar"].shape) + (3,), jnp.float32) for p in parts]
+
+
 def shadow_combine(rgb: bool, parts, hits, dtype):
     """The (..., L) or (rgb) (..., L, 3) visibility from `shadow_segments` and the meshes' hits
     (bool (...) or float (..., 3) light left; None without meshes)."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._api import keyword_only
 from .._numerics import cpu_cond, pack3, small_sq, unpack3, vcross, vdot, vnormalize
-from .._program_cache import cached_jit
+from .._program_cache import cached_jit, is_ahead, running_now
 from .._pytree import evolve, fields_of, subtree, unchecked
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..shading.layered import emission_soa
@@ -42,7 +42,15 @@ from .scene import (
     primary_rays,
     sample_texture,
 )
-from .shadows import _mesh_occluded, colored_shadows, host_mesh_hits, shadow_combine, shadow_segments, shadow_visibility
+from .shadows import (
+    _mesh_occluded,
+    colored_shadows,
+    host_mesh_hit_shapes,
+    host_mesh_hits,
+    shadow_combine,
+    shadow_segments,
+    shadow_visibility,
+)
 
 #: Up to this many spheres the ray cast is unrolled (fused by XLA); beyond, a fori_loop.
 UNROLL_MAX_SPHERES = 8
@@ -613,6 +621,11 @@ def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args, hit=None
     parts = segments(scene, opts, *args)
     rgb = colored_shadows(scene.objects)
     meshes = tuple(ob for ob in scene.objects if isinstance(ob, Mesh))
+    if is_ahead():  # (the hits' shapes, no ray traced: `_program_cache.ahead`)
+        with running_now():
+            arrays = scene_host_arrays(scene, opts.dtype) if meshes else None
+        hits = [None] * len(parts) if arrays is None else host_mesh_hit_shapes(arrays, parts)
+        return _combine_jit(rgb, jnp.dtype(opts.dtype).name, parts, hits)
     arrays = None if not meshes or _traced(parts) else scene_host_arrays(scene, opts.dtype)
     if meshes and arrays is None:
         # A render under jit / grad: the rays go through the callback. (The segments alone can be
@@ -676,6 +689,8 @@ def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, l
     (it cannot be kept: its cache key names a Python object of its process)."""
     layers = p_plan.blend_layers if layers is None else layers
     x = _cast_inputs_jit(scene, p_plan, opts, offset)
+    if is_ahead():  # (the primitives' shape, no ray cast: `_program_cache.ahead`)
+        return jax.ShapeDtypeStruct(tuple(x["o"].shape[:-1]) + ((layers,) if layers > 1 else ()), jnp.int32)
     arrays = None if _traced(x) else scene_host_arrays(scene, opts.dtype)
     if arrays is None:  # (a render under jit / grad: the cast goes through the callback in the trace)
         return _layer_prims(scene, p_plan, opts, offset, layers)
@@ -691,7 +706,7 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     for k in p_plan.textured:
         g = (_texture_jit if staged else _texture)(lean, k, opts, g)
     sink = GEOMETRY_SINK.get()
-    if sink is not None and staged:
+    if sink is not None and staged and not is_ahead():
         sink.append(g)  # the textured G-buffer, for AOVs of the same pass (`aovs.render_with_aovs`)
     direct = (_shade_direct_jit if staged else _shade_direct)(lean, p_plan, opts, g)
     if p_plan.shadows and p_plan.env_lights:
@@ -702,7 +717,7 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
                    else _sun_shadows(scene, opts, g, env_lights))
         g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
-        assets = assets()
+        assets = assets.shapes() if is_ahead() else assets()
     return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
 
 
@@ -714,14 +729,22 @@ GEOMETRY_SINK: contextvars.ContextVar[list | None] = contextvars.ContextVar("jax
 class PendingAssets:
     """The environment's assets of a staged render while worker threads compute its maps: the
     suns split out of it (`env_lights`) now, the (irradiance, prefiltered, LUT, suns, sheen) tuple
-    when called (waiting for the maps)."""
+    when called (waiting for the maps), and its shapes (`assets.asset_shapes`) from `shapes()`."""
 
-    def __init__(self, env_lights, resolve):
+    def __init__(self, env_lights, resolve, shapes=None):
         self.env_lights = env_lights
         self._resolve = resolve
+        self._shapes = shapes
 
     def __call__(self):
         return self._resolve()
+
+    def shapes(self):
+        if self._shapes is None:
+            from .._program_cache import NotAhead
+
+            raise NotAhead("the maps' shapes are not known")
+        return self._shapes()
 
 
 def _lean(scene: Scene) -> Scene:
