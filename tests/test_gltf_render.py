@@ -904,8 +904,9 @@ def test_a_staged_mesh_render_makes_the_ray_engine_s_arrays_once_per_scene(monke
     light = jp.DirectionalLight(direction=(-0.5, -1.0, -0.3), intensity=3.0)
     scene, _ = _shadow_scene(False, light)
     made, hashed = [], []
-    real_make, real_digest = stages._host_arrays_jit, mesh_mod._content_digest
+    real_make, real_opaque, real_digest = stages._host_arrays_jit, stages._host_arrays_opaque, mesh_mod._content_digest
     monkeypatch.setattr(stages, "_host_arrays_jit", lambda *a: made.append(1) or real_make(*a))
+    monkeypatch.setattr(stages, "_host_arrays_opaque", lambda *a: made.append(1) or real_opaque(*a))
     monkeypatch.setattr(mesh_mod, "_content_digest", lambda x: hashed.append(id(x)) or real_digest(x))
     stages._HOST_ARRAYS.clear()
     first = np.asarray(jp.render(scene, shadows=True))
@@ -923,6 +924,24 @@ def test_a_staged_mesh_render_makes_the_ray_engine_s_arrays_once_per_scene(monke
     objs[k] = moved
     shifted = np.asarray(jp.render(scene.replace(objects=objs), shadows=True))
     assert len(made) == 2 and not np.array_equal(shifted, first)
+
+
+def test_the_opaque_meshes_host_arrays_in_numpy_equal_the_program_s():
+    """Opaque meshes without transmission: the ray engine's arrays are concatenated in NumPy (no
+    program); they equal `_host_arrays`' (positions, offset triangles, back-face culling)."""
+    light = jp.DirectionalLight(direction=(-0.5, -1.0, -0.3), intensity=3.0)
+    scene, _ = _shadow_scene(False, light)
+    meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
+    meshes = tuple(meshes + [meshes[0].replace(double_sided=not meshes[0].double_sided)])
+    assert len(meshes) >= 2 and len({m.double_sided for m in meshes}) == 2
+    for dtype in ("float32", "float64"):
+        with jax.enable_x64(dtype == "float64"):
+            ref = stages._host_arrays(meshes, dtype)
+        got = stages._host_arrays_opaque(meshes)
+        assert got["alpha"] is None and ref["alpha"] is None and got["transmit"] is None and ref["transmit"] is None
+        for k in ("positions", "triangles", "cull_back"):
+            assert got[k].dtype == np.asarray(ref[k]).dtype, k
+            np.testing.assert_array_equal(got[k], np.asarray(ref[k]))
 
 
 def test_shadow_rays_are_cast_under_grad_of_the_vertices():

@@ -27,7 +27,7 @@ from ..shading.layered import emission_soa
 from ..shading.lights import shade_direct
 from ..shading.material import Material
 from . import texture
-from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface
+from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface, transmits
 from .options import RenderOptions, _options
 from .plan import RenderPlan, plan
 from .scene import (
@@ -591,10 +591,26 @@ def scene_host_arrays(scene: Scene, dtype):
         (k() is x) if a else _same_value(k, x) for a, k, x in zip(is_array, entry[1], leaves, strict=True)
     ):
         return entry[2]
-    out = jax.tree_util.tree_map(np.asarray, _host_arrays_jit(meshes, name))
+    if all(ob.alpha_mode == "OPAQUE" and not transmits(ob.material) for ob in meshes):
+        out = _host_arrays_opaque(meshes)
+    else:
+        out = jax.tree_util.tree_map(np.asarray, _host_arrays_jit(meshes, name))
     if kept is not None:
         _HOST_ARRAYS[:] = [(key, kept, out)]  # the latest scene only: the arrays are large
     return out
+
+
+def _host_arrays_opaque(meshes: tuple) -> dict:
+    """`_host_arrays` of opaque meshes without transmission, in NumPy (no program to compile): the
+    same positions, triangles and culling flags, no alpha or transmission tables."""
+    offs = np.cumsum([0] + [m.num_vertices for m in meshes])
+    return {
+        "positions": np.concatenate([np.asarray(m.positions, np.float32) for m in meshes]),
+        "triangles": np.concatenate([np.asarray(m.triangles, np.int32) + np.int32(o) for m, o in zip(meshes, offs, strict=False)]),
+        "cull_back": np.concatenate([np.full(m.num_triangles, not m.double_sided) for m in meshes]),
+        "alpha": None,
+        "transmit": None,
+    }
 
 
 def _same_value(a, b) -> bool:
