@@ -486,6 +486,27 @@ def was_recalled() -> bool:
     return bool(_RECALLED)
 
 
+#: Calls to look ahead after a render's stages (`also_ahead`), for the calling thread.
+_ALSO: contextvars.ContextVar[tuple] = contextvars.ContextVar("jaxpbr_also_ahead", default=())
+
+
+@contextlib.contextmanager
+def also_ahead(call):
+    """Within, a render that compiles its stages ahead (`rendering.execute`) then calls `call()`
+    inside `ahead()` too: the command line's display program (tone map and encoding of the image)
+    is compiled on the compiler thread after the stages, while they run, instead of after them."""
+    token = _ALSO.set(_ALSO.get() + (call,))
+    try:
+        yield
+    finally:
+        _ALSO.reset(token)
+
+
+def calls_also_ahead() -> tuple:
+    """The calls `also_ahead` registered on this thread."""
+    return _ALSO.get()
+
+
 def is_ahead() -> bool:
     """Whether this thread is inside `ahead()`."""
     return _AHEAD.get() is not None

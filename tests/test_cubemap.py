@@ -746,3 +746,16 @@ def test_from_equirect_bad_input():
             Cubemap.from_equirect(good, size)
     # 2-D (grey) panoramas are accepted as one channel
     assert Cubemap.from_equirect(np.ones((8, 16)), 4).channels == 1
+
+
+def test_a_static_lod_at_or_below_zero_reads_level_zero_alone_with_the_same_values():
+    """`sample(d, 0.0)` (a static lod: the background's lookup) reads level 0 alone and gives what
+    the trilinear lookup at a traced lod of 0 gives, bit for bit; so does a static negative lod."""
+    rng = np.random.default_rng(11)
+    cube = Cubemap([jnp.asarray(rng.uniform(0.0, 4.0, (6, 16 >> m, 16 >> m, 3)), jnp.float32) for m in range(3)])
+    d = jnp.asarray(rng.standard_normal((500, 3)), jnp.float32)
+    traced = jax.jit(lambda d, lod: cube.sample(d, lod))(d, jnp.float32(0.0))
+    for lod in (0.0, 0, -2.5):
+        np.testing.assert_array_equal(np.asarray(jax.jit(lambda d, lod=lod: cube.sample(d, lod))(d)), np.asarray(traced))
+    one = Cubemap([cube.levels[0]])
+    np.testing.assert_array_equal(np.asarray(cube.sample(d, 0.0)), np.asarray(one.sample(d, 0.0)))

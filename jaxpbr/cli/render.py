@@ -10,7 +10,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from .. import color
+from .. import _program_cache, color
 from ..conventions import CONVENTIONS
 from ..io import image
 from ..io.atomic import OutputSet
@@ -256,12 +256,15 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     # A bar only when there is more than one pass (bands of a large image, sub-pixel samples).
     passes = scene.camera.supersample ** 2 * (1 if W * H <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W)))
     progress = Progress("render") if passes > 1 else None
-    if args.aov:  # one geometry pass for the image and its AOVs where it can be shared
-        from ..rendering.aovs import render_with_aovs
+    # The display program is compiled ahead with a cold render's stages (`_program_cache.also_ahead`).
+    frame = jax.ShapeDtypeStruct((H, W, 3), np.dtype(opts.dtype))
+    with _program_cache.also_ahead(lambda: color.display(frame, ev, tonemap=tonemap, encoding=encoding)):
+        if args.aov:  # one geometry pass for the image and its AOVs where it can be shared
+            from ..rendering.aovs import render_with_aovs
 
-        hdr_device, aov_values = render_with_aovs(scene, args.aov, options=opts, progress=progress)
-    else:
-        hdr_device = render(scene, options=opts, progress=progress)
+            hdr_device, aov_values = render_with_aovs(scene, args.aov, options=opts, progress=progress)
+        else:
+            hdr_device = render(scene, options=opts, progress=progress)
     display = np.asarray(color.display(hdr_device, ev, tonemap=tonemap, encoding=encoding))
     hdr = np.asarray(hdr_device)  # one device -> host copy of each image
     t_render = time.perf_counter() - t0

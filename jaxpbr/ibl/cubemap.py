@@ -502,10 +502,13 @@ class Cubemap(Pytree):
         values, in `dirs` (within a face) and in `lod`.
         """
         dirs = jnp.asarray(dirs, self.dtype)
+        # A static lod at or below 0 reads level 0 alone (the same values: trilinear weight 0 on
+        # level 1), without padding and gathering the other levels (a background lookup).
+        levels = self.levels[:1] if isinstance(lod, (int, float)) and lod <= 0 else self.levels
         # As arrays of their own (`computed_once`): the texel gathers fused into the shading
         # that reads the samples kept XLA:CPU from vectorising that shading (the demo's IBL stage
         # at 1280x720: 232 against 291 ms).
-        return computed_once(lambda o: _Pyramid(self.levels).sample(*o), (dirs, lod), self.levels[0][0, 0, 0, 0])
+        return computed_once(lambda o: _Pyramid(levels).sample(*o), (dirs, lod), levels[0][0, 0, 0, 0])
 
     def solid_angles(self, level: int = 0) -> np.ndarray:
         """Exact texel solid angles of `level`, float64 (6, S_m, S_m)."""

@@ -131,6 +131,12 @@ def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, e
             one_pass(sc, pb, offset)
     except Exception:  # noqa: BLE001 (NotAhead, or a pass the look-ahead cannot follow: as usual)
         return
+    for call in _program_cache.calls_also_ahead():
+        try:
+            with _program_cache.ahead():
+                call()
+        except Exception:  # noqa: BLE001 (as above)
+            pass
 
 
 def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None, execution: Execution | None = None):
