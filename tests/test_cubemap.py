@@ -759,3 +759,30 @@ def test_a_static_lod_at_or_below_zero_reads_level_zero_alone_with_the_same_valu
         np.testing.assert_array_equal(np.asarray(jax.jit(lambda d, lod=lod: cube.sample(d, lod))(d)), np.asarray(traced))
     one = Cubemap([cube.levels[0]])
     np.testing.assert_array_equal(np.asarray(cube.sample(d, 0.0)), np.asarray(one.sample(d, 0.0)))
+
+
+def test_a_cube_padded_on_the_host_samples_as_the_cube_pads_itself():
+    """`padded`: the flat buffer made in NumPy is `_Pyramid`'s bit for bit; lookups (traced and
+    static lods) give the same values; the buffer is made once per set of levels; a traced cube
+    is left as it is; shapes give the buffer's shape."""
+    from jaxpbr.ibl.cubemap import PaddedCubemap, _Pyramid, padded
+
+    rng = np.random.default_rng(12)
+    for dtype in (jnp.float32, jnp.float64):
+        with jax.enable_x64(dtype == jnp.float64):
+            cube = Cubemap([jnp.asarray(rng.uniform(0.0, 4.0, (6, 16 >> m, 16 >> m, 3)), dtype) for m in range(4)])
+            p = padded(cube)
+            assert isinstance(p, PaddedCubemap) and padded(cube).flat is p.flat and padded(p) is p
+            np.testing.assert_array_equal(np.asarray(p.flat), np.asarray(_Pyramid(cube.levels).flat))
+            if dtype == jnp.float64:
+                continue
+            d = jnp.asarray(rng.standard_normal((800, 3)), dtype)
+            lod = jnp.asarray(rng.uniform(-0.5, 3.5, 800), dtype)
+            look = jax.jit(lambda c, d, lod: c.sample(d, lod))
+            np.testing.assert_array_equal(np.asarray(look(p, d, lod)), np.asarray(look(cube, d, lod)))
+            np.testing.assert_array_equal(np.asarray(p.sample(d, 0.0)), np.asarray(cube.sample(d, 0.0)))
+            # traced levels: not padded on the host (the lookup pads in the trace)
+            assert jax.jit(lambda c: jnp.float32(isinstance(padded(c), PaddedCubemap)))(cube) == 0
+    shapes = Cubemap.__new__(Cubemap)
+    shapes.__dict__.update(levels=tuple(jax.ShapeDtypeStruct((6, 8 >> m, 8 >> m, 3), jnp.float32) for m in range(2)), info=cube.info)
+    assert padded(shapes).flat.shape == (6 * (10 * 10 + 6 * 6), 3)

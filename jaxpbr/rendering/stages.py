@@ -22,6 +22,7 @@ from .._api import keyword_only
 from .._numerics import cpu_cond, pack3, small_sq, unpack3, vcross, vdot, vnormalize
 from .._program_cache import cached_jit, is_ahead, running_now
 from .._pytree import evolve, fields_of, subtree, unchecked
+from ..ibl.cubemap import padded
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..shading.layered import emission_soa
 from ..shading.lights import shade_direct
@@ -734,7 +735,21 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
         assets = assets.shapes() if is_ahead() else assets()
+    if staged:
+        assets, lean = _padded_cubes(assets, lean, p_plan)
     return (_shade_rest_jit if staged else _shade_rest)(lean, assets, p_plan, opts, g, direct)
+
+
+def _padded_cubes(assets, scene: Scene, p_plan: RenderPlan):
+    """The IBL stage's inputs with the cube maps it samples (irradiance, prefiltered, the
+    background's radiance) padded once on the host (`cubemap.padded`), not in the stage."""
+    if assets is not None:
+        irr, pre, lut, lights, sheen = assets
+        assets = (None if irr is None else padded(irr), padded(pre), lut, lights, sheen)
+    env = scene.environment
+    if env is not None and p_plan.env_background:
+        scene = evolve(scene, environment=evolve(env, radiance=padded(env.radiance)))
+    return assets, scene
 
 
 #: A list that staged passes append their textured G-buffer to (None: not kept); set only by
