@@ -353,7 +353,9 @@ class cached_jit:
                 if entry is False:
                     traced, trees = self._trace(n_args, statics, static_kw, leaves, treedef)
                     outs = jax.tree_util.tree_unflatten(trees[-1], list(_result_avals(traced)))
-                    job = with_callers_context(functools.partial(self._finish, root, key, traced, trees))
+                    # Lowered here (Python, holding the GIL), compiled there (XLA, without it).
+                    lowered = traced.lower()
+                    job = with_callers_context(functools.partial(self._finish, root, key, traced, trees, lowered))
                     entry = _Pending(_compiler().submit(job), outs)
                 self._mem[key] = entry
         if isinstance(entry, _Pending):
@@ -384,22 +386,23 @@ class cached_jit:
         flat.__name__ = flat.__qualname__ = f"{self.__name__}_stored"
         return jax.jit(flat).trace(*leaves), trees
 
-    def _finish(self, root, key, traced, trees):
-        """Lower and compile `traced` and store it (see `_compile`) -> (compiled, result tree), or
-        None where it must go through jax.jit."""
+    def _finish(self, root, key, traced, trees, lowered=None):
+        """Lower (unless `lowered` is given) and compile `traced` and store it (see `_compile`)
+        -> (compiled, result tree), or None where it must go through jax.jit."""
         from jax.experimental import serialize_executable
 
         avals = _result_avals(traced)
         try:
+            lowered = traced.lower() if lowered is None else lowered
             if _has_callback(traced.jaxpr):  # this process's program only (traced once, not twice)
-                return _with_avals(traced.lower().compile(), avals), trees[-1]
+                return _with_avals(lowered.compile(), avals), trees[-1]
             # Compiled here, not read from JAX's persistent cache: an executable loaded from that
             # cache serializes without its kernels (it fails when called after loading: measured
             # with jax 0.10). The context is thread-local.
             from jax._src.config import enable_compilation_cache
 
             with enable_compilation_cache(False):
-                compiled = traced.lower().compile()
+                compiled = lowered.compile()
             payload, in_tree, out_tree = serialize_executable.serialize(compiled)
             blob = pickle.dumps((key, payload, in_tree, out_tree, trees[-1], avals))
         except Exception:  # noqa: BLE001 (not serializable here: run through jax.jit)
