@@ -605,13 +605,14 @@ def _host_arrays_opaque(meshes: tuple) -> dict:
     """`_host_arrays` of opaque meshes without transmission, in NumPy (no program to compile): the
     same positions, triangles and culling flags, no alpha or transmission tables."""
     offs = np.cumsum([0] + [m.num_vertices for m in meshes])
-    return {
+    out = {
         "positions": np.concatenate([np.asarray(m.positions, np.float32) for m in meshes]),
         "triangles": np.concatenate([np.asarray(m.triangles, np.int32) + np.int32(o) for m, o in zip(meshes, offs, strict=False)]),
         "cull_back": np.concatenate([np.full(m.num_triangles, not m.double_sided) for m in meshes]),
-        "alpha": None,
-        "transmit": None,
     }
+    for a in out.values():
+        a.setflags(write=False)  # (immutable: the ray engine's caches keep their digests per array)
+    return {**out, "alpha": None, "transmit": None}
 
 
 def _same_value(a, b) -> bool:
