@@ -143,6 +143,12 @@ def test_a_warm_command_line_render_loads_its_stages(tmp_path):
         assert r.returncode == 0, r.stderr[-2000:]
         outs.append((out, r.stderr))
         files.append(_files(tmp_path / "assets"))
+    # The cold run compiles few XLA programs (`test_compile.MAX_PROGRAMS`; with every cache off the
+    # same count is checked by the slow `test_cold_demo_render_compiles_few_programs`).
+    from test_compile import MAX_PROGRAMS
+
+    compiled = [line for line in outs[0][1].splitlines() if "Finished XLA compilation" in line]
+    assert 0 < len(compiled) <= MAX_PROGRAMS, "\n".join(compiled)
     lowered = lambda log, name: re.search(rf"Finished jaxpr to MLIR module conversion jit\({name}(_stored)?\)", log) is not None  # noqa: E731
     for stage in ("_geometry", "_shade_direct", "_shade_rest", "_display", "_filtered_level"):
         assert lowered(outs[0][1], stage), stage
