@@ -748,41 +748,39 @@ def test_from_equirect_bad_input():
     assert Cubemap.from_equirect(np.ones((8, 16)), 4).channels == 1
 
 
-def test_a_static_lod_at_or_below_zero_reads_level_zero_alone_with_the_same_values():
+def test_static_lods_and_a_cube_padded_on_the_host_sample_as_the_plain_cube():
     """`sample(d, 0.0)` (a static lod: the background's lookup) reads level 0 alone and gives what
-    the trilinear lookup at a traced lod of 0 gives, bit for bit; so does a static negative lod."""
-    rng = np.random.default_rng(11)
-    cube = Cubemap([jnp.asarray(rng.uniform(0.0, 4.0, (6, 16 >> m, 16 >> m, 3)), jnp.float32) for m in range(3)])
-    d = jnp.asarray(rng.standard_normal((500, 3)), jnp.float32)
-    traced = jax.jit(lambda d, lod: cube.sample(d, lod))(d, jnp.float32(0.0))
-    for lod in (0.0, 0, -2.5):
-        np.testing.assert_array_equal(np.asarray(jax.jit(lambda d, lod=lod: cube.sample(d, lod))(d)), np.asarray(traced))
-    one = Cubemap([cube.levels[0]])
-    np.testing.assert_array_equal(np.asarray(cube.sample(d, 0.0)), np.asarray(one.sample(d, 0.0)))
-
-
-def test_a_cube_padded_on_the_host_samples_as_the_cube_pads_itself():
-    """`padded`: the flat buffer made in NumPy is `_Pyramid`'s bit for bit; lookups (traced and
-    static lods) give the same values; the buffer is made once per set of levels; a traced cube
-    is left as it is; shapes give the buffer's shape."""
+    the trilinear lookup at a traced lod of 0 gives, bit for bit, as does a static negative lod.
+    `padded`: the flat buffer made in NumPy is `_Pyramid`'s bit for bit (float32 and float64);
+    lookups through it (traced and static lods) give the same values; it is made once per set of
+    levels; a traced cube is left as it is; shapes give the buffer's shape."""
     from jaxpbr.ibl.cubemap import PaddedCubemap, _Pyramid, padded
 
     rng = np.random.default_rng(12)
-    for dtype in (jnp.float32, jnp.float64):
-        with jax.enable_x64(dtype == jnp.float64):
-            cube = Cubemap([jnp.asarray(rng.uniform(0.0, 4.0, (6, 16 >> m, 16 >> m, 3)), dtype) for m in range(4)])
-            p = padded(cube)
-            assert isinstance(p, PaddedCubemap) and padded(cube).flat is p.flat and padded(p) is p
-            np.testing.assert_array_equal(np.asarray(p.flat), np.asarray(_Pyramid(cube.levels).flat))
-            if dtype == jnp.float64:
-                continue
-            d = jnp.asarray(rng.standard_normal((800, 3)), dtype)
-            lod = jnp.asarray(rng.uniform(-0.5, 3.5, 800), dtype)
-            look = jax.jit(lambda c, d, lod: c.sample(d, lod))
-            np.testing.assert_array_equal(np.asarray(look(p, d, lod)), np.asarray(look(cube, d, lod)))
-            np.testing.assert_array_equal(np.asarray(p.sample(d, 0.0)), np.asarray(cube.sample(d, 0.0)))
-            # traced levels: not padded on the host (the lookup pads in the trace)
-            assert jax.jit(lambda c: jnp.float32(isinstance(padded(c), PaddedCubemap)))(cube) == 0
+    levels = [rng.uniform(0.0, 4.0, (6, 16 >> m, 16 >> m, 3)) for m in range(4)]
+    with jax.enable_x64(True):
+        cube64 = Cubemap([jnp.asarray(lv, jnp.float64) for lv in levels])
+        np.testing.assert_array_equal(np.asarray(padded(cube64).flat), np.asarray(jax.jit(lambda c: _Pyramid(c.levels).flat)(cube64)))
+    cube = Cubemap([jnp.asarray(lv, jnp.float32) for lv in levels])
+    p = padded(cube)
+    assert isinstance(p, PaddedCubemap) and padded(cube).flat is p.flat and padded(p) is p
+    d = jnp.asarray(rng.standard_normal((800, 3)), jnp.float32)
+    lod = jnp.asarray(rng.uniform(-0.5, 3.5, 800), jnp.float32)
+
+    @jax.jit
+    def looks(cube, p, d, lod):
+        flat = _Pyramid(cube.levels).flat
+        zero = jnp.zeros_like(lod)
+        return (flat, p.flat, cube.sample(d, lod), p.sample(d, lod), cube.sample(d, zero),
+                cube.sample(d, 0.0), cube.sample(d, 0), cube.sample(d, -2.5), p.sample(d, 0.0),
+                Cubemap([cube.levels[0]]).sample(d, 0.0), jnp.float32(isinstance(padded(cube), PaddedCubemap)))
+
+    out = [np.asarray(x) for x in looks(cube, p, d, lod)]
+    np.testing.assert_array_equal(out[0], out[1])  # the host pads are the in-trace ones
+    np.testing.assert_array_equal(out[2], out[3])  # trilinear at traced lods
+    for k in range(5, 10):  # static lods <= 0, plain and padded, and the one-level cube
+        np.testing.assert_array_equal(out[k], out[4])
+    assert out[10] == 0  # traced levels are not padded on the host
     shapes = Cubemap.__new__(Cubemap)
     shapes.__dict__.update(levels=tuple(jax.ShapeDtypeStruct((6, 8 >> m, 8 >> m, 3), jnp.float32) for m in range(2)), info=cube.info)
     assert padded(shapes).flat.shape == (6 * (10 * 10 + 6 * 6), 3)

@@ -51,14 +51,14 @@ def test_interp_uniform_and_interp_nodes_equal_jnp_interp_in_value_and_gradient(
     xs = np.concatenate([rng.uniform(-2.0, 4.0, 500), grid, nodes, [-1.0, 3.0, -5.0, 7.0]])
     for dtype in (jnp.float32, jnp.float64):
         with jax.enable_x64(dtype == jnp.float64):
-            x = jnp.asarray(xs, dtype)
+            fns = (lambda x: interp_uniform(x, -1.0, 3.0, jnp.asarray(table, dtype)),
+                   lambda x: jnp.interp(x, jnp.asarray(grid, dtype), jnp.asarray(table, dtype)),
+                   lambda x: interp_nodes(x, nodes, values),
+                   lambda x: jnp.interp(x, jnp.asarray(nodes, dtype), jnp.asarray(values, dtype)))
+            both = jax.jit(lambda x: tuple((f(x), jax.vmap(jax.grad(f))(x)) for f in fns))
+            (u, du), (ru, dru), (n, dn), (rn, drn) = both(jnp.asarray(xs, dtype))
             tol = 1e-6 if dtype == jnp.float32 else 1e-13
-            ref_u = lambda x: jnp.interp(x, jnp.asarray(grid, dtype), jnp.asarray(table, dtype))  # noqa: E731
-            ref_n = lambda x: jnp.interp(x, jnp.asarray(nodes, dtype), jnp.asarray(values, dtype))  # noqa: E731
-            ours_u = lambda x: interp_uniform(x, -1.0, 3.0, jnp.asarray(table, dtype))  # noqa: E731
-            ours_n = lambda x: interp_nodes(x, nodes, values)  # noqa: E731
-            for ours, ref in ((ours_u, ref_u), (ours_n, ref_n)):
-                assert ours(x).dtype == dtype
-                np.testing.assert_allclose(ours(x), ref(x), rtol=tol, atol=tol * 10)
-                if dtype == jnp.float32:  # (the gradients' rule is the same in both dtypes)
-                    np.testing.assert_allclose(jax.vmap(jax.grad(ours))(x), jax.vmap(jax.grad(ref))(x), rtol=1e-4, atol=1e-4)
+            for ours, ref, d_ours, d_ref in ((u, ru, du, dru), (n, rn, dn, drn)):
+                assert ours.dtype == dtype
+                np.testing.assert_allclose(ours, ref, rtol=tol, atol=tol * 10)
+                np.testing.assert_allclose(d_ours, d_ref, rtol=1e-4, atol=1e-4)

@@ -304,7 +304,7 @@ def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():
     radiance = load_environment(["procedural:sky"], 16)
     sphere = jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=0.7))
     cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), width=8, height=8, fov_y_deg=40.0)
-    variants = [{}, {"mapping": "quadratic", "irradiance_size": 8}, {"model": "learnopengl", "extract_lights": False}]
+    variants = [{"mapping": "quadratic", "irradiance_size": 8}, {"model": "learnopengl", "extract_lights": False}]
     for kw in variants:
         opts = RenderOptions(**kw)
         cache = AssetCache()
