@@ -37,6 +37,7 @@ __all__ = [
     "progress_token",
     "outside_traces",
     "remember_per_array",
+    "trace_state_clean",
     "with_callers_context",
     "pack3",
     "safe_div",
@@ -318,19 +319,19 @@ def outside_traces(compute):
 
     Outside any trace (the common case: `render` of a concrete scene) compute() runs right here, on
     the caller's thread: no thread is started."""
-    if _trace_state_clean():
+    if trace_state_clean():
         return compute()
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-assets") as pool:
         return pool.submit(with_callers_context(compute)).result()
 
 
-def _trace_state_clean() -> bool:
+def trace_state_clean() -> bool:
     """Whether no JAX trace (jit, grad, vmap, ...) is active on this thread."""
     try:
-        from jax._src.core import trace_state_clean
+        from jax._src.core import trace_state_clean as clean
     except ImportError:  # a JAX without it: take every call as traced (a thread each, always correct)
         return False
-    return bool(trace_state_clean())
+    return bool(clean())
 
 
 def remember_per_array(cache: dict, x, tag, compute):

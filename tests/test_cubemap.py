@@ -781,6 +781,12 @@ def test_static_lods_and_a_cube_padded_on_the_host_sample_as_the_plain_cube():
     for k in range(5, 10):  # static lods <= 0, plain and padded, and the one-level cube
         np.testing.assert_array_equal(out[k], out[4])
     assert out[10] == 0  # traced levels are not padded on the host
+    # A concrete cube first padded inside a trace (a render under jit of a concrete environment):
+    # the trace gets the host array as a constant, and no traced value is kept for later calls.
+    fresh = Cubemap([jnp.asarray(lv, jnp.float32) for lv in levels])
+    inside = jax.jit(lambda d: padded(fresh).sample(d, 0.0))(d)
+    assert not isinstance(padded(fresh).flat, jax.core.Tracer)
+    np.testing.assert_array_equal(np.asarray(inside), out[4])
     shapes = Cubemap.__new__(Cubemap)
     shapes.__dict__.update(levels=tuple(jax.ShapeDtypeStruct((6, 8 >> m, 8 >> m, 3), jnp.float32) for m in range(2)), info=cube.info)
     assert padded(shapes).flat.shape == (6 * (10 * 10 + 6 * 6), 3)

@@ -23,7 +23,9 @@ def test_computed_once_compiles_its_function_once_and_returns_its_value():
 
     from jaxpbr._numerics import computed_once
 
-    fn = lambda o: jnp.sinh(o[0]) * o[1]  # noqa: E731
+    def fn(o):
+        return jnp.sinh(o[0]) * o[1]
+
     x = jnp.linspace(-2.0, 2.0, 64, dtype=jnp.float32)
     for guard in (jnp.float32(0.0), jnp.float32(-0.0), jnp.float32(np.nan), jnp.float32(np.inf), jnp.float32(-3.5)):
         f = jax.jit(lambda x, g: computed_once(fn, (x, 2.0 * x), g))
@@ -51,11 +53,11 @@ def test_interp_uniform_and_interp_nodes_equal_jnp_interp_in_value_and_gradient(
     xs = np.concatenate([rng.uniform(-2.0, 4.0, 500), grid, nodes, [-1.0, 3.0, -5.0, 7.0]])
     for dtype in (jnp.float32, jnp.float64):
         with jax.enable_x64(dtype == jnp.float64):
-            fns = (lambda x: interp_uniform(x, -1.0, 3.0, jnp.asarray(table, dtype)),
-                   lambda x: jnp.interp(x, jnp.asarray(grid, dtype), jnp.asarray(table, dtype)),
+            fns = (lambda x, dt=dtype: interp_uniform(x, -1.0, 3.0, jnp.asarray(table, dt)),
+                   lambda x, dt=dtype: jnp.interp(x, jnp.asarray(grid, dt), jnp.asarray(table, dt)),
                    lambda x: interp_nodes(x, nodes, values),
-                   lambda x: jnp.interp(x, jnp.asarray(nodes, dtype), jnp.asarray(values, dtype)))
-            both = jax.jit(lambda x: tuple((f(x), jax.vmap(jax.grad(f))(x)) for f in fns))
+                   lambda x, dt=dtype: jnp.interp(x, jnp.asarray(nodes, dt), jnp.asarray(values, dt)))
+            both = jax.jit(lambda x, fns=fns: tuple((f(x), jax.vmap(jax.grad(f))(x)) for f in fns))
             (u, du), (ru, dru), (n, dn), (rn, drn) = both(jnp.asarray(xs, dtype))
             tol = 1e-6 if dtype == jnp.float32 else 1e-13
             for ours, ref, d_ours, d_ref in ((u, ru, du, dru), (n, rn, dn, drn)):

@@ -286,9 +286,8 @@ def test_a_call_ahead_gives_the_results_shapes_and_the_real_call_runs_the_progra
     with pc.ahead(), pytest.raises(pc.NotAhead):
         f(jax.ShapeDtypeStruct(x.shape, x.dtype), lambda: None, 1.5)  # an uncacheable static value
     pc.use_directory(None)
-    with pytest.raises(pc.NotAhead):
-        with pc.ahead():
-            pass
+    with pytest.raises(pc.NotAhead), pc.ahead():
+        pass
 
 
 def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():

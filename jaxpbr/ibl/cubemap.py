@@ -36,7 +36,7 @@ import numpy as np
 from .._api import keyword_only
 from .._interp import bilinear, lerp2
 from .._memory import cube_bytes, require
-from .._numerics import HIGHEST, computed_once, is_concrete
+from .._numerics import HIGHEST, computed_once, is_concrete, trace_state_clean
 from .._program_cache import cached_jit
 from .._pytree import Pytree, leaf, static, unchecked
 from .._validate import positive_int
@@ -653,8 +653,8 @@ class PaddedCubemap(Cubemap):
         sizes = [lv.shape[1] for lv in self.levels]
         if isinstance(lod, (int, float)) and lod <= 0:
             sizes = sizes[:1]  # (level 0 is first in the buffer; see `Cubemap.sample`)
-        return computed_once(lambda o: _Pyramid(None, flat=self.flat, sizes=sizes).sample(*o), (dirs, lod),
-                             self.flat[0, 0])
+        flat = jnp.asarray(self.flat)  # (a host array inside a trace: `padded`)
+        return computed_once(lambda o: _Pyramid(None, flat=flat, sizes=sizes).sample(*o), (dirs, lod), flat[0, 0])
 
 
 _PADDED: dict = {}
@@ -675,14 +675,20 @@ def padded(cube: Cubemap) -> Cubemap:
     elif all(isinstance(lv, jax.Array) and is_concrete(lv) for lv in levels):
         key = (id(levels[0]), len(levels))
         hit = _PADDED.get(key)
-        if hit is not None and all(r() is lv for r, lv in zip(hit[0], levels, strict=True)):
+        if hit is None or not all(r() is lv for r, lv in zip(hit[0], levels, strict=True)):
+            host = np.concatenate([_pad_level_host(np.asarray(lv)) for lv in levels])
+            host.setflags(write=False)
+            hit = (tuple(weakref.ref(lv, lambda _, k=key: _PADDED.pop(k, None)) for lv in levels), host, [])
+            _PADDED[key] = hit
+        # On the device once, outside any trace; inside one (a render under jit / grad of a
+        # concrete environment) the host array, a constant of that trace: a `device_put` there
+        # would be a traced value, which must not be kept.
+        if not trace_state_clean():
             flat = hit[1]
         else:
-            flat = jax.device_put(np.concatenate([_pad_level_host(np.asarray(lv)) for lv in levels]))
-            try:
-                _PADDED[key] = (tuple(weakref.ref(lv, lambda _, k=key: _PADDED.pop(k, None)) for lv in levels), flat)
-            except TypeError:
-                pass
+            if not hit[2]:
+                hit[2].append(jax.device_put(hit[1]))
+            flat = hit[2][0]
     else:
         return cube
     return unchecked(PaddedCubemap, levels=levels, info=cube.info, flat=flat)

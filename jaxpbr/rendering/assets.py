@@ -55,7 +55,7 @@ def asset_shapes(env: Environment, p: RenderPlan, opts: RenderOptions, lut, env_
     from ..ibl.lod import lookup_metadata
 
     dtype = jnp.dtype(opts.dtype)
-    shape = lambda x: jax.ShapeDtypeStruct(x.shape, dtype)  # noqa: E731  (after `_in_dtype`)
+    shape = lambda x: jax.ShapeDtypeStruct(x.shape, dtype)  # (after `_in_dtype`)
     C = env.radiance.channels
 
     def cube(sizes, info):

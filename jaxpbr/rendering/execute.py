@@ -9,6 +9,7 @@ started on first use and kept for the life of the process."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import threading
@@ -90,7 +91,7 @@ def render(
             lut = _asset_lut(env, opts, cache)
             pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()),
                                     lambda: asset_shapes(env, p, opts, lut, env_lights))
-            one_pass = lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True)  # noqa: E731
+            one_pass = lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True)
             _compile_ahead(scene, opts, p, one_pass, execution)
             return _banded(scene, opts, p, one_pass, progress, execution)
         finally:
@@ -99,7 +100,7 @@ def render(
             for f in futures:
                 f.cancel()
     assets = _env_assets(env, p, opts, cache) if p.ibl else None
-    one_pass = lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True)  # noqa: E731
+    one_pass = lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True)
     _compile_ahead(scene, opts, p, one_pass, execution)
     return _banded(scene, opts, p, one_pass, progress, execution)
 
@@ -132,11 +133,8 @@ def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, e
     except Exception:  # noqa: BLE001 (NotAhead, or a pass the look-ahead cannot follow: as usual)
         return
     for call in _program_cache.calls_also_ahead():
-        try:
-            with _program_cache.ahead():
-                call()
-        except Exception:  # noqa: BLE001 (as above)
-            pass
+        with contextlib.suppress(Exception), _program_cache.ahead():  # (as above)
+            call()
 
 
 def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None, execution: Execution | None = None):
@@ -144,7 +142,7 @@ def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress
     pixels, one compiled program per stage for every band: the band's first row is an argument)
     into one host buffer when the image is larger; a user G-buffer is rendered whole. progress: per
     pass (bands x sub-pixel samples), the last once the image is ready."""
-    H, W = scene.image_shape
+    H = scene.image_shape[0]
     s, whole, rows = _layout(scene, execution)
     total = -(-H // rows) * s * s
     if whole:
