@@ -678,17 +678,16 @@ def padded(cube: Cubemap) -> Cubemap:
         if hit is None or not all(r() is lv for r, lv in zip(hit[0], levels, strict=True)):
             host = np.concatenate([_pad_level_host(np.asarray(lv)) for lv in levels])
             host.setflags(write=False)
-            hit = (tuple(weakref.ref(lv, lambda _, k=key: _PADDED.pop(k, None)) for lv in levels), host, [])
+            hit = [tuple(weakref.ref(lv, lambda _, k=key: _PADDED.pop(k, None)) for lv in levels), host]
             _PADDED[key] = hit
-        # On the device once, outside any trace; inside one (a render under jit / grad of a
-        # concrete environment) the host array, a constant of that trace: a `device_put` there
-        # would be a traced value, which must not be kept.
-        if not trace_state_clean():
-            flat = hit[1]
-        else:
-            if not hit[2]:
-                hit[2].append(jax.device_put(hit[1]))
-            flat = hit[2][0]
+        # On the device once, outside any trace (the host copy then dropped); inside one (a render
+        # under jit / grad of a concrete environment) a host array, a constant of that trace: a
+        # `device_put` there would be a traced value, which must not be kept.
+        flat = hit[1]
+        if trace_state_clean() and isinstance(flat, np.ndarray):
+            flat = hit[1] = jax.device_put(flat)
+        elif not trace_state_clean() and not isinstance(flat, np.ndarray):
+            flat = np.asarray(flat)
     else:
         return cube
     return unchecked(PaddedCubemap, levels=levels, info=cube.info, flat=flat)
