@@ -91,5 +91,6 @@ def interp_nodes(x, nodes, values):
         at = k == j
         x0, x1 = jnp.where(at, nodes[j], x0), jnp.where(at, nodes[j + 1], x1)
         f0, f1 = jnp.where(at, values[j], f0), jnp.where(at, values[j + 1], f1)
-    inside = lerp(f0, f1, (x - x0) / (x1 - x0))
+    span = x1 - x0  # (> 0 but between repeated nodes, where x never selects the segment: no 0/0 in a gradient)
+    inside = lerp(f0, f1, (x - x0) / jnp.where(span > 0, span, 1.0))
     return jnp.where(x < nodes[0], values[0], jnp.where(x > nodes[-1], values[-1], inside)).astype(dt)

@@ -275,11 +275,11 @@ def computed_once(fn, operands, guard):
     XLA:CPU fuses elementwise producers into each of their consumers and recomputes them there (it
     makes no multi-output loop fusions): a (..., 3) colour made from per-pixel terms evaluates them
     once per channel, and arrays written side by side each evaluate their shared inputs again. A
-    conditional's branch is computed once. Both branches are `fn`, so the value is fn's whatever
-    the predicate, "guard is not NaN" (guard: a scalar array; the test only keeps XLA from
-    folding the conditional away). Take `guard` from an input that is not batched: under vmap a
-    batched predicate makes the conditional a select of both branches, computed twice. On the CPU
-    fn's code is compiled twice; elsewhere (`cpu_cond`) fn is inlined."""
+    conditional's branch is computed once. The predicate is always true but computed from `guard`
+    (a scalar array), so XLA cannot fold the conditional away, and the other branch is a
+    constant: fn's code is compiled once, and the value is fn's whatever guard holds. Take `guard`
+    from an input that is not batched: under vmap a batched predicate makes the conditional a
+    select of both branches. Elsewhere than on the CPU (`cpu_cond`) fn is inlined."""
     shapes = jax.eval_shape(fn, operands)
     return cpu_cond(_true_at_run_time(guard), fn, lambda _: jax.tree_util.tree_map(
         lambda s: jnp.zeros(s.shape, s.dtype), shapes), operands)

@@ -64,3 +64,17 @@ def test_interp_uniform_and_interp_nodes_equal_jnp_interp_in_value_and_gradient(
                 assert ours.dtype == dtype
                 np.testing.assert_allclose(ours, ref, rtol=tol, atol=tol * 10)
                 np.testing.assert_allclose(d_ours, d_ref, rtol=1e-4, atol=1e-4)
+
+
+def test_interp_nodes_with_a_repeated_node_is_finite_and_equals_jnp_interp():
+    import jax
+    import jax.numpy as jnp
+
+    from jaxpbr._interp import interp_nodes
+
+    nodes, values = np.array([0.0, 0.0, 0.5, 1.0]), np.arange(4.0)
+    x = jnp.linspace(-0.2, 1.2, 15, dtype=jnp.float32)
+    f = jax.jit(lambda x: (interp_nodes(x, nodes, values), jax.vmap(jax.grad(lambda t: interp_nodes(t, nodes, values)))(x)))
+    v, g = f(x)
+    np.testing.assert_allclose(v, jnp.interp(x, jnp.asarray(nodes, jnp.float32), jnp.asarray(values, jnp.float32)), rtol=1e-6)
+    assert np.isfinite(np.asarray(g)).all()

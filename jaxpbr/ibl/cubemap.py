@@ -207,18 +207,24 @@ def pad_index(size: int) -> np.ndarray:
     return idx
 
 
-def _pad_level(level: jax.Array) -> jax.Array:
+def _pad_level(level, xp=jnp):
     """(6, S, S, C) -> (6, S+2, S+2, C) with the seam pad of `pad_index`: the interior copied,
     the border (`_pad_border`: O(S) indices, not a (6, S+2, S+2, 3) table, which XLA embedded as
-    a constant: 75 MB at 1024^2 and ~1 GB of compile memory; issue 13) gathered and scattered."""
+    a constant: 75 MB at 1024^2 and ~1 GB of compile memory; issue 13) gathered and scattered.
+    xp: jnp (traceable) or np (on the host, `padded`: the same values)."""
     S, C = level.shape[1], level.shape[3]
     pos, src, corner = _pad_border(S)
-    g = level.reshape(6 * S * S, C)[jnp.asarray(src)]  # (E, 3, C)
+    g = level.reshape(6 * S * S, C)[xp.asarray(src)]  # (E, 3, C)
     # Only the corner pads average (three distinct texels); elsewhere the three indices are equal
     # and the texel is copied exactly ((3v)/3 is not always v in floating point).
-    val = jnp.where(jnp.asarray(corner)[:, None], (g[:, 0] + g[:, 1] + g[:, 2]) * (1.0 / 3.0), g[:, 0])
-    padded = jnp.pad(level, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, C)
-    return padded.at[jnp.asarray(pos)].set(val).reshape(6, S + 2, S + 2, C)
+    third = np.dtype(level.dtype).type(1.0 / 3.0)
+    val = xp.where(xp.asarray(corner)[:, None], (g[:, 0] + g[:, 1] + g[:, 2]) * third, g[:, 0])
+    out = xp.pad(level, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, C)
+    if xp is np:
+        out[pos] = val
+    else:
+        out = out.at[jnp.asarray(pos)].set(val)
+    return out.reshape(6, S + 2, S + 2, C)
 
 
 @functools.lru_cache(maxsize=64)
@@ -639,7 +645,6 @@ class Cubemap(Pytree):
 
 
 
-
 class PaddedCubemap(Cubemap):
     """A `Cubemap` that also carries its levels padded for lookups: `_Pyramid`'s flat buffer (each
     level with its one-texel seam pad, concatenated), made once on the host by `padded`. Its
@@ -676,7 +681,7 @@ def padded(cube: Cubemap) -> Cubemap:
         key = (id(levels[0]), len(levels))
         hit = _PADDED.get(key)
         if hit is None or not all(r() is lv for r, lv in zip(hit[0], levels, strict=True)):
-            host = np.concatenate([_pad_level_host(np.asarray(lv)) for lv in levels])
+            host = np.concatenate([_pad_level(np.asarray(lv), np).reshape(-1, C) for lv in levels])
             host.setflags(write=False)
             hit = [tuple(weakref.ref(lv, lambda _, k=key: _PADDED.pop(k, None)) for lv in levels), host]
             _PADDED[key] = hit
@@ -692,18 +697,6 @@ def padded(cube: Cubemap) -> Cubemap:
         return cube
     return unchecked(PaddedCubemap, levels=levels, info=cube.info, flat=flat)
 
-
-def _pad_level_host(level: np.ndarray) -> np.ndarray:
-    """`_pad_level` in NumPy, flattened to (6 (S+2)^2, C): the same values (the corner mean in the
-    level's dtype, the other pads copied)."""
-    S, C = level.shape[1], level.shape[3]
-    pos, src, corner = _pad_border(S)
-    g = level.reshape(6 * S * S, C)[src]
-    third = level.dtype.type(1.0 / 3.0)
-    val = np.where(corner[:, None], (g[:, 0] + g[:, 1] + g[:, 2]) * third, g[:, 0])
-    out = np.pad(level, ((0, 0), (1, 1), (1, 1), (0, 0))).reshape(-1, C)
-    out[pos] = val
-    return out
 
 # ------------------------------------------------------------------------------------------
 # helpers

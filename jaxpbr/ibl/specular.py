@@ -352,6 +352,19 @@ _reference_sum = functools.partial(lobe_reference_sum, lobe=_ggx_kernel)
 # ------------------------------------------------------------------------------------------
 
 
+def prefilter_lookup(num_levels: int, *, mapping: str, lod_blend: str = DEFAULT_LOD_BLEND, face_size: int) -> dict:
+    """The metadata of an M-level prefiltered chain that says how it is looked up (and the levels'
+    roughness): what `prefilter` writes into its result's info, known before the levels are
+    computed (the renderer compiles its IBL stage for it while the chain is computed)."""
+    rough = level_roughness(num_levels, mapping=mapping)
+    return {
+        "roughness_mapping": mapping,
+        "mapping_levels": str(num_levels),
+        "level_roughness": ",".join(f"{x:.9g}" for x in rough),
+        **lookup_metadata(num_levels, mapping=mapping, lod_blend=lod_blend, face_size=face_size),
+    }
+
+
 def prefilter(
     env: Cubemap,
     size: int | None = None,
@@ -524,10 +537,7 @@ def prefilter(
                 progress(m, last)
     info = {
         "quantity": "LD(R, r_m) = int L D (R.l)+ dl / int D (R.l)+ dl, n = v = R (Karis split sum)",
-        "roughness_mapping": mapping,
-        "mapping_levels": str(M),
-        "level_roughness": ",".join(f"{x:.9g}" for x in rough),
-        **lookup_metadata(M, mapping=mapping, lod_blend=lod_blend, face_size=S),
+        **prefilter_lookup(M, mapping=mapping, lod_blend=lod_blend, face_size=S),
         "prefilter_method": method,
     }
     if method == "fis":

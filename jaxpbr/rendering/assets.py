@@ -12,6 +12,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .. import _memory
 from .._api import keyword_only
@@ -52,7 +53,6 @@ def asset_shapes(env: Environment, p: RenderPlan, opts: RenderOptions, lut, env_
     then). Raises `NotAhead` where the plan reads a sheen map still to compute."""
     from .._program_cache import NotAhead
     from ..ibl.cubemap import CubeInfo
-    from ..ibl.lod import lookup_metadata
 
     dtype = jnp.dtype(opts.dtype)
     shape = lambda x: jax.ShapeDtypeStruct(x.shape, dtype)  # (after `_in_dtype`)
@@ -67,9 +67,8 @@ def asset_shapes(env: Environment, p: RenderPlan, opts: RenderOptions, lut, env_
         irr = cube([opts.irradiance_size], ()) if irr is None else jax.tree_util.tree_map(shape, irr)
     pre = env.prefiltered
     if pre is None:
-        S, M = p.prefilter_size, p.mapping_levels
-        lookup = {"roughness_mapping": opts.mapping, "mapping_levels": str(M),
-                  **lookup_metadata(M, mapping=opts.mapping, lod_blend=specular.DEFAULT_LOD_BLEND, face_size=S)}
+        S = p.prefilter_size
+        lookup = specular.prefilter_lookup(p.mapping_levels, mapping=opts.mapping, face_size=S)
         pre = cube([max(1, S >> m) for m in range(p.prefilter_levels)], tuple(lookup.items()))
     else:
         pre = jax.tree_util.tree_map(shape, pre)
@@ -77,7 +76,7 @@ def asset_shapes(env: Environment, p: RenderPlan, opts: RenderOptions, lut, env_
     if p.charlie_size:
         if env.charlie is None or env.sheen_lut is None:
             raise NotAhead("the sheen maps are still to compute")
-        sheen = shape(jnp.asarray(env.sheen_lut)), jax.tree_util.tree_map(shape, env.charlie)
+        sheen = jax.ShapeDtypeStruct(np.shape(env.sheen_lut), dtype), jax.tree_util.tree_map(shape, env.charlie)
     return irr, pre, jnp.asarray(lut, dtype), env_lights, sheen
 
 
