@@ -111,6 +111,20 @@ def test_round_trip_float16_with_extracted_suns(sky, tmp_path):
     np.testing.assert_allclose(imgs[0], imgs[1], rtol=1e-3, atol=1e-6)
 
 
+def test_a_set_with_the_radiance_draws_the_environment_itself(sky, tmp_path):
+    """radiance=True stores the environment before the suns are split out (float32 here: bit for
+    bit), and read_baked draws it as the background, as a render of the radiance does: the whole
+    image, background included, equals the in-memory bake's."""
+    index = jp.write_baked(jp.Environment(radiance=sky), tmp_path, extract=True, radiance=True, sheen=False,
+                           ktx_format="rgba32f", **WRITE)
+    assert index["radiance"]["files"] == [str(tmp_path / "radiance.ktx2")] and "radiance" in index["lookup"]
+    read = jp.read_baked(tmp_path)
+    np.testing.assert_array_equal(np.asarray(read.radiance.levels[0]), np.asarray(sky.levels[0]))
+    ref = jp.bake(jp.Environment(radiance=sky), extract_lights=True, **BAKE)
+    imgs = [np.asarray(jp.render(_scene(e, sheen=False))) for e in (read, ref)]
+    np.testing.assert_allclose(imgs[0], imgs[1], rtol=1e-6, atol=1e-7)
+
+
 def test_exr_container_reads_back_as_the_ktx2_set(sky, set32, tmp_path):
     """container="exr": one float32 EXR per mip and face; read back, the same maps and lookup
     metadata as the rgba32f KTX2 set."""
@@ -146,13 +160,18 @@ def test_the_files_are_the_command_lines(tmp_path):
     cli.mkdir()
     lib.mkdir()
     argv = ["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "8", "--irradiance-size", "8",
-            "--charlie-size", "8", "--charlie-levels", "3", "--extract-lights", "--no-error", "--quiet", "--out-dir", str(cli)]
+            "--charlie-size", "8", "--charlie-levels", "3", "--extract-lights", "--radiance", "--no-error", "--quiet", "--out-dir", str(cli)]
     assert main(argv) == 0
     index = jp.write_baked("procedural:sky", lib, face_size=16, samples=16, lut_size=8, irradiance_size=8, charlie_size=8,
-                           charlie_levels=3, extract=True, measure_error=False, progress=lambda step, done, total: None)
+                           charlie_levels=3, extract=True, radiance=True, measure_error=False, progress=lambda step, done, total: None)
     names = sorted(p.name for p in cli.iterdir())
     assert names == sorted(p.name for p in lib.iterdir())
-    assert {"irradiance.ktx2", "prefiltered.ktx2", "charlie.ktx2", "brdf_lut.exr", "lights.json", "ibl.json"} <= set(names)
+    assert {"irradiance.ktx2", "prefiltered.ktx2", "charlie.ktx2", "brdf_lut.exr", "lights.json", "ibl.json", "radiance.ktx2"} <= set(names)
+    # The stored radiance is the sky before the sun was split out (float16 storage), and the
+    # background read_baked draws; the residual's chain lacks the sun.
+    sky, env = jp.envs.sky_with_sun_cubemap(16), jp.read_baked(lib)
+    np.testing.assert_allclose(np.asarray(env.radiance.levels[0]), np.asarray(sky.levels[0]), rtol=F16)
+    assert float(np.max(env.radiance.levels[0])) > 1000.0 > float(np.max(env.prefiltered.levels[0]))
 
     def content(d, name):
         def norm(x):
@@ -331,3 +350,40 @@ def test_prefiltered_file_keeps_its_lookup_keys(set32):
     for k in ("roughness_mapping", "mapping_levels", "lod_blend"):
         assert pre.metadata[k] == meta[f"jaxpbr:{k}"] == index["prefiltered"][k]
     assert jp.read_baked(d).charlie.metadata["distribution"] == "charlie"
+
+
+# ------------------------------------------------------------------------------------------
+# The demo's sky, shipped baked (jaxpbr/_demo_sky)
+# ------------------------------------------------------------------------------------------
+
+
+def test_the_shipped_demo_sky_is_a_fresh_bake_of_the_procedural_sky():
+    """The set in the package holds what a render of the demo's sky computes today: the sun split
+    out, the residual (drawn as the background), its irradiance and GGX chain with their lookup
+    metadata. Here (the machine that wrote the set) they are equal bit for bit; a backend that sums
+    in another order (a GPU, another XLA) rounds the float32 sums differently, hence rtol 1e-5
+    (about 80 float32 ulps, three orders below the maps' own error against their float64
+    references, recorded in the sidecars). A render of the demo with the shipped set equals one
+    with the sky's radiance, whose maps the renderer computes."""
+    from jaxpbr.rendering import demo
+
+    shipped = demo.shipped_demo_sky()
+    assert shipped is not None, "jaxpbr/_demo_sky is missing from the package"
+    fresh = jp.bake(jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(demo.DEMO_FACE_SIZE)))
+    assert shipped.lut is None and fresh.lights is not None and len(shipped.lights) == len(fresh.lights) == 1
+    for a, b in zip(shipped.lights, fresh.lights):
+        for f in ("direction", "color", "intensity", "angular_radius"):
+            np.testing.assert_allclose(np.asarray(getattr(a, f)), np.asarray(getattr(b, f)), rtol=1e-5, err_msg=f)
+    pairs = [("radiance (the background)", shipped.radiance, fresh.radiance),
+             ("irradiance", shipped.irradiance, fresh.irradiance), ("prefiltered", shipped.prefiltered, fresh.prefiltered)]
+    for what, a, b in pairs:
+        assert len(a.levels) == len(b.levels), what
+        for m, (x, y) in enumerate(zip(a.levels, b.levels)):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-7, err_msg=f"{what} level {m}")
+    lookup = ("mapping_levels", "roughness_mapping", "lod_blend", "level_mean_cosine", "lod_table", "chain_floor")
+    assert {k: shipped.prefiltered.metadata.get(k) for k in lookup} == {k: fresh.prefiltered.metadata.get(k) for k in lookup}
+
+    scene = demo.demo_scene(32, 18)
+    assert scene.environment.prefiltered is shipped.prefiltered
+    radiance = scene.replace(environment=jp.Environment(radiance=demo.demo_sky(demo.DEMO_FACE_SIZE), rotation=demo.DEMO_ENV_ROTATION))
+    np.testing.assert_allclose(np.asarray(jp.render(scene)), np.asarray(jp.render(radiance)), rtol=1e-5, atol=1e-6)

@@ -48,6 +48,9 @@ for n in names:
 import jaxpbr
 from jaxpbr.shading.shipped_luts import shipped_manifest
 out["__luts__"] = len(shipped_manifest().get("luts", []))
+from jaxpbr.rendering.demo import shipped_demo_sky
+sky = shipped_demo_sky()
+out["__demo_sky__"] = None if sky is None else [len(sky.prefiltered.levels), sky.radiance.face_size]
 print(json.dumps(out))
 """
 
@@ -67,6 +70,7 @@ def _import_all(python: str, cwd: Path, env_path: str | None = None) -> dict:
 
 def _check(found: dict, root: Path) -> None:
     assert found.pop("__luts__") >= 1, "the shipped LUTs are missing from the installation"
+    assert found.pop("__demo_sky__") == [5, 128], "the demo's baked sky (jaxpbr/_demo_sky) is missing from the installation"
     for name, path in found.items():
         assert Path(path).is_relative_to(root), f"{name} imported from {path}, not from the installation {root}"
     assert set(found) == _source_packages()

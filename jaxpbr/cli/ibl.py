@@ -126,6 +126,8 @@ def add_commands(sub) -> None:
                    help=f"levels M of the Charlie cube, sheen roughness r_m = m/(M-1) (default: {DEFAULT_CHARLIE_LEVELS}, fewer if the face size allows fewer)")
     p.add_argument("--extract-lights", action="store_true", help="split dominant lights (suns) out of the environment first: the cubes hold the residual and lights.json the disc lights "
                    "(jaxpbr's fields and a glTF KHR_lights_punctual list), for engines that shade the sun analytically")
+    p.add_argument("--radiance", action="store_true", help="also store the environment itself (level 0, before any extraction) as radiance.ktx2: "
+                   "jaxpbr.read_baked draws it as the background")
     p.add_argument("--ktx-format", choices=("rgba16f", "rgba32f"), default="rgba16f")
     p.add_argument("--no-error", action="store_true")
     p.add_argument("--quiet", action="store_true")
@@ -346,7 +348,7 @@ def cmd_ibl(args) -> int:
             mapping=args.mapping, lod_blend=args.lod_blend, method=args.method, samples=args.samples,
             exact_texels=args.exact_texels, irradiance_size=args.irradiance_size, irradiance_method=args.irradiance_method,
             lut_size=args.lut_size, smith=_smith(args), sheen=not args.no_sheen, charlie_size=args.charlie_size,
-            charlie_levels=args.charlie_levels, extract=args.extract_lights, ktx_format=args.ktx_format,
+            charlie_levels=args.charlie_levels, extract=args.extract_lights, radiance=args.radiance, ktx_format=args.ktx_format,
             measure_error=not args.no_error, progress=_Bars(args.quiet), outputs=outs, names=_FLAGS,
         )
         if not args.quiet:

@@ -14,7 +14,7 @@ from .. import _program_cache, color
 from ..conventions import CONVENTIONS
 from ..io import image
 from ..io.atomic import OutputSet
-from ..rendering.demo import demo_scene, demo_sky
+from ..rendering.demo import demo_environment, demo_scene
 from ..rendering.renderer import BAND_PIXELS, RenderOptions, check_memory, plan, render
 from ..rendering.scene import MAX_SUPERSAMPLE
 from ..rendering.scene_file import load_scene
@@ -140,11 +140,11 @@ def _gltf_scene(args):
     W, H = args.width or 1280, args.height or 720
     env = None
     if args.environment is not None:
-        # procedural:sky is the demo's sky (128^2 faces), through the asset cache (kind "sky"): its
-        # maps are the demo's, and a warm start reads the cube instead of filtering it again.
-        sky = args.environment == "procedural:sky"
-        radiance = demo_sky() if sky else load_environment(args.environment)
-        env = Environment(radiance=radiance, intensity=args.environment_intensity)
+        # procedural:sky is the demo's sky (128^2 faces), baked as the demo's (the shipped set).
+        if args.environment == "procedural:sky":
+            env = demo_environment(intensity=args.environment_intensity)
+        else:
+            env = Environment(radiance=load_environment(args.environment), intensity=args.environment_intensity)
     cam = None
     if args.camera_position is not None or args.camera_target is not None or args.fov_y is not None or not asset.cameras:
         pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], fov_y_deg=args.fov_y or 45.0, aspect=W / H)

@@ -97,7 +97,7 @@ __all__ = [
 #: The index of a baked set.
 INDEX = "ibl.json"
 #: The file stems of a baked set (a re-bake protects every file starting with one of them).
-STEMS = ("irradiance", "prefiltered", "charlie", "brdf_lut", "ibl", "lights")
+STEMS = ("irradiance", "prefiltered", "charlie", "brdf_lut", "ibl", "lights", "radiance")
 #: The LUT file's channels (sidecar "channels"; a baked set's B holds the sheen albedo).
 LUT_CHANNELS = {"R": "A (GGX split sum, F0 weight)", "G": "B (F90 weight)", "B": "0 (unused)"}
 SHEEN_CHANNEL = "E_sheen: Charlie sheen albedo / sheen IBL weight"
@@ -138,7 +138,9 @@ class BakedMaps(NamedTuple):
     metadata (the lookup keys included, so `shade_ibl` and the renderer read them as written);
     lut: (n_r, n_nov, 2) split-sum LUT for `lut_smith`; sheen_lut: (n_r, n_nov) sheen albedo
     table or None; lights: tuple of disc `DirectionalLight`s split out of the environment, or None
-    (none extracted: the cubes hold the whole environment); index: ibl.json as read."""
+    (none extracted: the cubes hold the whole environment); index: ibl.json as read; radiance: the
+    environment itself (level 0, before any extraction) where the set stores it (`radiance=True`),
+    else None."""
 
     irradiance: Cubemap
     prefiltered: Cubemap
@@ -148,6 +150,7 @@ class BakedMaps(NamedTuple):
     charlie: Cubemap | None
     lights: tuple | None
     index: dict
+    radiance: Cubemap | None = None
 
 
 # ------------------------------------------------------------------------------------------
@@ -339,6 +342,15 @@ def irradiance_asset(env: Cubemap, irr: Cubemap, *, method: str, seconds=None, m
     return Asset("irradiance", irr, meta, side)
 
 
+def radiance_asset(env: Cubemap) -> Asset:
+    """The environment's radiance `env` (level 0) as a file: what a renderer draws as the
+    background (with any suns the set's other maps leave out)."""
+    meta = {"quantity": "L, the environment's radiance (level 0, before any light extraction)"}
+    side = {"kind": "radiance", "files": None, **meta, "face_size": env.face_size, "conventions": cube_conventions(),
+            "versions": library_versions()}
+    return Asset("radiance", env.level_cube(0), meta, side)
+
+
 def prefiltered_asset(env: Cubemap, pre: Cubemap, *, method: str = "fis", seconds=None, measure_error: bool = True, progress=None) -> Asset:
     """The GGX-prefiltered chain `pre` of `env` as a file: its metadata (the lookup keys) and
     sidecar, with the per-level error against the float64 reference (sampled texels) unless not
@@ -506,9 +518,10 @@ def write_asset(path, asset: Asset, *, ktx_format: str = "rgba16f", outputs: Out
     return side
 
 
-def _engine_lookup(sheen: bool) -> dict:
+def _engine_lookup(sheen: bool, *, radiance: bool = False) -> dict:
     """How an engine reads each output (ibl.json "lookup")."""
-    d = {
+    d = {"radiance": "background = radiance(d) (level 0, bilinear); the environment before any light extraction"} if radiance else {}
+    d |= {
         "irradiance": "diffuse = c_diff * irradiance(n) (bilinear; the map stores E/pi)",
         "prefiltered": "specular = LD(R, lod) * (F0 * A + F90 * B), R = reflect(-v, n); lod from the roughness r: prefiltered.lod_formula "
                        "(or linear interpolation of prefiltered.lod_table), trilinear",
@@ -548,6 +561,7 @@ def write_baked(
     charlie_size: int | None = None,
     charlie_levels: int | None = None,
     extract: bool = False,
+    radiance: bool = False,
     container: str = "ktx2",
     ktx_format: str = "rgba16f",
     measure_error: bool = True,
@@ -572,6 +586,9 @@ def write_baked(
         default up to 5) and put the sheen albedo in the LUT's B channel; False leaves both out.
     extract: split the suns out first (`extract.extract_lights`): the cubes hold the residual and
         lights.json the disc lights.
+    radiance: also store the environment itself (level 0, before any extraction) as
+        `radiance.<container>`: `read_baked` then draws it as the background (without it, the
+        prefiltered map's level 0, which lacks the extracted suns).
     container: "ktx2" (one file per cube, `ktx_format` rgba16f | rgba32f) or "exr" (one float32 file
         per mip and face, `<stem>_m<m>_<face>.exr`). The LUT is always brdf_lut.exr.
     measure_error: record each map's error against its float64 reference in the sidecars (the
@@ -594,7 +611,7 @@ def write_baked(
                 mapping=mapping, lod_blend=lod_blend, method=method, samples=samples, exact_texels=exact_texels,
                 irradiance_size=irradiance_size, irradiance_method=irradiance_method, lut_size=lut_size, smith=smith,
                 sheen=sheen, charlie_size=charlie_size, charlie_levels=charlie_levels, extract=extract,
-                container=container, ktx_format=ktx_format, measure_error=measure_error, progress=progress,
+                radiance=radiance, container=container, ktx_format=ktx_format, measure_error=measure_error, progress=progress,
                 outputs=own, names=names,
             )
     d = Path(out_dir)
@@ -623,13 +640,17 @@ def write_baked(
     paths |= {"brdf_lut": d / "brdf_lut.exr", "index": d / INDEX}
     if extract:
         paths["lights"] = d / "lights.json"
+    if radiance:
+        paths["radiance"] = d / f"radiance{ext}"
     for p in paths.values():  # every output checked before any work
         prepare_output(outputs, p, (p.suffix,))
     n_r, n_nov = lut_shape(lut_size)
     require(f"a LUT of {n_r}x{n_nov} texels", lut_bytes(n_r, n_nov, LUT_DEFAULT_SAMPLES), names={"size": _say(names, "lut_size")})
     check_prefilter_options(face_size, size=size, levels=levels, method=method, samples=samples, names=names)
     env = load_source(environment, face_size=face_size, clamp_negative=clamp_negative, kind="prefilter", names=names)
-    lights = None
+    source, lights = env, None
+    if radiance:
+        check_float16(source, paths["radiance"], ktx_format=ktx_format, names=names)
     if extract:
         ex = extract_lights(env)
         env, lights = ex.residual, lights_to_json(ex)
@@ -649,6 +670,8 @@ def write_baked(
     seconds = time.perf_counter() - t0
     index = {"sheen": sheen, "irradiance": put("irradiance", irradiance_asset(
         env, irr, method=irradiance_method, seconds=seconds, measure_error=measure_error, progress=progress))}
+    if radiance:
+        index["radiance"] = put("radiance", radiance_asset(source))
 
     t0 = time.perf_counter()
     pre = prefilter(env, size, num_levels=levels, mapping=mapping, lod_blend=lod_blend, method=method, samples=samples,
@@ -667,7 +690,7 @@ def write_baked(
     seconds = time.perf_counter() - t0
     index["brdf_lut"] = put("brdf_lut", lut_asset(lut, smith=smith, samples=None, seconds=seconds, sheen=table,
                                                   measure_error=measure_error))
-    index["lookup"] = _engine_lookup(sheen)
+    index["lookup"] = _engine_lookup(sheen, radiance=radiance)
     if lights is not None:
         write_json(paths["lights"], lights, outputs=outputs)
         index["lights"] = {"file": "lights.json", "count": len(lights["lights"]),
@@ -716,7 +739,8 @@ def read_baked_maps(directory) -> BakedMaps:
     charlie = _read_cube(d, index["charlie"], "charlie") if isinstance(index.get("charlie"), dict) else None
     lut, smith, table = _read_lut(d, index["brdf_lut"], sheen=bool(index.get("sheen")) and charlie is not None)
     lights = _read_lights(d, index["lights"]) if isinstance(index.get("lights"), dict) else None
-    return BakedMaps(irr, pre, lut, smith, table, charlie, lights, index)
+    radiance = _read_cube(d, index["radiance"], "radiance") if isinstance(index.get("radiance"), dict) else None
+    return BakedMaps(irr, pre, lut, smith, table, charlie, lights, index, radiance)
 
 
 def _files(d: Path, entry: dict, what: str) -> list[Path]:

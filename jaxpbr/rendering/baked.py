@@ -22,13 +22,14 @@ def read_baked(directory) -> Environment:
     `jaxpbr.bake` of the same environment and options up to the files' storage (float16 KTX2:
     2^-11 relative per texel; rgba32f and EXR: exact).
 
-    radiance, drawn as the background, is what the set stores of the environment: the prefiltered
-    map's level 0 (the environment at the prefiltered face size; without the suns when they were
-    extracted, which `lights` then shades). `intensity` and `rotation` apply as to any Environment.
+    radiance, drawn as the background: the environment itself where the set stores it
+    (`write_baked(radiance=True)`, `jaxpbr ibl --radiance`), else the prefiltered map's level 0
+    (the environment at the prefiltered face size; without the suns when they were extracted,
+    which `lights` then shades). `intensity` and `rotation` apply as to any Environment.
     Raises InputError naming the file and the fix for a missing, unreadable or inconsistent set."""
     maps = read_baked_maps(directory)
     return Environment(
-        radiance=Cubemap(maps.prefiltered.levels[0]),
+        radiance=maps.radiance if maps.radiance is not None else Cubemap(maps.prefiltered.levels[0]),
         irradiance=maps.irradiance,
         prefiltered=maps.prefiltered,
         lut=maps.lut,

@@ -1,30 +1,36 @@
 """Built-in scenes: the default demo (sphere grid under a procedural sky + sun, plus lights) and
-the LearnOpenGL lighting-chapter scene. Everything is generated in code (no files needed);
-`write_demo_glb` writes the demo grid as a glTF 2.0 asset of triangle meshes (`jaxpbr bench render
---gltf`)."""
+the LearnOpenGL lighting-chapter scene. Everything is generated in code; the demo's sky at its
+default size also ships baked (`jaxpbr/_demo_sky`, written by `write_demo_sky`), so that the first
+render bakes nothing. `write_demo_glb` writes the demo grid as a glTF 2.0 asset of triangle meshes
+(`jaxpbr bench render --gltf`)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import struct
 from dataclasses import dataclass
+from importlib import resources
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
 from .._program_cache import package_digest
+from ..ibl.baked import INDEX, write_baked
 from ..ibl.cubemap import Cubemap
 from ..ibl.envs import sky_with_sun_cubemap
 from ..shading.lights import PointLight
 from ..shading.material import Material
+from .baked import read_baked
 from .cache import ASSETS
 from .scene import Camera, Environment, Scene, Sphere
 
 __all__ = [
-    "DEMO_BASE_COLOR", "DEMO_ENV_ROTATION", "DemoAsset", "demo_grid_lat", "demo_scene", "learnopengl_scene",
-    "sphere_grid", "uv_sphere", "write_demo_glb",
+    "DEMO_BASE_COLOR", "DEMO_ENV_ROTATION", "DEMO_FACE_SIZE", "DEMO_SKY_BAKE", "DemoAsset", "demo_environment",
+    "demo_grid_lat", "demo_scene", "learnopengl_scene", "shipped_demo_sky", "sphere_grid", "uv_sphere",
+    "write_demo_glb", "write_demo_sky",
 ]
 
 #: Base colour of the demo spheres (linear RGB; a warm gold-like albedo).
@@ -32,6 +38,13 @@ DEMO_BASE_COLOR = (0.95, 0.64, 0.37)
 #: Rotation of the procedural sky about +Y that puts its sun behind the camera, to the right
 #: (world azimuth atan2(z, x) = +40 degrees, 20 degrees up), so the spheres are front-lit.
 DEMO_ENV_ROTATION = math.radians(-75.0)
+#: Face size of the demo's sky (and of `jaxpbr render ASSET --environment procedural:sky`).
+DEMO_FACE_SIZE = 128
+#: The options of `write_baked` the shipped demo sky was written with: the maps a render of the sky
+#: computes with the default options (the suns split out, the GGX chain of the face size, the
+#: irradiance) and the sky itself (the background), as exact float32 EXR faces; no sheen (the demo
+#: has none).
+DEMO_SKY_BAKE = {"face_size": DEMO_FACE_SIZE, "extract": True, "radiance": True, "sheen": False, "container": "exr"}
 
 
 def sphere_grid(rows: int = 7, cols: int = 7, *, spacing: float = 2.5, base_color=DEMO_BASE_COLOR,
@@ -57,14 +70,13 @@ def _four_lights(intensity: float = 300.0):
     )
 
 
-def demo_scene(width: int = 1280, height: int = 720, *, face_size: int = 128, supersample: int = 1,
+def demo_scene(width: int = 1280, height: int = 720, *, face_size: int = DEMO_FACE_SIZE, supersample: int = 1,
                lights: bool = True, environment: bool = True) -> Scene:
     """The default demo: a 7x7 sphere grid (metallic by row, roughness 0..1 by column) under the
     procedural sky with a 3000-radiance sun (`jaxpbr.ibl.envs`), rotated to light the spheres from
-    behind the camera, plus four point lights of 300 cd at (+-10, +-10, 10)."""
-    env = None
-    if environment:
-        env = Environment(radiance=demo_sky(face_size), rotation=DEMO_ENV_ROTATION)
+    behind the camera, plus four point lights of 300 cd at (+-10, +-10, 10). The environment is
+    `demo_environment(face_size=face_size)`: baked (the shipped set) at the default face size."""
+    env = demo_environment(face_size=face_size, rotation=DEMO_ENV_ROTATION) if environment else None
     return Scene(
         camera=Camera(position=(0.0, 0.0, 24.0), fov_y_deg=45.0, width=width, height=height, supersample=supersample),
         objects=sphere_grid(),
@@ -79,6 +91,58 @@ def demo_sky(face_size: int = 128) -> Cubemap:
     digest of the package's code: a warm start reads the cube instead of filtering it again."""
     face_size = int(face_size)
     return ASSETS.get("sky", ("sky_with_sun", face_size, package_digest()), lambda: sky_with_sun_cubemap(face_size))
+
+
+def demo_environment(*, face_size: int = DEMO_FACE_SIZE, rotation: float = 0.0, intensity: float = 1.0) -> Environment:
+    """The demo's procedural sky as an `Environment`. At the default face size it is the shipped
+    baked set (`shipped_demo_sky`: the sky, the sun split out of it as a disc light, the residual's
+    irradiance and GGX chain; a render precomputes nothing); at other sizes, the radiance
+    (`demo_sky`), whose maps the render computes and caches. Both render the same image (tested)."""
+    face_size = int(face_size)
+    env = shipped_demo_sky() if face_size == DEMO_FACE_SIZE else None
+    if env is None:
+        env = Environment(radiance=demo_sky(face_size))
+    return env.replace(rotation=rotation, intensity=intensity)
+
+
+def _demo_sky_dir():
+    return resources.files("jaxpbr._demo_sky")
+
+
+@functools.lru_cache(maxsize=1)
+def shipped_demo_sky() -> Environment | None:
+    """The baked set of the demo's sky shipped in the package (`jaxpbr/_demo_sky`, written by
+    `write_demo_sky`) read back (`jaxpbr.read_baked`), without its LUT: a render reads the shipped
+    split-sum table, as it does for the sky's radiance. None when the package has no such set."""
+    folder = _demo_sky_dir()
+    if not folder.joinpath(INDEX).is_file():
+        return None
+    with resources.as_file(folder) as path:
+        env = read_baked(path)
+    return env.replace(lut=None)
+
+
+def write_demo_sky(out_dir, *, measure_error: bool = True) -> dict:
+    """Write the demo sky's baked set into the folder `out_dir` (`jaxpbr.write_baked` of
+    "procedural:sky" with `DEMO_SKY_BAKE`), the files' names in ibl.json and the sidecars relative
+    to the folder. This is how `jaxpbr/_demo_sky` is made:
+
+        python -c "from jaxpbr.rendering.demo import write_demo_sky; write_demo_sky('jaxpbr/_demo_sky')"
+
+    -> the index (ibl.json)."""
+    d = Path(out_dir)
+    index = write_baked("procedural:sky", d, measure_error=measure_error, **DEMO_SKY_BAKE)
+
+    def relative(entry):
+        if isinstance(entry, dict):
+            return {k: ([Path(f).name for f in v] if k == "files" else Path(v).name if k == "file" else relative(v))
+                    for k, v in entry.items()}
+        return entry
+
+    for path in [d / INDEX, *d.glob("*.json")]:
+        if path.name != "lights.json":
+            path.write_text(json.dumps(relative(json.loads(path.read_text())), indent=2) + "\n")
+    return relative(index)
 
 
 def learnopengl_scene(width: int = 1280, height: int = 720) -> Scene:
