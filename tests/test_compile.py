@@ -178,7 +178,7 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
     ea, eb = jp.bake(jp.Environment(radiance=a)), jp.bake(jp.Environment(radiance=b))
     assert dict(ea.radiance.info) != dict(eb.radiance.info)  # provenance differs ...
     assert eb.radiance.metadata["environment"] == "another one"  # ... and is kept
-    stages = (renderer._geometry_jit, renderer._shade_direct_jit, renderer._shade_rest_jit)
+    stages = (renderer._geometry_jit, renderer._shade_direct_jit, renderer._shade_suns_jit, renderer._shade_rest_jit)
     jp.render(scene(ea))
     sizes = [f._cache_size() for f in stages]
     img = jp.render(scene(eb))

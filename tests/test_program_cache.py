@@ -150,10 +150,12 @@ def test_a_warm_command_line_render_loads_its_stages(tmp_path):
     compiled = [line for line in outs[0][1].splitlines() if "Finished XLA compilation" in line]
     assert 0 < len(compiled) <= MAX_PROGRAMS, "\n".join(compiled)
     lowered = lambda log, name: re.search(rf"Finished jaxpr to MLIR module conversion jit\({name}(_stored)?\)", log) is not None  # noqa: E731
-    for stage in ("_geometry", "_shade_direct", "_shade_rest", "_display", "_filtered_level"):
+    for stage in ("_geometry", "_shade_direct", "_shade_suns", "_shade_rest", "_display"):
         assert lowered(outs[0][1], stage), stage
+    for bake in ("_filtered_level", "_prefilter_fis", "_irradiance_at"):  # the demo's sky ships baked
+        assert not lowered(outs[0][1], bake), bake
     assert "Finished jaxpr to MLIR module conversion" not in outs[1][1], outs[1][1][-3000:]
-    assert len(files[0]) >= 5 and files[1] == files[0]  # the stages, display and sky filter; nothing new
+    assert len(files[0]) >= 5 and files[1] == files[0]  # the stages and display; nothing new
     from jaxpbr.io import image
 
     a = image.read(outs[0][0].with_suffix(".exr"))
@@ -352,7 +354,7 @@ def test_a_cold_staged_render_traces_and_compiles_each_stage_once_ahead(cache_di
     out = np.asarray(jp.render(scene, shadows=True))
     assert looked
     names = [n for n, _ in finished]
-    for stage in ("_cast_inputs", "_geometry", "_light_segments", "_shade_direct", "_sun_segments", "_shade_rest"):
+    for stage in ("_cast_inputs", "_geometry", "_light_segments", "_shade_direct", "_sun_segments", "_shade_suns", "_shade_rest"):
         assert traced.count(stage) == 1 and names.count(stage) == 1, (stage, traced, names)
         assert dict(finished)[stage].startswith("jaxpbr-compile"), finished
     assert sorted(traced) == sorted(names)  # nothing compiled twice or left uncompiled

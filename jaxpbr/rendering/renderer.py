@@ -67,6 +67,7 @@ from .stages import (  # noqa: F401
     _render_traced,
     _shade_direct_jit,
     _shade_rest_jit,
+    _shade_suns_jit,
     _stack_materials,
     _texture_jit,
     _volume_inputs,
