@@ -342,6 +342,7 @@ class cached_jit:
         handed to the compiler threads; -> its results as `jax.ShapeDtypeStruct`s, nothing run."""
         calls = _AHEAD.get()
         calls[0] += 1
+        compilers = calls[1]
         with self._lock:
             entry = self._mem.get(key, False)
             if calls[0] == 1 and entry is not False and not isinstance(entry, _Pending):
@@ -356,7 +357,7 @@ class cached_jit:
                     # Lowered here (Python, holding the GIL), compiled there (XLA, without it).
                     lowered = traced.lower()
                     job = with_callers_context(functools.partial(self._finish, root, key, traced, trees, lowered))
-                    entry = _Pending(_compiler().submit(job), outs)
+                    entry = _Pending(_compiler(compilers).submit(job), outs)
                 self._mem[key] = entry
         if isinstance(entry, _Pending):
             return entry.results
@@ -457,17 +458,21 @@ class _Pending:
 
 
 @contextlib.contextmanager
-def ahead():
+def ahead(*, compilers: int = 1):
     """Within, a `cached_jit` call with the stored-program directory set runs nothing: it finds its
     program in memory or on disk, or traces it and hands the lowering and compilation to the
     compiler threads, and returns its results as `jax.ShapeDtypeStruct`s, which later calls accept
     as arguments. Running a chain of programs (a render's stages) this way first starts all of
     their compilations at once, where each would otherwise wait for the previous program to
     compile and run; the real calls then wait for their own program only. A call that cannot be
-    compiled ahead raises `NotAhead`. Only while a directory is set (else a call raises NotAhead)."""
+    compiled ahead raises `NotAhead`. Only while a directory is set (else a call raises NotAhead).
+
+    compilers: the compiler threads (1 or `MAX_COMPILERS`) that compile the programs. XLA:CPU spreads
+    one program's code generation over the cores, so a second thread pays only where nothing else
+    runs beside the compilations (`execute._compile_ahead`)."""
     if _STATE["dir"] is None:
         raise NotAhead("no program directory")
-    token = _AHEAD.set([0])
+    token = _AHEAD.set([0, max(1, min(int(compilers), MAX_COMPILERS))])
     try:
         yield
     finally:
@@ -515,18 +520,23 @@ def is_ahead() -> bool:
     return _AHEAD.get() is not None
 
 
-#: Threads that compile programs ahead (`ahead`): one, since XLA:CPU already spreads a program's
-#: code generation over the cores (two compiler threads measured no faster on 2 cores).
-COMPILERS = 1
-_COMPILER: dict = {"pool": None, "pid": 0}
+#: The most threads that compile programs ahead (`ahead(compilers=)`). XLA:CPU already spreads a
+#: program's code generation over the cores; a second thread measured faster only where nothing
+#: else ran beside the compilations (2-core CPU, whole cold processes: the demo with its shipped
+#: sky 0.92x with two; the 1 M-triangle asset, whose ray engine is built meanwhile, 1.02x).
+MAX_COMPILERS = 2
+_COMPILER: dict = {"pools": {}, "pid": 0}
 
 
-def _compiler() -> ThreadPoolExecutor:
+def _compiler(threads: int = 1) -> ThreadPoolExecutor:
+    """The pool of `threads` compiler threads (one pool per count, made on first use)."""
     with _READER_LOCK:
-        if _COMPILER["pool"] is None or _COMPILER["pid"] != os.getpid():
-            _COMPILER["pool"] = ThreadPoolExecutor(max_workers=COMPILERS, thread_name_prefix="jaxpbr-compile")
-            _COMPILER["pid"] = os.getpid()
-        return _COMPILER["pool"]
+        if _COMPILER["pid"] != os.getpid():
+            _COMPILER["pools"], _COMPILER["pid"] = {}, os.getpid()
+        pool = _COMPILER["pools"].get(threads)
+        if pool is None:
+            pool = _COMPILER["pools"][threads] = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="jaxpbr-compile")
+        return pool
 
 
 def _result_avals(traced) -> tuple:

@@ -323,6 +323,32 @@ def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():
 
 
 @stored_on_this_backend
+def test_a_cold_render_with_nothing_beside_it_compiles_on_two_threads(cache_dir, monkeypatch):
+    """Analytic objects under a baked environment (the demo's case): nothing is computed beside the
+    compilations, so two compiler threads compile the stages; each stage is still compiled once."""
+    import threading
+
+    import jaxpbr as jp
+
+    env = jp.bake(jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16)))
+    scene = jp.Scene(camera=jp.Camera(position=(0.0, 0.0, 4.0), width=32, height=20),
+                     objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=0.4))],
+                     lights=[jp.PointLight(position=(2.0, 3.0, 3.0), intensity=20.0)], environment=env)
+    jp.clear_caches()
+    threads, orig_compiler = [], pc._compiler
+    monkeypatch.setattr(pc, "_compiler", lambda n=1: threads.append(n) or orig_compiler(n))
+    finished, orig_finish = [], pc.cached_jit._finish
+    monkeypatch.setattr(pc.cached_jit, "_finish", lambda self, *a: finished.append((self.__name__, threading.current_thread().name))
+                        or orig_finish(self, *a))
+    out = np.asarray(jp.render(scene))
+    assert threads and set(threads) == {pc.MAX_COMPILERS} == {2}
+    names = [n for n, _ in finished]
+    for stage in ("_geometry", "_shade_direct", "_shade_suns", "_shade_rest"):
+        assert names.count(stage) == 1 and dict(finished)[stage].startswith("jaxpbr-compile"), finished
+    assert np.isfinite(out).all() and out.max() > 0
+
+
+@stored_on_this_backend
 def test_a_cold_staged_render_traces_and_compiles_each_stage_once_ahead(cache_dir, monkeypatch):
     """A cold render with stored programs on (the command line's) looks ahead: every stage of a
     mesh scene with shadows and a sun split out of the sky is traced once, compiled once (on the
@@ -351,8 +377,11 @@ def test_a_cold_staged_render_traces_and_compiles_each_stage_once_ahead(cache_di
     looked = []
     orig_ahead = execute._compile_ahead
     monkeypatch.setattr(execute, "_compile_ahead", lambda *a: looked.append(1) or orig_ahead(*a))
+    threads, orig_compiler = [], pc._compiler
+    monkeypatch.setattr(pc, "_compiler", lambda n=1: threads.append(n) or orig_compiler(n))
     out = np.asarray(jp.render(scene, shadows=True))
     assert looked
+    assert set(threads) == {1}  # the ray engine is built and the maps computed meanwhile: one compiler thread
     names = [n for n, _ in finished]
     for stage in ("_cast_inputs", "_geometry", "_light_segments", "_shade_direct", "_sun_segments", "_shade_suns", "_shade_rest"):
         assert traced.count(stage) == 1 and names.count(stage) == 1, (stage, traced, names)

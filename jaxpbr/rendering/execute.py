@@ -120,20 +120,28 @@ def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, e
     first ones run; without it each stage's compilation waits for the previous stage to compile
     and run, and the IBL stage's for the maps. Only on a cold start of the command line (stored
     programs on, none recalled); a pass that cannot be looked ahead (a render under a
-    transformation, BLEND layers, sheen maps still to compute) runs as usual."""
+    transformation, BLEND layers, sheen maps still to compute) runs as usual. Two compiler threads
+    where nothing else runs beside the compilations (no IBL map to compute, no ray engine to build),
+    else one (`_program_cache.MAX_COMPILERS`)."""
     if _program_cache.directory() is None or _program_cache.was_recalled() or jax.default_backend() != "cpu":
         return
+    env = scene.environment
+    busy = scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects)
+    if p.ibl:
+        busy = busy or env.prefiltered is None or (p.ibl_diffuse and env.irradiance is None)
+        busy = busy or ("sheen" in p.extensions and env.charlie is None)
+    compilers = 1 if busy else _program_cache.MAX_COMPILERS
     s, whole, rows = _layout(scene, execution)
     sc = evolve(scene, camera=evolve(scene.camera, supersample=1)) if s > 1 else scene
     pb = p if whole else dataclasses.replace(p, band_rows=rows)
     offset = jax.ShapeDtypeStruct((2,) if whole else (3,), jnp.dtype(opts.dtype))
     try:
-        with _program_cache.ahead():
+        with _program_cache.ahead(compilers=compilers):
             one_pass(sc, pb, offset)
     except Exception:  # noqa: BLE001 (NotAhead, or a pass the look-ahead cannot follow: as usual)
         return
     for call in _program_cache.calls_also_ahead():
-        with contextlib.suppress(Exception), _program_cache.ahead():  # (as above)
+        with contextlib.suppress(Exception), _program_cache.ahead(compilers=compilers):  # (as above)
             call()
 
 

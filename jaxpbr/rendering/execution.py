@@ -14,7 +14,7 @@ __all__ = ["EXECUTION", "Execution"]
 class Execution:
     """How `render` and `render_batch` run outside transformations.
 
-    staged: True = the stages (geometry, each textured object, direct lighting, IBL + background)
+    staged: True = the stages (geometry, each textured object, direct lighting, the environment's suns, IBL + background)
       as separate programs, False = one program, None = the backend decides (`is_staged`).
     band_pixels: `render` (staged) renders images larger than this in bands of about this many
       pixels, so its memory is the image plus one band's G-buffer (~150 bytes per pixel on the

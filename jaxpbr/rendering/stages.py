@@ -747,7 +747,7 @@ def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, l
 
 
 def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool):
-    """Textures, direct lighting and IBL + background of the G-buffer `g`."""
+    """Textures, direct lighting, the environment's suns and IBL + background of the G-buffer `g`."""
     # The later stages see the pixels, not the meshes' arrays: meshes of other sizes reuse them.
     lean = _lean(scene)
     for k in p_plan.textured:
