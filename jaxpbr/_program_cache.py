@@ -437,7 +437,7 @@ def with_callers_context(compute):
 
 
 # -- compiling ahead ------------------------------------------------------------------------------
-#: Inside `ahead()`: a one-item list, the number of calls looked ahead so far; else None.
+#: Inside `ahead()`: [the number of calls looked ahead so far, the compiler threads to use]; else None.
 _AHEAD: contextvars.ContextVar[list | None] = contextvars.ContextVar("jaxpbr_programs_ahead", default=None)
 
 

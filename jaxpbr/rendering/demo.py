@@ -21,6 +21,7 @@ from .._program_cache import package_digest
 from ..ibl.baked import INDEX, write_baked
 from ..ibl.cubemap import Cubemap
 from ..ibl.envs import sky_with_sun_cubemap
+from ..io.atomic import write_json
 from ..shading.lights import PointLight
 from ..shading.material import Material
 from .baked import read_baked
@@ -85,7 +86,7 @@ def demo_scene(width: int = 1280, height: int = 720, *, face_size: int = DEMO_FA
     )
 
 
-def demo_sky(face_size: int = 128) -> Cubemap:
+def demo_sky(face_size: int = DEMO_FACE_SIZE) -> Cubemap:
     """The demo's procedural sky (`sky_with_sun_cubemap(face_size)`) through the process's asset
     cache (`cache.ASSETS`, on disk where the command line keeps one), keyed by the face size and a
     digest of the package's code: a warm start reads the cube instead of filtering it again."""
@@ -141,7 +142,7 @@ def write_demo_sky(out_dir, *, measure_error: bool = True) -> dict:
 
     for path in [d / INDEX, *d.glob("*.json")]:
         if path.name != "lights.json":
-            path.write_text(json.dumps(relative(json.loads(path.read_text())), indent=2) + "\n")
+            write_json(path, relative(json.loads(path.read_text())))
     return relative(index)
 
 

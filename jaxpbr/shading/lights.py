@@ -504,9 +504,9 @@ def shade_direct(
         # horizon) ...
         c = vdot(n3, l3)
         lift = jnp.maximum(s - c, 0.0)
-        g = geometry_soa(n3, v3, vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3))))
-        # ... with D replaced by its mean over the disc (`disc_lobe_ratio`).
         lc = vnormalize(tuple(l3[i] + lift * n3[i] for i in range(3)))
+        g = geometry_soa(n3, v3, lc)
+        # ... with D replaced by its mean over the disc (`disc_lobe_ratio`).
         ratio = disc_lobe_ratio(n3, v3, lc, s, alpha2)
         f = lobe(g, specular_weight=ratio)
         cap = cap_factor(c, s)
