@@ -38,6 +38,31 @@ def test_computed_once_compiles_its_function_once_and_returns_its_value():
     np.testing.assert_allclose(g, np.cosh(np.asarray(x)) * np.asarray(x) + np.sinh(np.asarray(x)), rtol=1e-5)
 
 
+def test_eager_cpu_cond_and_computed_once_call_the_branch_and_lower_no_conditional(monkeypatch):
+    """Outside any trace `cpu_cond` calls the branch its (concrete) predicate picks and
+    `computed_once` calls fn: no conditional program is lowered (each eager call would otherwise
+    lower and compile one, its branches being new closures). Inside a trace they still lower one."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxpbr import _numerics
+    from jaxpbr._numerics import computed_once, cpu_cond
+
+    conds = []
+    real_cond = jax.lax.cond
+    monkeypatch.setattr(jax.lax, "cond", lambda *a, **k: conds.append(1) or real_cond(*a, **k))
+    x = jnp.linspace(-2.0, 2.0, 16, dtype=jnp.float32)
+    np.testing.assert_array_equal(cpu_cond(jnp.any(x > 5), lambda o: o * 2, lambda o: o - 1, x), x - 1)
+    np.testing.assert_array_equal(cpu_cond(jnp.any(x > 0), lambda o: o * 2, lambda o: o - 1, x), x * 2)
+    np.testing.assert_array_equal(computed_once(lambda o: jnp.sinh(o), x, jnp.float32(0.0)), jnp.sinh(x))
+    assert conds == []
+    assert _numerics._eager((x,))
+    if jax.default_backend() == "cpu":  # traced: the conditional is there (platform_dependent's CPU branch)
+        jax.jit(lambda x: cpu_cond(jnp.any(x > 5), lambda o: o * 2, lambda o: o - 1, x)).lower(x)
+        jax.grad(lambda x: computed_once(lambda o: jnp.sinh(o), x, jnp.float32(0.0)).sum())(x)
+        assert len(conds) == 2
+
+
 def test_interp_uniform_and_interp_nodes_equal_jnp_interp_in_value_and_gradient():
     import jax
     import jax.numpy as jnp
