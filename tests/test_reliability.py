@@ -32,6 +32,26 @@ import pytest
 import jaxpbr as jp
 from jaxpbr.io import image
 
+
+def _cli(capfd, args, *, in_process=True, timeout=300):
+    """`jaxpbr ARGS`: in this process through `jaxpbr.cli.main` (output captured at the file
+    descriptors, so what a native library prints is seen too), or as a child process (the console
+    entry as a user starts it; a few checks keep that path). -> (status, stdout, stderr)."""
+    args = [str(a) for a in args]
+    if not in_process:
+        r = subprocess.run([sys.executable, "-m", "jaxpbr", *args], capture_output=True, text=True, timeout=timeout)
+        return r.returncode, r.stdout, r.stderr
+    from jaxpbr.cli import main
+
+    capfd.readouterr()
+    try:
+        code = main(args)
+    except SystemExit as exc:  # argparse's refusals
+        code = exc.code
+    out, err = capfd.readouterr()
+    return code, out, err
+
+
 # ---------------------------------------------------------------------------------- full disk
 
 
@@ -115,19 +135,19 @@ def test_garbage_with_an_image_extension_is_refused(tmp_path):
 
 
 @pytest.mark.parametrize("ext", [".exr", ".hdr", ".png"])
-def test_a_truncated_image_gives_one_line_and_nothing_on_stdout(tmp_path, ext):
-    """OpenEXR's binding printed a warning on stdout and libOpenEXR a line on stderr, beside ours."""
+def test_a_truncated_image_gives_one_line_and_nothing_on_stdout(tmp_path, capfd, ext):
+    """OpenEXR's binding printed a warning on stdout and libOpenEXR a line on stderr, beside ours
+    (the EXR case as a child process, the others in this process)."""
     rng = np.random.default_rng(0)
     whole = tmp_path / f"whole{ext}"
     image.write(whole, rng.random((64, 128, 3)).astype(np.float32))
     cut = tmp_path / f"cut{ext}"
     cut.write_bytes(whole.read_bytes()[: whole.stat().st_size * 2 // 3])
-    r = subprocess.run([sys.executable, "-m", "jaxpbr", "prefilter", str(cut), "--quiet", "-o", str(tmp_path / "p.ktx2")],
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2, r.stderr
-    assert r.stdout == ""
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("jaxpbr: error:") and "cut" in lines[0], r.stderr
+    code, out, err = _cli(capfd, ["prefilter", cut, "--quiet", "-o", tmp_path / "p.ktx2"], in_process=ext != ".exr")
+    assert code == 2, err
+    assert out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("jaxpbr: error:") and "cut" in lines[0], err
 
 
 def test_cli_refuses_a_png_renamed_hdr_before_any_work(tmp_path):
@@ -260,12 +280,9 @@ def test_output_set_protect_restores_replaced_files_and_cleans_up(tmp_path):
 # ----------------------------------------------------------------------- checks before the work
 
 
-def _render_cli(*args, timeout=300):
-    return subprocess.run([sys.executable, "-m", "jaxpbr", "render", *map(str, args)], capture_output=True, text=True, timeout=timeout)
-
-
 @pytest.mark.parametrize("case", ["output_is_a_dir", "exr_is_a_dir", "missing_dir", "nan_exposure", "inf_exposure"])
-def test_render_refuses_bad_outputs_and_values_before_rendering(tmp_path, case):
+def test_render_refuses_bad_outputs_and_values_before_rendering(tmp_path, capfd, case):
+    """(missing_dir as a child process, the others in this process)"""
     out = tmp_path / "r.png"
     args = ["--width", "16", "--height", "9", "-o", out]
     if case == "output_is_a_dir":
@@ -278,10 +295,10 @@ def test_render_refuses_bad_outputs_and_values_before_rendering(tmp_path, case):
     else:
         args += ["--exposure", "nan" if case == "nan_exposure" else "inf"]
     t0 = time.monotonic()
-    r = _render_cli(*args)
-    assert r.returncode == 2, r.stderr
-    assert "render " not in r.stdout  # nothing was rendered
-    assert len([ln for ln in r.stderr.splitlines() if ln.strip()]) == 1, r.stderr  # one line (argparse's too)
+    code, out, err = _cli(capfd, ["render", *args], in_process=case != "missing_dir")
+    assert code == 2, err
+    assert "render " not in out  # nothing was rendered
+    assert len([ln for ln in err.splitlines() if ln.strip()]) == 1, err  # one line (argparse's too)
     assert not (tmp_path / "r.png").is_file()
     assert time.monotonic() - t0 < 60
 
@@ -299,16 +316,16 @@ def test_render_hdr_failure_leaves_no_png(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_render_to_a_read_only_folder_is_refused_before_rendering(tmp_path):
+def test_render_to_a_read_only_folder_is_refused_before_rendering(tmp_path, capfd):
     mnt = tmp_path / "ro"
     mnt.mkdir()
     r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k,ro", "tmpfs", str(mnt)], capture_output=True)
     if r.returncode != 0:
         pytest.skip("cannot mount a read-only tmpfs here")
     try:
-        res = _render_cli("--width", "16", "--height", "9", "-o", mnt / "r.png")
-        assert res.returncode == 2 and "not writable" in res.stderr, res.stderr
-        assert "render " not in res.stdout
+        code, out, err = _cli(capfd, ["render", "--width", "16", "--height", "9", "-o", mnt / "r.png"])
+        assert code == 2 and "not writable" in err, err
+        assert "render " not in out
     finally:
         subprocess.run(["umount", str(mnt)], capture_output=True)
 
@@ -492,14 +509,13 @@ def test_a_prefilter_size_that_is_not_a_mip_is_refused_before_the_work(tmp_path,
     assert list(tmp_path.iterdir()) == []
 
 
-def test_report_precompute_checks_its_output_before_the_sweep(tmp_path):
+def test_report_precompute_checks_its_output_before_the_sweep(tmp_path, capfd):
     """The sweep logs its progress on stderr: a refusal before it is the only line there."""
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "jaxpbr", "report", "precompute", "--quick", "--out", str(tmp_path / "nope" / "rep")],
-                       capture_output=True, text=True, timeout=300)
-    assert r.returncode == 2, r.stderr
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "does not exist" in lines[0], r.stderr
+    code, _, err = _cli(capfd, ["report", "precompute", "--quick", "--out", tmp_path / "nope" / "rep"])
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "does not exist" in lines[0], err
     assert time.monotonic() - t0 < 30
 
 
@@ -516,14 +532,14 @@ def test_report_precompute_checks_its_output_before_the_sweep(tmp_path):
         (["ibl", "procedural:sky", "--face-size", "100000", "--out-dir", "{d}"], "--face-size"),
     ],
 )
-def test_huge_sizes_are_refused_before_any_work_naming_the_flag(tmp_path, args, flag):
-    """They aborted inside XLA (exit 134 with a C++ stack) or printed NumPy's allocation error."""
+def test_huge_sizes_are_refused_before_any_work_naming_the_flag(tmp_path, capfd, args, flag):
+    """They aborted inside XLA (exit 134 with a C++ stack) or printed NumPy's allocation error
+    (render's case as a child process, the others in this process)."""
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "jaxpbr", *[a.format(d=tmp_path) for a in args]],
-                       capture_output=True, text=True, timeout=120)
-    assert r.returncode == 2, r.stderr
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and "GB of memory" in lines[0] and flag in lines[0] and "JAXPBR_MEMORY_LIMIT" in lines[0], r.stderr
+    code, _, err = _cli(capfd, [a.format(d=tmp_path) for a in args], in_process=args[0] != "render", timeout=120)
+    assert code == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "GB of memory" in lines[0] and flag in lines[0] and "JAXPBR_MEMORY_LIMIT" in lines[0], err
     assert list(tmp_path.iterdir()) == []
     assert time.monotonic() - t0 < 60
 
