@@ -616,6 +616,19 @@ def _reader() -> ThreadPoolExecutor:
         return _READER["pool"]
 
 
+def finish_work() -> None:
+    """Wait for the compiler threads' jobs (a program still being compiled and stored) and drop
+    the recalled programs not read yet: what a process that ends now must do first (`cli.main`)."""
+    with _READER_LOCK:
+        compilers = list(_COMPILER["pools"].values()) if _COMPILER["pid"] == os.getpid() else []
+        reader = _READER["pool"] if _READER["pid"] == os.getpid() else None
+        _COMPILER["pools"], _READER["pool"] = {}, None  # (a later use starts new ones)
+    if reader is not None:
+        reader.shutdown(wait=True, cancel_futures=True)
+    for pool in compilers:
+        pool.shutdown(wait=True)
+
+
 def remember(signature: str) -> None:
     """Record the program files this process used (since `recall`) as the command `signature`'s,
     for its next run (the last `RECALL_COMMANDS` commands are kept; written atomically)."""

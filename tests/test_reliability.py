@@ -519,6 +519,32 @@ def test_report_precompute_checks_its_output_before_the_sweep(tmp_path, capfd):
     assert time.monotonic() - t0 < 30
 
 
+def test_the_command_line_ends_after_the_work_in_flight_and_the_exit_handlers(tmp_path):
+    """The command line's process ends with os._exit (no interpreter finalization), after a
+    program still being compiled and stored and a map still going to the asset cache are done,
+    after the atexit handlers, with its output flushed."""
+    script = f"""
+import atexit, sys, time
+from pathlib import Path
+from jaxpbr import _program_cache
+from jaxpbr.cli import _end_process
+from jaxpbr.rendering import execute
+d = Path({str(tmp_path)!r})
+def slow(name):
+    time.sleep(0.5)
+    (d / name).write_text("done")
+_program_cache._compiler(1).submit(slow, "stored")
+execute.worker_pool().submit(slow, "cached")
+atexit.register(lambda: (d / "atexit").write_text("ran"))
+print("buffered line", end="")
+_end_process(3)
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 3, r.stderr
+    assert r.stdout == "buffered line"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["atexit", "cached", "stored"]
+
+
 # ------------------------------------------------------------------------------- huge sizes
 
 

@@ -159,14 +159,45 @@ def _start_watchdog() -> None:
 
 
 def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
+    """The command line: `argv` (default sys.argv[1:]) -> exit status. entry: whether this is the
+    process's command line (default: argv is None, as the console script and `python -m jaxpbr`
+    call it), which then ends here (`_end_process`); in-process callers get the status back."""
+    if entry is None:
+        entry = argv is None
+    code = _main(argv, entry)
+    if entry:
+        _end_process(code)
+    return code
+
+
+def _end_process(code: int) -> None:
+    """End the command line's process with `code` once its work is done: the library's threads
+    that may still write finish (a program being stored, a map going to the asset cache), the
+    atexit handlers run (JAX's included), the streams are flushed, and `os._exit` skips the
+    interpreter's finalization, which tears down every module and the XLA client's compiled
+    programs one by one: 0.15-0.2 s of the demo's 1.2 s warm start (and of its cold one)."""
+    import atexit
+
+    from ..rendering import execute
+
+    _program_cache.finish_work()
+    execute.finish_work()
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe or stream: nothing more can reach it
+            pass
+    os._exit(code)
+
+
+def _main(argv: list[str] | None, entry: bool) -> int:
     _entry.phase("main")
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()
         return 0
-    if entry is None:  # the console script and `python -m jaxpbr` call main() with sys.argv
-        entry = argv is None
     if entry:
         _start_watchdog()
     _cache.enable()

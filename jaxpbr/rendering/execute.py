@@ -239,6 +239,16 @@ def clear_caches() -> None:
     release_programs()
 
 
+def finish_work() -> None:
+    """Wait for the worker pool's jobs (a map still being computed and written to the asset
+    cache): what a process that ends now must do first (`cli.main`)."""
+    global _pool
+    with _pool_lock:
+        pool, _pool = (_pool if _pool_pid == os.getpid() else None), None  # (a later use starts a new one)
+    if pool is not None:
+        pool.shutdown(wait=True)
+
+
 def worker_pool() -> ThreadPoolExecutor:
     """The process's worker pool, started on first use and reused by every render (no threads are
     started per call; idle workers cost nothing). A forked child starts its own (the parent's
