@@ -157,16 +157,27 @@ _FLAGS = {
 class _Bars:
     """The library's `progress(step, done, total)` as one progress bar per step on stderr."""
 
-    def __init__(self, quiet: bool):
-        self.quiet, self.bars = quiet, {}
+    def __init__(self):
+        self.bars = {}
 
     def step(self, name: str) -> Progress:
         if name not in self.bars:
-            self.bars[name] = Progress(name, self.quiet)
+            self.bars[name] = Progress(name)
         return self.bars[name]
 
     def __call__(self, step: str, done: int, total: int) -> None:
         self.step(step)(done, total)
+
+
+def _bars(quiet: bool) -> _Bars | None:
+    """Progress bars, or None with --quiet: the precomputes then compile no progress callback, and a
+    program without host callbacks is kept in JAX's persistent compilation cache (a warm `jaxpbr
+    ibl --quiet` reads its programs instead of compiling them again)."""
+    return None if quiet else _Bars()
+
+
+def _bar(bars: _Bars | None, name: str) -> Progress | None:
+    return None if bars is None else bars.step(name)
 
 
 def _load(args, kind: str):
@@ -254,7 +265,7 @@ def _lut(args, outs: OutputSet) -> dict:
         return _sheen_lut(args, outs, out)
     t0 = time.perf_counter()
     smith = _smith(args)
-    lut = np.asarray(brdf_lut(args.size, smith=smith, samples=args.samples, use_shipped=False, progress=Progress("lut", args.quiet)))
+    lut = np.asarray(brdf_lut(args.size, smith=smith, samples=args.samples, use_shipped=False, progress=None if args.quiet else Progress("lut")))
     seconds = time.perf_counter() - t0
     asset = lut_asset(lut, smith=smith, samples=args.samples, seconds=seconds, measure_error=not args.no_error, full_check=args.full_check)
     side = write_asset(out, asset, outputs=outs)
@@ -270,7 +281,7 @@ def _sheen_lut(args, outs: OutputSet, out: Path) -> dict:
     from ..shading.shipped_luts import sheen_lut
 
     t0 = time.perf_counter()
-    lut = np.asarray(sheen_lut(args.size, samples=args.samples, use_shipped=False, progress=Progress("lut", args.quiet)))
+    lut = np.asarray(sheen_lut(args.size, samples=args.samples, use_shipped=False, progress=None if args.quiet else Progress("lut")))
     seconds = time.perf_counter() - t0
     err = None if args.no_error else sheen_lut_error(lut, texels=None if args.full_check else 1024)
     meta = {
@@ -299,9 +310,9 @@ def _irradiance(args, outs: OutputSet) -> dict:
     out = _checked(outs, Path(args.output), (".ktx2", ".exr"))
     guard_irradiance(args.size, key="size", names=_FLAGS)
     env = _load(args, "irradiance")
-    bars = _Bars(args.quiet)
+    bars = _bars(args.quiet)
     t0 = time.perf_counter()
-    irr = irradiance(env, args.size, method=args.method, progress=bars.step("irradiance"))
+    irr = irradiance(env, args.size, method=args.method, progress=_bar(bars, "irradiance"))
     np.asarray(irr.levels[0])
     seconds = time.perf_counter() - t0
     asset = irradiance_asset(env, irr, method=args.method, seconds=seconds, measure_error=not args.no_error, progress=bars)
@@ -324,10 +335,10 @@ def _prefilter(args, outs: OutputSet) -> dict:
     _check_prefilter_size(args, args.face_size)
     env = _load(args, "prefilter")
     _prefilter_checks(args, env, out)
-    bars = _Bars(args.quiet)
+    bars = _bars(args.quiet)
     t0 = time.perf_counter()
     pre = prefilter(env, args.size, num_levels=args.levels, mapping=args.mapping, lod_blend=args.lod_blend, method=args.method,
-                    samples=args.samples, exact_texels=args.exact_texels, progress=bars.step("prefilter"))
+                    samples=args.samples, exact_texels=args.exact_texels, progress=_bar(bars, "prefilter"))
     [np.asarray(lv) for lv in pre.levels]
     seconds = time.perf_counter() - t0
     asset = prefiltered_asset(env, pre, method=args.method, seconds=seconds, measure_error=not args.no_error, progress=bars)
@@ -349,7 +360,7 @@ def cmd_ibl(args) -> int:
             exact_texels=args.exact_texels, irradiance_size=args.irradiance_size, irradiance_method=args.irradiance_method,
             lut_size=args.lut_size, smith=_smith(args), sheen=not args.no_sheen, charlie_size=args.charlie_size,
             charlie_levels=args.charlie_levels, extract=args.extract_lights, radiance=args.radiance, ktx_format=args.ktx_format,
-            measure_error=not args.no_error, progress=_Bars(args.quiet), outputs=outs, names=_FLAGS,
+            measure_error=not args.no_error, progress=_bars(args.quiet), outputs=outs, names=_FLAGS,
         )
         if not args.quiet:
             if args.extract_lights:
