@@ -397,13 +397,18 @@ class cached_jit:
             lowered = traced.lower() if lowered is None else lowered
             if _has_callback(traced.jaxpr):  # this process's program only (traced once, not twice)
                 return _with_avals(lowered.compile(), avals), trees[-1]
-            # Compiled here, not read from JAX's persistent cache: an executable loaded from that
-            # cache serializes without its kernels (it fails when called after loading: measured
-            # with jax 0.10). The context is thread-local.
-            from jax._src.config import enable_compilation_cache
+            # Compiled here, never read from JAX's persistent cache: an executable loaded from that
+            # cache serializes without its kernels (a later process loads it and fails calling it,
+            # "Function ... not found": measured with jax 0.10). JAX decides once per process
+            # whether its cache is used (a thread-local `enable_compilation_cache(False)` is not
+            # looked at again, and where it held during the process's first compilation it turned
+            # the cache off for everything), so the program gets a cache key of its own (a compile
+            # option set to its default value, `_OWN_KEY`) and is never written under it (the
+            # thread-local minimum compile time): no entry can ever be read back for it.
+            from jax._src.config import persistent_cache_min_compile_time_secs
 
-            with enable_compilation_cache(False):
-                compiled = lowered.compile()
+            with persistent_cache_min_compile_time_secs(float("inf")):
+                compiled = lowered.compile(compiler_options=_OWN_KEY)
             payload, in_tree, out_tree = serialize_executable.serialize(compiled)
             blob = pickle.dumps((key, payload, in_tree, out_tree, trees[-1], avals))
         except Exception:  # noqa: BLE001 (not serializable here: run through jax.jit)
@@ -421,6 +426,11 @@ class cached_jit:
             except OSError:
                 pass
         return _with_avals(compiled, avals), trees[-1]
+
+
+#: A compile option at its default value: the stored programs' key in JAX's persistent compilation
+#: cache differs from a plain `jax.jit` compilation of the same program (`cached_jit._finish`).
+_OWN_KEY = {"xla_cpu_enable_fast_min_max": False}
 
 
 def with_callers_context(compute):

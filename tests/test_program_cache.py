@@ -4,6 +4,7 @@ everything they depend on, and are loaded by a later process instead of traced a
 import dataclasses
 import math
 import os
+import pickle
 import re
 import subprocess
 import sys
@@ -161,6 +162,39 @@ def test_a_warm_command_line_render_loads_its_stages(tmp_path):
     a = image.read(outs[0][0].with_suffix(".exr"))
     b = image.read(outs[1][0].with_suffix(".exr"))
     np.testing.assert_array_equal(a, b)
+
+
+def _g(x):
+    return jnp.tanh(x) * 3.0 + x * x
+
+
+@stored_on_this_backend
+def test_a_stored_program_is_compiled_afresh_whatever_jaxs_cache_holds(cache_dir):
+    """An executable read from JAX's persistent compilation cache serializes without its kernels
+    (loaded again, calling it failed: "Function ... not found"); the stored program must never be
+    one. Here JAX's cache holds the same program (a plain jax.jit of it), and the stored file still
+    loads and runs, and JAX's cache gains no entry of its own for it."""
+    import jax
+    from jax.experimental import serialize_executable
+
+    x = np.linspace(-1.0, 1.0, 37, dtype=np.float32)
+    cache = jax.config.jax_compilation_cache_dir
+    if not cache:
+        pytest.skip("JAX's persistent compilation cache is off in this run")
+    jax.jit(_g)(x)  # (in JAX's cache now, where it was not already)
+    before = set(os.listdir(cache))
+    for _ in range(2):  # the second time as a later process would, its stored file gone
+        for p in cache_dir.iterdir():
+            p.unlink()
+        f = pc.cached_jit(_g)
+        want = np.asarray(f(x))
+        np.testing.assert_allclose(want, np.tanh(x) * 3.0 + x * x, rtol=1e-6)
+        assert set(os.listdir(cache)) == before
+        (path,) = [p for p in cache_dir.iterdir() if p.name.startswith(pc.PREFIX)]
+        _, payload, in_tree, out_tree, _, _ = pickle.loads(path.read_bytes())
+        loaded = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        (got,) = jax.tree_util.tree_leaves(loaded(x))  # (the flat program: a list of its one result)
+        np.testing.assert_array_equal(np.asarray(got), want)
 
 
 @stored_on_this_backend
