@@ -68,18 +68,21 @@ class ProcessRun:
 
 
 #: `python -c` program: run `jaxpbr ARGS...` (argv[2:]) as `python -m jaxpbr` does and, on the way
-#: out, write the process's peak resident memory (VmHWM of /proc/self/status, kB) to argv[1].
+#: out, write the process's peak resident memory (VmHWM of /proc/self/status, kB) to argv[1]: an
+#: atexit handler, which the command line runs before it ends its process (`cli._end_process`).
 _PEAK_WRAPPER = """
-import runpy, sys
+import atexit, runpy, sys
 out = sys.argv[1]
-sys.argv = ["jaxpbr", *sys.argv[2:]]
-try:
-    runpy.run_module("jaxpbr", run_name="__main__", alter_sys=True)
-finally:
+
+def peak():
     with open("/proc/self/status") as f:
         hwm = next((line.split()[1] for line in f if line.startswith("VmHWM:")), "nan")
     with open(out, "w") as f:
         f.write(hwm)
+
+atexit.register(peak)
+sys.argv = ["jaxpbr", *sys.argv[2:]]
+runpy.run_module("jaxpbr", run_name="__main__", alter_sys=True)
 """
 
 
