@@ -162,8 +162,10 @@ def test_the_files_are_the_command_lines(tmp_path):
     argv = ["ibl", "procedural:sky", "--face-size", "16", "--samples", "16", "--lut-size", "8", "--irradiance-size", "8",
             "--charlie-size", "8", "--charlie-levels", "3", "--extract-lights", "--radiance", "--no-error", "--quiet", "--out-dir", str(cli)]
     assert main(argv) == 0
+    # (--quiet: no progress, so none here either; a program reporting progress runs its rows in
+    # groups and its last bits may differ)
     index = jp.write_baked("procedural:sky", lib, face_size=16, samples=16, lut_size=8, irradiance_size=8, charlie_size=8,
-                           charlie_levels=3, extract=True, radiance=True, measure_error=False, progress=lambda step, done, total: None)
+                           charlie_levels=3, extract=True, radiance=True, measure_error=False)
     names = sorted(p.name for p in cli.iterdir())
     assert names == sorted(p.name for p in lib.iterdir())
     assert {"irradiance.ktx2", "prefiltered.ktx2", "charlie.ktx2", "brdf_lut.exr", "lights.json", "ibl.json", "radiance.ktx2"} <= set(names)
