@@ -7,6 +7,7 @@ function-local imports included, so an import hidden inside a function still cou
 from __future__ import annotations
 
 import ast
+import functools
 import subprocess
 import sys
 from pathlib import Path
@@ -33,7 +34,14 @@ def import_graph(root: Path = PACKAGE) -> dict[str, set[str]]:
 
 def _read_imports(root: Path = PACKAGE):
     """(graph, names): the module graph, and for each module the (source module, imported name)
-    pairs of its `from ... import name` statements."""
+    pairs of its `from ... import name` statements. Fresh copies of `_parsed_imports` (the package
+    is parsed once per process and root: about a second)."""
+    graph, names = _parsed_imports(root)
+    return {m: set(v) for m, v in graph.items()}, {m: set(v) for m, v in names.items()}
+
+
+@functools.lru_cache(maxsize=None)
+def _parsed_imports(root: Path):
     mods = _modules(root)
     graph: dict[str, set[str]] = {m: set() for m in mods}
     names: dict[str, set[tuple[str, str]]] = {m: set() for m in mods}
