@@ -542,7 +542,8 @@ libc = ctypes.CDLL(None)
 libc.printf(b" and C's")  # (C's stdout to a pipe is block-buffered)
 _end_process(3)
 """
-    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # (which unbuffers C's stdio too)
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False, env=env)
     assert r.returncode == 3, r.stderr
     assert r.stdout == "buffered line and C's"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["atexit", "cached", "stored"]
