@@ -14,9 +14,20 @@ from gradcheck import check_partials  # noqa: E402
 
 from jaxpbr import color  # noqa: E402
 
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore")  # colour-science warns that optional matplotlib is missing
-    import colour  # noqa: E402
+
+
+class _Colour:
+    """colour-science, imported on first use (it takes about a second to import, which every test
+    worker would pay while collecting)."""
+
+    def __getattr__(self, name):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # colour-science warns that optional matplotlib is missing
+            import colour as module
+        return getattr(module, name)
+
+
+colour = _Colour()
 
 EPS32 = 2.0**-23  # float32 machine epsilon (1 ulp at 1.0)
 KNEE_LIN = 0.0031308
