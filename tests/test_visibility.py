@@ -286,6 +286,44 @@ def test_embree_intersect_without_barycentrics_gives_the_same_hits():
     np.testing.assert_array_equal(np.asarray(lean.t), np.asarray(full.t))
 
 
+@pytest.mark.skipif(not embree_available(), reason="embreex not installed")
+@pytest.mark.parametrize("n", [5000, 70000])  # one chunk; chunks on the worker threads
+def test_embree_float32_primary_rays_equal_the_general_path(n, monkeypatch):
+    """Float32 rays from tnear = 0 with tfar = inf and no previous hit (primary rays) are refined
+    on the subset embree's first round hits, without float64 copies of the whole set
+    (`closest_from_origin`); the hits equal the general path's (float64 rays, per-ray tnear,
+    tfar and after_prim arrays), barycentrics included, on a grid of unit squares whose rays pass
+    through shared edges and vertices (ties) and through the gaps beside it (misses)."""
+    k = 24
+    g = np.stack(np.meshgrid(np.arange(k + 1.0), np.arange(k + 1.0), indexing="ij"), -1).reshape(-1, 2)
+    v = np.concatenate([g, np.zeros((len(g), 1))], 1)
+    idx = np.arange((k + 1) ** 2).reshape(k + 1, k + 1)
+    f = np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:]], -1).reshape(-1, 3),
+                        np.stack([idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 3)])
+    rng = np.random.default_rng(11)
+    xy = rng.integers(-2, k + 2, (n, 2)) + rng.choice([0.0, 0.5, 1.0, 0.25], (n, 2))  # vertices, edges, centres
+    o = np.concatenate([xy, rng.uniform(1.0, 3.0, (n, 1))], 1).astype(np.float32)
+    tilt = rng.normal(0.0, 0.02, (n, 2)) * rng.choice([0.0, 1.0], (n, 1))  # half straight down: exact ties
+    d = np.concatenate([tilt, -np.ones((n, 1))], 1).astype(np.float32)
+    acc = _accel(v, f, "embree")
+    general = acc.intersect(o.astype(np.float64), d.astype(np.float64), tnear=np.zeros(n), tfar=np.full(n, np.inf),
+                            after_prim=np.full(n, -1))
+    from jaxpbr.rendering import visibility
+
+    def no_copies(*a, **k):
+        raise AssertionError("float64 copies of the primary rays")
+
+    monkeypatch.setattr(visibility, "_host_rays", no_copies)
+    fast = acc.intersect(o, d)
+    hit = np.asarray(fast.prim) >= 0
+    assert 0.5 < hit.mean() < 1.0
+    for a, b in zip(fast, general):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    lean = acc.intersect(o, d, barycentrics=False)
+    np.testing.assert_array_equal(np.asarray(lean.prim), np.asarray(general.prim))
+    np.testing.assert_array_equal(np.asarray(lean.t), np.asarray(general.t))
+
+
 # --------------------------------------------------------------------------------------------------
 # continuation
 

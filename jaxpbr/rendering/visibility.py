@@ -534,13 +534,15 @@ class _EmbreeBackend:
         best_t[ray[better]] = t[better]
         best_p[ray[better]] = p[better]
 
-    def closest(self, o64, d64, tnear, tfar, after, max_rounds=64):
+    def closest(self, o64, d64, tnear, tfar, after, max_rounds=64, first=None):
         """Canonical closest hit (see the module docstring): (t float32, prim int64 or _NONE).
 
         embree proposes the nearest triangle beyond s (s = tnear, or just past the previous hit's
         tie zone when continuing); the proposal, and when it may be tied its neighbours, are
         tested exactly; a ray is done when the best valid hit so far is no farther than the
-        proposal's tie zone (everything untested lies beyond it), else s moves past the zone."""
+        proposal's tie zone (everything untested lies beyond it), else s moves past the zone.
+        first: embree's first proposals (primID, t), already asked for these rays from tnear = 0
+        with tfar = inf and no previous hit (`closest_from_origin`), used instead of asking again."""
         n = len(o64)
         rd = _RayData(o64, d64, self.scale)
         tn32, tf32 = tnear.astype(F32), tfar.astype(F32)
@@ -583,7 +585,11 @@ class _EmbreeBackend:
             with np.errstate(invalid="ignore"):
                 span = ((tfar if active is None else tfar[active]) - sa).astype(F32)
             span = np.where(np.isnan(span), F32(-1), span)
-            pid, te = self._run(org, d32, np.maximum(span, F32(0)), "INTERSECT")
+            if first is not None:
+                pid, te = first
+                first = None
+            else:
+                pid, te = self._run(org, d32, np.maximum(span, F32(0)), "INTERSECT")
             hitm = (pid >= 0) & (span >= 0)
             sub = np.nonzero(hitm)[0]
             ray = sub if active is None else active[sub]
@@ -611,6 +617,24 @@ class _EmbreeBackend:
             s[active] = t_ref[~done] + rd.tol_t[active]
         return best_t, best_p
 
+    def closest_from_origin(self, o32, d32):
+        """`closest` of float32 rays from tnear = 0 with tfar = inf and no previous hit (primary
+        rays), (t, prim) the same: embree's first round runs on the float32 rays themselves, and
+        only the rays it hits (a quarter of a typical frame's) are made float64 and refined. The
+        refinement is per ray, so refining that subset gives every ray the result the whole set
+        would (a ray embree misses in the first round is a miss there too)."""
+        n = len(o32)
+        best_t = np.full(n, np.inf, F32)
+        best_p = np.full(n, _NONE, np.int64)
+        pid, te = self._run(o32, d32, np.full(n, np.inf, F32), "INTERSECT")
+        sub = np.flatnonzero(pid >= 0)
+        if sub.size:
+            m = sub.size
+            t, p = self.closest(o32[sub].astype(np.float64), d32[sub].astype(np.float64), np.zeros(m), np.full(m, np.inf),
+                                np.full(m, -1, np.int64), first=(pid[sub], te[sub]))
+            best_t[sub], best_p[sub] = t, p
+        return best_t, best_p
+
     def barycentrics(self, o64, d64, prim):
         hit = prim != _NONE
         b1 = np.zeros(len(prim))
@@ -636,6 +660,34 @@ class _EmbreeBackend:
             self._local.inside = True
             try:
                 return self.intersect(o64[a:b], d64[a:b], tnear[a:b], tfar[a:b], after[a:b], bary)
+            finally:
+                self._local.inside = False
+
+        cuts = np.linspace(0, n, 2 * self.threads + 1).astype(int)
+        parts = list(pool.map(part, itertools.pairwise(cuts)))
+        return Hits(*(None if x[0] is None else np.concatenate(x) for x in zip(*parts)))
+
+    def intersect_from_origin(self, o32, d32, bary: bool = True):
+        """`intersect` of float32 rays from tnear = 0 with tfar = inf and no previous hit (the same
+        Hits): `closest_from_origin` on chunks of the rays on the worker threads."""
+        n = len(o32)
+        pool = self._pool_get()
+        if pool is None or n < 1 << 16 or getattr(self._local, "inside", False):
+            t, p = self.closest_from_origin(o32, d32)
+            hit = np.flatnonzero(p != _NONE)
+            b1 = b2 = None
+            if bary:
+                b1, b2 = np.zeros(n), np.zeros(n)
+                if hit.size:
+                    b1[hit], b2[hit] = self.barycentrics(o32[hit].astype(np.float64), d32[hit].astype(np.float64), p[hit])
+            miss = p == _NONE
+            return Hits(np.where(miss, np.inf, t).astype(F32), np.where(miss, -1, p).astype(np.int32), b1, b2)
+
+        def part(ab):
+            a, b = ab
+            self._local.inside = True
+            try:
+                return self.intersect_from_origin(o32[a:b], d32[a:b], bary)
             finally:
                 self._local.inside = False
 
@@ -678,6 +730,11 @@ def _float32_rays(origins, directions, tnear):
     o = np.ascontiguousarray(np.broadcast_to(origins, shape + (3,)).reshape(n, 3))
     d = np.ascontiguousarray(np.broadcast_to(directions, shape + (3,)).reshape(n, 3))
     return shape, o, d
+
+
+def _is_scalar(x, value) -> bool:
+    """x is the Python or NumPy scalar `value` (not an array of rays' values)."""
+    return isinstance(x, (int, float, np.integer, np.floating)) and x == value
 
 
 def _host_rays(origins, directions, tnear, tfar, after):
@@ -812,6 +869,12 @@ class TriangleAccel:
         if not isinstance(after_prim, jax.core.Tracer):
             _check_after(after_prim, self.num_triangles)
         if self.backend == "embree":
+            plain = _float32_rays(origins, directions, tnear)
+            if plain is not None and _is_scalar(tfar, np.inf) and _is_scalar(after_prim, -1):
+                # Float32 primary rays: no float64 copies of the whole set (the same hits).
+                shape, o, d = plain
+                h = self._impl.intersect_from_origin(o, d, barycentrics)
+                return Hits(*(None if x is None else x.reshape(shape) for x in h))
             shape, o, d, tn, tf, af = _host_rays(origins, directions, tnear, tfar, after_prim)
             h = self._impl.intersect(o, d, tn, tf, af, barycentrics)
             return Hits(*(None if x is None else x.reshape(shape) for x in h))
