@@ -257,6 +257,22 @@ def test_occluded_matches_intersect(backend):
     np.testing.assert_allclose(t[expect], inside[expect], rtol=1e-5)
 
 
+@backends
+def test_occluded_is_false_for_empty_ranges_and_unusable_directions(backend):
+    """A ray with a zero or non-finite direction, or with tfar = -inf or tfar < tnear, hits
+    nothing: `occluded` says False, as `intersect` reports a miss (the JAX BVH's any-hit marks a
+    hit by t = -inf, which such a ray started from)."""
+    v, f = unit_quad(0.0)
+    acc = _accel(v, f, backend)
+    o = np.array([[0.2, 0.2, 1.0]] * 6, np.float32)
+    d = np.array([[0, 0, -1], [0, 0, 0], [0, 0, -1], [0, 0, -1], [np.nan, 0, -1], [0, 0, -1]], np.float32)
+    tfar = np.array([10.0, 10.0, -np.inf, -1.0, 10.0, 0.5], np.float32)
+    occ = np.asarray(acc.occluded(o, d, tnear=0.0, tfar=tfar))
+    prim = np.asarray(acc.intersect(o, d, tnear=0.0, tfar=tfar).prim)
+    np.testing.assert_array_equal(occ, [True, False, False, False, False, False])
+    np.testing.assert_array_equal(occ, prim >= 0)
+
+
 @pytest.mark.skipif(not embree_available(), reason="embreex not installed")
 def test_embree_float32_shadow_rays_equal_the_float64_path():
     """Float32 rays from tnear = 0 go to embree without float64 copies (`_float32_rays`); the

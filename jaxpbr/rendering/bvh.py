@@ -696,8 +696,11 @@ def occluded_bvh(bvh: BVH, origins, directions, tnear=0.0, tfar=np.inf, *, lanes
     n = o.shape[0]
     if n == 0:
         return jnp.zeros(shape, bool)
-    t, _, _ = _trace(bvh, *_ray_consts(o, d, tn, tf, af), lanes, True)
-    return (t == -jnp.inf).reshape(shape)
+    rf, ri = _ray_consts(o, d, tn, tf, af)
+    t, _, _ = _trace(bvh, rf, ri, lanes, True)
+    # A hit sets t to -inf; a ray that starts there (an unusable direction, or tfar = -inf: an empty
+    # range) hits nothing.
+    return ((t == -jnp.inf) & (rf[:, 13] > -jnp.inf)).reshape(shape)
 
 
 def first_k_hits_bvh(bvh: BVH, origins, directions, k: int, tnear=0.0, tfar=np.inf, *, lanes: int = DEFAULT_LANES) -> Hits:
