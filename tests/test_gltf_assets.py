@@ -468,9 +468,19 @@ def test_lights_and_cameras_render_the_lambert_irradiance(assets):
     t = -o[1] / d[..., 1]
     x = o + t[..., None] * d
     floor = (t > 0) & (np.abs(x[..., [0, 2]]).max(-1) < A.FLOOR_HALF - 0.05)
+    want, usable = _floor_radiance(x)
+    usable &= floor
+    assert usable.sum() > 500 and (floor & ~usable).sum() > 10
+    np.testing.assert_allclose(img[usable], want[usable], rtol=1e-4)
+    assert np.all(img[~floor & (t < 0)] == 0.0)
+
+
+def _floor_radiance(x):
+    """(radiance (..., 3), usable (...)) of the Lambertian floor of `lights_and_cameras` at the points
+    x (..., 3) on it, lit by the asset's three lights; usable is False between the spot's cones."""
     n = np.array([0.0, 1.0, 0.0])
     E = np.zeros(x.shape)
-    usable = floor.copy()
+    usable = np.ones(x.shape[:-1], bool)
     for name in ("point", "spot"):
         _, pos, direction, props = A.LIGHTS[name]
         to = np.asarray(pos) - x
@@ -485,7 +495,46 @@ def test_lights_and_cameras_render_the_lambert_irradiance(assets):
         E += e[..., None] * np.asarray(props["color"])
     _, _, direction, props = A.LIGHTS["sun"]
     E += props["intensity"] * max(-np.dot(direction, n), 0.0) * np.asarray(props["color"])
-    want = np.asarray(A.FLOOR_BASE_COLOR) / math.pi * E
-    assert usable.sum() > 500 and (floor & ~usable).sum() > 10
+    return np.asarray(A.FLOOR_BASE_COLOR) / math.pi * E, usable
+
+
+@renders
+def test_an_orthographic_camera_renders_parallel_rays_over_its_xmag_ymag_view(assets, tmp_path):
+    """The asset's first camera orthographic (the perspective one's node left out of the scene):
+    jp.load_gltf gives Camera(projection="orthographic", ymag=3) looking down from the node, and
+    the image is the floor seen along parallel rays: pixel (i, j) sees the point
+    position + x right + y up with x = (2 (j + 1/2)/W - 1) ymag W/H, y = (1 - 2 (i + 1/2)/H) ymag
+    (xmag 4 = ymag W/H: the whole floor of half-size 3 fits the 8 x 6 view), lit as the closed
+    form says; outside the floor nothing is hit. The depth AOV is the camera's height above it."""
+    import json
+
+    doc = json.loads(assets["lights_and_cameras"].read_text())
+    doc["scenes"][0]["nodes"] = [k for k in doc["scenes"][0]["nodes"] if doc["nodes"][k].get("name") != "rig"]
+    path = tmp_path / "ortho.gltf"
+    path.write_text(json.dumps(doc))
+    W, H = 40, 30
+    scene = jp.load_gltf(path, width=W, height=H)
+    cam = scene.camera
+    assert cam.projection == "orthographic" and float(cam.ymag) == A.ORTHO["ymag"]
+    pos = np.asarray(cam.position, np.float64)
+    fwd = unit(np.asarray(cam.target, np.float64) - pos)
+    np.testing.assert_allclose(pos, A.ORTHO_POSITION, atol=1e-6)
+    np.testing.assert_allclose(fwd, [0.0, -1.0, 0.0], atol=1e-6)
+    right = unit(np.cross(fwd, np.asarray(cam.up, np.float64)))
+    up = np.cross(right, fwd)
+    xs = (2 * (np.arange(W) + 0.5) / W - 1) * A.ORTHO["ymag"] * W / H
+    ys = (1 - 2 * (np.arange(H) + 0.5) / H) * A.ORTHO["ymag"]
+    x = pos + xs[None, :, None] * right + ys[:, None, None] * up
+    x[..., 1] = 0.0  # straight down onto the floor
+    img = np.asarray(jp.render(scene))
+    inside = np.abs(x[..., [0, 2]]).max(-1)
+    floor = inside < A.FLOOR_HALF - 0.05
+    want, usable = _floor_radiance(x)
+    usable &= floor
+    assert usable.sum() > 500
     np.testing.assert_allclose(img[usable], want[usable], rtol=1e-4)
-    assert np.all(img[~floor & (t < 0)] == 0.0)
+    assert np.all(img[inside > A.FLOOR_HALF + 0.05] == 0.0)
+    from jaxpbr.rendering.aovs import aovs
+
+    depth = aovs(scene, ("depth",))["depth"]
+    np.testing.assert_allclose(depth[floor], A.ORTHO_POSITION[1], rtol=1e-6)

@@ -1002,6 +1002,9 @@ def _set(path: str, value):
      "material 0 (/materials/0/pbrMetallicRoughness/baseColorFactor): expected 4 finite numbers"),
     (lambda d: (_set("cameras", [{"type": "fisheye"}])(d), _set("nodes/0/camera", 0)(d)),
      "camera 0 (/cameras/0/type): type 'fisheye' is neither 'perspective' nor 'orthographic'"),
+    (lambda d: (_set("cameras", [{"type": "orthographic", "orthographic": {"xmag": 2, "ymag": 0, "znear": 0, "zfar": 9}}])(d),
+                _set("nodes/0/camera", 0)(d)),
+     "camera 0 (/cameras/0/orthographic/ymag): orthographic ymag must be a finite non-zero number, got 0"),
     (_set("nodes/0/extensions", {"KHR_lights_punctual": {"light": 1}}),
      "node 0 KHR_lights_punctual (/nodes/0/extensions/KHR_lights_punctual/light): light 1 does not exist"),
 ], ids=lambda x: x.split(":")[0] if isinstance(x, str) else None)

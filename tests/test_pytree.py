@@ -92,7 +92,7 @@ DOCUMENTED = {
         position=(3,), direction=(3,), radiant=(3,), inv_range=(), cone_scale=(), cone_offset=(), directional=(),
         sin_radius=(),
     ),
-    jp.Camera: dict(position=(3,), target=(3,), up=(3,), fov_y_deg=(), jitter=(2,)),
+    jp.Camera: dict(position=(3,), target=(3,), up=(3,), fov_y_deg=(), ymag=(), jitter=(2,)),
     jp.TexturedMaterial: dict(
         base_color_texture=(-1, -1, -1),
         metallic_roughness_texture=(-1, -1, -1),
@@ -113,7 +113,7 @@ DOCUMENTED = {
     jp.Cubemap: dict(levels=(6, -1, -1, -1)),
 }
 STATIC = {
-    jp.Camera: {"width", "height", "supersample"},
+    jp.Camera: {"projection", "width", "height", "supersample"},
     jp.Environment: {"show_background", "lut_smith"},
     jp.Scene: {"ambient"},
     jp.Cubemap: {"info"},

@@ -47,6 +47,50 @@ def test_primary_rays_centre_and_corners():
     np.testing.assert_allclose(right[0] / -right[2], (1 - 1 / W) * t * W / H, rtol=1e-12)
 
 
+def test_orthographic_primary_rays_are_parallel_over_the_ymag_view():
+    """Orthographic: every ray has the viewing direction; pixel (i, j) starts at position +
+    x right + y up, x = (2 (j + 1/2)/W - 1) ymag W/H, y = (1 - 2 (i + 1/2)/H) ymag, so the pixel
+    centres span the view's 2 ymag (W/H) x 2 ymag less half a pixel at each edge; the jitter and
+    a band of rows move the origins as they move a perspective camera's image-plane points."""
+    pos = np.array([1.0, 2.0, 3.0])
+    cam = jp.Camera(position=tuple(pos), target=(1.0, 2.0, -7.0), projection="orthographic", ymag=1.5, width=W, height=H)
+    o, d = (np.asarray(x) for x in primary_rays(cam, dtype=jnp.float64))
+    np.testing.assert_allclose(d, np.broadcast_to([0.0, 0.0, -1.0], d.shape), atol=0)
+    x = (2 * (np.arange(W) + 0.5) / W - 1) * 1.5 * W / H
+    y = (1 - 2 * (np.arange(H) + 0.5) / H) * 1.5
+    want = np.stack(np.broadcast_arrays(pos[0] + x[None, :], pos[1] + y[:, None], pos[2] + 0 * x[None, :]), -1)
+    np.testing.assert_allclose(o, want, rtol=0, atol=1e-12)
+    jit = cam.replace(jitter=(0.25, -0.5))
+    oj, _ = primary_rays(jit, dtype=jnp.float64)
+    np.testing.assert_allclose(np.asarray(oj) - o, np.broadcast_to([0.25 * 3.0 / H, 0.5 * 3.0 / H, 0.0], o.shape), atol=1e-12)
+    ob, _ = primary_rays(cam, dtype=jnp.float64, offset=(0.5, 0.5, 3), rows=4)
+    np.testing.assert_allclose(np.asarray(ob), o[3:7], atol=1e-12)
+
+
+def test_orthographic_camera_validation():
+    with pytest.raises(ValueError, match="projection must be one of perspective, orthographic"):
+        jp.Camera(projection="fisheye")
+    with pytest.raises(ValueError, match="Camera.ymag"):
+        jp.Camera(projection="orthographic", ymag=0.0)
+
+
+def test_an_orthographic_sphere_is_a_disc_of_its_radius_with_the_closed_form_depth():
+    """A unit sphere seen orthographically: exactly the pixels whose centre lies within 1 of its
+    axis are hit (centres within 1e-4 of the rim left out), at depth D - sqrt(1 - rho^2)."""
+    from jaxpbr.rendering.aovs import aovs
+
+    D, ymag, n = 5.0, 1.25, 40
+    cam = jp.Camera(position=(0.0, 0.0, D), target=(0.0, 0.0, 0.0), projection="orthographic", ymag=ymag, width=n, height=n)
+    scene = jp.Scene(camera=cam, objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material())])
+    got = aovs(scene, ("mask", "depth"))
+    c = (2 * (np.arange(n) + 0.5) / n - 1) * ymag
+    rho = np.hypot(c[None, :], c[:, None])
+    sure = np.abs(rho - 1.0) > 1e-4
+    np.testing.assert_array_equal(got["mask"][sure] > 0, (rho < 1.0)[sure])
+    inside = rho < 1.0 - 1e-4
+    np.testing.assert_allclose(got["depth"][inside], D - np.sqrt(1.0 - rho[inside] ** 2), rtol=1e-5)
+
+
 def test_sphere_and_plane_intersection_against_float64_numpy():
     rng = np.random.default_rng(0)
     o = rng.normal(size=(500, 3)) * 3

@@ -267,6 +267,15 @@ def test_defaults_and_learnopengl_output():
 # ------------------------------------------------------------------------------------------
 
 
+def test_orthographic_camera_keys():
+    sf = loads_scene('[camera]\nprojection = "orthographic"\nymag = 2.5\n' + SPHERE, ".")
+    assert sf.scene.camera.projection == "orthographic" and float(sf.scene.camera.ymag) == 2.5
+    with pytest.raises(Exception, match="camera.projection"):
+        loads_scene('[camera]\nprojection = "fisheye"\n' + SPHERE, ".")
+    with pytest.raises(Exception, match="camera.ymag"):
+        loads_scene('[camera]\nymag = 0\n' + SPHERE, ".")
+
+
 @pytest.mark.parametrize("hexstr", ["#ffcc88", "#000000", "#FFFFFF", "#0a0b0c", "#808080", "#0B1F2e"])
 def test_hex_colour_decoding(hexstr):
     codes = [int(hexstr[i : i + 2], 16) / 255 for i in (1, 3, 5)]

@@ -421,6 +421,40 @@ def test_ray_differentials_on_a_plane_match_the_closed_form():
     np.testing.assert_allclose((d1 - d0) / (2 * e), ddy, atol=1e-8)
 
 
+def test_orthographic_ray_differentials_give_the_texel_footprint_in_closed_form():
+    """An orthographic camera's rays move with the pixel, not turn: on a square of side 2 with uv
+    running 0..1 across it, facing the camera at any tilt of the view about its normal, a pixel of
+    2 ymag / H world units covers du = (2 ymag / H) / 2 along the image's x and dv the same along
+    its y (with the signs of the square's axes as the image sees them)."""
+    import jaxpbr as jp
+    from jaxpbr.rendering import stages
+    from jaxpbr.rendering.mesh import Mesh, cast, concat_meshes, mesh_surface
+    from jaxpbr.rendering.scene import primary_rays
+    from jaxpbr.rendering.visibility import embree_available
+
+    if not embree_available():
+        pytest.skip("embreex not installed")
+    quad = Mesh(positions=np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32),
+                triangles=np.array([[0, 1, 2], [0, 2, 3]], np.int32),
+                texcoords=np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32), material=jp.Material())
+    ymag, n = 0.75, 24
+    cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), projection="orthographic", ymag=ymag, width=n, height=n)
+    arrays = concat_meshes([quad], jnp.float32)
+    o_px, d_px = primary_rays(cam)
+    prim = cast(arrays, o_px, d_px)
+    o, d = tuple(o_px[..., i] for i in range(3)), tuple(d_px[..., i] for i in range(3))
+    ddir, dorig = stages._ray_differentials(cam, d, jnp.float32)
+    ms = mesh_surface(arrays, prim, o, d, need_uv=True, ddir=ddir, dorig=dorig)
+    hit = np.asarray(prim) >= 0
+    assert hit.all()  # the 1.5 x 1.5 view lies inside the square
+    step = 2 * ymag / n / 2  # world units per pixel, over the square's 2 units per uv unit
+    dx, dy = (np.asarray(a) for a in ms["duv"][0])
+    np.testing.assert_allclose(dx[hit], np.broadcast_to([step, 0.0], dx[hit].shape), atol=1e-6)
+    np.testing.assert_allclose(dy[hit], np.broadcast_to([0.0, step], dy[hit].shape), atol=1e-6)
+    # The same footprint everywhere: no perspective foreshortening.
+    assert np.ptp(dx[hit][:, 0]) < 1e-6
+
+
 def test_ray_differentials_finite_on_grazing_and_degenerate_triangles():
     P = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], np.float32)
     UV = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], np.float32)

@@ -650,7 +650,9 @@ def asset_report(
         kind="asset",
         asset=asset_name,
         image=[int(W), int(H)],
-        camera=dict(position=np.asarray(scene.camera.position, np.float64).tolist(), target=np.asarray(scene.camera.target, np.float64).tolist(), fov_y_deg=float(scene.camera.fov_y_deg)),
+        camera=dict(position=np.asarray(scene.camera.position, np.float64).tolist(), target=np.asarray(scene.camera.target, np.float64).tolist(),
+                    **({"projection": "orthographic", "ymag": float(scene.camera.ymag)} if scene.camera.projection == "orthographic"
+                       else {"fov_y_deg": float(scene.camera.fov_y_deg)})),
         pixels_on_asset=int(flat.size),
         pixels_measured=int(idx.size),
         pixels_limit=pixels,

@@ -11,7 +11,7 @@ modes), the texture-coordinate set and the KHR_texture_transform of the slot; co
 (base colour, emissive, sheen colour, specular colour) are decoded from sRGB before filtering,
 data textures are filtered as stored, and the occlusion texture carries its strength
 (1 + strength (R - 1)). What the scene does not reproduce is listed in `GltfScene.notes` and warned
-once (orthographic cameras are framed instead). alphaMode, alphaCutoff and baseColorFactor's alpha
+once. alphaMode, alphaCutoff and baseColorFactor's alpha
 go to the `Mesh` (MASK cut-outs in visibility and shadows, BLEND layers composited).
 """
 
@@ -197,9 +197,19 @@ def scene_from_asset(
     notes: set[str] = set()
     meshes = meshes_from_asset(asset, notes)
     if camera is None:
-        cam = next((c for c in asset.cameras if c.type == "perspective"), None)
-        if cam is not None:
-            aspect = width / height
+        cam = asset.cameras[0] if asset.cameras else None
+        aspect = width / height
+        if cam is not None and cam.type == "orthographic":
+            # glTF's xmag and ymag are the view's half width and height; the image's aspect ratio
+            # sets the width (as for a perspective camera's aspectRatio).
+            camera = Camera(
+                position=tuple(cam.position), target=tuple(cam.position + cam.forward), up=tuple(cam.up),
+                projection="orthographic", ymag=abs(cam.ymag), width=width, height=height,
+            )
+            if abs(abs(cam.xmag) / abs(cam.ymag) - aspect) > 1e-3:
+                notes.add(f"the orthographic camera's xmag/ymag {abs(cam.xmag) / abs(cam.ymag):.4g} differs from the image's "
+                          f"aspect ratio {aspect:.4g}: ymag (the view's height) is kept")
+        elif cam is not None:
             camera = Camera(
                 position=tuple(cam.position), target=tuple(cam.position + cam.forward), up=tuple(cam.up),
                 fov_y_deg=math.degrees(cam.yfov), width=width, height=height,
@@ -207,8 +217,6 @@ def scene_from_asset(
             if cam.aspect_ratio is not None and abs(cam.aspect_ratio - aspect) > 1e-3:
                 notes.add(f"the camera's aspectRatio {cam.aspect_ratio:.4g} differs from the image's {aspect:.4g}: the vertical field of view is kept")
         else:
-            if asset.cameras:
-                notes.add("orthographic cameras are not supported: the asset is framed automatically")
             pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], aspect=width / height)
             camera = Camera(position=tuple(pos), target=tuple(tgt), fov_y_deg=45.0, width=width, height=height)
     all_lights = (lights_from_asset(asset) if asset_lights else []) + list(lights)

@@ -720,14 +720,15 @@ def _gather3(a, idx, k):
     return tuple(a[:, i][idx[..., k]] for i in range(a.shape[1]))
 
 
-def mesh_surface(arrays, prim, o, d, *, need_uv: bool, ddir=None):
+def mesh_surface(arrays, prim, o, d, *, need_uv: bool, ddir=None, dorig=None):
     """Surface of mesh pixels hit by primitive `prim` (..., int32, >= 0 where used):
 
     returns dict t, pos, n (shading normal, facing the viewer on double-sided back faces),
     ng (geometric normal, same side), object (index into the meshes), and when need_uv: uv, uv1,
     tangent (Vec3) and tangent_w (the bitangent sign), duv: per texture-coordinate set (0, 1) the
     screen derivatives (duv/dx, duv/dy), each (..., 2), from the ray differentials `ddir` =
-    (dD/dx, dD/dy) (zero without them); colour (RGBA) when the meshes have colours.
+    (dD/dx, dD/dy) (zero without them) and `dorig` = (dO/dx, dO/dy) (None: a fixed origin);
+    colour (RGBA) when the meshes have colours.
     """
     p = jnp.maximum(prim, 0)
     tri = arrays["triangles"][p]  # (..., 3)
@@ -779,6 +780,7 @@ def mesh_surface(arrays, prim, o, d, *, need_uv: bool, ddir=None):
         _, dx, dy = uv_derivatives_on_triangle(
             *(jnp.stack(v[k], -1) for k in range(3)), *corners, jnp.stack(o, -1), jnp.stack(d, -1),
             jnp.stack(ddir[0], -1), jnp.stack(ddir[1], -1),
+            **({} if dorig is None else {"dorigin_dx": jnp.stack(dorig[0], -1), "dorigin_dy": jnp.stack(dorig[1], -1)}),
         )
         duv.append((dx, dy))
     if arrays["texcoords1"] is None:

@@ -83,11 +83,20 @@ def _scalar(name: str, x, *, lo=None, hi=None, open_lo=False) -> jax.Array:
 MAX_SUPERSAMPLE = 64
 
 
+#: `Camera.projection` values.
+PROJECTIONS = ("perspective", "orthographic")
+
+
 class Camera(Pytree):
-    """Pinhole perspective camera.
+    """Pinhole perspective or orthographic camera.
 
     position, target, up: (3,) world-space points / vector (leaves: may be batched or traced).
-    fov_y_deg: vertical field of view in degrees (leaf).
+    fov_y_deg: vertical field of view in degrees (leaf; perspective).
+    projection: "perspective" (rays from `position` through the image plane) or "orthographic"
+        (static): parallel rays along target - position, from the plane through `position`
+        perpendicular to it, over a view 2 ymag high and 2 ymag width/height wide (glTF's
+        orthographic camera; its xmag follows from the image's aspect ratio).
+    ymag: half the orthographic view's height in world units (leaf; orthographic).
     width, height: image size in pixels (static).
     supersample: s -> s x s stratified samples per pixel, averaged in linear HDR (static).
     jitter: (2,) sub-pixel offset in pixels added to every sample (leaf), e.g. for progressive or
@@ -98,6 +107,8 @@ class Camera(Pytree):
     target: Any = leaf((0.0, 0.0, 0.0), rank=1)
     up: Any = leaf((0.0, 1.0, 0.0), rank=1)
     fov_y_deg: Any = leaf(45.0)
+    projection: str = static("perspective")
+    ymag: Any = leaf(1.0)
     width: int = static(1280)
     height: int = static(720)
     supersample: int = static(1)
@@ -116,6 +127,9 @@ class Camera(Pytree):
         tgt = _vec("Camera.target", self.target)
         up = _vec("Camera.up", self.up)
         fov = _scalar("Camera.fov_y_deg", self.fov_y_deg, lo=0.0, open_lo=True, hi=179.0)
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"Camera.projection must be one of {', '.join(PROJECTIONS)}, got {self.projection!r}")
+        ymag = _scalar("Camera.ymag", self.ymag, lo=0.0, open_lo=True)
         jit = _vec("Camera.jitter", self.jitter, 2)
         if all(is_concrete(x) for x in (pos, tgt, up)):
             f = np.asarray(tgt, np.float64) - np.asarray(pos, np.float64)
@@ -123,7 +137,7 @@ class Camera(Pytree):
                 raise ValueError("Camera.target must differ from Camera.position")
             if np.any(np.linalg.norm(np.cross(f, np.asarray(up, np.float64)), axis=-1) < 1e-12):
                 raise ValueError("Camera.up must not be parallel to the viewing direction; pick another up")
-        self._set(position=pos, target=tgt, up=up, fov_y_deg=fov, jitter=jit)
+        self._set(position=pos, target=tgt, up=up, fov_y_deg=fov, ymag=ymag, jitter=jit)
 
 
 def camera_basis(cam: Camera, dtype):
@@ -142,22 +156,30 @@ def primary_rays(cam: Camera, *, dtype=jnp.float32, offset=(0.5, 0.5), rows: int
     """Ray origins and unit directions of every pixel, each (H, W, 3).
 
     offset: sample position inside the pixel in pixel units ((0.5, 0.5) = centre), to which
-    `cam.jitter` is added. Pixel (i, j) looks through x = (2 (j + ox)/W - 1) tan(fov/2) aspect,
-    y = (1 - 2 (i + oy)/H) tan(fov/2) on the image plane at distance 1.
+    `cam.jitter` is added. Perspective: pixel (i, j) looks from the camera's position through
+    x = (2 (j + ox)/W - 1) tan(fov/2) aspect, y = (1 - 2 (i + oy)/H) tan(fov/2) on the image plane
+    at distance 1. Orthographic: the ray of pixel (i, j) starts at position + x right + y up with
+    x = (2 (j + ox)/W - 1) ymag aspect, y = (1 - 2 (i + oy)/H) ymag, along the viewing direction.
     rows: 0 for the whole image; otherwise only the band of `rows` image rows starting at row
     offset[2] (possibly traced; rows past the image bottom continue the projection), (rows, W, 3).
     """
     pos, fwd, right, up = camera_basis(cam, dtype)
     W, H = cam.width, cam.height
-    t = jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2)
+    ortho = cam.projection == "orthographic"
+    t = jnp.asarray(cam.ymag, dtype) if ortho else jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2)
     jit = jnp.asarray(cam.jitter, dtype)
     x = (2.0 * (jnp.arange(W, dtype=dtype) + offset[0] + jit[0]) / W - 1.0) * t * (W / H)
     i = jnp.arange(H, dtype=dtype) if not rows else jnp.arange(rows, dtype=dtype) + offset[2]
     y = (1.0 - 2.0 * (i + offset[1] + jit[1]) / H) * t
     x = x[None, :]
     y = y[:, None]
+    shape = (y.shape[0], W)
+    if ortho:
+        o = jnp.stack([jnp.broadcast_to(pos[i] + x * right[i] + y * up[i], shape) for i in range(3)], -1)
+        d = jnp.broadcast_to(jnp.stack(fwd), o.shape)
+        return o, d
     d = vnormalize(tuple(fwd[i] + x * right[i] + y * up[i] for i in range(3)))
-    d = jnp.stack([jnp.broadcast_to(c, (y.shape[0], W)) for c in d], -1)
+    d = jnp.stack([jnp.broadcast_to(c, shape) for c in d], -1)
     o = jnp.broadcast_to(jnp.stack(pos), d.shape)
     return o, d
 

@@ -44,6 +44,7 @@ from ..io import image
 from .renderer import RenderOptions
 from .scene import (
     EXTENSION_TEXTURES,
+    PROJECTIONS,
     Camera,
     Environment,
     Plane,
@@ -438,6 +439,10 @@ class _Loader:
                 kw[key] = self.vector(t[key], f"camera.{key}")
         if "fov_y_deg" in t:
             kw["fov_y_deg"] = self.number(t["fov_y_deg"], "camera.fov_y_deg", lo=0.0, open_lo=True, hi=179.0)
+        if "projection" in t:
+            kw["projection"] = self.choice(t["projection"], "camera.projection", PROJECTIONS)
+        if "ymag" in t:
+            kw["ymag"] = self.number(t["ymag"], "camera.ymag", lo=0.0, open_lo=True)
         for key in ("width", "height", "supersample"):
             if key in t:
                 kw[key] = self.integer(t[key], f"camera.{key}")

@@ -413,8 +413,8 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         arrays = _mesh_arrays(scene, dtype)
         if prim is None:  # (BLEND layers pass the layer's primitives, cast once for all layers)
             prim = cast(arrays, o_px, d_px)
-        ddir = _ray_differentials(scene.camera, d, dtype) if need_uv else None
-        ms = mesh_surface(arrays, prim, o, d, need_uv=need_uv, ddir=ddir)
+        ddir, dorig = _ray_differentials(scene.camera, d, dtype) if need_uv else (None, None)
+        ms = mesh_surface(arrays, prim, o, d, need_uv=need_uv, ddir=ddir, dorig=dorig)
         on_mesh = prim >= 0
         idx_m = jnp.asarray(meshes, jnp.int32)[ms["object"]]
         if analytic:
@@ -469,19 +469,27 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
 
 
 def _ray_differentials(cam, d, dtype):
-    """dD/dx, dD/dy (Vec3s) of the pinhole camera's unit ray directions d per pixel (Igehy 1999):
-    the unnormalised direction f + x r + y u moves by (2 tan(fov/2)/H) r per column and
-    -(2 tan(fov/2)/H) u per row, and has length 1/(D.f); dD = (dd - D (D.dd)) / |d|."""
+    """The camera's ray differentials per pixel (Igehy 1999): ((dD/dx, dD/dy), (dO/dx, dO/dy)) of
+    the unit ray directions d and the origins (Vec3s; None where they do not move).
+
+    Perspective: the origin is fixed; the unnormalised direction f + x r + y u moves by
+    (2 tan(fov/2)/H) r per column and -(2 tan(fov/2)/H) u per row, and has length 1/(D.f);
+    dD = (dd - D (D.dd)) / |d|. Orthographic: the direction is fixed and the origin moves by
+    (2 ymag/H) r per column and -(2 ymag/H) u per row."""
     from .scene import camera_basis
 
     _, f, r, u = camera_basis(cam, dtype)
+    if cam.projection == "orthographic":
+        k = 2.0 * jnp.asarray(cam.ymag, dtype) / cam.height
+        zero = tuple(jnp.zeros_like(c) for c in d)
+        return (zero, zero), (tuple(k * c for c in r), tuple(-k * c for c in u))
     k = 2.0 * jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2) / cam.height
     inv_len = vdot(d, f)  # 1/|d|
     out = []
     for dd in (tuple(k * c for c in r), tuple(-k * c for c in u)):
         dn = vdot(d, dd)
         out.append(tuple((dd[i] - d[i] * dn) * inv_len for i in range(3)))
-    return tuple(out)
+    return tuple(out), None
 
 
 def _volume_inputs(g, m: Material, dtype):

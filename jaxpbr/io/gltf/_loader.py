@@ -582,6 +582,10 @@ class _Loader:
             op = get(cam, "orthographic")
             if op is None or any(get(op, k) is None for k in ("xmag", "ymag", "znear", "zfar")):
                 fail(self.path, loc(f"camera {c}", at + "/orthographic"), "orthographic camera without xmag/ymag/znear/zfar", _FIX)
+            for k in ("xmag", "ymag"):
+                x = get(op, k)
+                if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x) or x == 0:
+                    fail(self.path, loc(f"camera {c}", at + f"/orthographic/{k}"), f"orthographic {k} must be a finite non-zero number, got {x!r}", _FIX)
             self.cameras.append(GltfCamera(
                 type=kind, world_matrix=world.copy(), camera=c, node=node_index, name=name,
                 xmag=float(get(op, "xmag")), ymag=float(get(op, "ymag")),
