@@ -89,6 +89,7 @@ BAD_ROWS = [
     ('{"name": "a", "scene": {"factory": "no colon"}}', "scene.factory: expected 'module:function'"),
     ('{"name": "a", "camera": {"position": [0, 0]}}', "camera.position: expected three numbers"),
     ('{"name": "a", "camera": {"fov_y": 200}}', "camera.fov_y: expected degrees in (0, 180)"),
+    ('{"name": "a", "camera": {"ymag": 0}}', "camera.ymag: expected a positive number"),
     ('{"name": "a", "camera": {"position": [0, 0, 1], "target": [0, 0, 1]}}', "position and target are the same point"),
     ('{"name": "a", "environment": "procedural:moon"}', "unknown procedural environment"),
     ('{"name": "a", "environment": "sky.png"}', "environment: 'sky.png' is not one of"),

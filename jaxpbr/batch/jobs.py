@@ -46,7 +46,7 @@ __all__ = ["BakeJob", "JobFileError", "RenderJob", "load_jobs", "parse_jobs"]
 
 RENDER_FIELDS = ("kind", "name", "scene", "width", "height", "supersample", "camera", "environment",
                  "environment_intensity", "environment_rotation", "material", "options", "output")
-CAMERA_FIELDS = ("position", "target", "up", "fov_y")
+CAMERA_FIELDS = ("position", "target", "up", "fov_y", "ymag")
 OUTPUT_FIELDS = ("formats", "aovs", "exposure", "tonemap", "encoding", "bits")
 FORMATS = ("png", "exr")
 TONEMAPS = TONEMAP_OPERATORS
@@ -364,6 +364,11 @@ def _camera(cam, bad):
         elif k == "fov_y":
             if not _finite(v) or not 0 < v < 180:
                 bad.append(f"camera.fov_y: expected degrees in (0, 180), got {v!r}")
+            else:
+                out[k] = float(v)
+        elif k == "ymag":
+            if not _finite(v) or not v > 0:
+                bad.append(f"camera.ymag: expected a positive number (an orthographic camera's half height), got {v!r}")
             else:
                 out[k] = float(v)
         elif not _vec3(v):

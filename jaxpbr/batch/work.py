@@ -159,7 +159,7 @@ class Worker:
             if job.supersample is not None:
                 changes["supersample"] = job.supersample
             c = job.camera or {}
-            for k, field in (("position", "position"), ("target", "target"), ("up", "up"), ("fov_y", "fov_y_deg")):
+            for k, field in (("position", "position"), ("target", "target"), ("up", "up"), ("fov_y", "fov_y_deg"), ("ymag", "ymag")):
                 if k in c:
                     changes[field] = c[k]
             if changes:
