@@ -54,16 +54,17 @@ def test_orthographic_primary_rays_are_parallel_over_the_ymag_view():
     a band of rows move the origins as they move a perspective camera's image-plane points."""
     pos = np.array([1.0, 2.0, 3.0])
     cam = jp.Camera(position=tuple(pos), target=(1.0, 2.0, -7.0), projection="orthographic", ymag=1.5, width=W, height=H)
-    o, d = (np.asarray(x) for x in primary_rays(cam, dtype=jnp.float64))
+    rays = jax.jit(lambda c: primary_rays(c, dtype=jnp.float64))
+    o, d = (np.asarray(x) for x in rays(cam))
     np.testing.assert_allclose(d, np.broadcast_to([0.0, 0.0, -1.0], d.shape), atol=0)
     x = (2 * (np.arange(W) + 0.5) / W - 1) * 1.5 * W / H
     y = (1 - 2 * (np.arange(H) + 0.5) / H) * 1.5
     want = np.stack(np.broadcast_arrays(pos[0] + x[None, :], pos[1] + y[:, None], pos[2] + 0 * x[None, :]), -1)
     np.testing.assert_allclose(o, want, rtol=0, atol=1e-12)
     jit = cam.replace(jitter=(0.25, -0.5))
-    oj, _ = primary_rays(jit, dtype=jnp.float64)
+    oj, _ = rays(jit)
     np.testing.assert_allclose(np.asarray(oj) - o, np.broadcast_to([0.25 * 3.0 / H, 0.5 * 3.0 / H, 0.0], o.shape), atol=1e-12)
-    ob, _ = primary_rays(cam, dtype=jnp.float64, offset=(0.5, 0.5, 3), rows=4)
+    ob, _ = jax.jit(lambda c: primary_rays(c, dtype=jnp.float64, offset=(0.5, 0.5, 3), rows=4))(cam)
     np.testing.assert_allclose(np.asarray(ob), o[3:7], atol=1e-12)
 
 

@@ -442,13 +442,16 @@ def test_orthographic_ray_differentials_give_the_texel_footprint_in_closed_form(
     arrays = concat_meshes([quad], jnp.float32)
     o_px, d_px = primary_rays(cam)
     prim = cast(arrays, o_px, d_px)
-    o, d = tuple(o_px[..., i] for i in range(3)), tuple(d_px[..., i] for i in range(3))
-    ddir, dorig = stages._ray_differentials(cam, d, jnp.float32)
-    ms = mesh_surface(arrays, prim, o, d, need_uv=True, ddir=ddir, dorig=dorig)
+    @jax.jit
+    def duv(o_px, d_px, prim):
+        o, d = tuple(o_px[..., i] for i in range(3)), tuple(d_px[..., i] for i in range(3))
+        ddir, dorig = stages._ray_differentials(cam, d, jnp.float32)
+        return mesh_surface(arrays, prim, o, d, need_uv=True, ddir=ddir, dorig=dorig)["duv"][0]
+
     hit = np.asarray(prim) >= 0
     assert hit.all()  # the 1.5 x 1.5 view lies inside the square
     step = 2 * ymag / n / 2  # world units per pixel, over the square's 2 units per uv unit
-    dx, dy = (np.asarray(a) for a in ms["duv"][0])
+    dx, dy = (np.asarray(a) for a in duv(o_px, d_px, prim))
     np.testing.assert_allclose(dx[hit], np.broadcast_to([step, 0.0], dx[hit].shape), atol=1e-6)
     np.testing.assert_allclose(dy[hit], np.broadcast_to([0.0, step], dy[hit].shape), atol=1e-6)
     # The same footprint everywhere: no perspective foreshortening.
