@@ -646,48 +646,41 @@ class _EmbreeBackend:
 
     def intersect(self, o64, d64, tnear, tfar, after, bary: bool = True):
         n = len(o64)
-        pool = self._pool_get()
-        if pool is None or n < 1 << 16 or getattr(self._local, "inside", False):
-            t, p = self.closest(o64, d64, tnear, tfar, after)
-            b1, b2 = self.barycentrics(o64, d64, p) if bary else (None, None)
-            miss = p == _NONE
-            return Hits(np.where(miss, np.inf, t).astype(F32), np.where(miss, -1, p).astype(np.int32), b1, b2)
-
-        # many rays: whole chunks (embree and the NumPy refinement, which releases the GIL in its
-        # array operations) run on the worker threads
-        def part(ab):
-            a, b = ab
-            self._local.inside = True
-            try:
-                return self.intersect(o64[a:b], d64[a:b], tnear[a:b], tfar[a:b], after[a:b], bary)
-            finally:
-                self._local.inside = False
-
-        cuts = np.linspace(0, n, 2 * self.threads + 1).astype(int)
-        parts = list(pool.map(part, itertools.pairwise(cuts)))
-        return Hits(*(None if x[0] is None else np.concatenate(x) for x in zip(*parts)))
+        chunked = self._on_workers(n, lambda a, b: self.intersect(o64[a:b], d64[a:b], tnear[a:b], tfar[a:b], after[a:b], bary))
+        if chunked is not None:
+            return chunked
+        t, p = self.closest(o64, d64, tnear, tfar, after)
+        b1, b2 = self.barycentrics(o64, d64, p) if bary else (None, None)
+        return _hits(t, p, b1, b2)
 
     def intersect_from_origin(self, o32, d32, bary: bool = True):
         """`intersect` of float32 rays from tnear = 0 with tfar = inf and no previous hit (the same
-        Hits): `closest_from_origin` on chunks of the rays on the worker threads."""
+        Hits), by `closest_from_origin`."""
         n = len(o32)
+        chunked = self._on_workers(n, lambda a, b: self.intersect_from_origin(o32[a:b], d32[a:b], bary))
+        if chunked is not None:
+            return chunked
+        t, p = self.closest_from_origin(o32, d32)
+        b1 = b2 = None
+        if bary:
+            hit = np.flatnonzero(p != _NONE)
+            b1, b2 = np.zeros(n), np.zeros(n)
+            if hit.size:
+                b1[hit], b2[hit] = self.barycentrics(o32[hit].astype(np.float64), d32[hit].astype(np.float64), p[hit])
+        return _hits(t, p, b1, b2)
+
+    def _on_workers(self, n: int, call):
+        """The Hits of `call(a, b)` over chunks [a, b) of the n rays, each chunk whole on a worker
+        thread (embree and the NumPy refinement, which releases the GIL in its array operations);
+        None where the rays are few, there is one thread, or this already is a worker thread."""
         pool = self._pool_get()
         if pool is None or n < 1 << 16 or getattr(self._local, "inside", False):
-            t, p = self.closest_from_origin(o32, d32)
-            hit = np.flatnonzero(p != _NONE)
-            b1 = b2 = None
-            if bary:
-                b1, b2 = np.zeros(n), np.zeros(n)
-                if hit.size:
-                    b1[hit], b2[hit] = self.barycentrics(o32[hit].astype(np.float64), d32[hit].astype(np.float64), p[hit])
-            miss = p == _NONE
-            return Hits(np.where(miss, np.inf, t).astype(F32), np.where(miss, -1, p).astype(np.int32), b1, b2)
+            return None
 
         def part(ab):
-            a, b = ab
             self._local.inside = True
             try:
-                return self.intersect_from_origin(o32[a:b], d32[a:b], bary)
+                return call(*ab)
             finally:
                 self._local.inside = False
 
@@ -730,6 +723,12 @@ def _float32_rays(origins, directions, tnear):
     o = np.ascontiguousarray(np.broadcast_to(origins, shape + (3,)).reshape(n, 3))
     d = np.ascontiguousarray(np.broadcast_to(directions, shape + (3,)).reshape(n, 3))
     return shape, o, d
+
+
+def _hits(t, p, b1, b2) -> Hits:
+    """Hits of `closest`'s (t, prim): t = inf and prim = -1 where nothing was hit."""
+    miss = p == _NONE
+    return Hits(np.where(miss, np.inf, t).astype(F32), np.where(miss, -1, p).astype(np.int32), b1, b2)
 
 
 def _is_scalar(x, value) -> bool:
