@@ -199,23 +199,19 @@ def scene_from_asset(
     if camera is None:
         cam = asset.cameras[0] if asset.cameras else None
         aspect = width / height
-        if cam is not None and cam.type == "orthographic":
-            # glTF's xmag and ymag are the view's half width and height; the image's aspect ratio
-            # sets the width (as for a perspective camera's aspectRatio).
-            camera = Camera(
-                position=tuple(cam.position), target=tuple(cam.position + cam.forward), up=tuple(cam.up),
-                projection="orthographic", ymag=abs(cam.ymag), width=width, height=height,
-            )
-            if abs(abs(cam.xmag) / abs(cam.ymag) - aspect) > 1e-3:
-                notes.add(f"the orthographic camera's xmag/ymag {abs(cam.xmag) / abs(cam.ymag):.4g} differs from the image's "
-                          f"aspect ratio {aspect:.4g}: ymag (the view's height) is kept")
-        elif cam is not None:
-            camera = Camera(
-                position=tuple(cam.position), target=tuple(cam.position + cam.forward), up=tuple(cam.up),
-                fov_y_deg=math.degrees(cam.yfov), width=width, height=height,
-            )
-            if cam.aspect_ratio is not None and abs(cam.aspect_ratio - aspect) > 1e-3:
-                notes.add(f"the camera's aspectRatio {cam.aspect_ratio:.4g} differs from the image's {aspect:.4g}: the vertical field of view is kept")
+        if cam is not None:
+            pose = dict(position=tuple(cam.position), target=tuple(cam.position + cam.forward), up=tuple(cam.up), width=width, height=height)
+            if cam.type == "orthographic":
+                # glTF's xmag and ymag are the view's half width and height; the image's aspect
+                # ratio sets the width (as for a perspective camera's aspectRatio).
+                camera = Camera(projection="orthographic", ymag=abs(cam.ymag), **pose)
+                if abs(abs(cam.xmag) / abs(cam.ymag) - aspect) > 1e-3:
+                    notes.add(f"the orthographic camera's xmag/ymag {abs(cam.xmag) / abs(cam.ymag):.4g} differs from the image's "
+                              f"aspect ratio {aspect:.4g}: ymag (the view's height) is kept")
+            else:
+                camera = Camera(fov_y_deg=math.degrees(cam.yfov), **pose)
+                if cam.aspect_ratio is not None and abs(cam.aspect_ratio - aspect) > 1e-3:
+                    notes.add(f"the camera's aspectRatio {cam.aspect_ratio:.4g} differs from the image's {aspect:.4g}: the vertical field of view is kept")
         else:
             pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], aspect=width / height)
             camera = Camera(position=tuple(pos), target=tuple(tgt), fov_y_deg=45.0, width=width, height=height)
