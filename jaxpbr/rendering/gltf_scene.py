@@ -200,7 +200,8 @@ def scene_from_asset(
         cam = asset.cameras[0] if asset.cameras else None
         aspect = width / height
         if cam is not None:
-            pose = dict(position=tuple(cam.position), target=tuple(cam.position + cam.forward), up=tuple(cam.up), width=width, height=height)
+            pose = {"position": tuple(cam.position), "target": tuple(cam.position + cam.forward), "up": tuple(cam.up),
+                    "width": width, "height": height}
             if cam.type == "orthographic":
                 # glTF's xmag and ymag are the view's half width and height; the image's aspect
                 # ratio sets the width (as for a perspective camera's aspectRatio).
