@@ -21,6 +21,8 @@ class _Colour:
     worker would pay while collecting)."""
 
     def __getattr__(self, name):
+        if name.startswith("__"):  # pytest's collection probes attributes such as __test__
+            raise AttributeError(name)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # colour-science warns that optional matplotlib is missing
             import colour as module

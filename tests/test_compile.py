@@ -191,6 +191,29 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
     assert CubeInfo((("lod_blend", "roughness"), ("environment", "x"))) == CubeInfo((("lod_blend", "roughness"),))
 
 
+def test_environments_of_other_sizes_or_kinds_share_the_stages_that_do_not_sample_them():
+    """Only the IBL stage samples the environment's maps: a scene rendered under a baked 16^2
+    environment and then under an 8^2 radiance whose maps the render computes (another tree: no
+    LUT given, other shapes and levels) compiles the geometry, direct-lighting and sun stages
+    once (the suns' stage reads the LUT and the suns, of the same shapes) and the IBL stage
+    again, for the new maps."""
+    cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), width=10, height=10, fov_y_deg=40.0)
+
+    def scene(env):
+        return jp.Scene(camera=cam, objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0,
+                        material=jp.Material(base_color=(0.3, 0.5, 0.8), metallic=1.0, roughness=0.4))],
+                        lights=[jp.PointLight(position=(-2.0, 2.0, 3.0), intensity=10.0)], environment=env)
+
+    baked = jp.bake(jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16)))
+    other = jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(8), rotation=0.3)
+    stages = (renderer._geometry_jit, renderer._shade_direct_jit, renderer._shade_suns_jit, renderer._shade_rest_jit)
+    jp.render(scene(baked))
+    before = [f._cache_size() for f in stages]
+    img = np.asarray(jp.render(scene(other)))
+    assert [f._cache_size() for f in stages] == [*before[:3], before[3] + 1]
+    assert np.isfinite(img).all() and img.max() > 0
+
+
 def test_extraction_round_trips_through_the_disk_cache(tmp_path):
     """Kind "extract" (the suns split out of an environment and the residual map) is read back from
     disk equal to what was computed, also when no sun was found (the caller keeps its own map)."""

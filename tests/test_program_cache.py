@@ -83,6 +83,27 @@ def test_the_key_follows_statics_shapes_dtypes_and_settings(cache_dir):
         np.testing.assert_array_equal(f(xs, o, flip=flip)["y"], h(xs, o, flip=flip)["y"])
 
 
+@stored_on_this_backend
+def test_scenes_differing_only_in_roughness_load_the_same_stored_programs(cache_dir, monkeypatch):
+    """The plan's largest roughness is reported, not traced: a scene whose material is rougher
+    loads the stored stage programs of the first instead of tracing and storing its own."""
+    import jaxpbr as jp
+
+    def scene(r):
+        return jp.Scene(camera=jp.Camera(position=(0.0, 0.0, 4.0), width=12, height=10),
+                        objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=r))],
+                        lights=[jp.PointLight(position=(2.0, 3.0, 3.0), intensity=20.0)])
+
+    first = np.asarray(jp.render(scene(0.3)))
+    stored = _files(cache_dir)
+    assert stored
+    jp.clear_caches()  # as a new process
+    monkeypatch.setattr(pc.cached_jit, "_trace", lambda *a, **k: pytest.fail("traced instead of loaded"))
+    second = np.asarray(jp.render(scene(0.7)))
+    assert _files(cache_dir) == stored
+    assert np.isfinite(second).all() and not np.array_equal(first, second)
+
+
 def test_what_cannot_be_named_exactly_or_stored_runs_through_jit(cache_dir):
     f = pc.cached_jit(_f, static_argnums=(1,))
     x = np.ones(4, np.float32)

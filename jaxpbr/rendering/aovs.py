@@ -15,7 +15,7 @@ from .._numerics import vdot
 from .options import RenderOptions, _options
 from .plan import plan
 from .scene import Scene, camera_basis
-from .stages import GEOMETRY_SINK, _lean, _texture_jit, staged_geometry
+from .stages import GEOMETRY_SINK, _lean, _stage_view, _texture_jit, staged_geometry
 
 __all__ = ["AOVS", "aovs", "exr_layers", "render_with_aovs"]
 
@@ -41,7 +41,7 @@ def aovs(scene: Scene, names=tuple(AOVS), *, options: RenderOptions | None = Non
     dtype = jnp.dtype(opts.dtype)
     g = staged_geometry(scene, p, opts, jnp.asarray((0.5, 0.5), dtype), light_shadows=False)
     if "base_color" in names or "normal" in names:
-        lean = _lean(scene)
+        lean = _stage_view(_lean(scene))  # (the render's texture programs)
         for k in p.textured:
             g = _texture_jit(lean, k, opts, g)
     return _values(scene, names, g, dtype)

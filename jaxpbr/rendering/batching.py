@@ -268,7 +268,7 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
     separate programs, each vmapped over the chunk (one program over the whole chunk fuses and
     recomputes producers on XLA:CPU, measured 3x slower than a Python loop of `render`; see
     `_render_pass`). Host loop over the chunks."""
-    kw = {"p_plan": p_plan, "opts": opts, "objects_idx": objects_idx}
+    kw = {"p_plan": p_plan.for_stages(), "opts": opts, "objects_idx": objects_idx}
     b = jax.device_put(b)  # once (set up on the host): each chunk is then cut on the device
     total = jax.tree_util.tree_leaves(b)[0].shape[0]
 

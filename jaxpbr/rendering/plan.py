@@ -61,6 +61,14 @@ class RenderPlan:
     shadows: bool = False  # shadow rays towards the lights and the extracted suns
     blend_layers: int = 1  # surfaces composited per pixel (> 1 with BLEND meshes)
 
+    def for_stages(self) -> RenderPlan:
+        """The plan the staged programs are keyed by: the fields that only the precompute reads
+        (the maps' sizes and levels, which reach the stages as the maps' own shapes, and the
+        reported roughness) at one value, so that scenes under environments of other sizes share
+        the programs that do not sample the maps, and the stored programs' keys (which name every
+        field) do not follow the materials' roughness."""
+        return dataclasses.replace(self, max_roughness=1.0, prefilter_size=0, prefilter_levels=0, mapping_levels=0, charlie_size=0)
+
     def describe(self) -> str:
         parts = [
             "direct lighting" if self.direct else "no direct lighting",

@@ -32,6 +32,7 @@ from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface, transmits
 from .options import RenderOptions, _options
 from .plan import RenderPlan, plan
 from .scene import (
+    Environment,
     Plane,
     Scene,
     Sphere,
@@ -547,6 +548,8 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     slower with two normal-mapped objects; `lax.optimization_barrier` does not prevent it (it is
     expanded away before fusion). Under an outer jit/vmap the stages inline into one program.
     """
+    if staged:
+        p_plan = p_plan.for_stages()
     if p_plan.blend_layers > 1:
         return _blended_pass(scene, assets, p_plan, opts, offset, staged)
     g = staged_geometry(scene, p_plan, opts, offset) if staged else _geometry(scene, p_plan, opts, offset)
@@ -557,10 +560,11 @@ def staged_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offse
     """The geometry stage as compiled programs (outside transformations): with meshes, their
     primary rays cast by the host ray engine first (`_host_prims`, `_mesh_geometry`).
     light_shadows=False leaves the lights' shadow rays out (the G-buffer and AOVs do not need them)."""
+    p_plan = p_plan.for_stages()
     if scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects):
         prim = _host_prims(scene, p_plan, opts, offset, 1)
         return _mesh_geometry(scene, p_plan, opts, offset, prim, light_shadows=light_shadows)
-    return _geometry_jit(scene, p_plan, opts, offset, light_shadows=light_shadows)
+    return _geometry_jit(_stage_view(scene), p_plan, opts, offset, light_shadows=light_shadows)
 
 
 def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, prim, *, light_shadows: bool = True):
@@ -569,6 +573,7 @@ def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset
     kept on disk, and the lights' shadow rays go to the host ray engine between stored programs
     (`_staged_shadows`): a program holding a callback would be compiled again in every process (its
     cache key names the callback)."""
+    scene = _stage_view(scene)
     g = _geometry_jit(scene, p_plan, opts, offset, prim, light_shadows=False)
     if light_shadows and p_plan.shadows and p_plan.direct:
         g = {**g, "vis": _staged_shadows(_light_segments_jit, scene, opts, g["pos"], g["ng"], hit=g["hit"])}
@@ -743,7 +748,7 @@ def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, l
     rather than through a callback, so no program holding a callback is compiled in every process
     (it cannot be kept: its cache key names a Python object of its process)."""
     layers = p_plan.blend_layers if layers is None else layers
-    x = _cast_inputs_jit(scene, p_plan, opts, offset)
+    x = _cast_inputs_jit(_stage_view(scene), p_plan, opts, offset)
     if is_ahead():  # (the primitives' shape, no ray cast: `_program_cache.ahead`)
         return jax.ShapeDtypeStruct(tuple(x["o"].shape[:-1]) + ((layers,) if layers > 1 else ()), jnp.int32)
     arrays = None if _traced(x) else scene_host_arrays(scene, opts.dtype)
@@ -758,6 +763,8 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     """Textures, direct lighting, the environment's suns and IBL + background of the G-buffer `g`."""
     # The later stages see the pixels, not the meshes' arrays: meshes of other sizes reuse them.
     lean = _lean(scene)
+    if staged:
+        full, lean = lean, _stage_view(lean)
     for k in p_plan.textured:
         g = (_texture_jit if staged else _texture)(lean, k, opts, g)
     sink = GEOMETRY_SINK.get()
@@ -768,7 +775,7 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         # The suns are known before the maps: their shadow rays run while the maps are still being
         # computed on the worker threads (staged: `PendingAssets`).
         env_lights = assets.env_lights if isinstance(assets, PendingAssets) else assets[3]
-        vis_env = (_staged_shadows(_sun_segments_jit, scene, opts, g["pos"], g["ng"], env_lights, hit=g["hit"]) if staged
+        vis_env = (_staged_shadows(_sun_segments_jit, _stage_view(scene), opts, g["pos"], g["ng"], env_lights, hit=g["hit"]) if staged
                    else _sun_shadows(scene, opts, g, env_lights))
         g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
@@ -778,7 +785,7 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     suns = None
     if p_plan.ibl and p_plan.env_lights:
         suns = _shade_suns_jit(lean, _suns_inputs(assets), p_plan, opts, g)
-    assets, lean = _padded_cubes(assets, lean, p_plan)
+    assets, lean = _padded_cubes(assets, _stage_view(full, radiance=p_plan.env_background), p_plan)
     return _shade_rest_jit(lean, assets, p_plan, opts, g, direct, suns)
 
 
@@ -818,6 +825,21 @@ class PendingAssets:
 
             raise NotAhead("the maps' shapes are not known")
         return self._shapes()
+
+
+def _stage_view(scene: Scene, *, radiance: bool = False) -> Scene:
+    """The scene as a staged program reads it: of its environment only the rotation and the
+    intensity (and its radiance with radiance=True, for the background); the maps, LUT and suns
+    reach the stages that read them as arguments of their own (`assets`). So scenes under
+    environments of other sizes, contents' provenance or lookup metadata share the geometry,
+    texture, direct-lighting and shadow programs (their keys hold the scene's tree and shapes)."""
+    env = scene.environment
+    if env is None:
+        return scene
+    stub = unchecked(Environment, radiance=env.radiance if radiance else None, intensity=env.intensity,
+                     rotation=env.rotation, show_background=env.show_background, irradiance=None,
+                     prefiltered=None, lut=None, lut_smith=None, lights=None, charlie=None, sheen_lut=None)
+    return evolve(scene, environment=stub)
 
 
 def _lean(scene: Scene) -> Scene:
