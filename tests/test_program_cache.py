@@ -83,27 +83,6 @@ def test_the_key_follows_statics_shapes_dtypes_and_settings(cache_dir):
         np.testing.assert_array_equal(f(xs, o, flip=flip)["y"], h(xs, o, flip=flip)["y"])
 
 
-@stored_on_this_backend
-def test_scenes_differing_only_in_roughness_load_the_same_stored_programs(cache_dir, monkeypatch):
-    """The plan's largest roughness is reported, not traced: a scene whose material is rougher
-    loads the stored stage programs of the first instead of tracing and storing its own."""
-    import jaxpbr as jp
-
-    def scene(r):
-        return jp.Scene(camera=jp.Camera(position=(0.0, 0.0, 4.0), width=12, height=10),
-                        objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=r))],
-                        lights=[jp.PointLight(position=(2.0, 3.0, 3.0), intensity=20.0)])
-
-    first = np.asarray(jp.render(scene(0.3)))
-    stored = _files(cache_dir)
-    assert stored
-    jp.clear_caches()  # as a new process
-    monkeypatch.setattr(pc.cached_jit, "_trace", lambda *a, **k: pytest.fail("traced instead of loaded"))
-    second = np.asarray(jp.render(scene(0.7)))
-    assert _files(cache_dir) == stored
-    assert np.isfinite(second).all() and not np.array_equal(first, second)
-
-
 def test_what_cannot_be_named_exactly_or_stored_runs_through_jit(cache_dir):
     f = pc.cached_jit(_f, static_argnums=(1,))
     x = np.ones(4, np.float32)
@@ -385,7 +364,9 @@ def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():
 @stored_on_this_backend
 def test_a_cold_render_with_nothing_beside_it_compiles_on_two_threads(cache_dir, monkeypatch):
     """Analytic objects under a baked environment (the demo's case): nothing is computed beside the
-    compilations, so two compiler threads compile the stages; each stage is still compiled once."""
+    compilations, so two compiler threads compile the stages; each stage is still compiled once.
+    The plan's largest roughness is reported, not traced: the scene with a rougher material (as in
+    a new process) loads the stored programs instead of tracing and storing its own."""
     import threading
 
     import jaxpbr as jp
@@ -394,6 +375,7 @@ def test_a_cold_render_with_nothing_beside_it_compiles_on_two_threads(cache_dir,
     scene = jp.Scene(camera=jp.Camera(position=(0.0, 0.0, 4.0), width=32, height=20),
                      objects=[jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=0.4))],
                      lights=[jp.PointLight(position=(2.0, 3.0, 3.0), intensity=20.0)], environment=env)
+    rougher = scene.replace(objects=[scene.objects[0].replace(material=jp.Material(roughness=0.8))])
     jp.clear_caches()
     threads, orig_compiler = [], pc._compiler
     monkeypatch.setattr(pc, "_compiler", lambda n=1: threads.append(n) or orig_compiler(n))
@@ -406,6 +388,11 @@ def test_a_cold_render_with_nothing_beside_it_compiles_on_two_threads(cache_dir,
     for stage in ("_geometry", "_shade_direct", "_shade_suns", "_shade_rest"):
         assert names.count(stage) == 1 and dict(finished)[stage].startswith("jaxpbr-compile"), finished
     assert np.isfinite(out).all() and out.max() > 0
+    stored = _files(cache_dir)
+    jp.clear_caches()
+    monkeypatch.setattr(pc.cached_jit, "_trace", lambda *a, **k: pytest.fail("traced instead of loaded"))
+    again = np.asarray(jp.render(rougher))
+    assert _files(cache_dir) == stored and np.isfinite(again).all() and not np.array_equal(again, out)
 
 
 @stored_on_this_backend
