@@ -190,10 +190,13 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
 
     assert CubeInfo((("lod_blend", "roughness"),)) != CubeInfo((("lod_blend", "mean_cosine"),))
     assert CubeInfo((("lod_blend", "roughness"), ("environment", "x"))) == CubeInfo((("lod_blend", "roughness"),))
-    # Only the IBL stage samples the maps: under an 8^2 radiance whose maps the render computes
-    # (another tree: no LUT given, other shapes and levels) the geometry and direct-lighting stages
-    # are reused and the IBL stage is compiled for the new maps (no sun here: no sun stage).
-    img = jp.render(scene(jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(8, sun_radiance=0.0), rotation=0.3)))
+    # Only the IBL stage samples the maps: under maps of other sizes (the baked set's level 1 and
+    # below, another lookup metadata, no LUT) the geometry and direct-lighting stages are reused and
+    # the IBL stage is compiled for the new maps (no sun here: no sun stage).
+    smaller = jp.Environment(radiance=jp.Cubemap(ea.radiance.levels[0][:, ::2, ::2]), rotation=0.3,
+                             irradiance=jp.Cubemap(ea.irradiance.levels[0][:, ::2, ::2]),
+                             prefiltered=jp.Cubemap(ea.prefiltered.levels[1:], {"lod_blend": "roughness"}))
+    img = jp.render(scene(smaller))
     assert [f._cache_size() for f in stages] == [sizes[0], sizes[1], 0, sizes[3] + 1] and sizes[2] == 0
     assert np.isfinite(np.asarray(img)).all()
 
