@@ -26,6 +26,7 @@ Below the floor the value is that of r = min_roughness and d f/d r = 0.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from types import MappingProxyType
@@ -519,6 +520,15 @@ def brdf(
             f"brdf_terms.brdf shades the core model; this material has the glTF extensions {m.extensions}: "
             "call jaxpbr.brdf (jaxpbr.shading.layered.brdf), which shades both."
         )
+    return _brdf_program(n, v, l, m, model=model, min_roughness=min_roughness, smith=smith, diffuse=diffuse,
+                         shader_epsilon=shader_epsilon)
+
+
+@functools.partial(jax.jit, static_argnames=("model", "min_roughness", "smith", "diffuse", "shader_epsilon"))
+def _brdf_program(n, v, l, m: Material, *, model, min_roughness, smith, diffuse, shader_epsilon) -> jax.Array:
+    """`brdf` after its checks, as one compiled program: called outside a trace it is one dispatch
+    (the operations one by one were each a program of their own, compiled at a first call); inside
+    one it is inlined."""
     g = geometry(n, v, l)
     f = brdf_soa(
         g,

@@ -49,6 +49,7 @@ Material without extensions never reaches this module (`brdf_terms.brdf_soa`).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -367,16 +368,20 @@ def layered_soa(
     return tuple(fcos)
 
 
-def layer_setup(m, model, tangent, coat_normal, volume_distance, sheen_lut):
-    """None for a Material without extensions (the core path, unchanged); else the layered
-    inputs (LayerInputs, sheen table) after checking the model and the needed arguments."""
-    if not m.layered:
-        return None
+def _check_layered_model(m, model) -> None:
     if model != "gltf":
         raise ValueError(
             f"the glTF material extensions {m.extensions} are defined on the glTF model only, not "
             f"model={model!r}; use model='gltf' or a Material without extension fields."
         )
+
+
+def layer_setup(m, model, tangent, coat_normal, volume_distance, sheen_lut):
+    """None for a Material without extensions (the core path, unchanged); else the layered
+    inputs (LayerInputs, sheen table) after checking the model and the needed arguments."""
+    if not m.layered:
+        return None
+    _check_layered_model(m, model)
     t3 = None if tangent is None else unpack3(as_float(tangent))
     nc3 = None if coat_normal is None else unpack3(as_float(coat_normal))
     dist = None if volume_distance is None else as_float(volume_distance)
@@ -419,8 +424,21 @@ def brdf(
     brdf_terms.check_options(model, min_roughness=min_roughness, smith=smith, diffuse=diffuse, shader_epsilon=shader_epsilon)
     n, v, l = (check_values(name, vector(name, x)) for name, x in (("n", n), ("v", v), ("l", l)))
     batch_shape("brdf", ("n", n, 1), ("v", v, 1), ("l", l, 1), material=m)
+    _check_layered_model(m, model)
+    if needs_sheen_lut(m) and sheen_lut is None:
+        from .shipped_luts import sheen_lut as _sheen_lut
+
+        sheen_lut = _sheen_lut()  # (an argument of the program, not a constant folded into it)
+    return _layered_brdf_program(n, v, l, m, tangent, coat_normal, volume_distance, sheen_lut,
+                                 min_roughness=min_roughness, smith=smith, diffuse=diffuse)
+
+
+@functools.partial(jax.jit, static_argnames=("min_roughness", "smith", "diffuse"))
+def _layered_brdf_program(n, v, l, m, tangent, coat_normal, volume_distance, sheen_lut, *, min_roughness, smith, diffuse):
+    """`brdf` of a material with extensions after its checks, as one compiled program (see
+    `brdf_terms._brdf_program`)."""
     n3, v3, l3 = (vnormalize(unpack3(x)) for x in (n, v, l))
-    extra, table = layer_setup(m, model, tangent, coat_normal, volume_distance, sheen_lut)
+    extra, table = layer_setup(m, "gltf", tangent, coat_normal, volume_distance, sheen_lut)
     fc = layered_soa(n3, v3, l3, m, min_roughness=min_roughness, smith=smith, diffuse=diffuse, sheen_lut=table, extra=extra)
     c = jnp.abs(vdot(n3, l3))
     return pack3(tuple(jnp.where(c > 0, x / jnp.where(c > 0, c, 1.0), 0.0) for x in fc))
