@@ -1016,3 +1016,42 @@ def test_host_shadow_hits_trace_only_the_masked_points():
         (masked,) = host_mesh_hits(quad, part, mask)
         assert full.tolist() == [[True, True], [False, True]]
         np.testing.assert_array_equal(masked, np.where(mask, full, False))
+
+
+def test_shadow_rays_of_points_facing_away_from_a_light_are_not_traced(monkeypatch):
+    """Where the shading normal faces away from a light (beyond a disc's radius) a material without
+    transmission or clear coat gets exactly 0 from it, so the meshes' shadow rays from there are
+    left out: fewer rays go to the ray engine, for the point light and the sun split out of the sky,
+    and the image is equal bit for bit to the one with every ray traced. With a transmissive
+    material in the scene every ray is traced."""
+    from jaxpbr.rendering import shadows
+
+    P, N, _, T = uv_sphere(12, 24, radius=0.6)
+    ball = Mesh(positions=P + np.float32([0.0, 0.6, 0.0]), normals=N, triangles=T,
+                material=jp.Material(base_color=(0.8, 0.3, 0.3), roughness=0.5))
+    floor = Mesh(positions=np.array([[-3, 0, 3], [3, 0, 3], [3, 0, -3], [-3, 0, -3]], np.float32),
+                 triangles=np.array([[0, 1, 2], [0, 2, 3]], np.int32), material=_FLOOR_MAT)
+    scene = jp.Scene(camera=jp.Camera(position=(0.0, 1.5, 3.0), target=(0.0, 0.4, 0.0), fov_y_deg=45.0, width=32, height=24),
+                     objects=[floor, ball], lights=[jp.PointLight((2.5, 1.0, 0.5), intensity=30.0)],
+                     environment=jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(16)))
+    assert R.plan(scene).shadows and R.plan(scene).env_lights == 1 and R.plan(scene).extensions == ("specular",)
+    traced = []
+    real_occluded = shadows._host_occluded
+    monkeypatch.setattr(shadows, "_host_occluded", lambda v, t, o, *a: traced.append(len(o)) or real_occluded(v, t, o, *a))
+    culled = np.asarray(jp.render(scene))
+    few = traced[:]
+    real_hits = stages.host_mesh_hits
+    monkeypatch.setattr(stages, "host_mesh_hits", lambda arrays, parts, mask=None: real_hits(
+        arrays, [{k: x for k, x in p.items() if k != "trace"} for p in parts], mask))
+    traced.clear()
+    every = np.asarray(jp.render(scene))
+    every_count = traced[:]
+    assert len(few) == len(traced) == 2  # the point light's rays, then the sun's
+    assert all(a < 0.9 * b for a, b in zip(few, traced, strict=True)), (few, traced)
+    assert np.isfinite(culled).all() and culled.max() > 0
+    np.testing.assert_array_equal(culled, every)
+    monkeypatch.setattr(stages, "host_mesh_hits", real_hits)
+    glass = scene.replace(objects=[floor, ball.replace(material=jp.Material(base_color=(0.8, 0.3, 0.3), roughness=0.5, transmission=0.5))])
+    traced.clear()
+    jp.render(glass)
+    assert traced[:2] == every_count, (traced, every_count)

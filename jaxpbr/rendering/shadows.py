@@ -191,17 +191,31 @@ def colored_shadows(objects) -> bool:
     return any(transmits(ob.material) for ob in objects if isinstance(ob, (Mesh, Sphere, Plane)))
 
 
-def shadow_segments(objects, pos, ng, lights, dtype, *, directions_only: bool = False) -> list[dict]:
+#: How far below its horizon (in n.l, beyond a disc's sin radius) the light must be for a point's
+#: shadow ray to be left out (`shadow_segments(normal=)`): a margin over the rounding by which the
+#: shading's n.l can differ from the segment's.
+FACING_MARGIN = 1e-3
+
+
+def shadow_segments(objects, pos, ng, lights, dtype, *, directions_only: bool = False, normal=None,
+                    sin_radii=None) -> list[dict]:
     """Per light (their packed order), the shadow segment from each surface point and what the
     analytic objects do to it: {"o32": (..., 3) float32 origins, "l": (..., 3) float32 directions,
     "tfar": (...) float32 lengths, "blocked": (...) bool, "left": (..., 3) light left or None}. The
     meshes' part (`_mesh_occluded`, or `host_mesh_hits` outside a trace) and `shadow_combine` make
-    the visibility."""
+    the visibility.
+
+    normal: the shading normal, given where a light adds exactly 0 at a point whose normal faces
+    away from it (materials without extensions: the BRDF is 0 below the horizon, and a disc light's
+    cap factor is 0 once the whole disc is below it), adds "trace": (...) bool, False where n.l <
+    -(sin radius) - FACING_MARGIN; `host_mesh_hits` traces no ray there (the visibility it reports,
+    "not blocked", multiplies 0). sin_radii: the discs' sin radii with directions_only (default 0)."""
     if directions_only:
         dirs = [(vnormalize(lt), None) for lt in lights]
+        radii = list(sin_radii) if sin_radii is not None else [0.0] * len(dirs)
     else:
         ls = pack_lights(list(lights) if isinstance(lights, (list, tuple)) else lights)
-        dirs = []
+        dirs, radii = [], []
         for i in range(ls.num_lights):
             light = jax.tree_util.tree_map(lambda x, i=i: x[i], ls)
             to = tuple(jnp.asarray(light.position[j], dtype) - pos[j] for j in range(3))
@@ -210,9 +224,11 @@ def shadow_segments(objects, pos, ng, lights, dtype, *, directions_only: bool = 
             directional = light.directional
             l = tuple(jnp.where(directional, -axis[j], to[j] / jnp.maximum(dist, 1e-30)) for j in range(3))
             dirs.append((l, jnp.where(directional, jnp.inf, dist)))
+            radii.append(light.sin_radius)
     analytic = [ob for ob in objects if not isinstance(ob, Mesh)]
+    n_unit = None if normal is None else vnormalize(tuple(jax.lax.stop_gradient(c) for c in normal))
     parts = []
-    for l, dist in dirs:
+    for (l, dist), sin_radius in zip(dirs, radii, strict=True):
         side = jnp.where(vdot(ng, l) < 0, -1.0, 1.0)
         # Rays are traced in float32 (the ray engine's precision): the offset is float32's.
         o32 = offset_ray_origin(jax.lax.stop_gradient(jnp.stack(pos, -1)), jax.lax.stop_gradient(jnp.stack(tuple(side * c for c in ng), -1)))
@@ -223,8 +239,11 @@ def shadow_segments(objects, pos, ng, lights, dtype, *, directions_only: bool = 
         # A point light's own position is not an occluder: stop a hair short of it.
         tfar = tfar * (1 - 8 * jnp.finfo(dtype).eps)
         blocked, left = _analytic_occluded(analytic, o, l, tfar, dtype) if analytic else (jnp.zeros(pos[0].shape, bool), None)
-        parts.append({"o32": o32.astype(jnp.float32), "l": jnp.stack(l, -1).astype(jnp.float32), "tfar": tfar.astype(jnp.float32),
-                      "blocked": blocked, "left": left})
+        part = {"o32": o32.astype(jnp.float32), "l": jnp.stack(l, -1).astype(jnp.float32), "tfar": tfar.astype(jnp.float32),
+                "blocked": blocked, "left": left}
+        if n_unit is not None:
+            part["trace"] = vdot(n_unit, l) >= -(jnp.asarray(sin_radius, dtype) + FACING_MARGIN)
+        parts.append(part)
     return parts
 
 
@@ -232,19 +251,23 @@ def host_mesh_hits(arrays, parts, mask=None) -> list:
     """`_mesh_occluded` of each segment of `parts` on the host, outside any trace (NumPy in, NumPy
     out): the staged render calls the ray engine directly instead of compiling a program that
     calls back to it. arrays: the meshes' concatenated arrays (NumPy or concrete). mask: optional
-    (...) bool, the points to trace (the pixels that hit a surface); the others are given "not
-    blocked" (their visibility is not used)."""
+    (...) bool, the points to trace (the pixels that hit a surface); the others, and those a part's
+    "trace" leaves out (`shadow_segments(normal=)`), are given "not blocked" (their visibility
+    multiplies nothing or 0)."""
     tree = lambda x: None if x is None else jax.tree_util.tree_map(np.asarray, x)  # noqa: E731
     verts, tris = np.asarray(arrays["positions"], np.float32), np.asarray(arrays["triangles"])
     alpha, transmit = tree(arrays["alpha"]), tree(arrays.get("transmit"))
     out = []
     for p in parts:
         o, d, tfar = np.asarray(p["o32"]), np.asarray(p["l"]), np.asarray(p["tfar"])
-        if mask is None:
+        sel = mask
+        if p.get("trace") is not None:
+            sel = np.asarray(p["trace"], bool) if mask is None else np.asarray(mask, bool) & np.asarray(p["trace"], bool)
+        if sel is None:
             out.append(_host_occluded(verts, tris, o, d, tfar, alpha, transmit))
             continue
         shape = tfar.shape
-        rows = np.flatnonzero(np.broadcast_to(np.asarray(mask, bool), shape).reshape(-1))
+        rows = np.flatnonzero(np.broadcast_to(np.asarray(sel, bool), shape).reshape(-1))
         d_rows = d if d.ndim == 1 else d.reshape(-1, 3)[rows]
         hit = _host_occluded(verts, tris, o.reshape(-1, 3)[rows], d_rows, tfar.reshape(-1)[rows], alpha, transmit)
         full = np.zeros(shape, bool) if transmit is None else np.ones(shape + (3,), np.float32)

@@ -576,21 +576,39 @@ def _mesh_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset
     scene = _stage_view(scene)
     g = _geometry_jit(scene, p_plan, opts, offset, prim, light_shadows=False)
     if light_shadows and p_plan.shadows and p_plan.direct:
-        g = {**g, "vis": _staged_shadows(_light_segments_jit, scene, opts, g["pos"], g["ng"], hit=g["hit"])}
+        # (the shading normal is final here without normal maps)
+        facing = g["n"] if _culls_facing(p_plan) and not p_plan.normal_maps else None
+        g = {**g, "vis": _staged_shadows(_light_segments_jit, scene, opts, g["pos"], g["ng"], facing, hit=g["hit"])}
     return g
 
 
-def _light_segments(scene: Scene, opts: RenderOptions, pos, ng):
-    """The lights' shadow segments from the surface points (`shadows.shadow_segments`)."""
+#: Material extensions under which a light can add something where the shading normal faces away
+#: from it: transmission (and its volume), and a clear coat (whose normal can be a texture of its own).
+_LIT_FROM_BELOW = frozenset({"transmission", "volume", "clearcoat"})
+
+
+def _culls_facing(p_plan: RenderPlan) -> bool:
+    """Whether a light adds exactly 0 wherever the shading normal faces away from it (the core BRDF
+    and the other extensions are 0 below the horizon; a disc's cap factor once the whole disc is
+    below it), so that the meshes' shadow rays from there are left out
+    (`shadows.shadow_segments(normal=)`)."""
+    return not (_LIT_FROM_BELOW & set(p_plan.extensions))
+
+
+def _light_segments(scene: Scene, opts: RenderOptions, pos, ng, facing=None):
+    """The lights' shadow segments from the surface points (`shadows.shadow_segments`); facing:
+    the shading normal, where the rays of points facing away from a light may be left out."""
     dtype = jnp.dtype(opts.dtype)
     lights = _cast_floats(list(scene.lights), dtype)
-    return shadow_segments(scene.objects, pos, ng, lights, dtype)
+    return shadow_segments(scene.objects, pos, ng, lights, dtype, normal=facing)
 
 
-def _sun_segments(scene: Scene, opts: RenderOptions, pos, ng, env_lights):
+def _sun_segments(scene: Scene, opts: RenderOptions, pos, ng, env_lights, facing=None):
     """`_light_segments` of the suns split out of the environment (`_sun_shadows`)."""
     dtype = jnp.dtype(opts.dtype)
-    return shadow_segments(scene.objects, pos, ng, _sun_directions(scene, env_lights, dtype), dtype, directions_only=True)
+    radii = [jnp.sin(jnp.asarray(s.angular_radius, dtype)) for s in _cast_floats(list(env_lights), dtype)]
+    return shadow_segments(scene.objects, pos, ng, _sun_directions(scene, env_lights, dtype), dtype, directions_only=True,
+                           normal=facing, sin_radii=radii)
 
 
 def _host_arrays(meshes: tuple, dtype_name: str):
@@ -775,8 +793,9 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         # The suns are known before the maps: their shadow rays run while the maps are still being
         # computed on the worker threads (staged: `PendingAssets`).
         env_lights = assets.env_lights if isinstance(assets, PendingAssets) else assets[3]
-        vis_env = (_staged_shadows(_sun_segments_jit, _stage_view(scene), opts, g["pos"], g["ng"], env_lights, hit=g["hit"]) if staged
-                   else _sun_shadows(scene, opts, g, env_lights))
+        facing = g["n"] if _culls_facing(p_plan) else None  # (after the normal maps)
+        vis_env = (_staged_shadows(_sun_segments_jit, _stage_view(scene), opts, g["pos"], g["ng"], env_lights, facing, hit=g["hit"])
+                   if staged else _sun_shadows(scene, opts, g, env_lights))
         g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
         assets = assets.shapes() if is_ahead() else assets()
