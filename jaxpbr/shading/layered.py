@@ -385,11 +385,17 @@ def layer_setup(m, model, tangent, coat_normal, volume_distance, sheen_lut):
     t3 = None if tangent is None else unpack3(as_float(tangent))
     nc3 = None if coat_normal is None else unpack3(as_float(coat_normal))
     dist = None if volume_distance is None else as_float(volume_distance)
+    return LayerInputs(tangent=t3, coat_normal=nc3, volume_distance=dist), _sheen_table(m, sheen_lut)
+
+
+def _sheen_table(m, sheen_lut):
+    """The sheen albedo table `m` is shaded with: `sheen_lut`, else the shipped 128^2 one where `m`
+    has sheen (None where it has none)."""
     if needs_sheen_lut(m) and sheen_lut is None:
         from .shipped_luts import sheen_lut as _sheen_lut
 
-        sheen_lut = _sheen_lut()
-    return LayerInputs(tangent=t3, coat_normal=nc3, volume_distance=dist), sheen_lut
+        return _sheen_lut()
+    return sheen_lut
 
 
 def brdf(
@@ -425,11 +431,8 @@ def brdf(
     n, v, l = (check_values(name, vector(name, x)) for name, x in (("n", n), ("v", v), ("l", l)))
     batch_shape("brdf", ("n", n, 1), ("v", v, 1), ("l", l, 1), material=m)
     _check_layered_model(m, model)
-    if needs_sheen_lut(m) and sheen_lut is None:
-        from .shipped_luts import sheen_lut as _sheen_lut
-
-        sheen_lut = _sheen_lut()  # (an argument of the program, not a constant folded into it)
-    return _layered_brdf_program(n, v, l, m, tangent, coat_normal, volume_distance, sheen_lut,
+    # (the table as an argument of the program, not a constant folded into it)
+    return _layered_brdf_program(n, v, l, m, tangent, coat_normal, volume_distance, _sheen_table(m, sheen_lut),
                                  min_roughness=min_roughness, smith=smith, diffuse=diffuse)
 
 
