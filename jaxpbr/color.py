@@ -24,12 +24,14 @@ References
 
 from __future__ import annotations
 
+import functools
 import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._numerics import _eager
 from ._numerics import as_float as _as_float
 from ._program_cache import cached_jit
 
@@ -115,9 +117,36 @@ def _check_gamma(gamma):
         raise ValueError(f"gamma must be > 0 (e.g. 2.2); got {gamma!r}")
 
 
+def _one_program(static=(), check=None):
+    """Decorator: called outside any transformation, the function runs as one compiled program
+    (`jax.jit`, with the arguments named in `static` static), not op by op: one dispatch and one
+    compilation per input shape and dtype where op by op it was one of each for every operation
+    (a tone map and an encoding of an image: 23 compilations, 0.68 s on a 2-core CPU, against
+    one). Traced (inside jit, vmap or grad) it is the plain function, inlined into the caller's
+    trace. `check(*args, **kwargs)` validates the non-array arguments before the program is
+    looked up (inside it they are tracers). The image is converted by `as_float` first, so Python
+    numbers and tuples keep their weak type."""
+
+    def wrap(fn):
+        program = jax.jit(fn, static_argnames=static)
+
+        @functools.wraps(fn)
+        def call(c, *args, **kwargs):
+            if check is not None:
+                check(*args, **kwargs)
+            if not _eager((c, args, kwargs)):
+                return fn(c, *args, **kwargs)
+            return program(_as_float(c), *args, **kwargs)
+
+        return call
+
+    return wrap
+
+
 # ----------------------------------------------------------------------------------------------------- exposure
 
 
+@_one_program()
 def exposure(c, ev):
     """Scale linear radiance by ``2**ev`` (photographic exposure in stops).
 
@@ -168,6 +197,7 @@ def _scale_pow2(x, n):
 # --------------------------------------------------------------------------------------------------- tone maps
 
 
+@_one_program()
 def reinhard(c):
     """Reinhard tone map ``c / (c + 1)``, per channel (the LearnOpenGL HDR form of Reinhard et al. 2002, eq. 3).
 
@@ -201,6 +231,7 @@ def _rrt_and_odt_fit(v):
     return jnp.where(big, large, small)
 
 
+@_one_program()
 def aces_fitted(c):
     """ACES filmic tone map, Stephen Hill's fit of the RRT + sRGB ODT (BakingLab ``ACESFitted``).
 
@@ -223,6 +254,7 @@ def aces_fitted(c):
     return jnp.clip(_mat3(_ACES_OUTPUT, v), 0.0, 1.0)
 
 
+@_one_program()
 def aces_narkowicz(c):
     """Krzysztof Narkowicz's ACES curve fit, per channel.
 
@@ -247,6 +279,7 @@ def aces_narkowicz(c):
     return jnp.clip(jnp.where(big, large, small), 0.0, 1.0)
 
 
+@_one_program(static=("operator",))
 def tonemap(c, operator):
     """Apply a tone-mapping operator by name.
 
@@ -279,6 +312,7 @@ def tonemap(c, operator):
 # ----------------------------------------------------------------------------------------- transfer functions
 
 
+@_one_program(check=lambda gamma=2.2: _check_gamma(gamma))
 def gamma_encode(c, gamma=2.2):
     """Pure power-law display encoding ``max(c, 0) ** (1 / gamma)`` (LearnOpenGL's "gamma correction").
 
@@ -294,6 +328,7 @@ def gamma_encode(c, gamma=2.2):
     return _safe_pow(_as_float(c), 1.0 / gamma)
 
 
+@_one_program(check=lambda gamma=2.2: _check_gamma(gamma))
 def gamma_decode(c, gamma=2.2):
     """Inverse of :func:`gamma_encode`: ``max(c, 0) ** gamma``.
 
@@ -319,6 +354,7 @@ def _safe_pow(x, p):
     return jnp.where(ok, safe**p, 0.0)
 
 
+@_one_program()
 def srgb_encode(c):
     """Linear → sRGB-encoded, the exact IEC 61966-2-1 piecewise transfer function (inverse EOTF).
 
@@ -337,6 +373,7 @@ def srgb_encode(c):
     return jnp.where(ok, 1.055 * safe ** (1.0 / 2.4) - 0.055, 12.92 * c)
 
 
+@_one_program()
 def srgb_decode(c):
     """sRGB-encoded → linear, the exact IEC 61966-2-1 EOTF.
 
@@ -356,6 +393,7 @@ def srgb_decode(c):
     return jnp.where(ok, ((safe + 0.055) / 1.055) ** 2.4, c / 12.92)
 
 
+@_one_program(static=("transfer",))
 def encode(c, transfer):
     """Apply a display transfer function by name.
 

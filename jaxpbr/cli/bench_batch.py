@@ -45,6 +45,7 @@ from ..rendering.demo import demo_scene
 from ..rendering.renderer import render
 from ..rendering.scene import Environment
 from ._common import positive_int_arg
+from .timing import time_interleaved
 
 __all__ = ["BatchBenchResult", "add_command", "bench_batch", "cmd_bench_batch", "job_rows", "profile_engine",
            "write_panorama"]
@@ -151,21 +152,9 @@ class BatchBenchResult:
 
 
 def _interleaved(variants: dict, rounds: int):
-    """Each variant once to compile and warm the caches, then `rounds` rounds in which every
-    variant runs once in turn (a load that changes during the benchmark affects them alike)
-    -> ({name: best seconds}, {name: first-pass seconds})."""
-    first, best = {}, {}
-    for k, fn in variants.items():
-        t0 = time.perf_counter()
-        fn()
-        first[k] = time.perf_counter() - t0
-        best[k] = math.inf
-    for _ in range(rounds):
-        for k, fn in variants.items():
-            t0 = time.perf_counter()
-            fn()
-            best[k] = min(best[k], time.perf_counter() - t0)
-    return best, first
+    """`timing.time_interleaved` -> ({name: best seconds}, {name: first-pass seconds})."""
+    t = time_interleaved(variants, rounds=rounds)
+    return {k: v.best for k, v in t.items()}, {k: v.first for k, v in t.items()}
 
 
 def profile_engine(jobs, out) -> dict:

@@ -38,7 +38,7 @@ from ..rendering.gltf_scene import load_gltf
 from ..rendering.renderer import render
 from ..rendering.scene import primary_rays
 from ..rendering.visibility import TriangleAccel
-from .timing import time_calls
+from .timing import time_interleaved
 
 __all__ = ["GltfBenchResult", "ProcessRun", "bench_gltf", "grid_counts", "run_process"]
 
@@ -289,10 +289,15 @@ def bench_gltf(
 
         scenes = {"mesh": scene}
         del scene
-        _, t_sh = time_calls(lambda: render(scenes["mesh"], shadows=True), rounds=repeats)
-        _, t_mesh = time_calls(lambda: render(scenes["mesh"], shadows=False), rounds=repeats)
-        _, t_ana = time_calls(lambda: render(ref, shadows=False), rounds=repeats)
-        _, t_ana_sh = time_calls(lambda: render(ref, shadows=True), rounds=repeats)
+        # Interleaved: each round renders the four frames in turn, so a drift of the machine's
+        # speed during the benchmark leaves the ratios alone.
+        t = time_interleaved({
+            "mesh shadows": lambda: render(scenes["mesh"], shadows=True),
+            "mesh": lambda: render(scenes["mesh"], shadows=False),
+            "analytic": lambda: render(ref, shadows=False),
+            "analytic shadows": lambda: render(ref, shadows=True),
+        }, rounds=repeats)
+        t_sh, t_mesh, t_ana, t_ana_sh = t["mesh shadows"], t["mesh"], t["analytic"], t["analytic shadows"]
         steps["first_mesh"], steps["first_analytic"] = t_sh.first, t_ana.first
         peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024.0
         # The child processes below get the memory back: the meshes, their ray engine and programs.

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import jax
 
-__all__ = ["Timing", "time_calls"]
+__all__ = ["Timing", "time_calls", "time_interleaved"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,27 @@ def time_calls(fn, *, rounds: int = 3, number: int = 1, single: int = 0):
         out = jax.block_until_ready(fn())
         alone.append(time.perf_counter() - t0)
     return out, Timing(first, tuple(per_call), tuple(alone))
+
+
+def time_interleaved(variants: dict, *, rounds: int = 3) -> dict:
+    """Each of `variants` (name -> function of no arguments) called once (timed as `first`: it
+    compiles and fills the caches), then `rounds` rounds in which every variant runs once in turn,
+    each call synchronised (`jax.block_until_ready`). A load that changes during the benchmark
+    (another job, the machine's clock) affects every variant alike, so their ratios hold where
+    back-to-back blocks of each would drift apart. -> {name: Timing}."""
+    if rounds < 1:
+        raise ValueError(f"rounds must be >= 1, got {rounds}")
+    first, per_call = {}, {k: [] for k in variants}
+    for k, fn in variants.items():
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        first[k] = time.perf_counter() - t0
+    for _ in range(rounds):
+        for k, fn in variants.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            per_call[k].append(time.perf_counter() - t0)
+    return {k: Timing(first[k], tuple(per_call[k])) for k in variants}
 
 
 def to_host(tree):
