@@ -429,6 +429,35 @@ def test_integer_and_python_inputs_promote_to_default_float():
             assert jax.eval_shape(fn, arg).dtype == jnp.float64, (name, arg)  # x64 is enabled in this module
 
 
+def test_an_eager_call_is_one_compiled_program_with_the_traced_values():
+    """Called outside any transformation, a tone map and an encoding compile one program each (op
+    by op they were 23 compilations), give the values of the same functions traced inside jit, and
+    promote Python and integer inputs as traced."""
+    import logging
+
+    messages = []
+
+    class Seen(logging.Handler):
+        def emit(self, record):
+            messages.append(record.getMessage())
+
+    img = jnp.asarray(np.random.default_rng(7).random((3, 11, 3)) * 4.0, jnp.float32)  # a shape of this test only
+    handler, logger = Seen(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            out = color.encode(color.tonemap(img, "aces"), "srgb")
+    finally:
+        logger.removeHandler(handler)
+    lowered = [m.split()[-4] for m in messages if m.startswith("Finished jaxpr to MLIR module conversion")]
+    assert lowered == ["jit(tonemap)", "jit(encode)"], messages
+    traced = jax.jit(lambda c: color.encode(color.tonemap(c, "aces"), "srgb"))(img)
+    np.testing.assert_array_equal(out, traced)
+    for name, fn in {**ELEMENTWISE, **RGB}.items():
+        for arg in (jnp.arange(3), [1, 2, 3]):
+            assert fn(arg).dtype == jax.eval_shape(fn, arg).dtype == jnp.float64, (name, arg)
+
+
 def test_exposure_of_infinite_stops():
     """ev = +-inf: inf and 0, as 2**ev (the exact ldexp split took ev - floor(ev) = NaN there)."""
     out = np.asarray(color.exposure(jnp.ones(3), jnp.asarray([jnp.inf, -jnp.inf, 2.0])))
