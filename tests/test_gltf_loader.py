@@ -737,6 +737,35 @@ def test_bad_json_truncated_glb_and_missing_file(tmp_path):
         read_gltf(tmp_path / "v1.gltf")
 
 
+@pytest.mark.parametrize("mode", ["gltf", "glb"])
+def test_a_gltf_1_document_is_refused_by_its_version(tmp_path, mode):
+    """A glTF 1.x document as its exporters wrote it (objects in dictionaries keyed by id, a
+    top-level `scene` id) is refused by its version, before pygltflib reads it (which fails on
+    such a document with an error of its own)."""
+    doc = {
+        "asset": {"version": "1.1", "generator": "an exporter of glTF 1"},
+        "scene": "defaultScene",
+        "scenes": {"defaultScene": {"nodes": ["node_1"]}},
+        "nodes": {"node_1": {"meshes": ["mesh_1"], "matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}},
+        "meshes": {"mesh_1": {"primitives": [{"attributes": {"POSITION": "accessor_1"}, "mode": 4}]}},
+        "accessors": {"accessor_1": {"bufferView": "bufferView_1", "byteOffset": 0, "componentType": 5126,
+                                     "count": 3, "type": "VEC3"}},
+        "bufferViews": {"bufferView_1": {"buffer": "buffer_1", "byteOffset": 0, "byteLength": 36}},
+        "buffers": {"buffer_1": {"byteLength": 36, "uri": "data:application/octet-stream;base64," + "A" * 48}},
+    }
+    text = json.dumps(doc)
+    if mode == "gltf":
+        path = tmp_path / "v1.gltf"
+        path.write_text(text)
+    else:
+        body = text.encode() + b" " * (-len(text) % 4)
+        path = tmp_path / "v1.glb"
+        path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(body)) + struct.pack("<II", len(body), 0x4E4F534A) + body)
+    with pytest.raises(InputError, match=r"asset\.version \(/asset/version\): is '1\.1'; only glTF 2\.x is read.*gltf-pipeline") as err:
+        read_gltf(path)
+    assert "pygltflib" not in str(err.value)
+
+
 def test_node_cycle_refused(tmp_path):
     b = _minimal()
     b.doc["nodes"][0]["children"] = [1]

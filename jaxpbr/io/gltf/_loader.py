@@ -91,11 +91,23 @@ def _read_document(path: Path):
              "check that the file is a glTF 2.0 asset (.gltf JSON or .glb binary) and not truncated")
     if not isinstance(doc, dict):
         fail(path, "JSON root (pointer '')", "the JSON is not an object", _FIX)
+    _check_version(path, doc)
     try:
         gltf = pygltflib.GLTF2.gltf_from_json(text)
     except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
         fail(path, "JSON root (pointer '')", f"pygltflib cannot parse the JSON ({type(e).__name__}: {e})", _FIX)
     return gltf, doc, None
+
+
+def _check_version(path: Path, doc: dict) -> None:
+    """Refuse anything but glTF 2.x, before pygltflib reads the document: a glTF 1.x file keeps
+    its objects in dictionaries keyed by id, on which pygltflib fails with an error of its own."""
+    asset = doc.get("asset")
+    version = str(get(asset, "version", "")) if isinstance(asset, dict) else ""
+    if not version.startswith("2."):
+        fail(path, loc("asset.version", "/asset/version" if isinstance(asset, dict) else "/asset"),
+             f"is {version or 'missing'!r}; only glTF 2.x is read",
+             "convert the asset to glTF 2.0 (glTF 1.0 files can be upgraded with gltf-pipeline or Blender)")
 
 
 def _read_glb(path: Path, f, head: bytes, size: int, pygltflib):
@@ -129,6 +141,7 @@ def _read_glb(path: Path, f, head: bytes, size: int, pygltflib):
         fail(path, f"GLB JSON chunk, {_json_error(e)}", f"is not valid JSON ({e})", _FIX)
     if not isinstance(doc, dict):
         fail(path, "GLB JSON chunk, root (pointer '')", "the JSON is not an object", _FIX)
+    _check_version(path, doc)
     try:
         gltf = pygltflib.GLTF2.gltf_from_json(text)
     except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
@@ -163,12 +176,8 @@ class _Loader:
         gltf, doc, glb_bin = _read_document(self.path)
         self.gltf = gltf
         self.doc = doc
-        asset = doc.get("asset")
-        version = str(get(asset, "version", "")) if isinstance(asset, dict) else ""
-        if not version.startswith("2."):
-            fail(self.path, loc("asset.version", "/asset/version" if isinstance(asset, dict) else "/asset"),
-                 f"is {version or 'missing'!r}; only glTF 2.x is read",
-                 "convert the asset to glTF 2.0 (glTF 1.0 files can be upgraded with gltf-pipeline or Blender)")
+        asset = doc["asset"]  # (a 2.x version: `_check_version`)
+        version = str(get(asset, "version", ""))
         self._check_extensions()
         self.buffers = Buffers(gltf, self.path, glb_bin)
         self.materials_reader = MaterialReader(gltf, self.path, self.notes)
