@@ -289,6 +289,38 @@ def test_embree_float32_shadow_rays_equal_the_float64_path():
     np.testing.assert_array_equal(fast, general)
 
 
+def test_embree_triangle_tables_block_by_block(monkeypatch):
+    """The Embree backend's per-triangle tables, made block by block (`_triangle_tables`): valid as
+    `bvh.valid_triangles` (finite, non-zero area), each vertex's altitude over the opposite edge
+    against an independent float64 formula, and the same values whatever the block size."""
+    from jaxpbr.rendering import visibility
+
+    rng = np.random.default_rng(5)
+    tri = rng.normal(size=(53, 3, 3)).astype(np.float32)
+    tri[3, 2] = tri[3, 0]  # a repeated vertex: zero area and a zero-length edge
+    tri[7] = [[0, 0, 0], [1, 1, 1], [2, 2, 2]]  # collinear
+    tri[11, 1, 2] = np.nan
+    tri[19, 0, 0] = np.inf
+    tri[23] *= np.float32(1e-20)  # tiny, still of non-zero area in float64
+    valid, alt = visibility._triangle_tables(tri)
+    t = tri.astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        cross = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+        in_bvh = bvh_mod.valid_triangles(tri)
+    expect = np.isfinite(t).all(axis=(1, 2)) & (np.nan_to_num(np.abs(cross)).max(axis=1) > 0)
+    assert np.array_equal(valid, expect) and np.array_equal(valid, in_bvh)
+    assert not valid[[3, 7, 11, 19]].any() and valid[23] and valid.sum() == 49
+    area2 = np.linalg.norm(cross[valid], axis=1)
+    for i in range(3):
+        edge = np.linalg.norm(t[valid, (i + 2) % 3] - t[valid, (i + 1) % 3], axis=1)
+        np.testing.assert_allclose(alt[valid, i], area2 / edge, rtol=1e-13, atol=0)
+    assert alt[3, 1] == 0.0  # across the zero-length edge (vertices 0 and 2): 0, not 0 / 0
+    for block in (1, 7, 52, 53, 54):
+        monkeypatch.setattr(visibility, "TABLE_BLOCK", block)
+        v2, a2 = visibility._triangle_tables(tri)
+        assert np.array_equal(v2, valid) and np.array_equal(a2, alt, equal_nan=True), block
+
+
 @pytest.mark.skipif(not embree_available(), reason="embreex not installed")
 def test_embree_intersect_without_barycentrics_gives_the_same_hits():
     v, f = MESHES["soup"]
