@@ -220,3 +220,32 @@ def test_critical_depth_survives_concurrent_writers(tmp_path):
     with ThreadPoolExecutor(8) as pool:
         list(pool.map(writes, range(8)))
     assert not atomic.in_critical() and len(list(tmp_path.iterdir())) == 400
+
+
+def test_the_command_line_collects_no_garbage_while_loading_and_less_after(monkeypatch):
+    """The command line's process (`_entry.early`) loads its modules without cyclic garbage
+    collection; `cli.main` then freezes what they made and collects the young generation every
+    10,000 allocations. A library import and an in-process `cli.main` leave the collector alone."""
+    from jaxpbr import _entry
+
+    threshold = gc.get_threshold()
+    monkeypatch.setattr(_entry.signal, "signal", lambda *a: None)  # (pytest keeps its own handlers)
+    try:
+        monkeypatch.setattr(_entry, "_is_command_line", lambda: False)
+        _entry.early()
+        assert gc.isenabled()
+        monkeypatch.setattr(_entry, "_is_command_line", lambda: True)
+        _entry.early()
+        assert not gc.isenabled()
+        jaxpbr.cli._collect_less()
+        assert gc.isenabled() and gc.get_threshold() == (10_000, 10, 10) and gc.get_freeze_count() > 100_000
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*threshold)
+        gc.enable()
+    monkeypatch.setattr(jaxpbr.cli, "_collect_less", lambda: pytest.fail("collector changed in process"))
+    parser = argparse.ArgumentParser(prog="jaxpbr")
+    parser.add_argument("--debug", action="store_true")
+    parser.set_defaults(func=lambda args: 0)
+    monkeypatch.setattr(jaxpbr.cli, "build_parser", lambda: parser)
+    assert main([]) == 0 and gc.isenabled() and gc.get_threshold() == threshold

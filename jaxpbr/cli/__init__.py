@@ -164,11 +164,25 @@ def main(argv: list[str] | None = None, *, entry: bool | None = None) -> int:
     call it), which then ends here (`_end_process`); in-process callers get the status back."""
     if entry is None:
         entry = argv is None
+    if entry:
+        _collect_less()
     code = _main(argv, entry)
     if entry:
         _end_process(code)
     return code
 
+
+def _collect_less() -> None:
+    """The command line's process: the objects made while the modules loaded (JAX's, NumPy's,
+    jaxpbr's; about a million) are moved out of the garbage collector's generations
+    (`gc.freeze`), which it then no longer walks, and collections of the young generation come
+    every 10,000 allocations instead of 700. The demo's cold start spent 0.26-0.28 s in 408
+    collections, mostly while tracing its stages; 0.013 s in 9 after this."""
+    import gc
+
+    gc.freeze()
+    gc.set_threshold(10_000, 10, 10)
+    gc.enable()
 
 def _end_process(code: int) -> None:
     """End the command line's process with `code` once its work is done: the library's threads
