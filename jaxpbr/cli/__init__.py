@@ -184,6 +184,7 @@ def _collect_less() -> None:
     gc.set_threshold(10_000, 10, 10)
     gc.enable()
 
+
 def _end_process(code: int) -> None:
     """End the command line's process with `code` once its work is done: the library's threads
     that may still write finish (a program being stored, a map going to the asset cache), the
