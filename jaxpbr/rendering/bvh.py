@@ -238,10 +238,14 @@ def barycentrics(o, d, v0, v1, v2, xp=np):
 def valid_triangles(tri: np.ndarray) -> np.ndarray:
     """(T, 3, 3) float32 vertices -> bool (T,): finite and of nonzero area (cross product of the
     float32 edges, evaluated in float64, not exactly zero)."""
-    tri = np.asarray(tri)
-    t64 = tri.astype(np.float64)
+    return _valid_and_normal(np.asarray(tri).astype(np.float64))[0]
+
+
+def _valid_and_normal(t64: np.ndarray):
+    """(`valid_triangles`, the unnormalised face normals (T, 3)) of the triangles (T, 3, 3) as
+    float64."""
     n = cross_rows(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
-    return np.isfinite(t64).all(axis=(1, 2)) & (np.abs(n).max(axis=1) > 0)
+    return np.isfinite(t64).all(axis=(1, 2)) & (np.abs(n).max(axis=1) > 0), n
 
 
 # --------------------------------------------------------------------------------------------------

@@ -423,8 +423,7 @@ def _triangle_tables(tri: np.ndarray):
         for a in range(0, n, TABLE_BLOCK):
             b = min(n, a + TABLE_BLOCK)
             t64 = tri[a:b].astype(np.float64)
-            nrm64 = cross_rows(t64[:, 1] - t64[:, 0], t64[:, 2] - t64[:, 0])
-            valid[a:b] = np.isfinite(t64).all(axis=(1, 2)) & (np.abs(nrm64).max(axis=1) > 0)
+            valid[a:b], nrm64 = _bvh._valid_and_normal(t64)
             area2 = _row_norms(nrm64)
             edge = np.stack([_row_norms(t64[:, (i + 2) % 3] - t64[:, (i + 1) % 3]) for i in range(3)], 1)
             alt[a:b] = np.where(edge > 0, area2[:, None] / edge, 0.0)
