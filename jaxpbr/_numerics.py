@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._program_cache import cached_jit, with_callers_context
+from ._program_cache import cached_jit, trace_state_clean, with_callers_context
 
 __all__ = [
     "HIGHEST",
@@ -85,7 +85,7 @@ def as_float(x) -> jax.Array:
             key = (tuple(float(e).hex() for e in flat), np.shape(x), *_memo_context())
             out = _WEAK.get(key)
             if out is None:
-                out = _remember(key, _weak_stack(*(jax.device_put(float(e)) for e in flat)).reshape(np.shape(x)))
+                out = _remember(key, _weak_array(flat, np.shape(x)))
             return out
     if type(x) is float:  # (not NumPy scalars, whose dtype is strong; ints take the path below)
         key = (x.hex(), *_memo_context())
@@ -108,8 +108,36 @@ def _stack(*xs):
 
 
 #: Weakly typed scalars stacked into a weakly typed vector: a stored program where the command
-#: line keeps them (`_program_cache`), so a warm start lowers none.
+#: line keeps them (`_program_cache`), so a warm start lowers none. Used where `_weak_array`'s
+#: direct construction is not available.
 _weak_stack = cached_jit(_stack)
+
+
+def _weak_array(flat, shape) -> jax.Array:
+    """Python numbers as the weakly typed array `jnp.stack` of their weakly typed scalars gives
+    (same values, dtype and weak type), without an XLA program: the NumPy array is put on the
+    device and wrapped as a `jax.Array` of the weakly typed shape. JAX has no public constructor
+    for a weakly typed array; where this one is missing or gives something else, the compiled stack
+    (`_weak_stack`; a command's cold start compiled two of them on its one busy core, 0.13-0.18 s)."""
+    if _WEAK_DIRECT[0]:
+        try:
+            from jax._src.array import ArrayImpl
+            from jax._src.core import ShapedArray
+
+            dtype = jax.dtypes.canonicalize_dtype(float)
+            buf = jax.device_put(np.asarray(flat, dtype).reshape(shape))
+            out = ArrayImpl(ShapedArray(buf.shape, buf.dtype, weak_type=True), buf.sharding, [buf], committed=False)
+            ok = out.weak_type and out.dtype == dtype and out.shape == tuple(shape)
+        except Exception:  # noqa: BLE001 (a JAX without this constructor: the compiled stack from now on)
+            ok = False
+        if ok:
+            return out
+        _WEAK_DIRECT[0] = False
+    return _weak_stack(*(jax.device_put(float(e)) for e in flat)).reshape(shape)
+
+
+#: Whether `_weak_array` builds its arrays directly (False once that failed in this process).
+_WEAK_DIRECT = [True]
 
 
 #: The weakly typed arrays of Python numbers and short tuples already converted (scene objects repeat
@@ -362,15 +390,6 @@ def outside_traces(compute):
         return compute()
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="jaxpbr-assets") as pool:
         return pool.submit(with_callers_context(compute)).result()
-
-
-def trace_state_clean() -> bool:
-    """Whether no JAX trace (jit, grad, vmap, ...) is active on this thread."""
-    try:
-        from jax._src.core import trace_state_clean as clean
-    except ImportError:  # a JAX without it: take every call as traced (a thread each, always correct)
-        return False
-    return bool(clean())
 
 
 def remember_per_array(cache: dict, x, tag, compute):

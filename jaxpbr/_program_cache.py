@@ -221,15 +221,48 @@ def release_programs() -> int:
     return held
 
 
+#: XLA:CPU's loop emitters (`xla_cpu_use_fusion_emitters=False`) for the programs that name them
+#: (`cached_jit(cpu_options=LOOP_EMITTERS)`). XLA:CPU's default fusion emitters run each fused loop
+#: through an MLIR pipeline and an LLVM module of its own, about 20 ms of compile CPU a loop
+#: whatever it computes; the loop emitters cost less per loop. They are chosen for the programs
+#: whose run time they leave as it is (the G-buffer stage, the IBL stage, the display encode); the
+#: stages whose one large loop they slow down keep the default (direct lighting ran 5x slower,
+#: the suns' disc light 1.7x). Measured figures: docs/performance.md.
+LOOP_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def trace_state_clean() -> bool:
+    """Whether no JAX trace (jit, grad, vmap, ...) is active on this thread."""
+    try:
+        from jax._src.core import trace_state_clean as clean
+    except ImportError:  # a JAX without it: take every call as traced (a thread each, always correct)
+        return False
+    return bool(clean())
+
+
+def _jit_with(fn, statics, names, options):
+    """jax.jit(fn) compiled with `options`, or without them where this JAX's jit takes none."""
+    if options:
+        try:
+            return jax.jit(fn, static_argnums=statics, static_argnames=names, compiler_options=dict(options))
+        except TypeError:  # (a JAX without jit's compiler_options: its defaults)
+            pass
+    return jax.jit(fn, static_argnums=statics, static_argnames=names)
+
+
 class cached_jit:
     """`jax.jit(fn, static_argnums=..., static_argnames=...)` whose compiled programs are kept in
-    `directory()` (see the module docstring)."""
+    `directory()` (see the module docstring). cpu_options: XLA compile options for XLA:CPU (e.g.
+    `LOOP_EMITTERS`), used for the stored programs and for jax.jit's alike, so that both give the
+    same values; other backends compile with their defaults."""
 
-    def __init__(self, fn: Callable, *, static_argnums=(), static_argnames=()):
+    def __init__(self, fn: Callable, *, static_argnums=(), static_argnames=(), cpu_options=None):
         self._fn = fn
         self._static_argnums = tuple(static_argnums) if isinstance(static_argnums, (tuple, list)) else (static_argnums,)
         self._static_argnames = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
+        self._cpu_options = dict(cpu_options or {})
         self._jit = jax.jit(fn, static_argnums=self._static_argnums, static_argnames=self._static_argnames)
+        self._jit_cpu = _jit_with(fn, self._static_argnums, self._static_argnames, self._cpu_options)
         self._mem: dict[str, object] = {}  # key -> (compiled, out_tree), or None: through jax.jit
         self._lock = threading.Lock()
         _INSTANCES.add(self)
@@ -238,21 +271,28 @@ class cached_jit:
         self.__qualname__ = getattr(fn, "__qualname__", self.__name__)
         self.__doc__ = fn.__doc__
 
+    def _jitted(self):
+        """The jax.jit to call: with `cpu_options` on XLA:CPU outside any trace (inside one the
+        program is part of the caller's, which JAX compiles with the caller's options)."""
+        return self._jit_cpu if jax.default_backend() == "cpu" and trace_state_clean() else self._jit
+
     def lower(self, *args, **kwargs):
-        return self._jit.lower(*args, **kwargs)
+        return self._jitted().lower(*args, **kwargs)
 
     def _cache_size(self) -> int:
         """Programs this process holds: jax.jit's, plus the ones loaded or stored here."""
-        return self._jit._cache_size() + sum(1 for v in self._mem.values() if v is not None)
+        jits = {id(j): j for j in (self._jit, self._jit_cpu)}.values()
+        return sum(j._cache_size() for j in jits) + sum(1 for v in self._mem.values() if v is not None)
 
     def clear_cache(self) -> None:
         self._jit.clear_cache()
+        self._jit_cpu.clear_cache()
         self._mem.clear()
 
     def __call__(self, *args, **kwargs):
         root = _STATE["dir"]
         if root is None or jax.default_backend() != "cpu":  # (measured and tested on XLA:CPU only)
-            return self._jit(*args, **kwargs)
+            return self._jitted()(*args, **kwargs)
         statics = {i: args[i] for i in self._static_argnums if i < len(args)}
         static_kw = {k: v for k, v in kwargs.items() if k in self._static_argnames}
         dyn = (tuple(a for i, a in enumerate(args) if i not in statics),
@@ -262,7 +302,7 @@ class cached_jit:
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             if ahead:
                 raise NotAhead(f"{self.__name__}: traced arguments")
-            return self._jit(*args, **kwargs)
+            return self._jitted()(*args, **kwargs)
         # Python numbers as the weakly typed arrays jax.jit makes of them (device_put: without an
         # XLA program of its own)
         leaves = [jax.device_put(x) if isinstance(x, (bool, int, float, complex)) else x for x in leaves]
@@ -273,13 +313,14 @@ class cached_jit:
                 _environment_key(),
                 _canon(sorted(statics.items())),
                 _canon(sorted(static_kw.items())),
+                _canon(sorted(self._cpu_options.items())),
                 _canon_tree(treedef),
                 ";".join(_aval(x) for x in leaves),
             ]
         except _Uncacheable as exc:
             if ahead:
                 raise NotAhead(f"{self.__name__}: {exc}") from None
-            return self._jit(*args, **kwargs)
+            return self._jitted()(*args, **kwargs)
         key = hashlib.sha256("\n".join(parts).encode()).hexdigest()
         if ahead:
             return self._ahead(root, key, len(args), statics, static_kw, leaves, treedef)
@@ -296,7 +337,7 @@ class cached_jit:
                         entry = self._compile(root, key, len(args), statics, static_kw, leaves, treedef)
                     self._mem[key] = entry
         if entry is None:
-            return self._jit(*args, **kwargs)
+            return self._jitted()(*args, **kwargs)
         compiled, out_tree = entry
         try:
             out = compiled(*leaves)
@@ -306,7 +347,7 @@ class cached_jit:
                 self._path(root, key).unlink()
             except OSError:
                 pass
-            return self._jit(*args, **kwargs)
+            return self._jitted()(*args, **kwargs)
         return jax.tree_util.tree_unflatten(out_tree, out)
 
     # -- disk ---------------------------------------------------------------------------------
@@ -396,7 +437,7 @@ class cached_jit:
         try:
             lowered = traced.lower() if lowered is None else lowered
             if _has_callback(traced.jaxpr):  # this process's program only (traced once, not twice)
-                return _with_avals(lowered.compile(), avals), trees[-1]
+                return _with_avals(lowered.compile(compiler_options=self._cpu_options or None), avals), trees[-1]
             # Compiled here, never read from JAX's persistent cache: an executable loaded from that
             # cache serializes without its kernels (a later process loads it and fails calling it,
             # "Function ... not found": measured with jax 0.10). JAX decides once per process
@@ -408,7 +449,7 @@ class cached_jit:
             from jax._src.config import persistent_cache_min_compile_time_secs
 
             with persistent_cache_min_compile_time_secs(float("inf")):
-                compiled = lowered.compile(compiler_options=_OWN_KEY)
+                compiled = lowered.compile(compiler_options={**_OWN_KEY, **self._cpu_options})
             payload, in_tree, out_tree = serialize_executable.serialize(compiled)
             blob = pickle.dumps((key, payload, in_tree, out_tree, trees[-1], avals))
         except Exception:  # noqa: BLE001 (not serializable here: run through jax.jit)

@@ -33,7 +33,7 @@ import numpy as np
 
 from ._numerics import _eager
 from ._numerics import as_float as _as_float
-from ._program_cache import cached_jit
+from ._program_cache import LOOP_EMITTERS, cached_jit
 
 __all__ = [
     "TONEMAP_OPERATORS",
@@ -482,4 +482,4 @@ def _display(hdr, ev, *, tonemap: str, encoding: str):
     return encode(_tonemap(exposure(hdr, ev), tonemap), encoding)
 
 
-display = cached_jit(_display, static_argnames=("tonemap", "encoding"))
+display = cached_jit(_display, static_argnames=("tonemap", "encoding"), cpu_options=LOOP_EMITTERS)

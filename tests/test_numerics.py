@@ -1,6 +1,11 @@
 """jaxpbr._numerics helpers outside the kernels: the host-side row cross product."""
 
+import logging
+
+import jax
+import jax.numpy as jnp
 import numpy as np
+import pytest
 
 
 def test_cross_rows_is_np_cross_bit_for_bit():
@@ -103,3 +108,37 @@ def test_interp_nodes_with_a_repeated_node_is_finite_and_equals_jnp_interp():
     v, g = f(x)
     np.testing.assert_allclose(v, jnp.interp(x, jnp.asarray(nodes, jnp.float32), jnp.asarray(values, jnp.float32)), rtol=1e-6)
     assert np.isfinite(np.asarray(g)).all()
+
+
+
+@pytest.mark.parametrize("x64", [False, True], ids=["x32", "x64"])
+def test_as_float_of_python_numbers_builds_the_weak_array_without_a_program(x64):
+    """The weakly typed array of Python numbers is made without compiling anything and is what
+    stacking their weakly typed scalars gives: values, dtype, weak type, shape."""
+    from jaxpbr import _numerics
+
+    compiled = []
+
+    class _Compiles(logging.Handler):
+        def emit(self, record):
+            if "Finished XLA compilation" in record.getMessage():
+                compiled.append(record.getMessage())
+
+    values = (0.1, 0.25, 1e-30)
+    handler = _Compiles()
+    logging.getLogger("jax").addHandler(handler)
+    try:
+        with jax.enable_x64(x64), jax.log_compiles(True):
+            got = _numerics._weak_array(values, (3,))
+            grid = _numerics._weak_array((1.0, 2.0, 3.0, 4.0), (2, 2))
+    finally:
+        logging.getLogger("jax").removeHandler(handler)
+    assert compiled == []
+    with jax.enable_x64(x64):
+        want = _numerics._weak_stack(*(jax.device_put(v) for v in values))
+        assert got.weak_type and want.weak_type and got.dtype == want.dtype and got.shape == want.shape
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+        assert grid.shape == (2, 2) and grid.weak_type
+        np.testing.assert_array_equal(np.asarray(grid), [[1.0, 2.0], [3.0, 4.0]])
+        # weakly typed: it takes the dtype of the array it meets, as a Python number does
+        assert (got * jnp.ones(3, jnp.float16)).dtype == jnp.float16

@@ -436,3 +436,46 @@ def test_a_cold_staged_render_traces_and_compiles_each_stage_once_ahead(cache_di
     assert sorted(traced) == sorted(names)  # nothing compiled twice or left uncompiled
     assert not any(isinstance(e, pc._Pending) for f in list(pc._INSTANCES) for e in f._mem.values())
     assert out.shape == (24, 40, 3) and np.isfinite(out).all() and out.max() > 0
+
+
+def _compile_overrides(monkeypatch):
+    """The XLA option overrides of every compilation from now on (a list of dicts)."""
+    from jax._src import compiler
+
+    seen = []
+    real = compiler.get_compile_options
+
+    def spy(*args, **kwargs):
+        seen.append(dict(kwargs.get("env_options_overrides") or {}))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(compiler, "get_compile_options", spy)
+    return seen
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="cpu_options apply to XLA:CPU")
+@pytest.mark.parametrize("stored", [True, False], ids=["stored", "jax.jit"])
+def test_cpu_options_reach_xla_stored_and_through_jax_jit_and_stay_out_of_traces(stored, tmp_path, monkeypatch):
+    if stored:
+        pc.use_directory(tmp_path)
+    try:
+        f = pc.cached_jit(_f, static_argnums=(1,), cpu_options=pc.LOOP_EMITTERS)
+        plain = pc.cached_jit(_f, static_argnums=(1,))
+        x = np.linspace(-3, 3, 101, dtype=np.float32)
+        seen = _compile_overrides(monkeypatch)
+        out = f(x, _Opts(2.0, "cos"))
+        with_options = [s for s in seen if s]
+        assert with_options and all(s.get("xla_cpu_use_fusion_emitters") in (False, "false", "False") for s in with_options)
+        seen.clear()
+        ref = plain(x, _Opts(2.0, "cos"))
+        assert not any("xla_cpu_use_fusion_emitters" in s for s in seen)
+        np.testing.assert_allclose(out["y"], ref["y"], rtol=1e-6, atol=1e-6)
+        if stored:  # a key of its own: the program compiled with other options is another file
+            assert len(_files(tmp_path)) == 2
+        # Inside a trace the program is the caller's (JAX refuses compile options on a nested jit).
+        traced = jax.jit(lambda x: f(x, _Opts(2.0, "cos"))["y"])(x)
+        np.testing.assert_allclose(traced, ref["y"], rtol=1e-6, atol=1e-6)
+        g = jax.grad(lambda x: f(x, _Opts(2.0, "cos"))["sum"])(x)
+        np.testing.assert_allclose(g, 2.0 * np.cos(x) - np.sin(x), rtol=1e-5, atol=1e-5)
+    finally:
+        pc.use_directory(None)

@@ -51,7 +51,15 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .._numerics import pack3, safe_sqrt, unpack3, vcross, vdot, vnormalize
+from .._numerics import (
+    computed_once,
+    pack3,
+    safe_sqrt,
+    unpack3,
+    vcross,
+    vdot,
+    vnormalize,
+)
 from ..shading.layered import (
     anisotropic_alphas,
     anisotropy_frame,
@@ -113,7 +121,10 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
             )
         strength = jnp.clip(m.anisotropy_strength, 0.0, 1.0)
         T, B = anisotropy_frame(n3, vnormalize(unpack3(tangent)), m.anisotropy_rotation)
-        Rl = pack3(bent_reflection(n3, v3, T, B, strength, r))
+        # Computed once, as arrays of its own: fused into one XLA:CPU loop with the stack that
+        # packs it, the deep expression (frame, two cross products, two normalizations) ran 400x
+        # slower under XLA's fusion emitters (1280x720 spheres: 23 s against 0.3 s for the IBL stage).
+        Rl = pack3(computed_once(lambda o: bent_reflection(*o), (n3, v3, T, B, strength, r), lut[0, 0, 0]))
         # The stretched lobe's albedo: the LUT at the rms alpha (module docstring).
         at, ab_ = anisotropic_alphas(r * r, strength)
         r_lut = safe_sqrt(safe_sqrt(0.5 * (at * at + ab_ * ab_)))  # 0 at r = 0, strength 0: gradient 0

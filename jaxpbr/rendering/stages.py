@@ -20,7 +20,7 @@ import numpy as np
 
 from .._api import keyword_only
 from .._numerics import cpu_cond, pack3, small_sq, unpack3, vcross, vdot, vnormalize
-from .._program_cache import cached_jit, is_ahead, running_now
+from .._program_cache import LOOP_EMITTERS, cached_jit, is_ahead, running_now
 from .._pytree import evolve, fields_of, subtree, unchecked
 from ..ibl.cubemap import padded
 from ..ibl.shade import disc_multiscatter, shade_ibl
@@ -894,7 +894,7 @@ _geometry_jit = cached_jit(_geometry, static_argnums=(1, 2), static_argnames=("l
 _texture_jit = cached_jit(_texture, static_argnums=(1, 2))
 _shade_direct_jit = cached_jit(_shade_direct, static_argnums=(1, 2))
 _shade_suns_jit = cached_jit(_shade_suns, static_argnums=(2, 3))
-_shade_rest_jit = cached_jit(_shade_rest, static_argnums=(2, 3))
+_shade_rest_jit = cached_jit(_shade_rest, static_argnums=(2, 3), cpu_options=LOOP_EMITTERS)
 
 
 def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
