@@ -444,3 +444,40 @@ def test_cli_bench_gltf_processes(capsys, monkeypatch):
     for s in ("jaxpbr render --width 32 --height 18", "jaxpbr render ASSET.glb --environment procedural:sky", "cold", "warm",
               "asset - demo", "target <= 2.0 s", "memory, 5,880 triangles"):
         assert s in text, s
+
+
+def test_extension_scenes_carry_their_group_on_every_sphere():
+    from jaxpbr.cli.bench_extensions import (
+        EXTENSION_MATERIALS,
+        bench_extensions,
+        extension_scene,
+    )
+    from jaxpbr.shading.material import EXTENSIONS
+
+    assert set(EXTENSION_MATERIALS) == set(EXTENSIONS)  # every group the materials know is measured
+    core = extension_scene(8, 6, ())
+    assert all(ob.material.extensions == () for ob in core.objects)
+    for g in EXTENSION_MATERIALS:
+        sc = extension_scene(8, 6, (g,))
+        assert len(sc.objects) == len(core.objects) == 49
+        # the group's fields are set (volume acts through transmission, so it carries both), the
+        # grid's metallic/roughness kept
+        want = {"transmission", "volume"} if g == "volume" else {g}
+        assert all(set(ob.material.extensions) == want for ob in sc.objects)
+        assert [float(ob.material.roughness) for ob in sc.objects] == [float(ob.material.roughness) for ob in core.objects]
+    with pytest.raises(ValueError, match="unknown extension group"):
+        bench_extensions(8, 6, groups=("iridescence",))
+    args = _parser().parse_args(["bench", "render", "--extensions", "--width", "64", "--height", "36"])
+    assert args.extensions and (args.width, args.height) == (64, 36)
+
+
+@pytest.mark.slow  # compiles a render per material
+def test_bench_extensions_tiny():
+    from jaxpbr.cli.bench_extensions import bench_extensions
+
+    r = bench_extensions(24, 16, repeats=1, groups=("anisotropy", "sheen"))
+    assert list(r.frame_s) == ["core", "anisotropy", "sheen"]
+    assert all(r.finite.values()) and all(v > 0 for v in r.frame_s.values())
+    assert r.ratio("core") == 1.0 and r.ratio("sheen") == r.frame_s["sheen"] / r.frame_s["core"]
+    text = r.report()
+    assert "24x16" in text and "anisotropy" in text and "x core" in text

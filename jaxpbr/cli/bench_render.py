@@ -9,6 +9,9 @@ cube pyramid lookup of `Cubemap.sample`, the LUT lookup of `lut_lookup` and the 
 `shade_ibl`). The IBL precompute (environment, irradiance, prefiltered mips, BRDF LUT) is timed
 separately; JIT compile time is reported apart from the median run time.
 
+`--extensions` (`jaxpbr.cli.bench_extensions`) renders the demo's sphere grid with each glTF material
+extension group against the core material.
+
 `--gltf` (`jaxpbr.cli.bench_gltf`) renders the same sphere grid as a glTF asset of triangle meshes
 against the analytic spheres, with the asset's cold start and memory as whole processes.
 
@@ -384,6 +387,12 @@ BYTES_PER_PIXEL = 600.0
 def _cmd_bench_render(args) -> int:
     if args.gltf:
         return _cmd_bench_gltf(args)
+    if args.extensions:
+        from .bench_extensions import bench_extensions
+
+        require_memory(f"a {args.width}x{args.height} render", BYTES_PER_PIXEL * args.width * args.height, "lower --width/--height")
+        print(bench_extensions(args.width, args.height, repeats=args.repeats or 3).report(), flush=True)
+        return 0
     repeats = args.repeats or 10
     require_environment(args.face_size)
     require_memory(f"a {args.width}x{args.height} G-buffer", BYTES_PER_PIXEL * args.width * args.height, "lower --width/--height")
@@ -454,6 +463,9 @@ def add_command(bench_subparsers) -> argparse.ArgumentParser:
         "`jaxpbr render ASSET.glb --environment procedural:sky` against the demo's `jaxpbr render`, peak memory. "
         "Replaces the G-buffer and batch runs.",
     )
+    p.add_argument("--extensions", action="store_true",
+                   help="instead: the demo's sphere grid at --width x --height with each glTF material extension group on "
+                   "every sphere against the core material, warm frames interleaved (jaxpbr.cli.bench_extensions)")
     g.add_argument("--gltf", action="store_true", help="run the glTF asset benchmark instead")
     g.add_argument("--triangles", type=positive_int_arg, default=1_000_000, metavar="N", help="triangles of the asset, about (default: %(default)s)")
     g.add_argument("--cold-runs", type=nonnegative_int_arg, default=3, metavar="K",
