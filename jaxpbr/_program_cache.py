@@ -225,9 +225,9 @@ def release_programs() -> int:
 #: (`cached_jit(cpu_options=LOOP_EMITTERS)`). XLA:CPU's default fusion emitters run each fused loop
 #: through an MLIR pipeline and an LLVM module of its own, about 20 ms of compile CPU a loop
 #: whatever it computes; the loop emitters cost less per loop. They are chosen for the programs
-#: whose run time they leave as it is (the G-buffer stage, the IBL stage, the display encode); the
-#: stages whose one large loop they slow down keep the default (direct lighting ran 5x slower,
-#: the suns' disc light 1.7x). Measured figures: docs/performance.md.
+#: whose run time they leave as it is (the IBL stage, the display encode); the stages whose loops
+#: they slow down keep the default (direct lighting ran 5x slower, the suns' disc light 1.7x, the
+#: G-buffer 1.25x). Measured figures: docs/performance.md.
 LOOP_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
 
 
