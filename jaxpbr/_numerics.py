@@ -118,8 +118,9 @@ def _weak_array(flat, shape) -> jax.Array:
     (same values, dtype and weak type), without an XLA program: the NumPy array is put on the
     device and wrapped as a `jax.Array` of the weakly typed shape. JAX has no public constructor
     for a weakly typed array; where this one is missing or gives something else, the compiled stack
-    (`_weak_stack`; a command's cold start compiled two of them on its one busy core, 0.13-0.18 s)."""
-    if _WEAK_DIRECT[0]:
+    (`_weak_stack`; a command's cold start compiled two of them on its one busy core, 0.13-0.18 s),
+    which is also what a call inside a trace binds there."""
+    if _WEAK_DIRECT[0] and trace_state_clean():  # (inside a trace device_put gives a traced value)
         try:
             from jax._src.array import ArrayImpl
             from jax._src.core import ShapedArray

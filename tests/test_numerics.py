@@ -142,3 +142,9 @@ def test_as_float_of_python_numbers_builds_the_weak_array_without_a_program(x64)
         np.testing.assert_array_equal(np.asarray(grid), [[1.0, 2.0], [3.0, 4.0]])
         # weakly typed: it takes the dtype of the array it meets, as a Python number does
         assert (got * jnp.ones(3, jnp.float16)).dtype == jnp.float16
+    # Inside a trace the numbers are bound there (as the compiled stack is), and the direct
+    # construction stays on for later calls outside.
+    traced = jax.jit(lambda x: x * _numerics._weak_array((2.0, 3.0), (2,)))(jnp.ones(2, jnp.float16))
+    assert traced.dtype == jnp.float16
+    np.testing.assert_array_equal(np.asarray(traced), [2.0, 3.0])
+    assert _numerics._WEAK_DIRECT[0]
