@@ -55,7 +55,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-__all__ = ["cached_jit", "directory", "package_digest", "recall", "remember", "use_directory"]
+__all__ = ["cached_jit", "cpu_jit", "directory", "package_digest", "recall", "remember", "use_directory"]
 
 _STATE: dict = {"dir": None}
 _DIGEST: list[str] = []
@@ -248,6 +248,37 @@ def _jit_with(fn, statics, names, options):
         except TypeError:  # (a JAX without jit's compiler_options: its defaults)
             pass
     return jax.jit(fn, static_argnums=statics, static_argnames=names)
+
+
+class cpu_jit:
+    """`jax.jit(fn, static_argnums=..., static_argnames=...)` compiled with `cpu_options` (default
+    `LOOP_EMITTERS`) on XLA:CPU when called outside any trace; inside one (a caller's jit, grad,
+    vmap) the plain jax.jit, whose program becomes part of the caller's. Other attributes (`lower`,
+    `trace`, ...) are the plain jax.jit's. For programs not kept on disk (`cached_jit` keeps them):
+    the environment bake's, which the loop emitters compile faster and run as fast or faster."""
+
+    def __init__(self, fn: Callable, *, static_argnums=None, static_argnames=None, cpu_options=None):
+        # (None, not (): jax.jit then finds the positions of static_argnames, and the names of
+        # static_argnums, in fn's signature)
+        options = LOOP_EMITTERS if cpu_options is None else cpu_options
+        self._jit = jax.jit(fn, static_argnums=static_argnums, static_argnames=static_argnames)
+        self._jit_cpu = _jit_with(fn, static_argnums, static_argnames, options)
+        functools.update_wrapper(self, fn)
+
+    def __call__(self, *args, **kwargs):
+        on_cpu = jax.default_backend() == "cpu" and trace_state_clean()
+        return (self._jit_cpu if on_cpu else self._jit)(*args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self._jit, name)
+
+    def _cache_size(self) -> int:
+        jits = {id(j): j for j in (self._jit, self._jit_cpu)}.values()
+        return sum(j._cache_size() for j in jits)
+
+    def clear_cache(self) -> None:
+        self._jit.clear_cache()
+        self._jit_cpu.clear_cache()
 
 
 class cached_jit:

@@ -479,3 +479,27 @@ def test_cpu_options_reach_xla_stored_and_through_jax_jit_and_stay_out_of_traces
         np.testing.assert_allclose(g, 2.0 * np.cos(x) - np.sin(x), rtol=1e-5, atol=1e-5)
     finally:
         pc.use_directory(None)
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="cpu_options apply to XLA:CPU")
+def test_cpu_jit_compiles_with_its_options_outside_traces_and_as_plain_jit_inside(monkeypatch):
+    def g(x, opts):  # (a function of its own: jax.jit's caches are per function)
+        """g's docstring"""
+        return _f(x, opts)
+
+    f = pc.cpu_jit(g, static_argnums=(1,))
+    x = np.linspace(-3, 3, 101, dtype=np.float32)
+    seen = _compile_overrides(monkeypatch)
+    out = f(x, _Opts(2.0, "sin"))
+    assert seen and seen[-1].get("xla_cpu_use_fusion_emitters") in (False, "false", "False")
+    assert f._cache_size() == 1 and f.__name__ == "g" and f.__doc__ == "g's docstring"
+    ref = jax.jit(_f, static_argnums=(1,))(x, _Opts(2.0, "sin"))
+    np.testing.assert_allclose(out["y"], ref["y"], rtol=1e-6, atol=1e-6)
+    seen.clear()
+    traced = jax.jit(lambda x: f(x, _Opts(2.0, "sin"))["y"])(x)  # no option on a nested jit
+    assert not any("xla_cpu_use_fusion_emitters" in s for s in seen)
+    np.testing.assert_allclose(traced, ref["y"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(jax.grad(lambda x: f(x, _Opts(2.0, "sin"))["sum"])(x), 2.0 * np.cos(x), rtol=1e-5, atol=1e-5)
+    assert f.lower(x, _Opts(2.0, "sin")).compile() is not None
+    f.clear_cache()
+    assert f._cache_size() == 0

@@ -20,6 +20,7 @@ from .._numerics import (
     map_row_chunks,
     safe_div,
 )
+from .._program_cache import cpu_jit
 from ..conventions import luminance
 from .cubemap import (
     face_to_dir,
@@ -76,7 +77,7 @@ def split_bright(level0: np.ndarray, max_texels: int, min_ratio: float = 4.0):
 
 
 
-@functools.partial(jax.jit, static_argnames=("max_texels", "min_ratio"))
+@functools.partial(cpu_jit, static_argnames=("max_texels", "min_ratio"))
 def _split_bright_fixed(level0, omega, max_texels: int, min_ratio: float = 4.0):
     """`split_bright` with a fixed-size selection, traceable (jit, grad) in the texel values.
 
@@ -117,7 +118,7 @@ def _split_bright_fixed(level0, omega, max_texels: int, min_ratio: float = 4.0):
     return resid.reshape(level0.shape).astype(level0.dtype), idx, excess, sel
 
 
-@functools.partial(jax.jit, static_argnames=("min_ratio",))
+@functools.partial(cpu_jit, static_argnames=("min_ratio",))
 def _count_bright(level0, omega, min_ratio: float = 4.0):
     """How many texels of level0 (6, S, S, C) have a luminance above min_ratio x the mean (as
     `_split_bright_fixed` computes it)."""

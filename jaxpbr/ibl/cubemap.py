@@ -37,7 +37,7 @@ from .._api import keyword_only
 from .._interp import bilinear, lerp2
 from .._memory import cube_bytes, require
 from .._numerics import HIGHEST, computed_once, is_concrete, trace_state_clean
-from .._program_cache import cached_jit
+from .._program_cache import LOOP_EMITTERS, cached_jit, cpu_jit
 from .._pytree import Pytree, leaf, static, unchecked
 from .._validate import positive_int
 
@@ -358,7 +358,7 @@ def _mip_chain_impl(level0, num_levels: int):
 
 #: The pyramid compiled as one program (op-by-op dispatch of the chain cost over a second of
 #: compilation at 256^2).
-_mip_chain = jax.jit(_mip_chain_impl, static_argnums=1)
+_mip_chain = cpu_jit(_mip_chain_impl, static_argnums=1)
 
 
 def mip_count(size: int) -> int:
@@ -427,7 +427,7 @@ def _filtered_level(coords, fn, S, q, kw):
 
 
 #: `Cubemap.from_function` of a named function with plain keyword values (the procedural sky).
-_FILTERED_LEVEL = cached_jit(_filtered_level, static_argnums=(1, 2, 3, 4))
+_FILTERED_LEVEL = cached_jit(_filtered_level, static_argnums=(1, 2, 3, 4), cpu_options=LOOP_EMITTERS)
 
 class Cubemap(Pytree):
     """Six square faces with an optional mip chain: `levels[m]` is (6, S >> m, S >> m, C).

@@ -27,6 +27,7 @@ import numpy as np
 
 from .._memory import irradiance_bytes, require
 from .._numerics import HIGHEST, map_row_chunks, progress_token, row_chunk_count
+from .._program_cache import cpu_jit
 from .._validate import check_radiance, positive_int
 from .cubemap import (
     _FACE_TABLE,
@@ -196,7 +197,7 @@ def irradiance_at(
     return out
 
 
-@functools.partial(jax.jit, static_argnames=("method", "source_size", "chunk"))
+@functools.partial(cpu_jit, static_argnames=("method", "source_size", "chunk"))
 def _irradiance_at(level0, n, token, tables, *, method: str, source_size: int, chunk: int):
     """`irradiance_at` as one compiled program (moments, pyramid sums and the chunked convolution);
     token: a `progress_token` or None; tables: `_face_moments` of level0's face size (exact) or

@@ -54,6 +54,7 @@ from .._numerics import (
     progress_token,
     row_chunk_count,
 )
+from .._program_cache import cpu_jit
 from .._validate import check_radiance, positive_int
 from ..shading.sampling import hammersley, pdf_ggx_h, sample_ggx_h, tangent_frame
 from .bright import (  # noqa: F401  (re-exported: jaxpbr.ibl.specular is the prefilter's public module)
@@ -180,7 +181,7 @@ def default_sample_counts(base: int, size: int, num_levels: int, max_samples: in
 # ------------------------------------------------------------------------------------------
 
 
-@functools.partial(jax.jit, static_argnames=("capacity",))
+@functools.partial(cpu_jit, static_argnames=("capacity",))
 def _ggx_lobe_samples(alpha, n, *, capacity: int):
     """GGX half vectors of the n-point Hammersley set (through `sample_ggx_h`) and the density of
     their reflected directions p_l = p_h / (4 n.h) for n = v = +z, in `capacity` >= n rows (the
@@ -265,7 +266,7 @@ def _tile_order(x, S: int, inverse: bool = False):
     return jnp.swapaxes(y, 2, 3).reshape(x.shape)
 
 
-@functools.partial(jax.jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "tiers", "n_slots", "far", "kink", "bright_chunk"))
+@functools.partial(cpu_jit, static_argnames=("sizes", "plan", "chunk", "S0", "n_bright", "tiers", "n_slots", "far", "kink", "bright_chunk"))
 def _prefilter_fis(level0, idx, bright, slots, omega, R, table, local, w, lod, token, *, sizes, plan, chunk, S0, n_bright, tiers, n_slots, far, kink, bright_chunk):
     """Every FIS level of a prefilter as one compiled program.
 
