@@ -254,20 +254,24 @@ class cpu_jit:
     """`jax.jit(fn, static_argnums=..., static_argnames=...)` compiled with `cpu_options` (default
     `LOOP_EMITTERS`) on XLA:CPU when called outside any trace; inside one (a caller's jit, grad,
     vmap) the plain jax.jit, whose program becomes part of the caller's. Other attributes (`lower`,
-    `trace`, ...) are the plain jax.jit's. For programs not kept on disk (`cached_jit` keeps them):
-    the environment bake's, which the loop emitters compile faster and run as fast or faster."""
+    `trace`, ...) are the plain jax.jit's. The environment bake's programs use it (the loop emitters
+    compile them faster and run them as fast), and `cached_jit` for its jax.jit."""
 
     def __init__(self, fn: Callable, *, static_argnums=None, static_argnames=None, cpu_options=None):
         # (None, not (): jax.jit then finds the positions of static_argnames, and the names of
         # static_argnums, in fn's signature)
         options = LOOP_EMITTERS if cpu_options is None else cpu_options
         self._jit = jax.jit(fn, static_argnums=static_argnums, static_argnames=static_argnames)
-        self._jit_cpu = _jit_with(fn, static_argnums, static_argnames, options)
+        self._jit_cpu = _jit_with(fn, static_argnums, static_argnames, options) if options else self._jit
         functools.update_wrapper(self, fn)
 
+    def _jitted(self):
+        """The jax.jit to call: with the options on XLA:CPU outside any trace (inside one the
+        program is part of the caller's, which JAX compiles with the caller's options)."""
+        return self._jit_cpu if jax.default_backend() == "cpu" and trace_state_clean() else self._jit
+
     def __call__(self, *args, **kwargs):
-        on_cpu = jax.default_backend() == "cpu" and trace_state_clean()
-        return (self._jit_cpu if on_cpu else self._jit)(*args, **kwargs)
+        return self._jitted()(*args, **kwargs)
 
     def __getattr__(self, name):
         return getattr(self._jit, name)
@@ -292,8 +296,8 @@ class cached_jit:
         self._static_argnums = tuple(static_argnums) if isinstance(static_argnums, (tuple, list)) else (static_argnums,)
         self._static_argnames = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
         self._cpu_options = dict(cpu_options or {})
-        self._jit = jax.jit(fn, static_argnums=self._static_argnums, static_argnames=self._static_argnames)
-        self._jit_cpu = _jit_with(fn, self._static_argnums, self._static_argnames, self._cpu_options)
+        self._jit = cpu_jit(fn, static_argnums=self._static_argnums, static_argnames=self._static_argnames,
+                            cpu_options=self._cpu_options)
         self._mem: dict[str, object] = {}  # key -> (compiled, out_tree), or None: through jax.jit
         self._lock = threading.Lock()
         _INSTANCES.add(self)
@@ -302,28 +306,21 @@ class cached_jit:
         self.__qualname__ = getattr(fn, "__qualname__", self.__name__)
         self.__doc__ = fn.__doc__
 
-    def _jitted(self):
-        """The jax.jit to call: with `cpu_options` on XLA:CPU outside any trace (inside one the
-        program is part of the caller's, which JAX compiles with the caller's options)."""
-        return self._jit_cpu if jax.default_backend() == "cpu" and trace_state_clean() else self._jit
-
     def lower(self, *args, **kwargs):
-        return self._jitted().lower(*args, **kwargs)
+        return self._jit._jitted().lower(*args, **kwargs)
 
     def _cache_size(self) -> int:
         """Programs this process holds: jax.jit's, plus the ones loaded or stored here."""
-        jits = {id(j): j for j in (self._jit, self._jit_cpu)}.values()
-        return sum(j._cache_size() for j in jits) + sum(1 for v in self._mem.values() if v is not None)
+        return self._jit._cache_size() + sum(1 for v in self._mem.values() if v is not None)
 
     def clear_cache(self) -> None:
         self._jit.clear_cache()
-        self._jit_cpu.clear_cache()
         self._mem.clear()
 
     def __call__(self, *args, **kwargs):
         root = _STATE["dir"]
         if root is None or jax.default_backend() != "cpu":  # (measured and tested on XLA:CPU only)
-            return self._jitted()(*args, **kwargs)
+            return self._jit(*args, **kwargs)
         statics = {i: args[i] for i in self._static_argnums if i < len(args)}
         static_kw = {k: v for k, v in kwargs.items() if k in self._static_argnames}
         dyn = (tuple(a for i, a in enumerate(args) if i not in statics),
@@ -333,7 +330,7 @@ class cached_jit:
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             if ahead:
                 raise NotAhead(f"{self.__name__}: traced arguments")
-            return self._jitted()(*args, **kwargs)
+            return self._jit(*args, **kwargs)
         # Python numbers as the weakly typed arrays jax.jit makes of them (device_put: without an
         # XLA program of its own)
         leaves = [jax.device_put(x) if isinstance(x, (bool, int, float, complex)) else x for x in leaves]
@@ -351,7 +348,7 @@ class cached_jit:
         except _Uncacheable as exc:
             if ahead:
                 raise NotAhead(f"{self.__name__}: {exc}") from None
-            return self._jitted()(*args, **kwargs)
+            return self._jit(*args, **kwargs)
         key = hashlib.sha256("\n".join(parts).encode()).hexdigest()
         if ahead:
             return self._ahead(root, key, len(args), statics, static_kw, leaves, treedef)
@@ -368,7 +365,7 @@ class cached_jit:
                         entry = self._compile(root, key, len(args), statics, static_kw, leaves, treedef)
                     self._mem[key] = entry
         if entry is None:
-            return self._jitted()(*args, **kwargs)
+            return self._jit(*args, **kwargs)
         compiled, out_tree = entry
         try:
             out = compiled(*leaves)
@@ -378,7 +375,7 @@ class cached_jit:
                 self._path(root, key).unlink()
             except OSError:
                 pass
-            return self._jitted()(*args, **kwargs)
+            return self._jit(*args, **kwargs)
         return jax.tree_util.tree_unflatten(out_tree, out)
 
     # -- disk ---------------------------------------------------------------------------------

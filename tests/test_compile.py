@@ -197,7 +197,9 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
                              irradiance=jp.Cubemap(ea.irradiance.levels[0][:, ::2, ::2]),
                              prefiltered=jp.Cubemap(ea.prefiltered.levels[1:], {"lod_blend": "roughness"}))
     img = jp.render(scene(smaller))
-    assert [f._cache_size() for f in stages] == [sizes[0], sizes[1], 0, sizes[3] + 1] and sizes[2] == 0
+    # (counts as deltas: jax.jit's caches are per process, and an earlier test in this worker may
+    # have compiled a sun stage of its own)
+    assert [f._cache_size() for f in stages] == [sizes[0], sizes[1], sizes[2], sizes[3] + 1]
     assert np.isfinite(np.asarray(img)).all()
 
 
