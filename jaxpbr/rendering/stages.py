@@ -711,9 +711,12 @@ def _staged_shadows(segments, scene: Scene, opts: RenderOptions, *args, hit=None
         arrays = _host_arrays(meshes, jnp.dtype(opts.dtype).name)
         hits = [_mesh_occluded(arrays, p["o32"], p["l"], p["tfar"]) for p in parts]
         return shadow_combine(rgb, parts, hits, jnp.dtype(opts.dtype))
-    # Only the pixels that hit a surface are traced (the others show the background).
-    mask = None if hit is None else np.asarray(hit)
-    hits = [None] * len(parts) if arrays is None else [jax.device_put(h) for h in host_mesh_hits(arrays, parts, mask)]
+    if arrays is None:  # (no meshes: the segments alone; under jit the hit mask is traced too)
+        hits = [None] * len(parts)
+    else:
+        # Only the pixels that hit a surface are traced (the others show the background).
+        mask = None if hit is None or _traced(hit) else np.asarray(hit)
+        hits = [jax.device_put(h) for h in host_mesh_hits(arrays, parts, mask)]
     return _combine_jit(rgb, jnp.dtype(opts.dtype).name, parts, hits)
 
 
