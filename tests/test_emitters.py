@@ -8,8 +8,9 @@ they are not compared with each other but with the float64 evaluation of the sam
 neither may be less accurate than the other: each one's largest and root-mean-square relative
 errors are at most twice the other's (two roundings of one computation). An emitter that computes
 something else, or less precisely, fails that; a suite verdict on the loop emitters then holds for
-the fusion emitters. The whole render and the extensions under lights are in the slow set (the
-fusion emitters take 5 to 7 s to compile each of them on 2 cores)."""
+the fusion emitters. The default suite compiles the layered BSDF with every extension both ways; the
+lights and the split sum, the extensions under lights and a whole render are in the slow set (the
+fusion emitters take 3 to 7 s to compile each of them on 2 cores)."""
 
 from __future__ import annotations
 
@@ -100,6 +101,7 @@ def maps():
     return env, jp.irradiance(env, 8), jp.prefilter(env, 16), jp.brdf_lut()
 
 
+@pytest.mark.slow
 def test_lights_and_the_split_sum_are_as_accurate_with_either_emitter(maps):
     """The core material under a point light and a disc light (the code of the render's direct and
     sun stages) plus the split sum with its multiple-scattering compensation (the IBL stage's)."""
