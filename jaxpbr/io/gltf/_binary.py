@@ -376,6 +376,54 @@ class Buffers:
                      "fix the exporter's data (a NaN or infinite vertex attribute cannot be rendered) and re-export")
         return out
 
+    def accessor_of_decoded(self, i, values: np.ndarray, where: str, at: str, *, allowed_types=None,
+                            allowed_components=None, finite: bool = False) -> np.ndarray:
+        """Accessor i filled with `values`, data decompressed elsewhere (KHR_draco_mesh_compression:
+        the accessor describes the data and has no bufferView of its own): the accessor's type and
+        componentType are checked as `accessor` checks them, its count against the values'; integer
+        values are read as the accessor's componentType (normalized ones as float32, as `accessor`
+        returns them), float values as float32."""
+        accessors = self.gltf.accessors or []
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(accessors):
+            fail(self.file, loc(where, at), f"accessor {i!r} does not exist (the file has {len(accessors)})",
+                 "repair or re-export the asset")
+        own = pointer("accessors", i)
+        where = f"{loc(where, at)}: {loc(f'accessor {i}', own)}"
+        a = accessors[i]
+        ctype, atype = get(a, "componentType"), get(a, "type")
+        if allowed_types is not None and atype not in allowed_types:
+            fail(self.file, where, f"has type {atype}, expected {' or '.join(allowed_types)}",
+                 "repair or re-export the asset")
+        if ctype not in COMPONENT_TYPES or (allowed_components is not None and ctype not in allowed_components):
+            names = ", ".join(COMPONENT_NAMES[c] for c in (allowed_components or COMPONENT_TYPES))
+            fail(self.file, where, f"has componentType {COMPONENT_NAMES.get(ctype, ctype)}, expected one of {names}",
+                 "repair or re-export the asset")
+        cols, rows = TYPE_SHAPES.get(atype, (0, 0))
+        values = np.asarray(values)
+        count = len(values)
+        if get(a, "count") != count or (values.size and values.reshape(count, -1).shape[1] != cols * rows):
+            fail(self.file, where, f"describes {get(a, 'count')!r} elements of {atype}, but the decompressed data holds "
+                 f"{count} of {values.reshape(count, -1).shape[1] if count else '?'} components",
+                 "the accessor and the compressed data do not match: re-export the asset")
+        dtype = COMPONENT_TYPES[ctype]
+        if values.dtype.kind == "f":
+            if dtype.kind != "f" and not get(a, "normalized", False):
+                fail(self.file, where, f"is {COMPONENT_NAMES[ctype]} without normalized: true, but the decompressed "
+                     "data holds floating-point values", "the accessor and the compressed data do not match: re-export the asset")
+            out = values.astype(np.float32)
+        else:
+            out = values.astype(dtype)
+            if get(a, "normalized", False) and dtype.kind in "iu":
+                out = _normalize(out)
+        out = out.reshape(count) if atype == "SCALAR" else out.reshape(count, cols * rows)
+        if finite and out.dtype.kind == "f" and not np.isfinite(out).all():
+            bad = ~np.isfinite(out)
+            first = int(np.argmax(bad.reshape(count, -1).any(axis=1)))
+            fail(self.file, where, f"holds {int(bad.sum())} non-finite values among its {out.size} decompressed values, "
+                 f"the first in element {first}", "fix the exporter's data and re-export")
+        out.flags.writeable = False
+        return out
+
     def _decode(self, a, where: str, own: str) -> np.ndarray:
         ctype, atype = get(a, "componentType"), get(a, "type")
         if ctype not in COMPONENT_TYPES:

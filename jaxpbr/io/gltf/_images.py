@@ -1,4 +1,5 @@
-"""glTF images (PNG, JPEG) decoded with OpenImageIO to float32 arrays of the encoded values."""
+"""glTF images (PNG, JPEG, and WebP through EXT_texture_webp) decoded with OpenImageIO to float32 arrays of
+the encoded values."""
 
 from __future__ import annotations
 
@@ -21,8 +22,8 @@ __all__ = ["PER_DECODED_VALUE", "SUPPORTED_MIME_TYPES", "header_shape", "image_s
 #: for a 4096 x 2048 RGB one; rounded up.
 PER_DECODED_VALUE = 12.0
 
-SUPPORTED_MIME_TYPES = ("image/png", "image/jpeg")
-_SUFFIX = {"image/png": ".png", "image/jpeg": ".jpg"}
+SUPPORTED_MIME_TYPES = ("image/png", "image/jpeg", "image/webp")
+_SUFFIX = {"image/png": ".png", "image/jpeg": ".jpg", "image/webp": ".webp"}
 _BY_EXTENSION = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".webp": "image/webp",
                  ".ktx2": "image/ktx2", ".dds": "image/vnd-ms.dds"}
 
@@ -45,12 +46,41 @@ def sniff(data: bytes) -> str | None:
 _SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
 
 
+def _webp_shape(head: bytes) -> tuple[int, int, int] | None:
+    """(H, W, C) of a WebP from its first chunk (RIFF container, WebP container specification):
+    VP8 (lossy: the key frame's 14-bit sizes, RGB), VP8L (lossless: 14-bit sizes minus one and the
+    alpha hint) or VP8X (extended: 24-bit canvas sizes minus one, the alpha flag)."""
+    if len(head) < 30:
+        return None
+    kind = head[12:16]
+    if kind == b"VP8 ":
+        if head[23:26] != b"\x9d\x01\x2a":
+            return None
+        w, h = struct.unpack_from("<HH", head, 26)
+        w, h = w & 0x3FFF, h & 0x3FFF
+        return (h, w, 3) if w and h else None
+    if kind == b"VP8L":
+        if head[20] != 0x2F:
+            return None
+        bits = int.from_bytes(head[21:25], "little")
+        w, h, alpha = (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1, (bits >> 28) & 1
+        return (h, w, 4 if alpha else 3)
+    if kind == b"VP8X":
+        alpha = head[20] & 0x10
+        w = int.from_bytes(head[24:27], "little") + 1
+        h = int.from_bytes(head[27:30], "little") + 1
+        return (h, w, 4 if alpha else 3)
+    return None
+
+
 def header_shape(read) -> tuple[int, int, int] | None:
-    """(H, W, C) of the array a PNG or JPEG decodes to, from its header alone; `read(offset, n)`
-    returns bytes of the image. None when the header is not a PNG's IHDR or a JPEG's frame header
-    (the decoder then refuses the image before it allocates its pixels). A palette PNG counts
-    four channels (RGBA when it has transparency)."""
+    """(H, W, C) of the array a PNG, JPEG or WebP decodes to, from its header alone; `read(offset,
+    n)` returns bytes of the image. None when the header is not a PNG's IHDR, a JPEG's frame header
+    or a WebP's first chunk (the decoder then refuses the image before it allocates its pixels). A
+    palette PNG counts four channels (RGBA when it has transparency)."""
     head = read(0, 33)
+    if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
+        return _webp_shape(head)
     if head[:8] == b"\x89PNG\r\n\x1a\n":
         if len(head) < 26 or head[12:16] != b"IHDR":
             return None
@@ -149,9 +179,9 @@ def _decode(file, where: str, data: bytes, mime: str, path: Path | None) -> np.n
     if mime not in SUPPORTED_MIME_TYPES or (found is not None and found not in SUPPORTED_MIME_TYPES):
         shown = found if found not in SUPPORTED_MIME_TYPES and found is not None else mime
         fail(file, where, f"mime type {shown!r} is not supported (jaxpbr decodes {', '.join(SUPPORTED_MIME_TYPES)})",
-             "convert the image to PNG or JPEG (e.g. with gltf-transform or Blender) and re-export")
+             "convert the image to PNG, JPEG or WebP (e.g. with gltf-transform or Blender) and re-export")
     if found is None:
-        fail(file, where, f"declared as {mime} but its bytes are not a PNG or JPEG image",
+        fail(file, where, f"declared as {mime} but its bytes are not a PNG, JPEG or WebP image",
              "the image is corrupt or mislabelled: re-export the asset")
     mime = found
     if mime == "image/png":
@@ -161,7 +191,7 @@ def _decode(file, where: str, data: bytes, mime: str, path: Path | None) -> np.n
                  "the image file is damaged or was cut short: export or download it again")
     tmp = None
     try:
-        if path is None or path.suffix.lower() not in (".png", ".jpg", ".jpeg") or _BY_EXTENSION[path.suffix.lower()] != mime:
+        if path is None or path.suffix.lower() not in (".png", ".jpg", ".jpeg", ".webp") or _BY_EXTENSION[path.suffix.lower()] != mime:
             fd, tmp = tempfile.mkstemp(suffix=_SUFFIX[mime], prefix="jaxpbr-gltf-")
             with os.fdopen(fd, "wb") as f:
                 f.write(data)

@@ -15,6 +15,7 @@ import numpy as np
 from ...errors import InputError
 from ._binary import Buffers, fail, get, loc, pointer, primitive_attributes
 from ._budget import check_asset_memory
+from ._draco import DracoGeometry, decode_primitive, draco_extension
 from ._geometry import (
     MODE_NAMES,
     face_normals,
@@ -36,7 +37,9 @@ SUPPORTED_EXTENSIONS = (
     "KHR_texture_transform",
     "KHR_lights_punctual",
     "KHR_mesh_quantization",
+    "KHR_draco_mesh_compression",
     "EXT_mesh_gpu_instancing",
+    "EXT_texture_webp",
 )
 
 _FLOATISH = (5120, 5121, 5122, 5123, 5126)  # FLOAT, or integers read as (normalized) numbers
@@ -424,12 +427,16 @@ class _Loader:
                  f"material {i!r} does not exist (the file has {len(self.gltf.materials or [])})", _FIX)
         return i
 
-    def _attribute(self, attrs, name, where, at, types, components):
+    def _attribute(self, attrs, name, where, at, types, components, draco: DracoGeometry | None = None):
         """Attribute `name` of a primitive (`at`: the primitive's pointer) decoded, or None; NaN
-        and infinite values are refused (they would poison the bounds, normals and the render)."""
+        and infinite values are refused (they would poison the bounds, normals and the render).
+        draco: the primitive's decoded Draco geometry, which holds the attributes it names."""
         i = attrs.get(name)
         if i is None:
             return None
+        if draco is not None and name in draco.attributes:
+            return self.buffers.accessor_of_decoded(i, draco.attributes[name], f"{where} {name}", f"{at}/attributes/{name}",
+                                                    allowed_types=types, allowed_components=components, finite=True)
         return self.buffers.accessor(i, f"{where} {name}", f"{at}/attributes/{name}", allowed_types=types,
                                      allowed_components=components, finite=True)
 
@@ -449,17 +456,19 @@ class _Loader:
         if "POSITION" not in attrs:
             self.notes.append(f"{loc(where, at)} has no POSITION attribute and is skipped (as the spec says)")
             return None
-        positions = self._attribute(attrs, "POSITION", where, at, ("VEC3",), _FLOATISH + (5125,))
+        ext = draco_extension(prim)
+        draco = decode_primitive(self.buffers, ext, self.path, where, at, mode) if ext is not None else None
+        positions = self._attribute(attrs, "POSITION", where, at, ("VEC3",), _FLOATISH + (5125,), draco)
         positions = np.asarray(positions, np.float64)
         n = positions.shape[0]
-        normals = self._attribute(attrs, "NORMAL", where, at, ("VEC3",), _FLOATISH)
-        tangents = self._attribute(attrs, "TANGENT", where, at, ("VEC4",), _FLOATISH)
+        normals = self._attribute(attrs, "NORMAL", where, at, ("VEC3",), _FLOATISH, draco)
+        tangents = self._attribute(attrs, "TANGENT", where, at, ("VEC4",), _FLOATISH, draco)
         texcoords = {}
         for s in (0, 1):
-            uv = self._attribute(attrs, f"TEXCOORD_{s}", where, at, ("VEC2",), _FLOATISH)
+            uv = self._attribute(attrs, f"TEXCOORD_{s}", where, at, ("VEC2",), _FLOATISH, draco)
             if uv is not None:
                 texcoords[s] = np.asarray(uv, np.float32)
-        color = self._attribute(attrs, "COLOR_0", where, at, ("VEC3", "VEC4"), (5121, 5123, 5126))
+        color = self._attribute(attrs, "COLOR_0", where, at, ("VEC3", "VEC4"), (5121, 5123, 5126), draco)
         for name, arr in (("NORMAL", normals), ("TANGENT", tangents), ("COLOR_0", color)):
             if arr is not None and arr.dtype.kind != "f":
                 fail(self.path, f"{loc(f'{where} {name}', f'{at}/attributes/{name}')}: "
@@ -474,7 +483,17 @@ class _Loader:
             color = np.asarray(color, np.float32)
             if color.shape[1] == 3:
                 color = np.concatenate([color, np.ones((n, 1), np.float32)], axis=1)
-        if get(prim, "indices") is not None:
+        if draco is not None:
+            # The triangles as decoded; an `indices` accessor describes them (count, type).
+            idx = draco.indices
+            if get(prim, "indices") is not None:
+                self.buffers.accessor_of_decoded(get(prim, "indices"), idx, f"{where} indices", f"{at}/indices",
+                                                 allowed_types=("SCALAR",), allowed_components=(5121, 5123, 5125))
+            if idx.size and idx.max() >= n:
+                fail(self.path, loc(f"{where} indices", f"{at}/extensions/KHR_draco_mesh_compression"),
+                     f"the decoded triangles index vertex {int(idx.max())}, but POSITION has {n}",
+                     "the accessors and the compressed data do not match: re-export the asset")
+        elif get(prim, "indices") is not None:
             ia = get(prim, "indices")
             idx = self.buffers.accessor(ia, f"{where} indices", f"{at}/indices", allowed_types=("SCALAR",),
                                         allowed_components=(5121, 5123, 5125))

@@ -131,15 +131,19 @@ class MaterialReader:
             fail(self.file, loc(where, at + "/index"), f"texture {index!r} does not exist (the file has {len(textures)})",
                  "repair or re-export the asset")
         tex = textures[index]
-        source = get(tex, "source")
+        # EXT_texture_webp names a WebP image, preferred to `source` (its PNG/JPEG fallback, if any).
+        webp = (get(tex, "extensions", {}) or {}).get("EXT_texture_webp")
+        source, source_at = get(tex, "source"), pointer("textures", index, "source")
+        if webp is not None:
+            source, source_at = get(webp, "source"), pointer("textures", index, "extensions", "EXT_texture_webp", "source")
         if source is None:
             exts = sorted(get(tex, "extensions", {}) or {})
-            self.notes.append(f"{loc(where, at)}: texture {index} has no PNG/JPEG source"
+            self.notes.append(f"{loc(where, at)}: texture {index} has no PNG/JPEG/WebP source"
                               + (f" (only {', '.join(exts)})" if exts else "") + "; the slot is dropped")
             return None
         images = self.gltf.images or []
         if not isinstance(source, int) or isinstance(source, bool) or not 0 <= source < len(images):
-            fail(self.file, f"{loc(where, at)}: {loc(f'texture {index}', pointer('textures', index, 'source'))}",
+            fail(self.file, f"{loc(where, at)}: {loc(f'texture {index}', source_at)}",
                  f"image {source!r} does not exist (the file has {len(images)})", "repair or re-export the asset")
         texcoord = get(info, "texCoord", 0)
         tc_at = at + "/texCoord"

@@ -1,0 +1,280 @@
+"""Compressed glTF content: KHR_draco_mesh_compression (geometry) and EXT_texture_webp (images).
+
+The fixtures are written here: a UV sphere encoded with DracoPy (Google's Draco encoder) and WebP
+textures encoded with OpenImageIO (libwebp), each checked with the Khronos glTF-Validator when it
+is installed. The oracle is the data that was encoded: the sphere's positions, normals, texture
+coordinates and colours (to within the quantization the encoder was asked for) and the texels of
+lossless WebP images (exactly)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from gltf_writer import (
+    FLOAT,
+    UBYTE,
+    USHORT,
+    Builder,
+    assert_valid,
+    png_bytes,
+    uv_sphere,
+)
+
+from jaxpbr.errors import InputError
+from jaxpbr.io.gltf import read_gltf
+from jaxpbr.io.gltf._images import header_shape
+
+DracoPy = pytest.importorskip("DracoPy")
+
+DRACO = "KHR_draco_mesh_compression"
+#: Quantization bits of the encoded sphere, and the tolerances they give (a unit sphere: positions
+#: span 2, texture coordinates 1; normals are octahedral, about pi / 2^bits per axis).
+BITS = 14
+TOL_POS = 1.5 * 2.0 / (2**BITS - 1)
+TOL_UV = 1.5 * 1.0 / (2**BITS - 1)
+TOL_N = 4.0 * np.pi / 2**BITS
+
+
+def _sphere():
+    pos, nrm, uv, tri = uv_sphere(12, 24)
+    rng = np.random.default_rng(7)
+    col = rng.integers(0, 256, (len(pos), 4), dtype=np.uint8)
+    return pos.astype(np.float32), nrm.astype(np.float64), uv.astype(np.float64), tri.astype(np.uint32), col
+
+
+def draco_sphere(out: Path, *, preserve_order=False, uv1=False, colors=True, mode="glb", edit=None):
+    """A Draco-compressed sphere (POSITION, NORMAL, TEXCOORD_0, COLOR_0 as normalized UNSIGNED_BYTE)
+    and the arrays that were encoded. uv1: a TEXCOORD_1 stored uncompressed beside it (the original
+    order: pass preserve_order). colors=False: no COLOR_0. edit(doc, ids): a change to the
+    document before it is written."""
+    pos, nrm, uv, tri, col = _sphere()
+    data = DracoPy.encode(pos, tri, normals=nrm, tex_coord=uv, colors=col if colors else None, quantization_bits=BITS,
+                          normal_quantization_bits=BITS, tex_coord_quantization_bits=BITS, preserve_order=preserve_order)
+    decoded = DracoPy.decode(data)
+    ids = {a["attribute_type"]: a["unique_id"] for a in decoded.attributes}
+    n = len(decoded.points)
+    b = Builder()
+    view = b.view(data)
+    attrs = {
+        "POSITION": b.add("accessors", {"componentType": FLOAT, "type": "VEC3", "count": n,
+                                        "min": decoded.points.min(0).tolist(), "max": decoded.points.max(0).tolist()}),
+        "NORMAL": b.add("accessors", {"componentType": FLOAT, "type": "VEC3", "count": n}),
+        "TEXCOORD_0": b.add("accessors", {"componentType": FLOAT, "type": "VEC2", "count": n}),
+    }
+    if colors:
+        attrs["COLOR_0"] = b.add("accessors", {"componentType": UBYTE, "type": "VEC4", "count": n, "normalized": True})
+    uv1_values = None
+    if uv1:
+        uv1_values = np.stack([pos[:, 0] * 0.5 + 0.5, pos[:, 2] * 0.25], 1).astype(np.float32)
+        attrs["TEXCOORD_1"] = b.accessor(uv1_values, FLOAT, "VEC2")
+    ind = b.add("accessors", {"componentType": USHORT, "type": "SCALAR", "count": int(decoded.faces.size)})
+    names = {"POSITION": ids[0], "NORMAL": ids[1], "TEXCOORD_0": ids[3], **({"COLOR_0": ids[2]} if colors else {})}
+    prim = {"attributes": attrs, "indices": ind, "mode": 4, "extensions": {DRACO: {"bufferView": view, "attributes": names}}}
+    mesh = b.add("meshes", {"name": "sphere", "primitives": [prim]})
+    b.add("scenes", {"nodes": [b.add("nodes", {"mesh": mesh})]})
+    b.doc["scene"] = 0
+    b.used(DRACO, required=(DRACO,))
+    if edit is not None:
+        edit(b.doc, names)
+    path = b.write(Path(out) / f"sphere_draco.{'glb' if mode == 'glb' else 'gltf'}", mode=mode)
+    return path, {"pos": pos, "nrm": nrm, "uv": uv, "tri": tri, "col": col, "uv1": uv1_values, "decoded_points": n}
+
+
+def _nearest(a, b):
+    """For each row of a, the index of the nearest row of b, and the distance."""
+    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
+    k = d.argmin(1)
+    return k, d[np.arange(len(a)), k]
+
+
+@pytest.mark.parametrize("mode", ["glb", "bin"])
+def test_draco_sphere_is_the_encoded_mesh(tmp_path, mode):
+    path, ref = draco_sphere(tmp_path, mode=mode)
+    assert_valid(path)
+    asset = read_gltf(path)
+    (p,) = asset.primitives
+    assert len(p.positions) == ref["decoded_points"]
+    # Every decoded triangle is one of the encoded ones, corners in the same cyclic order (the
+    # winding), and every encoded triangle is found once.
+    tri_d = p.positions[p.indices]  # (T, 3, 3)
+    tri_r = ref["pos"][ref["tri"]].astype(np.float64)
+    assert tri_d.shape == tri_r.shape
+    k, dist = _nearest(tri_d.mean(1), tri_r.mean(1))
+    assert dist.max() <= TOL_POS and len(set(k.tolist())) == len(k)
+    match = tri_r[k]
+    cyc = np.array([min(np.abs(np.roll(tri_d[i], s, axis=0) - match[i]).max() for s in range(3)) for i in range(len(k))])
+    assert cyc.max() <= TOL_POS
+    # Each decoded vertex against the encoded vertex nearest in position and texture coordinate
+    # (the seam's vertices share positions): normals, coordinates and colours.
+    key_d = np.concatenate([p.positions, p.texcoord_0], 1)
+    key_r = np.concatenate([ref["pos"], ref["uv"]], 1)
+    j, dist = _nearest(key_d, key_r)
+    assert dist.max() <= 2 * TOL_POS
+    assert np.abs(p.texcoord_0 - ref["uv"][j]).max() <= TOL_UV
+    assert np.abs(p.normals - ref["nrm"][j]).max() <= TOL_N
+    np.testing.assert_array_equal(p.color_0, (ref["col"][j] / 255.0).astype(np.float32))
+
+
+def test_draco_keeps_uncompressed_attributes_beside_it(tmp_path):
+    path, ref = draco_sphere(tmp_path, preserve_order=True, uv1=True)
+    assert_valid(path)
+    (p,) = read_gltf(path).primitives
+    # preserve_order: Draco kept the vertices in their order, so the uncompressed TEXCOORD_1 (read
+    # from its accessor, as the spec says for attributes the extension does not name) lines up.
+    assert np.abs(p.positions - ref["pos"]).max() <= TOL_POS
+    np.testing.assert_array_equal(p.texcoord_1, ref["uv1"])
+    np.testing.assert_array_equal(np.sort(p.indices, axis=1), np.sort(ref["tri"].astype(np.int64), axis=1))
+
+
+def test_draco_renders_as_the_uncompressed_sphere(tmp_path):
+    from gltf_writer import Writer
+
+    import jaxpbr as jp
+
+    path, ref = draco_sphere(tmp_path, colors=False)
+    w = Writer()
+    w.node(mesh=w.mesh(ref["pos"], ref["tri"], normals=ref["nrm"].astype(np.float32), uv=ref["uv"].astype(np.float32)))
+    plain = w.save(tmp_path / "sphere_plain.glb")
+    cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), fov_y_deg=40.0, width=40, height=40)
+    light = jp.PointLight(position=(2.0, 3.0, 4.0), color=(1.0, 1.0, 1.0), intensity=30.0)
+    imgs = []
+    for f in (path, plain):
+        scene = jp.load_gltf(f, camera=cam, width=40, height=40, lights=(light,))
+        imgs.append(np.asarray(jp.render(scene)))
+    a, b = imgs
+    assert np.isfinite(a).all() and b.max() > 0.05
+    # The difference is the quantization (positions 1.2e-4, normals ~2e-4 rad): 0.08 % of the
+    # brightest pixel measured.
+    assert np.abs(a - b).max() <= 0.005 * b.max()
+
+
+def _expect_error(path, *fragments):
+    with pytest.raises(InputError) as e:
+        read_gltf(path)
+    msg = str(e.value)
+    assert "\n" not in msg
+    for f in fragments:
+        assert f in msg, msg
+    return msg
+
+
+def test_draco_bad_input_names_the_pointer(tmp_path):
+    ext = "/meshes/0/primitives/0/extensions/KHR_draco_mesh_compression"
+    # damaged data: the bufferView holds half of the Draco bytes
+    def cut(doc, ids):
+        doc["bufferViews"][0]["byteLength"] //= 2
+    (tmp_path / "cut").mkdir()
+    path, _ = draco_sphere(tmp_path / "cut", edit=cut)
+    _expect_error(path, ext + "/bufferView", "do not decode as Draco geometry")
+    # an attribute id the data does not hold
+    def bad_id(doc, ids):
+        doc["meshes"][0]["primitives"][0]["extensions"][DRACO]["attributes"]["NORMAL"] = 77
+    (tmp_path / "id").mkdir()
+    path, _ = draco_sphere(tmp_path / "id", edit=bad_id)
+    _expect_error(path, ext + "/attributes/NORMAL", "Draco attribute 77", "does not hold")
+    # an accessor whose count is not the decoded data's
+    def bad_count(doc, ids):
+        doc["accessors"][1]["count"] += 3
+    (tmp_path / "count").mkdir()
+    path, _ = draco_sphere(tmp_path / "count", edit=bad_count)
+    _expect_error(path, "/meshes/0/primitives/0/attributes/NORMAL", "/accessors/1", "decompressed data")
+    # strips are not decoded
+    def strip(doc, ids):
+        doc["meshes"][0]["primitives"][0]["mode"] = 5
+    (tmp_path / "strip").mkdir()
+    path, _ = draco_sphere(tmp_path / "strip", edit=strip)
+    _expect_error(path, "/meshes/0/primitives/0/mode", "TRIANGLES")
+
+
+# ---------------------------------------------------------------------------------------------
+# EXT_texture_webp
+# ---------------------------------------------------------------------------------------------
+def webp_bytes(pixels: np.ndarray, *, lossless=True, quality=90) -> bytes:
+    """uint8 (H, W, C) pixels encoded as WebP by OpenImageIO (libwebp); straight alpha."""
+    import tempfile
+
+    import OpenImageIO as oiio
+
+    H, W, C = pixels.shape
+    with tempfile.TemporaryDirectory() as d:
+        f = str(Path(d) / "t.webp")
+        out = oiio.ImageOutput.create(f)
+        spec = oiio.ImageSpec(W, H, C, oiio.UINT8)
+        spec.attribute("compression", "lossless" if lossless else f"webp:{quality}")
+        spec.attribute("oiio:UnassociatedAlpha", 1)
+        assert out.open(f, spec), oiio.geterror()
+        out.write_image(np.ascontiguousarray(pixels))
+        out.close()
+        return Path(f).read_bytes()
+
+
+def _textured_quad(b: Builder, texture: int):
+    pos = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float32)
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)
+    attrs = {"POSITION": b.accessor(pos, FLOAT, "VEC3", minmax=True), "NORMAL": b.accessor(np.tile([0, 0, 1], (4, 1)), FLOAT, "VEC3"),
+             "TEXCOORD_0": b.accessor(uv, FLOAT, "VEC2")}
+    ind = b.accessor(np.array([0, 1, 2, 0, 2, 3], np.uint16), USHORT, "SCALAR")
+    mat = b.add("materials", {"pbrMetallicRoughness": {"baseColorTexture": {"index": texture}}})
+    mesh = b.add("meshes", {"primitives": [{"attributes": attrs, "indices": ind, "material": mat}]})
+    b.add("scenes", {"nodes": [b.add("nodes", {"mesh": mesh})]})
+    b.doc["scene"] = 0
+
+
+@pytest.mark.parametrize("channels", [3, 4])
+def test_webp_texture_preferred_to_its_fallback(tmp_path, channels):
+    rng = np.random.default_rng(channels)
+    px = rng.integers(0, 256, (6, 10, channels), dtype=np.uint8)
+    if channels == 4:
+        px[..., 3] = rng.integers(1, 256, (6, 10))  # (straight alpha; no texel fully transparent)
+    b = Builder()
+    fallback = b.add("images", {"bufferView": b.view(png_bytes(np.zeros((2, 2, 3), np.uint8))), "mimeType": "image/png"})
+    webp = b.add("images", {"bufferView": b.view(webp_bytes(px)), "mimeType": "image/webp"})
+    tex = b.add("textures", {"source": fallback, "extensions": {"EXT_texture_webp": {"source": webp}}})
+    _textured_quad(b, tex)
+    b.used("EXT_texture_webp")
+    path = b.write(tmp_path / "webp.glb", mode="glb")
+    assert_valid(path)
+    asset = read_gltf(path)
+    ref = asset.materials[0].textures["base_color"]
+    assert ref.image == webp
+    assert asset.images[webp].mime_type == "image/webp"
+    np.testing.assert_array_equal(np.round(asset.images[webp].pixels * 255).astype(np.uint8), px)
+
+
+def test_webp_only_texture_when_required(tmp_path):
+    px = np.arange(4 * 5 * 3, dtype=np.uint8).reshape(4, 5, 3) * 3
+    b = Builder()
+    webp = b.add("images", {"bufferView": b.view(webp_bytes(px)), "mimeType": "image/webp"})
+    tex = b.add("textures", {"extensions": {"EXT_texture_webp": {"source": webp}}})
+    _textured_quad(b, tex)
+    b.used("EXT_texture_webp", required=("EXT_texture_webp",))
+    path = b.write(tmp_path / "webp_only.gltf", mode="data")
+    assert_valid(path)
+    asset = read_gltf(path)
+    assert asset.materials[0].textures["base_color"].image == webp
+    # a source that does not exist is named by its pointer
+    b.doc["textures"][0]["extensions"]["EXT_texture_webp"]["source"] = 9
+    bad = b.write(tmp_path / "webp_bad.gltf", mode="data")
+    _expect_error(bad, "/textures/0/extensions/EXT_texture_webp/source", "image 9 does not exist")
+
+
+@pytest.mark.parametrize("channels,lossless", [(3, True), (4, True), (3, False), (4, False)])
+def test_webp_header_shape(channels, lossless):
+    """The (H, W, C) read from a WebP's first chunk (VP8L lossless, VP8 lossy, VP8X lossy with
+    alpha) is the decoded image's, before any pixel is decoded (the memory guard's estimate)."""
+    import tempfile
+
+    import OpenImageIO as oiio
+
+    px = np.full((37, 53, channels), 200, np.uint8)
+    data = webp_bytes(px, lossless=lossless)
+    assert header_shape(lambda o, n: data[o : o + n]) == (37, 53, channels)
+    with tempfile.TemporaryDirectory() as d:
+        f = Path(d) / "t.webp"
+        f.write_bytes(data)
+        inp = oiio.ImageInput.open(str(f))
+        spec = inp.spec()
+        inp.close()
+    assert (spec.height, spec.width, spec.nchannels) == (37, 53, channels)
