@@ -230,6 +230,31 @@ def png_bytes(pixels: np.ndarray) -> bytes:
 
 
 # ---------------------------------------------------------------------------------------------
+# gltf-transform (npm @gltf-transform/cli): an independent writer of compressed glTF content
+# ---------------------------------------------------------------------------------------------
+#: The gltf-transform command line: JAXPBR_GLTF_TRANSFORM, else the checkout's node_modules
+#: (`npm install --no-save @gltf-transform/cli`, as .ci/run does). Its `draco` command encodes with
+#: draco3dgltf (Google's encoder built for JavaScript), its `webp` command with sharp (libwebp).
+_GLTF_TRANSFORM = Path(os.environ.get("JAXPBR_GLTF_TRANSFORM", Path(__file__).resolve().parent.parent / "node_modules" / ".bin" / "gltf-transform"))
+
+
+def gltf_transform_missing() -> str | None:
+    """Why gltf-transform cannot run here (None when it can)."""
+    if shutil.which("node") is None:
+        return "node is not installed"
+    if not _GLTF_TRANSFORM.exists():
+        return f"the npm package @gltf-transform/cli is not installed ({_GLTF_TRANSFORM}; npm install --no-save @gltf-transform/cli)"
+    return None
+
+
+def gltf_transform(*args) -> None:
+    """Run `gltf-transform ARGS` (raises with its output when it fails)."""
+    run = subprocess.run([str(_GLTF_TRANSFORM), *map(str, args)], check=False, capture_output=True, text=True, timeout=180)
+    if run.returncode != 0:
+        raise RuntimeError(f"gltf-transform {' '.join(map(str, args))} failed: {run.stdout}{run.stderr}")
+
+
+# ---------------------------------------------------------------------------------------------
 # The Khronos validator (run when node and the gltf-validator package are there)
 # ---------------------------------------------------------------------------------------------
 # The Khronos glTF Validator (npm package gltf-validator): JAXPBR_GLTF_VALIDATOR, else the

@@ -4,20 +4,25 @@ The fixtures are written here: a UV sphere encoded with DracoPy (Google's Draco 
 textures encoded with OpenImageIO (libwebp), each checked with the Khronos glTF-Validator when it
 is installed. The oracle is the data that was encoded: the sphere's positions, normals, texture
 coordinates and colours (to within the quantization the encoder was asked for) and the texels of
-lossless WebP images (exactly)."""
+lossless WebP images (exactly). Where the npm package @gltf-transform/cli is installed (CI installs
+it), assets compressed by that independent writer are read against their uncompressed originals."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import DracoPy
 import numpy as np
 import pytest
+from gltf_assets import sphere_grid, textured_cube
 from gltf_writer import (
     FLOAT,
     UBYTE,
     USHORT,
     Builder,
     assert_valid,
+    gltf_transform,
+    gltf_transform_missing,
     png_bytes,
     uv_sphere,
 )
@@ -25,8 +30,6 @@ from gltf_writer import (
 from jaxpbr.errors import InputError
 from jaxpbr.io.gltf import read_gltf
 from jaxpbr.io.gltf._images import header_shape
-
-DracoPy = pytest.importorskip("DracoPy")
 
 DRACO = "KHR_draco_mesh_compression"
 #: Quantization bits of the encoded sphere, and the tolerances they give (a unit sphere: positions
@@ -278,3 +281,50 @@ def test_webp_header_shape(channels, lossless):
         spec = inp.spec()
         inp.close()
     assert (spec.height, spec.width, spec.nchannels) == (37, 53, channels)
+
+
+# ---------------------------------------------------------------------------------------------
+# Files compressed by an independent writer (gltf-transform)
+# ---------------------------------------------------------------------------------------------
+def _triangles(asset):
+    """Per primitive, the world-space triangles (T, 3, 3) float64."""
+    return [p.positions[p.indices].astype(np.float64) for p in asset.primitives]
+
+
+def test_gltf_transform_draco_reads_as_the_original(tmp_path):
+    why = gltf_transform_missing()
+    if why:
+        pytest.skip(why)
+    for make in (sphere_grid, textured_cube):
+        src = make(tmp_path)
+        out = tmp_path / f"{src.stem}_draco.glb"
+        gltf_transform("draco", src, out, "--quantize-position", BITS)
+        assert_valid(out)
+        a, c = read_gltf(src), read_gltf(out)
+        assert "KHR_draco_mesh_compression" in c.extensions_used
+        assert len(a.primitives) == len(c.primitives)
+        span = max(float(np.ptp(np.concatenate([p.positions for p in a.primitives]), axis=0).max()), 1e-9)
+        for pa, pc, ta, tc in zip(a.primitives, c.primitives, _triangles(a), _triangles(c), strict=True):
+            assert ta.shape == tc.shape
+            # each compressed triangle is an original one (the encoder may reorder them), within
+            # the quantization of the primitive's bounding box (1.5 steps of the mesh's span)
+            k, dist = _nearest(tc.mean(1), ta.mean(1))
+            tol = 1.5 * span / (2**BITS - 1)
+            assert dist.max() <= tol and len(set(k.tolist())) == len(k)
+            cyc = [min(np.abs(np.roll(tc[i], s, axis=0) - ta[k[i]]).max() for s in range(3)) for i in range(len(k))]
+            assert max(cyc) <= tol
+            assert (pc.texcoord_0 is None) == (pa.texcoord_0 is None)
+
+
+def test_gltf_transform_webp_lossless_reads_as_the_original(tmp_path):
+    why = gltf_transform_missing()
+    if why:
+        pytest.skip(why)
+    src = textured_cube(tmp_path)
+    out = tmp_path / "cube_webp.glb"
+    gltf_transform("webp", src, out, "--lossless", "true")
+    assert_valid(out)
+    a, c = read_gltf(src), read_gltf(out)
+    assert "EXT_texture_webp" in c.extensions_used and [im.mime_type for im in c.images] == ["image/webp"]
+    for ia, ic in zip(a.images, c.images, strict=True):
+        np.testing.assert_array_equal(ic.pixels, ia.pixels)
