@@ -87,9 +87,16 @@ def draco_sphere(out: Path, *, preserve_order=False, uv1=False, colors=True, mod
 
 def _nearest(a, b):
     """For each row of a, the index of the nearest row of b, and the distance."""
-    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
-    k = d.argmin(1)
-    return k, d[np.arange(len(a)), k]
+    from scipy.spatial import cKDTree
+
+    dist, k = cKDTree(b).query(a)
+    return k, dist
+
+
+def _cyclic_error(t, r):
+    """Per triangle, the smallest max-abs difference between the corners of t (T, 3, C) and of r
+    over the three cyclic rotations (the same triangle and winding, whichever corner comes first)."""
+    return np.min([np.abs(np.roll(t, s, axis=1) - r).reshape(len(t), -1).max(1) for s in range(3)], axis=0)
 
 
 @pytest.mark.parametrize("mode", ["glb", "bin"])
@@ -107,8 +114,7 @@ def test_draco_sphere_is_the_encoded_mesh(tmp_path, mode):
     k, dist = _nearest(tri_d.mean(1), tri_r.mean(1))
     assert dist.max() <= TOL_POS and len(set(k.tolist())) == len(k)
     match = tri_r[k]
-    cyc = np.array([min(np.abs(np.roll(tri_d[i], s, axis=0) - match[i]).max() for s in range(3)) for i in range(len(k))])
-    assert cyc.max() <= TOL_POS
+    assert _cyclic_error(tri_d, match).max() <= TOL_POS
     # Each decoded vertex against the encoded vertex nearest in position and texture coordinate
     # (the seam's vertices share positions): normals, coordinates and colours.
     key_d = np.concatenate([p.positions, p.texcoord_0], 1)
@@ -311,8 +317,7 @@ def test_gltf_transform_draco_reads_as_the_original(tmp_path):
             k, dist = _nearest(tc.mean(1), ta.mean(1))
             tol = 1.5 * span / (2**BITS - 1)
             assert dist.max() <= tol and len(set(k.tolist())) == len(k)
-            cyc = [min(np.abs(np.roll(tc[i], s, axis=0) - ta[k[i]]).max() for s in range(3)) for i in range(len(k))]
-            assert max(cyc) <= tol
+            assert _cyclic_error(tc, ta[k]).max() <= tol
             assert (pc.texcoord_0 is None) == (pa.texcoord_0 is None)
 
 
@@ -328,3 +333,66 @@ def test_gltf_transform_webp_lossless_reads_as_the_original(tmp_path):
     assert "EXT_texture_webp" in c.extensions_used and [im.mime_type for im in c.images] == ["image/webp"]
     for ia, ic in zip(a.images, c.images, strict=True):
         np.testing.assert_array_equal(ic.pixels, ia.pixels)
+
+
+#: gltf-transform pipelines whose output jaxpbr reads: KHR_mesh_quantization in an interleaved
+#: vertex buffer; its `optimize` (deduplication, flattening, joining the 49 spheres into one
+#: primitive, welding, a palette texture for their 49 materials, pruning) with Draco compression.
+PIPELINES = {
+    "quantize-interleaved": ("quantize", "--vertex-layout", "interleaved"),
+    "optimize-draco": ("optimize", "--compress", "draco", "--simplify", "false", "--texture-compress", "false"),
+}
+
+
+def _transformed(tmp_path, name):
+    why = gltf_transform_missing()
+    if why:
+        pytest.skip(why)
+    src = sphere_grid(tmp_path)
+    out = tmp_path / f"grid_{name}.glb"
+    cmd, *opts = PIPELINES[name]
+    gltf_transform(cmd, src, out, *opts)
+    assert_valid(out)
+    return src, out
+
+
+@pytest.mark.parametrize("name", list(PIPELINES))
+def test_gltf_transform_pipeline_keeps_the_surfaces(tmp_path, name):
+    src, out = _transformed(tmp_path, name)
+    a, c = read_gltf(src), read_gltf(out)
+    ta, tc = np.concatenate(_triangles(a)), np.concatenate(_triangles(c))
+    assert ta.shape == tc.shape
+    # Every triangle, in world space, is an original one with its winding, within the positions'
+    # quantization (14 bits over the largest mesh's span, 2.0, or the joined mesh's, 6.8).
+    tol = 1.5 * 6.8 / (2**14 - 1)
+    k, dist = _nearest(tc.mean(1), ta.mean(1))
+    assert dist.max() <= tol and len(set(k.tolist())) == len(k)
+    assert _cyclic_error(tc, ta[k]).max() <= tol
+    # and the shading normals at its corners are the original's (10-bit quantization: 2e-3 rad),
+    # corner for corner (positions and normals side by side)
+    na = np.concatenate([p.normals[p.indices] for p in a.primitives])[k]
+    nc = np.concatenate([p.normals[p.indices] for p in c.primitives])
+    err = _cyclic_error(np.concatenate([tc / tol, nc / 4e-3], -1), np.concatenate([ta[k] / tol, na / 4e-3], -1))
+    assert err.max() <= 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(PIPELINES))
+def test_gltf_transform_pipeline_renders_as_the_original(tmp_path, name):
+    """The same image: for optimize, the 49 materials come from the palette texture it made."""
+    import jaxpbr as jp
+
+    src, out = _transformed(tmp_path, name)
+    cam = jp.Camera(position=(0.0, 0.0, 15.0), target=(0.0, 0.0, 0.0), fov_y_deg=30.0, width=64, height=64)
+    light = jp.PointLight(position=(5.0, 8.0, 20.0), color=(1.0, 1.0, 1.0), intensity=3000.0)
+    a, c = (np.asarray(jp.render(jp.load_gltf(f, camera=cam, width=64, height=64, lights=(light,)))) for f in (src, out))
+    hit_a, hit_c = a.max(-1) > 0, c.max(-1) > 0
+    # Silhouette pixels whose centres lie within the positions' quantization of an edge may change
+    # sides: a few of the 4096.
+    assert (hit_a != hit_c).mean() <= 0.01
+    both = hit_a & hit_c
+    rel = np.abs(c - a).max(-1)[both] / a.max(-1)[both]
+    # Elsewhere the normals' 10-bit quantization, and for optimize the palette's 8-bit texels for the
+    # materials' factors (base colour in sRGB, metallic, roughness). Measured: median 0.05 % and
+    # 0.19 %, 90th percentile 0.19 % and 1.0 %.
+    assert np.median(rel) <= 0.005 and np.percentile(rel, 90) <= 0.02
