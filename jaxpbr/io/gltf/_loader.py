@@ -249,8 +249,8 @@ class _Loader:
             fail(self.path, loc("extensionsRequired", "/extensionsRequired"),
                  f"needs {named}, "
                  f"which jaxpbr does not implement (supported: {', '.join(SUPPORTED_EXTENSIONS)})",
-                 "re-export without those extensions (e.g. decompress Draco/meshopt and convert KTX2/WebP "
-                 "textures with gltf-transform), or make them optional")
+                 "re-export without those extensions (e.g. with gltf-transform: meshopt-compressed geometry as "
+                 "plain or Draco, KTX2 textures as PNG, JPEG or WebP), or make them optional")
         ignored = [e for e in used if e not in SUPPORTED_EXTENSIONS]
         if ignored:
             self.notes.append(f"extensionsUsed not implemented, ignored: {', '.join(ignored)} "
