@@ -189,6 +189,13 @@ def test_draco_bad_input_names_the_pointer(tmp_path):
     (tmp_path / "count").mkdir()
     path, _ = draco_sphere(tmp_path / "count", edit=bad_count)
     _expect_error(path, "/meshes/0/primitives/0/attributes/NORMAL", "/accessors/1", "decompressed data")
+    # an accessor type too narrow for the decoded values (colours stored as 8-bit: indices as
+    # UNSIGNED_BYTE cannot hold the 325 vertices' ids)
+    def narrow(doc, ids):
+        doc["accessors"][doc["meshes"][0]["primitives"][0]["indices"]]["componentType"] = UBYTE
+    (tmp_path / "narrow").mkdir()
+    path, _ = draco_sphere(tmp_path / "narrow", edit=narrow)
+    _expect_error(path, "/meshes/0/primitives/0/indices", "UNSIGNED_BYTE", "decompressed data holds values in [0, ")
     # strips are not decoded
     def strip(doc, ids):
         doc["meshes"][0]["primitives"][0]["mode"] = 5

@@ -412,6 +412,10 @@ class Buffers:
                      "data holds floating-point values", "the accessor and the compressed data do not match: re-export the asset")
             out = values.astype(np.float32)
         else:
+            info = np.iinfo(dtype) if dtype.kind in "iu" else None
+            if info is not None and values.size and (int(values.min()) < info.min or int(values.max()) > info.max):
+                fail(self.file, where, f"is {COMPONENT_NAMES[ctype]}, but the decompressed data holds values in "
+                     f"[{int(values.min())}, {int(values.max())}]", "the accessor and the compressed data do not match: re-export the asset")
             out = values.astype(dtype)
             if get(a, "normalized", False) and dtype.kind in "iu":
                 out = _normalize(out)
