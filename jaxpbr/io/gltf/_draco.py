@@ -35,8 +35,7 @@ class DracoGeometry:
 
 def draco_extension(prim) -> dict | None:
     """The primitive's KHR_draco_mesh_compression object, or None."""
-    ext = (get(prim, "extensions", {}) or {}).get(EXTENSION)
-    return ext if ext is not None else None
+    return (get(prim, "extensions", {}) or {}).get(EXTENSION)
 
 
 def decode_primitive(buffers, ext, file, where: str, at: str, mode: int) -> DracoGeometry:
