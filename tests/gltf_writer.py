@@ -238,13 +238,18 @@ def png_bytes(pixels: np.ndarray) -> bytes:
 _GLTF_TRANSFORM = Path(os.environ.get("JAXPBR_GLTF_TRANSFORM", Path(__file__).resolve().parent.parent / "node_modules" / ".bin" / "gltf-transform"))
 
 
-def gltf_transform_missing() -> str | None:
-    """Why gltf-transform cannot run here (None when it can)."""
+def _npm_missing(path: Path, package: str) -> str | None:
+    """Why the npm `package` installed at `path` cannot run here (None when it can)."""
     if shutil.which("node") is None:
         return "node is not installed"
-    if not _GLTF_TRANSFORM.exists():
-        return f"the npm package @gltf-transform/cli is not installed ({_GLTF_TRANSFORM}; npm install --no-save @gltf-transform/cli)"
+    if not path.exists():
+        return f"the npm package {package} is not installed ({path}; npm install --no-save {package})"
     return None
+
+
+def gltf_transform_missing() -> str | None:
+    """Why gltf-transform cannot run here (None when it can)."""
+    return _npm_missing(_GLTF_TRANSFORM, "@gltf-transform/cli")
 
 
 def gltf_transform(*args) -> None:
@@ -281,11 +286,7 @@ const validator = require(process.argv[1]);
 
 def validator_missing() -> str | None:
     """Why the validator cannot run here (None when it can)."""
-    if shutil.which("node") is None:
-        return "node is not installed"
-    if not _VALIDATOR.is_dir():
-        return f"the npm package gltf-validator is not installed ({_VALIDATOR}; npm install --no-save gltf-validator)"
-    return None
+    return _npm_missing(_VALIDATOR, "gltf-validator")
 
 
 def validate(*paths) -> dict:

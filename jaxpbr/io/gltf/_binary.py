@@ -333,17 +333,9 @@ class Buffers:
                          strides=(stride, col_stride, 1))
         return np.ascontiguousarray(raw).view(dtype).reshape(count, cols * rows)
 
-    def accessor(self, i, where: str, at: str, *, allowed_types=None, allowed_components=None,
-                 finite: bool = False) -> np.ndarray:
-        """Accessor i decoded: (count,) for SCALAR, (count, n) for VECn, (count, n, n) for MATn.
-
-        where, at: the use's readable name and JSON pointer (e.g. "mesh 3 ('Body') primitive 0
-        NORMAL", "/meshes/3/primitives/0/attributes/NORMAL"); errors name both and the accessor's
-        own pointer. finite: refuse NaN and infinite values (counted in the error).
-
-        Normalized integer accessors come back as float32 (spec formulas); FLOAT as float32; other
-        integer accessors keep their integer dtype. Sparse substitution and accessors without a
-        bufferView (zeros) are handled; min/max are not used."""
+    def _accessor_entry(self, i, where: str, at: str, allowed_types, allowed_components):
+        """(accessor i's JSON object, the error location naming the use and the accessor, its pointer),
+        its index, type and componentType checked (InputError otherwise)."""
         accessors = self.gltf.accessors or []
         if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(accessors):
             fail(self.file, loc(where, at), f"accessor {i!r} does not exist (the file has {len(accessors)})",
@@ -359,6 +351,20 @@ class Buffers:
             fail(self.file, where,
                  f"has componentType {COMPONENT_NAMES.get(get(a, 'componentType'), get(a, 'componentType'))}, "
                  f"expected one of {names}", "repair or re-export the asset")
+        return a, where, own
+
+    def accessor(self, i, where: str, at: str, *, allowed_types=None, allowed_components=None,
+                 finite: bool = False) -> np.ndarray:
+        """Accessor i decoded: (count,) for SCALAR, (count, n) for VECn, (count, n, n) for MATn.
+
+        where, at: the use's readable name and JSON pointer (e.g. "mesh 3 ('Body') primitive 0
+        NORMAL", "/meshes/3/primitives/0/attributes/NORMAL"); errors name both and the accessor's
+        own pointer. finite: refuse NaN and infinite values (counted in the error).
+
+        Normalized integer accessors come back as float32 (spec formulas); FLOAT as float32; other
+        integer accessors keep their integer dtype. Sparse substitution and accessors without a
+        bufferView (zeros) are handled; min/max are not used."""
+        a, where, own = self._accessor_entry(i, where, at, allowed_types, allowed_components)
         if i in self._accessors:
             out = self._accessors[i]
         else:
@@ -383,22 +389,11 @@ class Buffers:
         componentType are checked as `accessor` checks them, its count against the values'; integer
         values are read as the accessor's componentType (normalized ones as float32, as `accessor`
         returns them), float values as float32."""
-        accessors = self.gltf.accessors or []
-        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(accessors):
-            fail(self.file, loc(where, at), f"accessor {i!r} does not exist (the file has {len(accessors)})",
-                 "repair or re-export the asset")
-        own = pointer("accessors", i)
-        where = f"{loc(where, at)}: {loc(f'accessor {i}', own)}"
-        a = accessors[i]
+        a, where, _ = self._accessor_entry(i, where, at, allowed_types, allowed_components or tuple(COMPONENT_TYPES))
         ctype, atype = get(a, "componentType"), get(a, "type")
-        if allowed_types is not None and atype not in allowed_types:
-            fail(self.file, where, f"has type {atype}, expected {' or '.join(allowed_types)}",
-                 "repair or re-export the asset")
-        if ctype not in COMPONENT_TYPES or (allowed_components is not None and ctype not in allowed_components):
-            names = ", ".join(COMPONENT_NAMES[c] for c in (allowed_components or COMPONENT_TYPES))
-            fail(self.file, where, f"has componentType {COMPONENT_NAMES.get(ctype, ctype)}, expected one of {names}",
-                 "repair or re-export the asset")
-        cols, rows = TYPE_SHAPES.get(atype, (0, 0))
+        if atype not in TYPE_SHAPES:
+            fail(self.file, where, f"unknown type {atype!r}", "repair or re-export the asset")
+        cols, rows = TYPE_SHAPES[atype]
         values = np.asarray(values)
         count = len(values)
         if get(a, "count") != count or (values.size and values.reshape(count, -1).shape[1] != cols * rows):
