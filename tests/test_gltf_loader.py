@@ -402,7 +402,7 @@ def _quad(b, material=None, uv1=True, tangents=True):
 @pytest.fixture(scope="module")
 def materials_file(tmp_path_factory):
     b = Builder()
-    b.used(*_ALL_EXT, "KHR_texture_transform", "KHR_materials_unlit")
+    b.used(*_ALL_EXT, "KHR_texture_transform", "KHR_materials_iridescence")
     png = png_bytes(_IMG)
     b.add("images", {"name": "checker", "bufferView": b.view(png), "mimeType": "image/png"})
     b.add("images", {"name": "inline", "uri": "data:image/png;base64," + base64.b64encode(png_bytes(_IMG[:1, :1, :3])).decode()})
@@ -441,7 +441,7 @@ def materials_file(tmp_path_factory):
     }
     b.add("materials", everything)
     b.add("materials", {"name": "volume-defaults", "extensions": {"KHR_materials_volume": {},
-                                                                  "KHR_materials_unlit": {}}})
+                                                                  "KHR_materials_iridescence": {}}})
     b.add("meshes", {"name": "quads", "primitives": [_quad(b, 0), _quad(b, 1), _quad(b, None)]})
     b.add("nodes", {"mesh": 0})
     b.add("scenes", {"nodes": [0]})
@@ -542,9 +542,9 @@ def test_images_decoded_once_as_encoded_values(materials_file):
 def test_ignored_extension_warned_once(materials_file):
     with pytest.warns(UserWarning) as record:
         asset = read_gltf(materials_file)
-    msgs = [str(w.message) for w in record if "KHR_materials_unlit" in str(w.message)]
+    msgs = [str(w.message) for w in record if "KHR_materials_iridescence" in str(w.message)]
     assert len(msgs) == 1 and "extensionsUsed" in msgs[0]
-    assert any("KHR_materials_unlit" in w for w in asset.warnings)
+    assert any("KHR_materials_iridescence" in w for w in asset.warnings)
 
 
 def test_external_png_and_jpeg(tmp_path):

@@ -159,6 +159,7 @@ def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
             alpha_mode=gm.alpha_mode,
             alpha_cutoff=gm.alpha_cutoff,
             alpha=float(gm.base_color_alpha),
+            unlit=gm.unlit,
         ))
     return meshes
 

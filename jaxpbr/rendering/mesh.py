@@ -100,6 +100,8 @@ class Mesh(Pytree):
     alpha_cutoff: the MASK threshold (static, glTF default 0.5).
     alpha: baseColorFactor's alpha; the alpha of a point is alpha x the base colour texture's A
         (when it has 4 channels) x COLOR_0's A.
+    unlit: the material draws the surface's colour as its emission (a glTF KHR_materials_unlit
+        material, `jaxpbr.load_gltf`) (static): COLOR_0's RGB then multiplies the emission too.
 
     A glTF asset becomes one Mesh per material (`jaxpbr.load_gltf`); a scene may mix meshes with
     spheres and planes. NumPy arrays are kept as read-only copies (a read-only array that owns its
@@ -120,6 +122,7 @@ class Mesh(Pytree):
     alpha_mode: str = static("OPAQUE")
     alpha_cutoff: float = static(0.5)
     alpha: Any = leaf(1.0)
+    unlit: bool = static(False)
 
     def _validate(self) -> None:
         if not isinstance(self.material, (Material, TexturedMaterial)):
@@ -144,6 +147,7 @@ class Mesh(Pytree):
             tangents=_float_rows("Mesh.tangents", self.tangents, 4, V),
             colors=_float_rows("Mesh.colors", self.colors, 4, V),
             double_sided=bool(self.double_sided),
+            unlit=bool(self.unlit),
         )
         if self.alpha_mode not in ALPHA_MODES:
             raise ValueError(f"Mesh.alpha_mode must be one of {ALPHA_MODES} (glTF alphaMode), got {self.alpha_mode!r}")

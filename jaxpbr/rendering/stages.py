@@ -438,9 +438,13 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         ng = n if not meshes else (ms["ng"] if not analytic else tuple(jnp.where(on_mesh, ms["ng"][i], n_an[i]) for i in range(3)))
     m = _gather_material(_stack_materials(objects, dtype, ext), idx)
     if meshes and "color" in ms:
-        # COLOR_0 multiplies the base colour (glTF); 1 on other objects.
+        # COLOR_0 multiplies the base colour (glTF); 1 on other objects. On an unlit mesh, whose
+        # colour is its emission (`Mesh.unlit`), it multiplies the emission.
         rgb = jnp.where(on_mesh[..., None], ms["color"][..., :3], 1.0)
         m = evolve(m, base_color=m.base_color * rgb)
+        if any(isinstance(ob, Mesh) and ob.unlit for ob in objects):
+            unlit = jnp.asarray([isinstance(ob, Mesh) and ob.unlit for ob in objects])[idx]
+            m = evolve(m, emissive=m.emissive * jnp.where(unlit[..., None], rgb, 1.0))
     g = {"pos": pos, "n": n, "view": tuple(-c for c in d), "m": m, "hit": hit, "ray": d, "t": t, "idx": idx}
     if meshes:
         g["prim"] = jnp.where(on_mesh, prim, -1)

@@ -34,6 +34,7 @@ __all__ = ["SUPPORTED_EXTENSIONS", "read_gltf"]
 #: extensionsUsed are ignored with a warning.
 SUPPORTED_EXTENSIONS = (
     *MATERIAL_EXTENSIONS,
+    "KHR_materials_unlit",
     "KHR_texture_transform",
     "KHR_lights_punctual",
     "KHR_mesh_quantization",

@@ -1,7 +1,9 @@
-"""glTF materials -> `GltfMaterial` (core metallic-roughness, KHR_materials_*, KHR_texture_transform)."""
+"""glTF materials -> `GltfMaterial` (core metallic-roughness, KHR_materials_*, KHR_materials_unlit,
+KHR_texture_transform)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -219,6 +221,13 @@ class MaterialReader:
         if alpha_mode not in ("OPAQUE", "MASK", "BLEND"):
             fail(self.file, loc(where, at + "/alphaMode"), f"alphaMode {alpha_mode!r} is not OPAQUE, MASK or BLEND",
                  "repair or re-export the asset")
+        unlit = UNLIT in exts
+        if unlit:
+            factors, textures = _unlit(factors, textures, alpha_mode)
+            if used:
+                self.notes.append(f"{loc(where, at)} is unlit (KHR_materials_unlit): its {', '.join(used)} "
+                                  "are not shaded")
+            used = [UNLIT]
         return GltfMaterial(
             index=i,
             name=name,
@@ -229,7 +238,31 @@ class MaterialReader:
             double_sided=bool(get(m, "doubleSided", False)),
             textures=textures,
             extensions=tuple(used),
+            unlit=unlit,
         )
+
+
+#: KHR_materials_unlit: the material is drawn in its base colour, without lighting.
+UNLIT = "KHR_materials_unlit"
+
+
+def _unlit(factors: dict, textures: dict, alpha_mode: str) -> tuple[dict, dict]:
+    """The factors and textures of an unlit material in jaxpbr's model: its colour (base colour
+    factor x texture; `Mesh.unlit` adds COLOR_0) becomes the emission, and the surface reflects
+    nothing: a black dielectric (metallic 0) whose KHR_materials_specular factor is 0, so that F0 =
+    F90 = 0 and every lobe (direct, disc, image-based, multiple scattering) is exactly 0. The base
+    colour texture stays only where alphaMode reads its A; normal, occlusion, metallic-roughness
+    and emissive slots are dropped (the extension shades none of them)."""
+    out = {
+        "base_color": (0.0, 0.0, 0.0), "metallic": 0.0, "roughness": 1.0, "occlusion": 1.0,
+        "emissive": tuple(float(c) for c in factors["base_color"]), "specular": 0.0, "specular_color": (1.0, 1.0, 1.0),
+    }
+    tex = {}
+    if "base_color" in textures:
+        tex["emissive"] = dataclasses.replace(textures["base_color"], role="emissive")
+        if alpha_mode != "OPAQUE":
+            tex["base_color"] = textures["base_color"]
+    return out, tex
 
 
 def _core_factors(m, pbr, file, where, at) -> dict:

@@ -117,6 +117,8 @@ class GltfMaterial:
         double_sided: bool.
         textures: role -> `GltfTextureRef` for the slots the material fills.
         extensions: the KHR_materials_* extension names the material uses (supported ones).
+        unlit: KHR_materials_unlit: the factors and textures above draw the base colour as the
+            emission of a surface that reflects nothing (see `factors`; COLOR_0 multiplies it).
     """
 
     index: int | None
@@ -128,6 +130,7 @@ class GltfMaterial:
     double_sided: bool = False
     textures: dict[str, GltfTextureRef] = field(default_factory=dict)
     extensions: tuple[str, ...] = ()
+    unlit: bool = False
 
     @property
     def is_default(self) -> bool:
