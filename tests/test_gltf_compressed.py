@@ -137,6 +137,7 @@ def test_draco_keeps_uncompressed_attributes_beside_it(tmp_path):
     np.testing.assert_array_equal(np.sort(p.indices, axis=1), np.sort(ref["tri"].astype(np.int64), axis=1))
 
 
+@pytest.mark.slow  # (the geometry is checked exactly above; this adds a render's compile)
 def test_draco_renders_as_the_uncompressed_sphere(tmp_path):
     from gltf_writer import Writer
 
