@@ -29,6 +29,7 @@ from gltf_writer import (
 
 from jaxpbr.errors import InputError
 from jaxpbr.io.gltf import read_gltf
+from jaxpbr.io.gltf._draco import declared_size
 from jaxpbr.io.gltf._images import header_shape
 
 DRACO = "KHR_draco_mesh_compression"
@@ -404,3 +405,54 @@ def test_gltf_transform_pipeline_renders_as_the_original(tmp_path, name):
     # materials' factors (base colour in sRGB, metallic, roughness). Measured: median 0.05 % and
     # 0.19 %, 90th percentile 0.19 % and 1.0 %.
     assert np.median(rel) <= 0.005 and np.percentile(rel, 90) <= 0.02
+
+
+# ---------------------------------------------------------------------------------------------
+# The Draco header's counts, read before decoding (the memory check)
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("preserve_order", [False, True])  # edgebreaker, sequential connectivity
+@pytest.mark.parametrize("metadata", [False, True])
+def test_draco_header_declares_the_decoded_size(preserve_order, metadata):
+    pos, nrm, _, tri, _ = _sphere()
+    data = DracoPy.encode(pos, tri, normals=nrm, preserve_order=preserve_order, create_metadata=metadata)
+    decoded = DracoPy.decode(data)
+    assert declared_size(data) == (len(decoded.faces), len(decoded.points))
+    assert declared_size(data[:12]) is None and declared_size(b"PNG" + data[3:]) is None
+
+
+def _varuint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        b, n = n & 0x7F, n >> 7
+        out.append(b | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+@pytest.mark.parametrize("method", [0, 1])
+def test_draco_declaring_billions_is_refused_before_decoding(tmp_path, monkeypatch, method):
+    """A few bytes whose header declares 2 billion triangles: refused by the memory check, naming
+    the primitive's extension, before DracoPy allocates anything."""
+    from jaxpbr._memory import MemoryLimitError
+
+    head = b"DRACO" + bytes([2, 2, 1, method, 0, 0])
+    if method == 0:  # sequential: num_faces, num_points
+        head += _varuint(2_000_000_000) + _varuint(1_000_000_000) + b"\x01"
+    else:  # edgebreaker: traversal type, num_encoded_vertices, num_faces
+        head += b"\x00" + _varuint(1_000_000_000) + _varuint(2_000_000_000)
+    assert declared_size(head) == (2_000_000_000, 1_000_000_000)
+    b = Builder()
+    attrs = {"POSITION": b.add("accessors", {"componentType": FLOAT, "type": "VEC3", "count": 3,
+                                             "min": [0, 0, 0], "max": [1, 1, 0]})}
+    ind = b.add("accessors", {"componentType": USHORT, "type": "SCALAR", "count": 3})
+    ext = {DRACO: {"bufferView": b.view(head + bytes(16)), "attributes": {"POSITION": 0}}}
+    mesh = b.add("meshes", {"primitives": [{"attributes": attrs, "indices": ind, "extensions": ext}]})
+    b.add("scenes", {"nodes": [b.add("nodes", {"mesh": mesh})]})
+    b.doc["scene"] = 0
+    b.used(DRACO, required=(DRACO,))
+    path = b.write(tmp_path / "bomb.glb", mode="glb")
+    monkeypatch.setattr(DracoPy, "decode", lambda data: pytest.fail("decoded before the memory check"))
+    with pytest.raises(MemoryLimitError) as e:
+        read_gltf(path)
+    msg = str(e.value)
+    assert "/meshes/0/primitives/0/extensions/KHR_draco_mesh_compression" in msg and "2000000000 triangles" in msg
