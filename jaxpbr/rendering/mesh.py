@@ -100,8 +100,9 @@ class Mesh(Pytree):
     alpha_cutoff: the MASK threshold (static, glTF default 0.5).
     alpha: baseColorFactor's alpha; the alpha of a point is alpha x the base colour texture's A
         (when it has 4 channels) x COLOR_0's A.
-    unlit: the material draws the surface's colour as its emission (a glTF KHR_materials_unlit
-        material, `jaxpbr.load_gltf`) (static): COLOR_0's RGB then multiplies the emission too.
+    unlit: the mesh's pixels show the material's emission alone, without lighting (a glTF
+        KHR_materials_unlit material, whose colour `jaxpbr.load_gltf` makes the emission) (static);
+        COLOR_0's RGB multiplies the emission too.
 
     A glTF asset becomes one Mesh per material (`jaxpbr.load_gltf`); a scene may mix meshes with
     spheres and planes. NumPy arrays are kept as read-only copies (a read-only array that owns its

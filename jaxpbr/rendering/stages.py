@@ -372,6 +372,8 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         out = ibl if out is None else out + ibl
     if out is None:
         out = jnp.zeros(shape + (3,), dtype)
+    if "unlit" in g:  # (KHR_materials_unlit: the colour, as the emission, and nothing else)
+        out = jnp.where(g["unlit"][..., None], jnp.broadcast_to(m.emission(), shape + (3,)).astype(dtype), out)
     if p_plan.env_background:
         bg_dir = pack3(_rotate_y(ray_dir, -jnp.asarray(env.rotation, dtype)))
         bg = jnp.asarray(env.intensity, dtype) * env.radiance.sample(bg_dir.astype(env.radiance.dtype), 0.0).astype(dtype)
@@ -446,6 +448,9 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
             unlit = jnp.asarray([isinstance(ob, Mesh) and ob.unlit for ob in objects])[idx]
             m = evolve(m, emissive=m.emissive * jnp.where(unlit[..., None], rgb, 1.0))
     g = {"pos": pos, "n": n, "view": tuple(-c for c in d), "m": m, "hit": hit, "ray": d, "t": t, "idx": idx}
+    if any(isinstance(ob, Mesh) and ob.unlit for ob in objects):
+        # The pixels of unlit meshes: `_shade_rest` shows their emission alone.
+        g["unlit"] = jnp.asarray([isinstance(ob, Mesh) and ob.unlit for ob in objects])[idx] & hit
     if meshes:
         g["prim"] = jnp.where(on_mesh, prim, -1)
     if p_plan.blend_layers > 1:

@@ -247,21 +247,19 @@ UNLIT = "KHR_materials_unlit"
 
 
 def _unlit(factors: dict, textures: dict, alpha_mode: str) -> tuple[dict, dict]:
-    """The factors and textures of an unlit material in jaxpbr's model: its colour (base colour
-    factor x texture; `Mesh.unlit` adds COLOR_0) becomes the emission, and the surface reflects
-    nothing: a black dielectric (metallic 0) whose KHR_materials_specular factor is 0, so that F0 =
-    F90 = 0 and every lobe (direct, disc, image-based, multiple scattering) is exactly 0. The base
-    colour texture stays only where alphaMode reads its A; normal, occlusion, metallic-roughness
-    and emissive slots are dropped (the extension shades none of them)."""
+    """The factors and textures of an unlit material: its colour (base colour factor x texture;
+    COLOR_0 is added by the renderer) as the emission, which the pixels of an unlit mesh show alone
+    (`Mesh.unlit`: no light, environment or sun is added there); the base colour keeps the same
+    values (its texture's A for MASK and BLEND, the base-colour AOV), and the core model's other
+    factors and slots are dropped (the extension shades none of them)."""
     out = {
-        "base_color": (0.0, 0.0, 0.0), "metallic": 0.0, "roughness": 1.0, "occlusion": 1.0,
-        "emissive": tuple(float(c) for c in factors["base_color"]), "specular": 0.0, "specular_color": (1.0, 1.0, 1.0),
+        "base_color": tuple(float(c) for c in factors["base_color"]), "metallic": 0.0, "roughness": 1.0,
+        "occlusion": 1.0, "emissive": tuple(float(c) for c in factors["base_color"]),
     }
     tex = {}
     if "base_color" in textures:
+        tex["base_color"] = textures["base_color"]
         tex["emissive"] = dataclasses.replace(textures["base_color"], role="emissive")
-        if alpha_mode != "OPAQUE":
-            tex["base_color"] = textures["base_color"]
     return out, tex
 
 

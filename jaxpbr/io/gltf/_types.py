@@ -117,8 +117,8 @@ class GltfMaterial:
         double_sided: bool.
         textures: role -> `GltfTextureRef` for the slots the material fills.
         extensions: the KHR_materials_* extension names the material uses (supported ones).
-        unlit: KHR_materials_unlit: the factors and textures above draw the base colour as the
-            emission of a surface that reflects nothing (see `factors`; COLOR_0 multiplies it).
+        unlit: KHR_materials_unlit: the base colour is also the emission (factor and texture), and
+            the pixels of the material's mesh show that emission alone (`Mesh.unlit`).
     """
 
     index: int | None
