@@ -439,18 +439,19 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         # The geometric normal (before normal maps): shadow rays leave the surface along it.
         ng = n if not meshes else (ms["ng"] if not analytic else tuple(jnp.where(on_mesh, ms["ng"][i], n_an[i]) for i in range(3)))
     m = _gather_material(_stack_materials(objects, dtype, ext), idx)
+    # The pixels of unlit meshes (`Mesh.unlit`), or None: `_shade_rest` shows their emission alone.
+    unlit = (jnp.asarray([isinstance(ob, Mesh) and ob.unlit for ob in objects])[idx] & hit
+             if any(isinstance(ob, Mesh) and ob.unlit for ob in objects) else None)
     if meshes and "color" in ms:
         # COLOR_0 multiplies the base colour (glTF); 1 on other objects. On an unlit mesh, whose
-        # colour is its emission (`Mesh.unlit`), it multiplies the emission.
+        # colour is its emission, it multiplies the emission.
         rgb = jnp.where(on_mesh[..., None], ms["color"][..., :3], 1.0)
         m = evolve(m, base_color=m.base_color * rgb)
-        if any(isinstance(ob, Mesh) and ob.unlit for ob in objects):
-            unlit = jnp.asarray([isinstance(ob, Mesh) and ob.unlit for ob in objects])[idx]
+        if unlit is not None:
             m = evolve(m, emissive=m.emissive * jnp.where(unlit[..., None], rgb, 1.0))
     g = {"pos": pos, "n": n, "view": tuple(-c for c in d), "m": m, "hit": hit, "ray": d, "t": t, "idx": idx}
-    if any(isinstance(ob, Mesh) and ob.unlit for ob in objects):
-        # The pixels of unlit meshes: `_shade_rest` shows their emission alone.
-        g["unlit"] = jnp.asarray([isinstance(ob, Mesh) and ob.unlit for ob in objects])[idx] & hit
+    if unlit is not None:
+        g["unlit"] = unlit
     if meshes:
         g["prim"] = jnp.where(on_mesh, prim, -1)
     if p_plan.blend_layers > 1:
