@@ -4,15 +4,21 @@ from __future__ import annotations
 
 import base64
 import binascii
+import os
 import re
+import stat
 import urllib.parse
 from pathlib import Path
 
 import numpy as np
 
+from ... import _memory
 from ...errors import InputError
 
-__all__ = ["Buffers", "fail", "get", "loc", "pointer", "primitive_attributes", "read_uri", "resolve_uri"]
+__all__ = [
+    "CONTAIN_FIX", "Buffers", "UriRefused", "asset_roots", "fail", "get", "loc", "open_regular", "pointer",
+    "primitive_attributes", "read_regular", "read_uri", "regular_size", "resolve_uri",
+]
 
 #: componentType -> little-endian NumPy dtype.
 COMPONENT_TYPES = {
@@ -82,50 +88,165 @@ def get(obj, key, default=None):
 
 _DATA_URI = re.compile(r"^data:(?P<mime>[^;,]*)(?P<params>(;[^;,]*)*?),(?P<data>.*)$", re.DOTALL)
 
+#: The fix every containment refusal gives.
+CONTAIN_FIX = ("copy the file into the asset's folder and give its path relative to the .gltf, or, if you trust the "
+               "asset, allow the folder that holds it (read_gltf(path, roots=[DIR]), jp.load_gltf(path, roots=[DIR]), "
+               "jaxpbr render --asset-root DIR)")
 
-def resolve_uri(uri: str, base: Path):
-    """('data', mime, bytes) for a data: URI, else ('file', None, Path) relative to `base`.
 
-    Raises ValueError with a reason for URIs that are neither (remote, malformed)."""
+_EMBED_FIX = "embed the data (GLB or a base64 data: URI) or put the file next to the .gltf and give its relative path"
+
+
+class UriRefused(ValueError):
+    """A URI that names something an asset may not read (outside its folders, a scheme, not a
+    regular file); the message says which rule it breaks, as a predicate of "uri '...'", and
+    `fix` what to do."""
+
+    def __init__(self, reason: str, fix: str = CONTAIN_FIX):
+        super().__init__(reason)
+        self.fix = fix
+
+
+def asset_roots(file, roots=()) -> tuple[str, ...]:
+    """The folders (real paths, symbolic links resolved) whose files an asset may read: the folder
+    of `file` and each of `roots`. A root that is not an existing folder is an InputError."""
+    out = [os.path.realpath(Path(file).parent)]
+    for r in roots or ():
+        if isinstance(r, (bytes, bytearray)) or not isinstance(r, (str, os.PathLike)):
+            raise InputError(f"roots: {r!r} is not a folder path. Fix: pass folder paths, e.g. roots=['textures/']")
+        real = os.path.realpath(r)
+        if not os.path.isdir(real):
+            raise InputError(f"roots: {str(r)!r} is not an existing folder. Fix: name the folder that holds the "
+                             "asset's buffers or images")
+        out.append(real)
+    return tuple(dict.fromkeys(out))
+
+
+def _inside(real: str, roots) -> bool:
+    return any(real == r or real.startswith(r.rstrip(os.sep) + os.sep) for r in roots)
+
+
+def resolve_uri(uri, base: Path, roots=None):
+    """('data', mime, bytes) for a data: URI, else ('file', None, real path) of a relative
+    reference to a file inside `roots` (default: `base` itself; see `asset_roots`).
+
+    Raises `UriRefused` (a ValueError) with the rule a URI breaks: a scheme other than data:
+    (file:, http:, ...), an absolute path, a network path ('//host/...'), a NUL byte, or a path that
+    resolves (through '..', percent-encoded or not, or a symbolic link) outside the roots."""
+    if not isinstance(uri, str):
+        raise UriRefused("is not a string", _EMBED_FIX)
     if uri.startswith("data:"):
         m = _DATA_URI.match(uri)
         if m is None:
-            raise ValueError("malformed data: URI (no ',' separating the header from the data)")
+            raise UriRefused("is a malformed data: URI (no ',' separating the header from the data)", _EMBED_FIX)
         params = m.group("params").split(";")
         data = m.group("data")
         if "base64" in params:
             try:
                 payload = base64.b64decode(data, validate=False)
             except (binascii.Error, ValueError) as e:
-                raise ValueError(f"data: URI with invalid base64 ({e})") from None
+                raise UriRefused(f"is a data: URI with invalid base64 ({e})", _EMBED_FIX) from None
         else:
             payload = urllib.parse.unquote_to_bytes(data)
         return "data", m.group("mime") or None, payload
-    scheme = urllib.parse.urlsplit(uri).scheme
-    if scheme and len(scheme) > 1:  # one letter: a Windows drive
-        if scheme == "file":
-            return "file", None, Path(urllib.parse.unquote(urllib.parse.urlsplit(uri).path))
-        raise ValueError(f"remote or unsupported URI scheme {scheme!r}")
-    return "file", None, base / urllib.parse.unquote(uri)
+    parts = urllib.parse.urlsplit(uri)
+    if parts.scheme:
+        if len(parts.scheme) == 1:  # a Windows drive letter: an absolute path
+            raise UriRefused("is an absolute path (a drive letter); an asset reads only files inside its own folder")
+        if parts.scheme.lower() == "file":
+            raise UriRefused("is a file: URI; an asset reads only data: URIs and files named by paths relative to it")
+        raise UriRefused(f"has the URI scheme {parts.scheme + ':'!r}; an asset reads only data: URIs and files named by "
+                         "paths relative to it (nothing is downloaded)",
+                         "download the file next to the .gltf and give its relative path, or embed it (GLB or a data: URI)")
+    if parts.netloc or uri.startswith("//"):
+        raise UriRefused("is a network path ('//host/...'); an asset reads only files inside its own folder")
+    path = urllib.parse.unquote(uri)
+    if "\0" in path:
+        raise UriRefused("holds a NUL byte", _EMBED_FIX)
+    if path.startswith(("/", "\\")) or os.path.isabs(path):
+        raise UriRefused("is an absolute path; an asset reads only files inside its own folder")
+    roots = roots if roots is not None else (os.path.realpath(base),)
+    real = os.path.realpath(Path(base) / path)
+    if not _inside(real, roots):
+        shown = "its own folder" if len(roots) == 1 else f"its own folder and the {len(roots) - 1} allowed by roots"
+        raise UriRefused(f"resolves (through '..' or a symbolic link) to a file outside {shown}")
+    return "file", None, Path(real)
 
 
-def read_uri(file, where: str, uri: str, base: Path) -> tuple[str | None, bytes, str]:
-    """(mime from a data URI or None, bytes, description) of a buffer/image URI, or InputError."""
+def open_regular(path) -> int:
+    """A read-only descriptor of `path` if it is a regular file, else `UriRefused` (a device such
+    as /dev/zero, a FIFO, a socket or a folder: reading those could block or never end). The open
+    does not block on a FIFO and does not follow a symbolic link in the last component (the path
+    is a real path: one there now was put there after the check)."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_CLOEXEC", 0)
+    fd = os.open(path, flags)
     try:
-        kind, mime, value = resolve_uri(uri, base)
-    except ValueError as e:
-        fail(file, where, f"cannot read uri {uri[:80]!r}: {e}", "embed the data (GLB or a base64 data: URI) or "
-             "put the file next to the .gltf and give its relative path")
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = ("a folder" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode)
+                    else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+                    else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+            raise UriRefused(f"names {kind}, not a regular file", "give the path of a regular file inside the asset's folder")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return fd
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def read_regular(path, n: int | None = None, offset: int = 0) -> bytes:
+    """Bytes [offset, offset + n) of a regular file (`open_regular`); n None: to the end of the
+    file as it is when opened (never more than its size then). Fewer bytes come back when the file
+    is shorter."""
+    fd = open_regular(path)
+    try:
+        size = os.fstat(fd).st_size
+        n = max(0, size - offset) if n is None else max(0, min(n, size - offset))
+        out = bytearray(n)
+        view, got = memoryview(out), 0
+        while got < n:
+            k = os.preadv(fd, [view[got:]], offset + got) if hasattr(os, "preadv") else None
+            if k is None:
+                os.lseek(fd, offset + got, os.SEEK_SET)
+                k = os.readv(fd, [view[got:]])
+            if k == 0:
+                break
+            got += k
+        return bytes(out[:got])
+    finally:
+        os.close(fd)
+
+
+def regular_size(path) -> int:
+    """The size of a regular file (`open_regular`'s checks), without reading it."""
+    fd = open_regular(path)
+    try:
+        return os.fstat(fd).st_size
+    finally:
+        os.close(fd)
+
+
+def read_uri(file, where: str, uri: str, base: Path, roots=None, length: int | None = None) -> tuple[str | None, bytes, str]:
+    """(mime from a data URI or None, bytes, description) of a buffer/image URI contained by
+    `roots` (`resolve_uri`), or InputError naming `where`. length: read at most that many bytes
+    of a file (a buffer's byteLength; the caller checks that enough came)."""
+    try:
+        kind, mime, value = resolve_uri(uri, base, roots)
+    except UriRefused as e:
+        fail(file, where, f"uri {str(uri)[:80]!r} {e}", e.fix)
     if kind == "data":
         return mime, value, "data URI"
     try:
-        return None, value.read_bytes(), str(value)
+        return None, read_regular(value, length), str(value)
     except FileNotFoundError:
         fail(file, where, f"file {str(value)!r} (uri {uri!r}) not found",
              "put the file next to the .gltf as its uri says (relative paths are relative to the .gltf), "
              "or re-export the asset as a self-contained .glb")
+    except UriRefused as e:
+        fail(file, where, f"uri {uri[:80]!r} {e}", e.fix)
     except OSError as e:
-        fail(file, where, f"cannot read {str(value)!r}: {e}", "check the file's permissions and path")
+        fail(file, where, f"cannot read {str(value)!r}: {e.strerror or e}", "check the file's permissions and path")
 
 
 def _peek_data_uri(uri: str, off: int, n: int) -> bytes | None:
@@ -159,11 +280,13 @@ class Buffers:
     Every method takes the readable name and the JSON pointer of the place that uses the object
     (`where`, `at`), so that an error names both the use and the object's own JSON location."""
 
-    def __init__(self, gltf, file: Path, glb_bin: tuple[int, int] | None):
-        """glb_bin: (offset, length) of a GLB's BIN chunk in `file` (read on first use), or None."""
+    def __init__(self, gltf, file: Path, glb_bin: tuple[int, int] | None, roots: tuple[str, ...] | None = None):
+        """glb_bin: (offset, length) of a GLB's BIN chunk in `file` (read on first use), or None;
+        roots: the folders whose files the asset may read (`asset_roots`; default its own)."""
         self.gltf = gltf
         self.file = file
         self.base = file.parent
+        self.roots = roots if roots is not None else asset_roots(file)
         self.glb_bin = glb_bin
         self._buffers: dict[int, bytes] = {}
         self._accessors: dict[int, np.ndarray] = {}
@@ -185,48 +308,60 @@ class Buffers:
             return self._buffers[i]
         b, what, own = self._buffer_entry(i, where, at)
         uri = get(b, "uri")
+        length = get(b, "byteLength", 0)
+        if not isinstance(length, int) or isinstance(length, bool) or length < 0:
+            fail(self.file, loc(what, own + "/byteLength"), f"byteLength {length!r:.40} is not a byte count",
+                 "repair or re-export the asset")
+        # Exactly byteLength bytes are read, once the memory guard has accepted them.
+        _memory.require(f"reading {what}", {"byteLength": float(length)}, where=f"glTF file {str(self.file)!r}",
+                        names={"byteLength": f"{own}/byteLength"})
         if uri is None:
             if i != 0 or self.glb_bin is None:
                 fail(self.file, loc(what, own), "has no uri and is not the GLB binary chunk",
                      "give the buffer a uri, or store the asset as .glb with this as buffer 0")
             offset, size = self.glb_bin
+            if length > size:
+                fail(self.file, loc(what, own + "/byteLength"),
+                     f"byteLength is {length} but the GLB's BIN chunk holds only {size} bytes",
+                     "the buffer is truncated or stale: download or re-export the asset")
             try:
-                with open(self.file, "rb") as f:
-                    f.seek(offset)
-                    data = f.read(size)
-            except OSError as e:
+                data = read_regular(self.file, length, offset)
+            except (OSError, UriRefused) as e:
                 fail(self.file, loc(what, own), f"the GLB's BIN chunk cannot be read: {e}", "check the file and its permissions")
             source = "the GLB's BIN chunk"
         else:
-            _, data, source = read_uri(self.file, loc(what, own + "/uri"), uri, self.base)
+            _, data, source = read_uri(self.file, loc(what, own + "/uri"), uri, self.base, self.roots, length)
             source = "its data URI" if source == "data URI" else f"file {source!r}"
-        length = get(b, "byteLength", 0)
-        if not isinstance(length, int) or isinstance(length, bool) or length < 0:
-            fail(self.file, loc(what, own + "/byteLength"), f"byteLength {length!r} is not a byte count",
-                 "repair or re-export the asset")
         if len(data) < length:
             fail(self.file, loc(what, own + "/byteLength"),
                  f"byteLength is {length} but {source} holds only {len(data)} bytes",
                  "the buffer is truncated or stale: download or re-export the asset")
+        if len(data) > length:  # a longer data URI: the bytes past byteLength are not the buffer's
+            data = data[:length]
         self._buffers[i] = data
         return data
 
     def buffer_size(self, i) -> int | None:
-        """The bytes buffer i will hold once read (its file's size, the GLB chunk's length, a data
-        URI's decoded length), without reading it; None when unknown."""
+        """The bytes buffer i will hold once read (its byteLength, or less when its file, GLB chunk
+        or data URI is shorter: reading it then fails), without reading it; None when unknown."""
         if isinstance(i, int) and i in self._buffers:
             return len(self._buffers[i])
         buffers = self.gltf.buffers or []
-        if not isinstance(i, int) or not 0 <= i < len(buffers):
+        if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(buffers):
+            return None
+        length = get(buffers[i], "byteLength")
+        if not isinstance(length, int) or isinstance(length, bool) or length < 0:
             return None
         uri = get(buffers[i], "uri")
         if uri is None:
-            return self.glb_bin[1] if i == 0 and self.glb_bin is not None else None
+            return min(length, self.glb_bin[1]) if i == 0 and self.glb_bin is not None else None
+        if not isinstance(uri, str):
+            return None
         if uri.startswith("data:"):
-            return len(uri) * 3 // 4
+            return min(length, len(uri) * 3 // 4)
         try:
-            kind, _, value = resolve_uri(uri, self.base)
-            return value.stat().st_size if kind == "file" else None
+            kind, _, value = resolve_uri(uri, self.base, self.roots)
+            return min(length, regular_size(value)) if kind == "file" else None
         except (ValueError, OSError):
             return None
 
@@ -295,13 +430,11 @@ class Buffers:
             elif uri.startswith("data:"):
                 return _peek_data_uri(uri, off, n)
             else:
-                kind, _, value = resolve_uri(uri, self.base)
+                kind, _, value = resolve_uri(uri, self.base, self.roots)
                 if kind != "file":
                     return None
                 path, pos = value, off
-            with open(path, "rb") as f:
-                f.seek(pos)
-                return f.read(n)
+            return read_regular(path, n, pos)
         except (ValueError, OSError):
             return None
 
@@ -409,8 +542,10 @@ class Buffers:
         else:
             info = np.iinfo(dtype) if dtype.kind in "iu" else None
             if info is not None and values.size and (int(values.min()) < info.min or int(values.max()) > info.max):
-                fail(self.file, where, f"is {COMPONENT_NAMES[ctype]}, but the decompressed data holds values in "
-                     f"[{int(values.min())}, {int(values.max())}]", "the accessor and the compressed data do not match: re-export the asset")
+                flat = values.reshape(count, -1)
+                first = int(np.argmax(((flat < info.min) | (flat > info.max)).any(axis=1)))
+                fail(self.file, where, f"is {COMPONENT_NAMES[ctype]}, but the decompressed data holds values outside its "
+                     f"range (the first in element {first})", "the accessor and the compressed data do not match: re-export the asset")
             out = values.astype(dtype)
             if get(a, "normalized", False) and dtype.kind in "iu":
                 out = _normalize(out)
@@ -458,8 +593,10 @@ class Buffers:
                               f"{where}: sparse values ({own}/sparse/values)", f"{own}/sparse/values/bufferView",
                               packed=True)
             if n and (idx.min() < 0 or idx.max() >= count):
+                # (the position, never the value: buffer bytes are not echoed in messages)
+                first = int(np.argmax((idx < 0) | (idx >= count)))
                 fail(self.file, f"{where}: sparse indices ({own}/sparse/indices)",
-                     f"index {int(idx.max())} is outside [0, {count})", "repair or re-export the asset")
+                     f"the index at position {first} is outside [0, {count})", "repair or re-export the asset")
             data[idx] = vals
         if get(a, "normalized", False) and dtype.kind in "iu":
             data = _normalize(data)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
-from ._binary import Buffers, fail, get, loc, pointer, primitive_attributes
+from ._binary import Buffers, asset_roots, fail, get, loc, pointer, primitive_attributes
 from ._budget import check_asset_memory
 from ._draco import DracoGeometry, decode_primitive, draco_extension
 from ._geometry import (
@@ -166,8 +166,9 @@ class _Visit:
 
 
 class _Loader:
-    def __init__(self, path: Path, scene: int | None, lazy_images: bool):
+    def __init__(self, path: Path, scene: int | None, lazy_images: bool, roots=()):
         self.path = path
+        self.roots = asset_roots(path, roots)
         self.scene_arg = scene
         self.lazy_images = lazy_images
         self.notes: list[str] = []
@@ -183,7 +184,7 @@ class _Loader:
         asset = doc["asset"]  # (a 2.x version: `_check_version`)
         version = str(get(asset, "version", ""))
         self._check_extensions()
-        self.buffers = Buffers(gltf, self.path, glb_bin)
+        self.buffers = Buffers(gltf, self.path, glb_bin, self.roots)
         self.materials_reader = MaterialReader(gltf, self.path, self.notes)
         materials = []
         for i in range(len(gltf.materials or [])):
@@ -200,6 +201,7 @@ class _Loader:
         # One memory check of everything the load will decode, before any buffer is read.
         self.context = ""
         check_asset_memory(self, visits)
+        self._place_meshes(visits)
         for v in visits:
             self._visit(v)
         if gltf.animations:
@@ -278,44 +280,104 @@ class _Loader:
         return index, list(get(scenes[index], "nodes", []) or []), pointer("scenes", index, "nodes")
 
     def _walk(self, roots, roots_at: str) -> list[_Visit]:
-        """The nodes of the scene in traversal order (depth first) with their world matrices;
-        structural errors (missing nodes, cycles, bad transforms) are raised here, before any
-        buffer is read."""
+        """The nodes of the scene in traversal order (depth first, children in their listed order)
+        with their world matrices; structural errors (missing nodes, a node with two parents, a
+        cycle, a scene listing a child node, bad transforms) are raised here, before any buffer is
+        read. Linear in the nodes: each node is visited once (the spec's hierarchy is a set of
+        disjoint trees, each node one parent at most), with no per-node copy of its ancestry."""
         nodes = self.gltf.nodes or []
-        out = []
+        parent = self._parents(nodes)
         no_scene = roots_at == "/nodes"
-        stack = [(r, np.eye(4), (), roots_at if no_scene else f"{roots_at}/{k}")
-                 for k, r in reversed(list(enumerate(roots)))]
+        seen_roots: dict[int, int] = {}
+        for k, r in enumerate(roots):
+            ref = roots_at if no_scene else f"{roots_at}/{k}"
+            if not isinstance(r, int) or isinstance(r, bool) or not 0 <= r < len(nodes):
+                fail(self.path, loc("scene graph", ref), f"node {r!r:.40} does not exist (the file has {len(nodes)})", _FIX)
+            if r in seen_roots:
+                fail(self.path, loc("scene graph", ref), f"lists node {r} twice (also at {roots_at}/{seen_roots[r]})", _FIX)
+            seen_roots[r] = k
+            if parent[r] >= 0:
+                fail(self.path, loc("scene graph", ref), f"lists node {r}, which is a child of node {parent[r]} "
+                     f"({pointer('nodes', parent[r], 'children')}); a scene lists root nodes only", _FIX)
+        out: list[_Visit] = []
+        visited = bytearray(len(nodes))
+        stack = [(r, np.eye(4)) for r in reversed(list(roots))]
         while stack:
-            i, parent, ancestors, ref = stack.pop()
-            if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(nodes):
-                fail(self.path, loc("scene graph", ref), f"node {i!r} does not exist (the file has {len(nodes)})", _FIX)
+            i, world_parent = stack.pop()
+            if visited[i]:  # (unreachable: one parent each, roots parentless)
+                fail(self.path, loc(f"node {i}", pointer("nodes", i)), "is reached twice in the node hierarchy", _FIX)
+            visited[i] = 1
             at = pointer("nodes", i)
-            if i in ancestors:
-                fail(self.path, loc(f"node {i}", ref), "is its own ancestor (a cycle in the node hierarchy)", _FIX)
             node = nodes[i]
             self.context = at
-            where = f"node {i}" + (f" ({node.name!r})" if get(node, "name") else "")
+            name = get(node, "name")
+            where = f"node {i}" + (f" ({name!r})" if isinstance(name, str) and name else "")
             matrix = get(node, "matrix")
             t_at = at + "/matrix" if matrix is not None else at
             try:
                 local = node_matrix(matrix, get(node, "translation"), get(node, "rotation"), get(node, "scale"))
             except (ValueError, TypeError) as e:
                 fail(self.path, loc(where, t_at), f"invalid transform ({e})", _FIX)
-            if not np.all(np.isfinite(local)):
-                fail(self.path, loc(where, t_at), "transform has non-finite values", _FIX)
-            world = parent @ local
+            world = world_parent @ local
+            if not np.all(np.isfinite(world)):
+                what = "transform has non-finite values" if not np.all(np.isfinite(local)) else \
+                    "world transform overflows (the product of its ancestors' transforms is not finite)"
+                fail(self.path, loc(where, t_at), what, _FIX)
             out.append(_Visit(i, node, world, where, at))
             children = get(node, "children", []) or []
-            for k, c in reversed(list(enumerate(children))):
-                stack.append((c, world, ancestors + (i,), f"{at}/children/{k}"))
+            for c in reversed(children):
+                stack.append((c, world))
         return out
+
+    def _parents(self, nodes) -> list[int]:
+        """parent[i]: the node listing node i among its children, or -1. A child index that is not
+        a node, a node that is its own child and a node listed by two parents (or twice by one)
+        are refused: the spec's node hierarchy is a set of disjoint strict trees."""
+        parent = [-1] * len(nodes)
+        for i, node in enumerate(nodes):
+            children = get(node, "children", []) or []
+            if not isinstance(children, list):
+                fail(self.path, loc(f"node {i}", pointer("nodes", i, "children")), "children is not an array of node indices", _FIX)
+            for k, c in enumerate(children):
+                ref = pointer("nodes", i, "children", k)
+                if not isinstance(c, int) or isinstance(c, bool) or not 0 <= c < len(nodes):
+                    fail(self.path, loc("scene graph", ref), f"node {c!r:.40} does not exist (the file has {len(nodes)})", _FIX)
+                if c == i:
+                    fail(self.path, loc(f"node {i}", ref), "is its own child (a cycle in the node hierarchy)", _FIX)
+                if parent[c] >= 0:
+                    also = "twice" if parent[c] == i else f"also by node {parent[c]} ({pointer('nodes', parent[c], 'children')})"
+                    fail(self.path, loc(f"node {c}", ref), f"is listed as a child {also}; a node has one parent at most "
+                         "(the node hierarchy must be a set of disjoint trees)", _FIX)
+                parent[c] = i
+        # A cycle with one parent per node has no root: it is never reached from a scene, and a
+        # file without scenes would lose it silently.
+        root_of = self._cycle_check(parent)
+        if root_of is not None:
+            fail(self.path, loc(f"node {root_of}", pointer("nodes", root_of, "children")),
+                 "is its own ancestor (a cycle in the node hierarchy)", _FIX)
+        return parent
+
+    @staticmethod
+    def _cycle_check(parent) -> int | None:
+        """A node on a cycle of the parent links, or None (iterative, linear: each node is
+        resolved once)."""
+        state = bytearray(len(parent))  # 0 unknown, 1 on the current path, 2 resolved (reaches a root)
+        for s in range(len(parent)):
+            path = []
+            i = s
+            while i >= 0 and state[i] == 0:
+                state[i] = 1
+                path.append(i)
+                i = parent[i]
+            if i >= 0 and state[i] == 1:
+                return i
+            for j in path:
+                state[j] = 2
+        return None
 
     def _visit(self, v: _Visit):
         self.context = v.at
         node = v.node
-        if get(node, "mesh") is not None:
-            self._instance_mesh(v)
         if get(node, "camera") is not None:
             self._camera(v)
         light = (get(node, "extensions", {}) or {}).get("KHR_lights_punctual")
@@ -330,17 +392,93 @@ class _Loader:
         meshes = self.gltf.meshes or []
         m = get(v.node, "mesh")
         if not isinstance(m, int) or isinstance(m, bool) or not 0 <= m < len(meshes):
-            fail(self.path, loc(v.where, v.at + "/mesh"), f"mesh {m!r} does not exist (the file has {len(meshes)})", _FIX)
+            fail(self.path, loc(v.where, v.at + "/mesh"), f"mesh {m!r:.40} does not exist (the file has {len(meshes)})", _FIX)
         return m, meshes[m]
 
-    def _instance_mesh(self, v: _Visit):
-        m, mesh = self.mesh_of(v)
-        inst = (get(v.node, "extensions", {}) or {}).get("EXT_mesh_gpu_instancing")
-        if inst is None:
-            self._emit(v.index, m, mesh, v.world, None)
-            return
-        for k, local in enumerate(self._instance_matrices(inst, v)):
-            self._emit(v.index, m, mesh, v.world @ local, k)
+    def _place_meshes(self, visits: list[_Visit]) -> None:
+        """Every (node, instance, mesh primitive) of the scene as a `GltfPrimitive` in traversal
+        order, appended to self.primitives. All instances of a mesh primitive (the nodes using
+        the mesh and their EXT_mesh_gpu_instancing instances) are transformed by one batched
+        NumPy product, and each `GltfPrimitive` holds views of the results and shares the
+        primitive's triangles and texture coordinates: an instance costs its float32 world-space
+        positions, normals and tangents and one small object."""
+        uses: dict[int, list] = {}  # mesh -> the (n, 4, 4) world matrices of its instances, in order
+        entries = []  # traversal order: (visit, mesh, first row of its instances, count, instanced?)
+        filled: dict[int, int] = {}  # mesh -> instances so far
+        for v in visits:
+            if get(v.node, "mesh") is None:
+                continue
+            self.context = v.at
+            m, _ = self.mesh_of(v)
+            inst = (get(v.node, "extensions", {}) or {}).get("EXT_mesh_gpu_instancing")
+            worlds = v.world[None] if inst is None else v.world @ self._instance_matrices(inst, v)
+            rows = uses.setdefault(m, [])
+            entries.append((v, m, filled.get(m, 0), worlds.shape[0], inst is not None))
+            filled[m] = filled.get(m, 0) + worlds.shape[0]
+            rows.append(worlds)
+        placed: dict[tuple[int, int], tuple] = {}  # (mesh, primitive) -> its instances, batched
+        for m, rows in uses.items():
+            mesh = self.gltf.meshes[m]
+            worlds = np.concatenate(rows) if len(rows) > 1 else rows[0]
+            for p, prim in enumerate(get(mesh, "primitives", []) or []):
+                self.context = pointer("meshes", m, "primitives", p)
+                material_index = self._material_index(prim, m, p)
+                shape = self._shape(m, mesh, p, prim, self.materials[material_index])
+                if shape is not None:
+                    ccw = np.ascontiguousarray(shape.tris, np.int32)
+                    cw = np.ascontiguousarray(ccw[:, [0, 2, 1]])
+                    ccw.flags.writeable = cw.flags.writeable = False
+                    placed[m, p] = (material_index, shape, (ccw, cw), *self._transform(shape, worlds))
+        self.context = ""
+        for v, m, first, count, instanced in entries:
+            mesh = self.gltf.meshes[m]
+            name = get(mesh, "name")
+            mesh_name = name if isinstance(name, str) and name else f"mesh{m}"
+            prims = [(p, placed[m, p]) for p in range(len(get(mesh, "primitives", []) or [])) if (m, p) in placed]
+            for k in range(count):
+                row = first + k
+                for p, (material_index, shape, windings, pos, nrm, tan, mirrored, worlds) in prims:
+                    self.primitives.append(GltfPrimitive(
+                        positions=pos[row], normals=nrm[row], indices=windings[int(mirrored[row])],
+                        material=material_index, node=v.index, mesh=m, primitive=p,
+                        name=f"{mesh_name}/{p}" + (f"#{k}" if instanced else ""),
+                        instance=k if instanced else None, world_matrix=worlds[row],
+                        tangents=None if tan is None else tan[row],
+                        texcoord_0=shape.texcoords.get(0), texcoord_1=shape.texcoords.get(1), color_0=shape.color,
+                        flat_normals=shape.flat_normals, generated_tangents=shape.generated_tangents,
+                    ))
+
+    @staticmethod
+    def _transform(shape: "_Shape", worlds: np.ndarray):
+        """(positions (N, V, 3), normals (N, V, 3), tangents (N, V, 4) or None, mirrored (N,),
+        worlds (N, 4, 4)): the shape placed by each world matrix, float32, computed in float64 in
+        chunks of instances (the temporaries stay near 2^20 vertices)."""
+        n, nv = worlds.shape[0], shape.positions.shape[0]
+        pos = np.empty((n, nv, 3), np.float32)
+        nrm = np.empty((n, nv, 3), np.float32)
+        tan = None if shape.tangents is None else np.empty((n, nv, 4), np.float32)
+        a_all = worlds[:, :3, :3]
+        det = np.linalg.det(a_all)
+        regular = np.abs(det) > 1e-300
+        normal_all = np.empty_like(a_all)
+        if regular.any():
+            normal_all[regular] = np.linalg.inv(a_all[regular]).transpose(0, 2, 1)
+        for j in np.flatnonzero(~regular):
+            normal_all[j] = np.linalg.pinv(a_all[j]).T
+        step = max(1, (1 << 20) // max(nv, 1))
+        for s in range(0, n, step):
+            a, w = a_all[s : s + step], worlds[s : s + step]
+            pos[s : s + step] = np.einsum("vj,nij->nvi", shape.positions, a) + w[:, None, :3, 3]
+            nrm[s : s + step] = normalize_rows(np.einsum("vj,nij->nvi", shape.normals, normal_all[s : s + step]))
+            if tan is not None:
+                xyz = normalize_rows(np.einsum("vj,nij->nvi", shape.tangents[:, :3], a))
+                sign = np.where(det[s : s + step] >= 0, 1.0, -1.0)[:, None, None]
+                tan[s : s + step, :, :3] = xyz
+                tan[s : s + step, :, 3:] = shape.tangents[None, :, 3:4] * sign
+        for arr in (pos, nrm, tan, worlds):
+            if arr is not None:
+                arr.flags.writeable = False
+        return pos, nrm, tan, det < 0, worlds
 
     def _instance_matrices(self, inst, v: _Visit) -> np.ndarray:
         """(N, 4, 4) EXT_mesh_gpu_instancing transforms T @ R @ S, one per instance."""
@@ -370,51 +508,6 @@ class _Loader:
         if "TRANSLATION" in cols:
             out[:, :3, 3] = cols["TRANSLATION"]
         return out
-
-    def _emit(self, node_index, m, mesh, world, instance):
-        """The primitives of mesh m placed by `world`: appended to self.primitives."""
-        a = world[:3, :3]
-        det = float(np.linalg.det(a))
-        sign = 1.0 if det >= 0 else -1.0
-        try:
-            normal_matrix = np.linalg.inv(a).T if abs(det) > 1e-300 else np.linalg.pinv(a).T
-        except np.linalg.LinAlgError:
-            normal_matrix = np.linalg.pinv(a).T
-        for p, prim in enumerate(get(mesh, "primitives", []) or []):
-            key = (m, p)
-            self.context = pointer("meshes", m, "primitives", p)
-            material_index = self._material_index(prim, m, p)
-            if key not in self.shapes:
-                self.shapes[key] = self._shape(m, mesh, p, prim, self.materials[material_index])
-            shape = self.shapes[key]
-            if shape is None:
-                continue
-            positions = shape.positions @ a.T + world[:3, 3]
-            normals = normalize_rows(shape.normals @ normal_matrix.T)
-            tris = shape.tris if det >= 0 else shape.tris[:, [0, 2, 1]]
-            tangents = None
-            if shape.tangents is not None:
-                xyz = normalize_rows(shape.tangents[:, :3] @ a.T)
-                tangents = np.concatenate([xyz, shape.tangents[:, 3:4] * sign], axis=1).astype(np.float32)
-            mesh_name = get(mesh, "name") or f"mesh{m}"
-            self.primitives.append(GltfPrimitive(
-                positions=positions.astype(np.float32),
-                normals=normals.astype(np.float32),
-                indices=np.ascontiguousarray(tris, np.int32),
-                material=material_index,
-                node=node_index,
-                mesh=m,
-                primitive=p,
-                name=f"{mesh_name}/{p}" + ("" if instance is None else f"#{instance}"),
-                instance=instance,
-                world_matrix=world.copy(),
-                tangents=tangents,
-                texcoord_0=shape.texcoords.get(0),
-                texcoord_1=shape.texcoords.get(1),
-                color_0=shape.color,
-                flat_normals=shape.flat_normals,
-                generated_tangents=shape.generated_tangents,
-            ))
 
     def _material_index(self, prim, m, p) -> int:
         i = get(prim, "material")
@@ -492,7 +585,8 @@ class _Loader:
                                                  allowed_types=("SCALAR",), allowed_components=(5121, 5123, 5125))
             if idx.size and idx.max() >= n:
                 fail(self.path, loc(f"{where} indices", f"{at}/extensions/KHR_draco_mesh_compression"),
-                     f"the decoded triangles index vertex {int(idx.max())}, but POSITION has {n}",
+                     f"the decoded triangles index a vertex past the {n} of POSITION (the first at position "
+                     f"{int(np.argmax(idx.ravel() >= n))})",
                      "the accessors and the compressed data do not match: re-export the asset")
         elif get(prim, "indices") is not None:
             ia = get(prim, "indices")
@@ -503,8 +597,8 @@ class _Loader:
                 bad = idx >= n
                 first = int(np.argmax(bad))
                 fail(self.path, f"{loc(f'{where} indices', f'{at}/indices')}: {loc(f'accessor {ia}', pointer('accessors', ia))}",
-                     f"{int(bad.sum())} of its {idx.size} indices are out of range (the first, {int(idx[first])} at "
-                     f"position {first}): the vertex attributes have {n} elements",
+                     f"{int(bad.sum())} of its {idx.size} indices are out of range (the first at position {first}): "
+                     f"the vertex attributes have {n} elements",
                      "the indices and vertex accessors do not match: re-export the asset")
         else:
             idx = np.arange(n, dtype=np.int64)
@@ -651,7 +745,7 @@ class _Loader:
             inner_cone_angle=inner, outer_cone_angle=outer))
 
 
-def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False) -> GltfAsset:
+def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, roots=()) -> GltfAsset:
     """Load a glTF 2.0 asset (.gltf with external or data: URIs, or .glb) flattened to world space.
 
     Args:
@@ -660,6 +754,10 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False) -> G
             without scenes: all root nodes).
         lazy_images: leave images undecoded until `GltfImage.pixels` is read (default: decode the
             images that materials use now, so that a broken image fails the load).
+        roots: folders besides the asset's own whose files its buffer and image URIs may name. By
+            default an asset reads only regular files inside its own folder (symbolic links
+            resolved): absolute paths, `..` or a link leading out, `file:` and other schemes,
+            devices and FIFOs are refused (docs/gltf.md, "Untrusted assets").
 
     Returns:
         `GltfAsset`: one `GltfPrimitive` per (node, mesh primitive) of the scene, in world space
@@ -677,7 +775,7 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False) -> G
     slots without a decodable image; tangents that cannot be generated.
     """
     path = Path(path)
-    loader = _Loader(path, scene, lazy_images)
+    loader = _Loader(path, scene, lazy_images, roots)
     try:
         asset = loader.run()
     except InputError:
