@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import threading
 import time
+from collections.abc import Callable
+
+import numpy as np
 
 from .. import _memory
 from .._validate import positive_int as _positive_int_value
 
-__all__ = ["CLIError", "Progress", "have_matplotlib", "nonnegative_int_arg", "positive_int_arg"]
+__all__ = ["FLOAT32_MAX", "CLIError", "Progress", "float32_arg", "have_matplotlib", "nonnegative_int_arg", "positive_int_arg"]
 
 
 class CLIError(Exception):
@@ -23,6 +27,39 @@ def positive_int_arg(text: str) -> int:
         return _positive_int_value("value", int(text))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+
+
+#: The largest finite float32. The renderer computes in float32, so a flag's number beyond it
+#: (`--environment-intensity 1e39`) became inf on its way in, with NumPy's overflow warning
+#: printed before the error that followed (issue 42).
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+def float32_arg(lo: float | None = None, hi: float | None = None, *, unit: str = "", why: str = "") -> Callable[[str], float]:
+    """An argparse type: a finite number that float32 holds (|x| <= FLOAT32_MAX), and within
+    [lo, hi] where given; anything else is the parser's one-line error, before any work. `unit`
+    follows the bounds in the message ("degrees"), `why` explains them."""
+    if lo is not None and hi is not None:
+        shown = f"a number in [{lo:g}, {hi:g}]"
+    else:
+        shown = "a number" + ("" if lo is None else f" >= {lo:g}") + ("" if hi is None else f" <= {hi:g}")
+    suffix = (f" {unit}" if unit else "") + (f" ({why})" if why else "")
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+        if abs(value) > FLOAT32_MAX:
+            raise argparse.ArgumentTypeError(f"{text.strip()} is outside float32's range (|x| <= {FLOAT32_MAX:.4g}), which the renderer computes in")
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"expected {shown}{suffix}, got {text.strip()}")
+        return value
+
+    parse.__name__ = "number"  # argparse names the type in some messages
+    return parse
 
 
 def nonnegative_int_arg(text: str) -> int:

@@ -19,12 +19,27 @@ from ..rendering.renderer import BAND_PIXELS, RenderOptions, check_memory, plan,
 from ..rendering.scene import MAX_SUPERSAMPLE
 from ..rendering.scene_file import load_scene
 from ..shading.brdf_terms import MODELS
-from ._common import CLIError, Progress, positive_int_arg, raise_pending
+from ._common import (
+    FLOAT32_MAX,
+    CLIError,
+    Progress,
+    float32_arg,
+    positive_int_arg,
+    raise_pending,
+)
 
 __all__ = ["add_command", "cmd_render"]
 
 _TONEMAPS = ("reinhard", "aces", "aces_narkowicz", "clamp")
 _ENCODINGS = ("srgb", "gamma2.2", "linear")
+
+#: --fov-y's range in degrees. 179 is `Camera`'s own limit. The floor keeps the rays of
+#: neighbouring pixels apart in float32: a ray's direction is forward + x right + y up, whose
+#: components near 1 float32 carries to about 1.2e-7 (its epsilon), and the rows of an H-row image
+#: step y by 2 tan(fov/2) / H. At 0.5 degrees that is 8.7e-3 / H, at least 4 epsilons per row up
+#: to 18,000 rows; at 1e-3 degrees it is 1.7e-5 / H, a fifth of an epsilon per row of a 720-row
+#: image: runs of rows got the same direction (and `--fov-y 0` rendered at 45 degrees).
+FOV_Y_RANGE = (0.5, 179.0)
 
 
 def add_command(sub) -> None:
@@ -45,7 +60,7 @@ def add_command(sub) -> None:
     r.add_argument("--model", choices=MODELS, default=None, help="BRDF model (default: gltf, or the scene's)")
     r.add_argument("--smith", choices=("correlated", "separable"), default=None, help="gltf model: height-correlated (default, the glTF spec) or separable Smith-GGX G2, in the direct lighting and the IBL LUT alike")
     r.add_argument("--no-extract-lights", dest="extract_lights", action="store_false", default=None, help="shade the whole environment with the split sum (no sun extraction; default: suns are split out and shaded as disc lights)")
-    r.add_argument("--exposure", type=_finite_float_arg, default=None, help="exposure in EV stops (default: 0, or the scene's)")
+    r.add_argument("--exposure", type=float32_arg(), default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
         choices=_TONEMAPS,
@@ -64,10 +79,11 @@ def add_command(sub) -> None:
     r.add_argument("--no-environment", action="store_true", help="demo only: leave out the sky (no IBL)")
     g = r.add_argument_group("glTF assets")
     g.add_argument("--environment", default=None, metavar="FILE", help="glTF: environment lighting and background: an equirect .hdr/.exr panorama or procedural:sky (the demo's sky, 128^2 faces) (default: none)")
-    g.add_argument("--environment-intensity", type=_finite_float_arg, default=1.0, help="glTF: multiplier of the environment (default: %(default)s)")
+    g.add_argument("--environment-intensity", type=float32_arg(0.0), default=1.0, help="glTF: multiplier of the environment, >= 0 (default: %(default)s)")
     g.add_argument("--camera-position", type=_vec3_arg, default=None, metavar="X,Y,Z", help="glTF: camera position (default: the asset's first camera, else a framing of its bounds)")
     g.add_argument("--camera-target", type=_vec3_arg, default=None, metavar="X,Y,Z", help="glTF: the point the camera looks at (default: the centre of the asset's bounds)")
-    g.add_argument("--fov-y", type=_finite_float_arg, default=None, metavar="DEG", help="glTF: vertical field of view in degrees (default: the asset camera's, else 45)")
+    g.add_argument("--fov-y", type=float32_arg(*FOV_Y_RANGE, unit="degrees", why="a narrower view leaves neighbouring pixels' float32 rays nearly equal; 179 is the camera's limit"),
+                   default=None, metavar="DEG", help=f"glTF: vertical field of view in degrees, {FOV_Y_RANGE[0]:g} to {FOV_Y_RANGE[1]:g} (default: the asset camera's, else 45)")
     r.add_argument("--no-lights", action="store_true", help="demo only: leave out the point lights")
     r.set_defaults(func=cmd_render)
 
@@ -100,19 +116,8 @@ def _check_output_path(outs: OutputSet, path: Path, hdr: bool) -> None:
     outs.protect(paths)
 
 
-def _finite_float_arg(text: str) -> float:
-    """argparse type: a finite float (NaN or Inf exposure rendered and then failed, or wrote white)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
-    return value
-
-
 def _vec3_arg(text: str) -> tuple[float, float, float]:
-    """argparse type: three finite numbers separated by commas."""
+    """argparse type: three finite numbers separated by commas, each within float32's range."""
     parts = text.split(",")
     try:
         vals = tuple(float(x) for x in parts)
@@ -120,6 +125,8 @@ def _vec3_arg(text: str) -> tuple[float, float, float]:
         vals = ()
     if len(vals) != 3 or not all(math.isfinite(v) for v in vals):
         raise argparse.ArgumentTypeError(f"expected three numbers X,Y,Z, got {text!r}")
+    if any(abs(v) > FLOAT32_MAX for v in vals):
+        raise argparse.ArgumentTypeError(f"{text!r} is outside float32's range (|x| <= {FLOAT32_MAX:.4g}), which the renderer computes in")
     return vals
 
 
@@ -147,13 +154,18 @@ def _gltf_scene(args):
             env = Environment(radiance=load_environment(args.environment), intensity=args.environment_intensity)
     cam = None
     if args.camera_position is not None or args.camera_target is not None or args.fov_y is not None or not asset.cameras:
-        pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], fov_y_deg=args.fov_y or 45.0, aspect=W / H)
+        pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], fov_y_deg=45.0 if args.fov_y is None else args.fov_y, aspect=W / H)
         first = next((c for c in asset.cameras if c.type == "perspective"), None)
         if first is not None and args.camera_position is None and args.camera_target is None:
             pos, tgt = first.position, first.position + first.forward
+        if args.fov_y is not None:
+            fov = args.fov_y
+        else:
+            fov = math.degrees(first.yfov) if first is not None else 45.0
         cam = Camera(
-            position=tuple(args.camera_position or pos), target=tuple(args.camera_target or tgt),
-            fov_y_deg=args.fov_y or (math.degrees(first.yfov) if first is not None else 45.0),
+            position=tuple(pos if args.camera_position is None else args.camera_position),
+            target=tuple(tgt if args.camera_target is None else args.camera_target),
+            fov_y_deg=fov,
             width=W, height=H, supersample=args.supersample or 1,
         )
     with warnings.catch_warnings(record=True) as caught:

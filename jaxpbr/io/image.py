@@ -17,7 +17,7 @@ Formats
     strings).
 
 Reading prints nothing, also for a corrupt or truncated file: the decoders used report errors to the
-caller (OpenImageIO keeps them for ``geterror``), and a PNG is checked chunk by chunk (:func:`_png_problem`)
+caller (OpenImageIO keeps them for ``geterror``), and a PNG is checked chunk by chunk (:func:`png_problem`)
 before libpng, which prints its fatal errors on stderr, is given it. The process's standard streams are never
 touched.
 
@@ -356,29 +356,48 @@ _PNG_COLOR_TYPES = {0: (1, (1, 2, 4, 8, 16)), 2: (3, (8, 16)), 3: (1, (1, 2, 4, 
 _PNG_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
 _PNG_MAX_SIDE = 1_000_000  # libpng's default user limit on width and height
 _PNG_FILTER_SUB = 0x10  # libpng's PNG_FILTER_SUB flag (OpenImageIO's "png:filter" attribute)
+_PNG_CRITICAL = frozenset({b"IHDR", b"PLTE", b"IDAT", b"IEND"})
+#: Bytes of a PNG's zlib stream given to the decompressor at a time, and the most it inflates at a
+#: time, while checking a PNG (`png_problem`): the memory it needs whatever the header declares.
+_PNG_FEED, _PNG_INFLATE_STEP = 1 << 16, 1 << 20
 
 
 def _png_problem(path: Path, *, header_only: bool = False) -> str | None:
-    """What is wrong with a PNG file, or None: the checks that make libpng fail, made first.
+    """`png_problem` of a file's bytes."""
+    return png_problem(path.read_bytes(), header_only=header_only)
+
+
+def png_problem(data: bytes, *, header_only: bool = False) -> str | None:
+    """What is wrong with the bytes of a PNG file, or None: the checks that make libpng fail, made
+    first. Shared by the image files read here and the images of glTF assets (`jaxpbr.io.gltf`).
 
     On a fatal error libpng hands the message to OpenImageIO's handler and then prints it on
-    stderr itself (``libpng error: ...``), so a file libpng would refuse is refused here instead:
-    the chunk layout up to the end of the image data (types of ASCII letters, lengths inside the
-    file, IHDR first, IDAT present), the CRC of every critical chunk, the IHDR values, the palette
-    a palette image needs and (unless `header_only`) the zlib stream of the image data: complete,
-    with a valid filter byte on every row. OpenImageIO reads nothing after the image data, and
-    libpng drops an ancillary chunk with a bad CRC with a warning it does not print; neither is
-    checked."""
-    data = path.read_bytes()
+    stderr itself (``libpng error: ...``), so data libpng would refuse is refused here instead:
+    the chunk layout up to the end of the image data (types of four ASCII letters with the reserved
+    bit clear, lengths inside the data, one 13-byte IHDR first, no unknown critical chunk, no IEND
+    before the data, one consecutive run of IDAT chunks), the CRC of every critical chunk, the IHDR
+    values (size 1..1,000,000, libpng's limit, a bit depth the colour type allows, methods 0 and
+    interlace 0/1), the palette a palette image needs (one PLTE of 1..256 entries) and (unless
+    `header_only`) the zlib stream of the image data: it inflates without error to its end (its
+    Adler-32 checked) and holds at least the bytes the image needs, with a valid filter type on
+    every row. The stream is inflated a step at a time (`_PNG_INFLATE_STEP`) and never kept: memory
+    stays bounded whatever size the header declares or the stream expands to. OpenImageIO reads
+    nothing after the image data, and libpng drops an ancillary chunk with a bad CRC with a warning
+    it does not print; neither is checked."""
+    data = memoryview(data)
+    if bytes(data[:8]) != b"\x89PNG\r\n\x1a\n":
+        return "the data does not start with the PNG signature"
     pos, chunks = 8, []
     while True:
-        if chunks and chunks[-1][0] == b"IDAT" and data[pos + 4 : pos + 8] != b"IDAT":
+        if chunks and chunks[-1][0] == b"IDAT" and bytes(data[pos + 4 : pos + 8]) != b"IDAT":
             break  # OpenImageIO stops reading after the image data
         if pos + 8 > len(data):
             return "the file ends inside a chunk header (truncated?)"
-        length, kind = struct.unpack(">I4s", data[pos : pos + 8])
+        length, kind = struct.unpack_from(">I4s", data, pos)
         if not kind.isalpha():  # bytes.isalpha: ASCII letters only
             return f"a chunk has the invalid type {kind!r} (corrupt?)"
+        if not kind[2:3].isupper():  # the reserved bit (the third letter's case) must be 0
+            return f"chunk {kind.decode('latin-1')!r} has a reserved type (corrupt?)"
         if header_only and kind == b"IDAT":  # the header is read; the data is not
             chunks.append((kind, b""))
             break
@@ -387,8 +406,14 @@ def _png_problem(path: Path, *, header_only: bool = False) -> str | None:
             return f"chunk {kind!r} runs past the end of the file (truncated?)"
         body = data[pos + 8 : end - 4]
         critical = kind[:1].isupper()
-        if critical and zlib.crc32(kind + body) != struct.unpack(">I", data[end - 4 : end])[0]:
+        if critical and zlib.crc32(body, zlib.crc32(kind)) != struct.unpack_from(">I", data, end - 4)[0]:
             return f"chunk {kind.decode('latin-1')!r} has a bad CRC (corrupt?)"
+        if critical and kind not in _PNG_CRITICAL:
+            return f"chunk {kind.decode('latin-1')!r} is an unknown critical chunk"
+        if chunks and kind in (b"IHDR", b"IEND"):
+            return f"chunk {kind.decode('latin-1')!r} is out of place"
+        if kind == b"PLTE" and any(k == b"PLTE" for k, _ in chunks):
+            return "the image has two PLTE chunks"
         chunks.append((kind, body))
         pos = end
     if chunks[0][0] != b"IHDR" or len(chunks[0][1]) != 13:
@@ -403,30 +428,58 @@ def _png_problem(path: Path, *, header_only: bool = False) -> str | None:
     kinds = [k for k, _ in chunks]
     if b"IDAT" not in kinds:
         return "no IDAT (image data) chunk"
-    if ctype == 3 and b"PLTE" not in kinds[: kinds.index(b"IDAT")]:
-        return "a palette image without a PLTE chunk before its data"
+    if ctype == 3:
+        palette = [body for k, body in chunks[: kinds.index(b"IDAT")] if k == b"PLTE"]
+        if not palette:
+            return "a palette image without a PLTE chunk before its data"
+        if not (0 < len(palette[0]) <= 3 * 256 and len(palette[0]) % 3 == 0):
+            return f"the PLTE chunk has {len(palette[0])} bytes, not 1 to 256 RGB entries"
     if header_only:
         return None
-    rows = []  # (row count, bytes per row without the filter byte) of each pass
+    return _png_data_problem((body for kind, body in chunks if kind == b"IDAT"), width, height, depth, ctype, interlace)
+
+
+def _png_data_problem(idat, width: int, height: int, depth: int, ctype: int, interlace: int) -> str | None:
+    """What is wrong with the zlib stream of a PNG's image data (the bodies of its IDAT chunks,
+    in order), or None; see `png_problem`."""
+    passes = []  # (offset in the stream, row count, bytes per row with the filter byte) of each pass
+    expected = 0
     samples = _PNG_COLOR_TYPES[ctype][0]
     for x0, y0, dx, dy in _PNG_ADAM7 if interlace else ((0, 0, 1, 1),):
         w, h = -(-(width - x0) // dx), -(-(height - y0) // dy)
-        if w > 0 and h > 0:
-            rows.append((h, -(-(w * samples * depth) // 8)))
-    expected = sum(h * (1 + n) for h, n in rows)
+        if w > 0 and h > 0:  # libpng skips an empty pass
+            passes.append((expected, h, 1 + -(-(w * samples * depth) // 8)))
+            expected += h * passes[-1][2]
     inflate = zlib.decompressobj()
+    done = 0  # bytes of the stream inflated so far
     try:
-        raw = inflate.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT"), expected)
+        for body in idat:
+            for at in range(0, len(body), _PNG_FEED):
+                pending = body[at : at + _PNG_FEED]
+                while True:
+                    out = inflate.decompress(pending, _PNG_INFLATE_STEP)
+                    pending = inflate.unconsumed_tail
+                    if out and done < expected:  # the filter types of the rows that start in `out`
+                        codes = np.frombuffer(out, np.uint8)
+                        for start, h, n in passes:
+                            first = start + max(0, -(-(done - start) // n)) * n
+                            stop = min(done + len(out), start + h * n)
+                            if first < stop and (codes[first - done : stop - done : n] > 4).any():
+                                return "a row has an invalid filter type (corrupt?)"
+                    done += len(out)
+                    # input used up and the output not full: zlib holds no more output for now
+                    if inflate.eof or (not pending and len(out) < _PNG_INFLATE_STEP):
+                        break
+                if inflate.eof:
+                    break
+            if inflate.eof:
+                break
     except zlib.error as e:
         return f"the image data does not decompress ({e})"
-    if len(raw) < expected:
-        return f"the image data holds {len(raw)} of the {expected} bytes the image needs (truncated?)"
-    pos = 0
-    for h, n in rows:
-        filters = np.frombuffer(raw, np.uint8, count=h * (n + 1), offset=pos)[:: n + 1]
-        if (filters > 4).any():
-            return "a row has an invalid filter type (corrupt?)"
-        pos += h * (n + 1)
+    if done < expected:
+        return f"the image data holds {done} of the {expected} bytes the image needs (truncated?)"
+    if not inflate.eof:
+        return "the image data's zlib stream does not end (truncated?)"
     return None
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ... import _memory
-from ._binary import fail, get, loc, pointer, read_uri, resolve_uri
+from ._binary import UriRefused, fail, get, loc, pointer, read_regular, read_uri, regular_size, resolve_uri
 from ._types import GltfImage
 
 __all__ = ["PER_DECODED_VALUE", "SUPPORTED_MIME_TYPES", "header_shape", "image_source", "make_images"]
@@ -137,26 +137,26 @@ def image_source(gltf, buffers, i):
     if uri is None:
         return None, None
     try:
-        kind, _, value = resolve_uri(uri, buffers.base)
+        kind, _, value = resolve_uri(uri, buffers.base, buffers.roots)
     except ValueError:
         return None, None
     if kind == "data":
         return header_shape(lambda offset, n: value[offset : offset + n]), len(value)
     try:
-        with open(value, "rb") as f:
-            def read(offset, n):
-                f.seek(offset)
-                return f.read(n)
-
-            return header_shape(read), value.stat().st_size
-    except OSError:
+        size = regular_size(value)
+        return header_shape(lambda offset, n: read_regular(value, n, offset)), size
+    except (OSError, ValueError):
         return None, None
 
 
-def _png_problem(data: bytes) -> str | None:
-    """Why a PNG's chunk structure is broken (a chunk past the end of the data, a bad CRC, no
-    IEND), or None. Checked before libpng sees the data: libpng prints such errors to stderr
-    besides failing."""
+def _png_problem(data: bytes, *, header_only: bool = False) -> str | None:
+    """Why a PNG is broken, or None: its chunk structure (a chunk past the end of the data, a bad
+    CRC, no IEND), then what else makes libpng fail (`jaxpbr.io.image.png_problem`: the IHDR's
+    values, the chunks' order, the palette and, unless `header_only`, the image data's zlib stream,
+    inflated a bounded step at a time to its end). Checked before libpng sees the data: libpng
+    prints such errors to stderr besides failing."""
+    from ..image import png_problem
+
     pos = 8
     while pos + 12 <= len(data):
         length, kind = struct.unpack_from(">I4s", data, pos)
@@ -167,7 +167,8 @@ def _png_problem(data: bytes) -> str | None:
         if zlib.crc32(data[pos + 4 : pos + 8 + length]) & 0xFFFFFFFF != struct.unpack_from(">I", data, pos + 8 + length)[0]:
             return f"is corrupt: chunk {name!r} at byte {pos} fails its CRC check"
         if kind == b"IEND":
-            return None
+            problem = png_problem(data, header_only=header_only)
+            return None if problem is None else f"is corrupt: {problem}"
         pos += 12 + length
     return f"is truncated: it ends after {len(data)} bytes without the IEND chunk"
 
@@ -184,8 +185,8 @@ def _decode(file, where: str, data: bytes, mime: str, path: Path | None) -> np.n
         fail(file, where, f"declared as {mime} but its bytes are not a PNG, JPEG or WebP image",
              "the image is corrupt or mislabelled: re-export the asset")
     mime = found
-    if mime == "image/png":
-        problem = _png_problem(data)
+    if mime == "image/png":  # the header here, the image data once the memory check has passed
+        problem = _png_problem(data, header_only=True)
         if problem is not None:
             fail(file, where, f"the PNG data ({len(data)} bytes) {problem}",
                  "the image file is damaged or was cut short: export or download it again")
@@ -207,6 +208,9 @@ def _decode(file, where: str, data: bytes, mime: str, path: Path | None) -> np.n
             _memory.require(f"decoding {where} ({spec.width}x{spec.height}, {spec.nchannels} channels)",
                             {"image": float(spec.width) * spec.height * spec.nchannels * PER_DECODED_VALUE},
                             where=f"glTF file {str(file)!r}", names={"image": "the image's resolution"})
+            if mime == "image/png" and (problem := _png_problem(data)) is not None:
+                fail(file, where, f"the PNG data ({len(data)} bytes) {problem}",
+                     "the image file is damaged: export or download it again")
             pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
             err = inp.geterror() if pixels is None or inp.has_error else ""
         finally:
@@ -244,7 +248,7 @@ def make_images(gltf, buffers, file: Path) -> list[GltfImage]:
                 mime = sniff(buffers.peek_view(view, 16) or b"") or "unknown"
         elif uri is not None:
             try:
-                kind, uri_mime, value = resolve_uri(uri, buffers.base)
+                kind, uri_mime, value = resolve_uri(uri, buffers.base, buffers.roots)
             except ValueError:
                 kind, uri_mime, value = "bad", None, None
             if kind == "data":
@@ -255,18 +259,20 @@ def make_images(gltf, buffers, file: Path) -> list[GltfImage]:
                     return _decode(file, where, data, mime, None)
             else:
                 if kind == "bad":
-                    read_uri(file, loc(label, at + "/uri"), uri, buffers.base)  # raises with the reason
-                if not value.is_file():
+                    read_uri(file, loc(label, at + "/uri"), uri, buffers.base, buffers.roots)  # raises with the reason
+                if not value.exists():
                     fail(file, loc(label, at + "/uri"), f"file {str(value)!r} (uri {uri!r}) not found",
                          "put the image next to the .gltf as its uri says, or re-export as a self-contained .glb")
                 mime = mime or _BY_EXTENSION.get(value.suffix.lower()) or "unknown"
                 source = str(value)
 
-                def load(path=value, where=where, label=label, at=at, mime=mime):
+                def load(path=value, where=where, label=label, at=at, mime=mime, uri=uri):
                     try:
-                        data = path.read_bytes()
+                        data = read_regular(path)  # a regular file only, no more than its size
+                    except UriRefused as e:
+                        fail(file, loc(label, at + "/uri"), f"uri {uri[:80]!r} {e}", e.fix)
                     except OSError as e:
-                        fail(file, loc(label, at + "/uri"), f"cannot read {str(path)!r}: {e}",
+                        fail(file, loc(label, at + "/uri"), f"cannot read {str(path)!r}: {e.strerror or e}",
                              "check the image file's path and permissions")
                     return _decode(file, where, data, mime, path)
         else:
