@@ -1,7 +1,7 @@
 """glTF 2.0 loader: `read_gltf(path)` -> `GltfAsset`, a scene flattened to world space in NumPy.
 
-Reads .gltf (external .bin/images, data: URIs) and .glb with pygltflib for the JSON and the GLB
-container; accessors (all component types, normalized integers, byteStride, sparse, no
+Reads .gltf (external .bin/images, data: URIs) and .glb (the container parsed here, the JSON with
+Python's json module, every value type-checked against the glTF 2.0 schema before use); accessors (all component types, normalized integers, byteStride, sparse, no
 bufferView) are decoded in NumPy. Materials map onto `jaxpbr.Material` keyword arguments
 (`GltfMaterial.factors`) plus texture slots (`GltfTextureRef`); images are decoded with
 OpenImageIO to float32 arrays of the encoded values. KHR_lights_punctual lights and cameras come

@@ -62,6 +62,10 @@ def node_matrix(matrix=None, translation=None, rotation=None, scale=None) -> np.
     if matrix is not None:
         return np.asarray(matrix, np.float64).reshape(4, 4).T.copy()
     m = np.eye(4)
+    if rotation is None and scale is None:
+        if translation is not None:
+            m[:3, 3] = translation
+        return m
     r = quaternion_matrix(rotation) if rotation is not None else np.eye(3)
     s = np.asarray(scale, np.float64) if scale is not None else np.ones(3)
     m[:3, :3] = r * s[None, :]

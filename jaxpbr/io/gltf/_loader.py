@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import os
@@ -13,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
-from ._binary import Buffers, asset_roots, fail, get, loc, pointer, primitive_attributes
+from ._binary import Buffers, JsonDocument, asset_roots, fail, get, loc, pointer, primitive_attributes
 from ._budget import check_asset_memory
 from ._draco import DracoGeometry, decode_primitive, draco_extension
 from ._geometry import (
@@ -67,11 +68,9 @@ def _json_error(e: ValueError) -> str:
 
 
 def _read_document(path: Path):
-    """(pygltflib.GLTF2, the JSON as Python objects, (offset, length) of the GLB's BIN chunk or
-    None), or InputError. Of a .glb only the header and the JSON chunk are read; the BIN chunk is
-    read when a buffer needs it (after the memory check)."""
-    import pygltflib
-
+    """(the document's top-level view (`JsonDocument`), the JSON as Python objects, (offset, length)
+    of the GLB's BIN chunk or None), or InputError. Of a .glb only the header and the JSON chunk are
+    read; the BIN chunk is read when a buffer needs it (after the memory check)."""
     try:
         f = open(path, "rb")  # noqa: SIM115 - closed below
     except FileNotFoundError:
@@ -83,7 +82,7 @@ def _read_document(path: Path):
             size = os.fstat(f.fileno()).st_size
             head = f.read(12)
             if head[:4] == b"glTF":
-                return _read_glb(path, f, head, size, pygltflib)
+                return _read_glb(path, f, head, size)
             data = head + f.read()
         except OSError as e:
             raise InputError(f"glTF file {str(path)!r} cannot be read: {e}. Fix: check the path and permissions") from None
@@ -96,16 +95,12 @@ def _read_document(path: Path):
     if not isinstance(doc, dict):
         fail(path, "JSON root (pointer '')", "the JSON is not an object", _FIX)
     _check_version(path, doc)
-    try:
-        gltf = pygltflib.GLTF2.gltf_from_json(text)
-    except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
-        fail(path, "JSON root (pointer '')", f"pygltflib cannot parse the JSON ({type(e).__name__}: {e})", _FIX)
-    return gltf, doc, None
+    return JsonDocument(doc), doc, None
 
 
 def _check_version(path: Path, doc: dict) -> None:
-    """Refuse anything but glTF 2.x, before pygltflib reads the document: a glTF 1.x file keeps
-    its objects in dictionaries keyed by id, on which pygltflib fails with an error of its own."""
+    """Refuse anything but glTF 2.x before the document is read: a glTF 1.x file keeps its
+    objects in dictionaries keyed by id."""
     asset = doc.get("asset")
     version = str(get(asset, "version", "")) if isinstance(asset, dict) else ""
     if not version.startswith("2."):
@@ -114,7 +109,7 @@ def _check_version(path: Path, doc: dict) -> None:
              "convert the asset to glTF 2.0 (glTF 1.0 files can be upgraded with gltf-pipeline or Blender)")
 
 
-def _read_glb(path: Path, f, head: bytes, size: int, pygltflib):
+def _read_glb(path: Path, f, head: bytes, size: int):
     if len(head) < 12 or size < 20:
         fail(path, "GLB header (bytes 0-11)", f"the file has only {size} bytes", "the file is truncated: re-export it")
     version, length = struct.unpack_from("<II", head, 4)
@@ -146,23 +141,27 @@ def _read_glb(path: Path, f, head: bytes, size: int, pygltflib):
     if not isinstance(doc, dict):
         fail(path, "GLB JSON chunk, root (pointer '')", "the JSON is not an object", _FIX)
     _check_version(path, doc)
-    try:
-        gltf = pygltflib.GLTF2.gltf_from_json(text)
-    except Exception as e:  # noqa: BLE001 - pygltflib raises assorted errors on malformed input
-        fail(path, "GLB JSON chunk, root (pointer '')", f"pygltflib cannot parse it ({type(e).__name__}: {e})", _FIX)
     blob = next(((o, n) for t, o, n in chunks[1:] if t == 0x004E4942), None)  # 'BIN\0'
-    return gltf, doc, blob
+    return JsonDocument(doc), doc, blob
 
 
-@dataclass
 class _Visit:
-    """A node reached by the scene traversal: its index, world matrix, readable name and pointer."""
+    """A node reached by the scene traversal: its index, JSON object and world matrix; its
+    readable name and pointer are made when a message needs them."""
 
-    index: int
-    node: object
-    world: np.ndarray
-    where: str
-    at: str
+    __slots__ = ("index", "node", "world")
+
+    def __init__(self, index: int, node, world: np.ndarray):
+        self.index, self.node, self.world = index, node, world
+
+    @property
+    def at(self) -> str:
+        return pointer("nodes", self.index)
+
+    @property
+    def where(self) -> str:
+        name = get(self.node, "name")
+        return f"node {self.index}" + (f" ({name!r:.60})" if isinstance(name, str) and name else "")
 
 
 class _Loader:
@@ -173,7 +172,8 @@ class _Loader:
         self.lazy_images = lazy_images
         self.notes: list[str] = []
         self.ignored_features: dict[str, set] = {}
-        #: The JSON pointer of what is being read (named by errors the checks did not foresee).
+        #: The JSON pointer (or the `_Visit`) of what is being read (named by errors the checks did
+        #: not foresee).
         self.context = ""
 
     # ------------------------------------------------------------------------------------------
@@ -301,32 +301,35 @@ class _Loader:
                      f"({pointer('nodes', parent[r], 'children')}); a scene lists root nodes only", _FIX)
         out: list[_Visit] = []
         visited = bytearray(len(nodes))
-        stack = [(r, np.eye(4)) for r in reversed(list(roots))]
+        eye = np.eye(4)
+        eye.flags.writeable = False
+        stack = [(r, eye) for r in reversed(list(roots))]
         while stack:
             i, world_parent = stack.pop()
             if visited[i]:  # (unreachable: one parent each, roots parentless)
                 fail(self.path, loc(f"node {i}", pointer("nodes", i)), "is reached twice in the node hierarchy", _FIX)
             visited[i] = 1
-            at = pointer("nodes", i)
             node = nodes[i]
-            self.context = at
-            name = get(node, "name")
-            where = f"node {i}" + (f" ({name!r})" if isinstance(name, str) and name else "")
-            matrix = get(node, "matrix")
-            t_at = at + "/matrix" if matrix is not None else at
-            try:
-                local = node_matrix(matrix, get(node, "translation"), get(node, "rotation"), get(node, "scale"))
-            except (ValueError, TypeError) as e:
-                fail(self.path, loc(where, t_at), f"invalid transform ({e})", _FIX)
-            world = world_parent @ local
-            if not np.all(np.isfinite(world)):
-                what = "transform has non-finite values" if not np.all(np.isfinite(local)) else \
-                    "world transform overflows (the product of its ancestors' transforms is not finite)"
-                fail(self.path, loc(where, t_at), what, _FIX)
-            out.append(_Visit(i, node, world, where, at))
-            children = get(node, "children", []) or []
-            for c in reversed(children):
-                stack.append((c, world))
+            matrix, t, r, sc = (get(node, k) for k in ("matrix", "translation", "rotation", "scale"))
+            if matrix is None and t is None and r is None and sc is None:
+                world = world_parent  # (shared: world matrices are never written to)
+            else:
+                v = _Visit(i, node, world_parent)
+                self.context = v
+                try:
+                    local = node_matrix(matrix, t, r, sc)
+                except (ValueError, TypeError) as e:
+                    fail(self.path, loc(v.where, v.at + "/matrix" if matrix is not None else v.at), f"invalid transform ({e})", _FIX)
+                world = world_parent @ local
+                if not np.isfinite(world).all():
+                    t_at = v.at + "/matrix" if matrix is not None else v.at
+                    what = "transform has non-finite values" if not np.isfinite(local).all() else \
+                        "world transform overflows (the product of its ancestors' transforms is not finite)"
+                    fail(self.path, loc(v.where, t_at), what, _FIX)
+            out.append(_Visit(i, node, world))
+            children = get(node, "children")
+            if children:
+                stack.extend((c, world) for c in reversed(children))
         return out
 
     def _parents(self, nodes) -> list[int]:
@@ -376,7 +379,7 @@ class _Loader:
         return None
 
     def _visit(self, v: _Visit):
-        self.context = v.at
+        self.context = v
         node = v.node
         if get(node, "camera") is not None:
             self._camera(v)
@@ -408,7 +411,7 @@ class _Loader:
         for v in visits:
             if get(v.node, "mesh") is None:
                 continue
-            self.context = v.at
+            self.context = v
             m, _ = self.mesh_of(v)
             inst = (get(v.node, "extensions", {}) or {}).get("EXT_mesh_gpu_instancing")
             worlds = v.world[None] if inst is None else v.world @ self._instance_matrices(inst, v)
@@ -776,14 +779,22 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, root
     """
     path = Path(path)
     loader = _Loader(path, scene, lazy_images, roots)
+    # The load makes a few objects per node and per instance and keeps them all: Python's cyclic
+    # collector would walk them again and again (a million instances: 68 s with it, ... without).
+    collecting = gc.isenabled()
+    gc.disable()
     try:
         asset = loader.run()
     except InputError:
         raise
     except (TypeError, KeyError, IndexError, AttributeError, ValueError) as e:
-        near = f"{loader.context}: " if loader.context else ""
+        context = loader.context.at if isinstance(loader.context, _Visit) else loader.context
+        near = f"{context}: " if context else ""
         msg = f"glTF file {str(path)!r}: {near}malformed content ({type(e).__name__}: {e}). Fix: {_FIX}"
         raise InputError(" ".join(msg.split())) from e
+    finally:
+        if collecting:
+            gc.enable()
     for note in asset.warnings:
         warnings.warn(f"{path.name}: {note}", UserWarning, stacklevel=2)
     return asset
