@@ -84,6 +84,9 @@ def add_command(sub) -> None:
     g.add_argument("--camera-target", type=_vec3_arg, default=None, metavar="X,Y,Z", help="glTF: the point the camera looks at (default: the centre of the asset's bounds)")
     g.add_argument("--fov-y", type=float32_arg(*FOV_Y_RANGE, unit="degrees", why="a narrower view leaves neighbouring pixels' float32 rays nearly equal; 179 is the camera's limit"),
                    default=None, metavar="DEG", help=f"glTF: vertical field of view in degrees, {FOV_Y_RANGE[0]:g} to {FOV_Y_RANGE[1]:g} (default: the asset camera's, else 45)")
+    g.add_argument("--asset-root", action="append", default=None, metavar="DIR",
+                   help="glTF: a folder besides the asset's own whose files its buffer and image URIs may name; repeat for "
+                        "more (default: an asset reads only regular files inside its own folder; docs/gltf.md, 'Untrusted assets')")
     r.add_argument("--no-lights", action="store_true", help="demo only: leave out the point lights")
     r.set_defaults(func=cmd_render)
 
@@ -141,7 +144,7 @@ def _gltf_scene(args):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        asset = read_gltf(args.scene)
+        asset = read_gltf(args.scene, roots=args.asset_root or ())
     for w in caught:
         print(f"jaxpbr: warning: {w.message}")
     W, H = args.width or 1280, args.height or 720
@@ -226,7 +229,7 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     else:
         if args.no_lights or args.no_environment:
             raise CLIError("--no-lights/--no-environment apply to the demo only; edit the scene file instead")
-        gltf_flags = [f for f, v in (("--environment", args.environment), ("--camera-position", args.camera_position), ("--camera-target", args.camera_target), ("--fov-y", args.fov_y)) if v is not None]
+        gltf_flags = [f for f, v in (("--environment", args.environment), ("--camera-position", args.camera_position), ("--camera-target", args.camera_target), ("--fov-y", args.fov_y), ("--asset-root", args.asset_root)) if v is not None]
         if gltf_flags:
             raise CLIError(f"{', '.join(gltf_flags)} apply to glTF assets (.gltf, .glb); a scene file sets its own environment and camera")
         loaded = load_scene(args.scene)

@@ -236,6 +236,7 @@ def load_gltf(
     lights=(),
     asset_lights: bool = True,
     background=(0.0, 0.0, 0.0),
+    roots=(),
 ) -> Scene:
     """A glTF 2.0 asset (.gltf or .glb) as a `Scene` that `jaxpbr.render` draws.
 
@@ -245,11 +246,13 @@ def load_gltf(
     environment: an `Environment` (image-based lighting and background) or None.
     lights: extra lights added to the asset's own KHR_lights_punctual lights (`asset_lights=False`
         leaves those out).
+    roots: folders besides the asset's own that its buffer and image URIs may name (by default
+        an asset reads only regular files inside its own folder; docs/gltf.md, "Untrusted assets").
     The asset itself (materials, images, counts) is `jaxpbr.io.gltf.read_gltf(path)`;
     `scene_from_asset` builds the scene from one already read and also returns what the scene
     does not reproduce (`GltfScene.notes`, also warned).
     """
-    asset = read_gltf(path, scene=scene)
+    asset = read_gltf(path, scene=scene, roots=roots)
     return scene_from_asset(
         asset, camera=camera, width=width, height=height, environment=environment, lights=lights,
         asset_lights=asset_lights, background=background,
