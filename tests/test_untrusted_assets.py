@@ -365,3 +365,46 @@ def test_many_instances_share_one_batched_transform(tmp_path):
     mirrored = np.array([p.indices.tolist() == [[0, 2, 1]] for p in a.primitives])
     np.testing.assert_array_equal(mirrored, np.prod(np.sign(s), axis=1) < 0)
     assert [p.node for p in a.primitives] == list(range(n))
+
+
+def test_instances_are_counted_by_the_memory_guard_before_any_buffer_is_read(tmp_path, monkeypatch):
+    """20 000 nodes instancing one triangle under a 20 MB limit: refused from the JSON alone,
+    naming the mesh primitive, with no buffer read (each instance costs its arrays and ~1 kB)."""
+    from jaxpbr._memory import MemoryLimitError
+    from jaxpbr.io.gltf import _binary
+
+    n = 20_000
+    nodes = [{"mesh": 0, "translation": [float(k), 0.0, 0.0]} for k in range(n)]
+    path = _write(tmp_path, _graph_doc(nodes, list(range(n))))
+    assert len(read_gltf(path).primitives) == n  # it loads with the memory there is
+    real = _binary.Buffers.buffer
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "0.02")
+    monkeypatch.setattr(_binary.Buffers, "buffer", lambda *a, **k: pytest.fail("a buffer was read before the check"))
+    with pytest.raises(MemoryLimitError) as e:
+        read_gltf(path)
+    assert "lower the vertex and index counts of /meshes/0/primitives/0" in str(e.value)
+    # loaded to be rendered, the acceleration structure counts too (the engine's fixed cost
+    # alone is above 0.1 GB): ten instances load, and are refused for a render
+    monkeypatch.setattr(_binary.Buffers, "buffer", real)
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "0.1")
+    small = _write(tmp_path, _graph_doc(nodes[:10], list(range(10))), name="small.gltf")
+    assert len(read_gltf(small).primitives) == 10
+    with pytest.raises(MemoryLimitError, match="/meshes/0/primitives/0"):
+        read_gltf(small, ray_engine="embree")
+
+
+@pytest.mark.parametrize("values, ok", [(1.0000001, True), (1e30, False), (-0.5, False), (2.0, False)])
+def test_color_0_outside_the_unit_range_is_refused_before_work(tmp_path, values, ok):
+    import base64
+
+    data = TRIANGLE + np.float32([[values, 0.5, 0.5, 1.0]] * 3).tobytes()
+    doc = _doc("data:application/octet-stream;base64," + base64.b64encode(data).decode(), byte_length=len(data))
+    doc["bufferViews"].append({"buffer": 0, "byteOffset": 36, "byteLength": 48})
+    doc["accessors"].append({"bufferView": 1, "componentType": 5126, "count": 3, "type": "VEC4"})
+    doc["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"] = 1
+    path = _write(tmp_path, doc)
+    if ok:
+        assert read_gltf(path).primitives[0].color_0.max() == 1.0
+    else:
+        msg = _refused(path, "/meshes/0/primitives/0/attributes/COLOR_0", "outside [0, 1] (the first in element 0)")
+        assert repr(values) not in msg and str(values) not in msg

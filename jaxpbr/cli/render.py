@@ -140,11 +140,12 @@ def _gltf_scene(args):
     from ..ibl.cubeio import load_environment
     from ..io.gltf import read_gltf
     from ..rendering.gltf_scene import frame_bounds, scene_from_asset
+    from ..rendering.plan import mesh_engine
     from ..rendering.scene import Camera, Environment
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        asset = read_gltf(args.scene, roots=args.asset_root or ())
+        asset = read_gltf(args.scene, roots=args.asset_root or (), ray_engine=mesh_engine())
     for w in caught:
         print(f"jaxpbr: warning: {w.message}")
     W, H = args.width or 1280, args.height or 720

@@ -252,7 +252,9 @@ def load_gltf(
     `scene_from_asset` builds the scene from one already read and also returns what the scene
     does not reproduce (`GltfScene.notes`, also warned).
     """
-    asset = read_gltf(path, scene=scene, roots=roots)
+    from .plan import mesh_engine
+
+    asset = read_gltf(path, scene=scene, roots=roots, ray_engine=mesh_engine())
     return scene_from_asset(
         asset, camera=camera, width=width, height=height, environment=environment, lights=lights,
         asset_lights=asset_lights, background=background,

@@ -44,6 +44,8 @@ SUPPORTED_EXTENSIONS = (
     "EXT_texture_webp",
 )
 
+#: How far outside [0, 1] a float COLOR_0 component may be and be clamped (exporters' rounding).
+_COLOR_SLACK = 1e-3
 _FLOATISH = (5120, 5121, 5122, 5123, 5126)  # FLOAT, or integers read as (normalized) numbers
 _FIX = "repair or re-export the asset (the Khronos glTF-Validator names the problem)"
 
@@ -165,8 +167,9 @@ class _Visit:
 
 
 class _Loader:
-    def __init__(self, path: Path, scene: int | None, lazy_images: bool, roots=()):
+    def __init__(self, path: Path, scene: int | None, lazy_images: bool, roots=(), ray_engine=None):
         self.path = path
+        self.ray_engine = ray_engine
         self.roots = asset_roots(path, roots)
         self.scene_arg = scene
         self.lazy_images = lazy_images
@@ -200,7 +203,7 @@ class _Loader:
         visits = self._walk(roots, roots_at)
         # One memory check of everything the load will decode, before any buffer is read.
         self.context = ""
-        check_asset_memory(self, visits)
+        check_asset_memory(self, visits, self.ray_engine)
         self._place_meshes(visits)
         for v in visits:
             self._visit(v)
@@ -578,6 +581,19 @@ class _Loader:
                      f"has {arr.shape[0]} elements but POSITION ({at}/attributes/POSITION) has {n}", _FIX)
         if color is not None:
             color = np.asarray(color, np.float32)
+            # COLOR_0 multiplies the base colour (a reflectance in [0, 1]): a value far outside
+            # that would carry an HDR sun past float32 (1e30: infinite pixels). Float rounding of
+            # exporters (1.0000001) is clamped; the message names the element, not the value.
+            outside = (color < -_COLOR_SLACK) | (color > 1.0 + _COLOR_SLACK)
+            if outside.any():
+                first = int(np.argmax(outside.any(axis=1)))
+                ci = attrs["COLOR_0"]
+                fail(self.path, f"{loc(f'{where} COLOR_0', f'{at}/attributes/COLOR_0')}: "
+                     f"{loc(f'accessor {ci}', pointer('accessors', ci))}",
+                     f"{int(outside.any(axis=1).sum())} of its {n} colours have components outside [0, 1] (the first in "
+                     f"element {first}): COLOR_0 is a linear multiplier of the base colour",
+                     "clamp the vertex colours to [0, 1] (or store them as normalized integers) and re-export")
+            color = np.clip(color, 0.0, 1.0)
             if color.shape[1] == 3:
                 color = np.concatenate([color, np.ones((n, 1), np.float32)], axis=1)
         if draco is not None:
@@ -748,7 +764,8 @@ class _Loader:
             inner_cone_angle=inner, outer_cone_angle=outer))
 
 
-def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, roots=()) -> GltfAsset:
+def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, roots=(),
+              ray_engine: str | None = None) -> GltfAsset:
     """Load a glTF 2.0 asset (.gltf with external or data: URIs, or .glb) flattened to world space.
 
     Args:
@@ -761,6 +778,9 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, root
             default an asset reads only regular files inside its own folder (symbolic links
             resolved): absolute paths, `..` or a link leading out, `file:` and other schemes,
             devices and FIFOs are refused (docs/gltf.md, "Untrusted assets").
+        ray_engine: "embree" or "jax" when the asset is loaded to be rendered: the memory check
+            made before any buffer is read then also counts that engine's acceleration structure
+            over every instanced triangle (`jaxpbr.load_gltf` and `jaxpbr render` pass it).
 
     Returns:
         `GltfAsset`: one `GltfPrimitive` per (node, mesh primitive) of the scene, in world space
@@ -778,7 +798,9 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, root
     slots without a decodable image; tangents that cannot be generated.
     """
     path = Path(path)
-    loader = _Loader(path, scene, lazy_images, roots)
+    if ray_engine not in (None, "embree", "jax"):
+        raise ValueError(f"ray_engine must be None, 'embree' or 'jax', got {ray_engine!r}")
+    loader = _Loader(path, scene, lazy_images, roots, ray_engine)
     # The load makes a few objects per node and per instance and keeps them all: Python's cyclic
     # collector would walk them again and again (a million instances: 68 s with it, ... without).
     collecting = gc.isenabled()

@@ -182,7 +182,7 @@ class GltfImage:
         return f"GltfImage({self.index}, {self.name!r}, {self.mime_type}, {self.source}, {shape})"
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class GltfPrimitive:
     """One mesh primitive instanced by one node, in world space, as a triangle list.
 
