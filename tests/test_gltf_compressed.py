@@ -275,7 +275,7 @@ def test_webp_only_texture_when_required(tmp_path):
     # a source that does not exist is named by its pointer
     b.doc["textures"][0]["extensions"]["EXT_texture_webp"]["source"] = 9
     bad = b.write(tmp_path / "webp_bad.gltf", mode="data")
-    _expect_error(bad, "/textures/0/extensions/EXT_texture_webp/source", "image 9 does not exist")
+    _expect_error(bad, "/textures/0/extensions/EXT_texture_webp/source", "names image 9, which does not exist")
 
 
 @pytest.mark.parametrize("channels,lossless", [(3, True), (4, True), (3, False), (4, False)])

@@ -26,6 +26,7 @@ from ._geometry import (
     weld,
 )
 from ._images import make_images
+from ._schema import check_schema
 from ._materials import MATERIAL_EXTENSIONS, MaterialReader
 from ._types import GltfAsset, GltfCamera, GltfLight, GltfMaterial, GltfPrimitive
 
@@ -97,6 +98,7 @@ def _read_document(path: Path):
     if not isinstance(doc, dict):
         fail(path, "JSON root (pointer '')", "the JSON is not an object", _FIX)
     _check_version(path, doc)
+    check_schema(path, doc)
     return JsonDocument(doc), doc, None
 
 
@@ -143,6 +145,7 @@ def _read_glb(path: Path, f, head: bytes, size: int):
     if not isinstance(doc, dict):
         fail(path, "GLB JSON chunk, root (pointer '')", "the JSON is not an object", _FIX)
     _check_version(path, doc)
+    check_schema(path, doc)
     blob = next(((o, n) for t, o, n in chunks[1:] if t == 0x004E4942), None)  # 'BIN\0'
     return JsonDocument(doc), doc, blob
 
