@@ -1,5 +1,5 @@
 """`check_schema`: the glTF 2.0 JSON checked against the schema's types and ranges before the loader
-reads it (issue 42). In process, no rendering: a valid document is built here (a triangle with
+reads it. In process, no rendering: a valid document is built here (a triangle with
 everything the checker covers), one value is changed per case, and the error must name the exact
 JSON pointer and the problem. The unchanged document and the named test assets (written by
 tests/gltf_assets.py, which the Khronos glTF-Validator passes in tests/test_gltf_assets.py) must

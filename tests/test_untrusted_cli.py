@@ -1,4 +1,4 @@
-"""Hostile command-line values and damaged PNGs (issue 42): one line on stderr, exit status 2,
+"""Hostile command-line values and damaged PNGs: one line on stderr, exit status 2,
 nothing written, and nothing printed by a native library.
 
 * `jaxpbr render --fov-y 0` rendered at 45 degrees (`args.fov_y or 45.0`) and overwrote the
