@@ -407,3 +407,30 @@ def test_color_0_outside_the_unit_range_is_refused_before_work(tmp_path, values,
     else:
         msg = _refused(path, "/meshes/0/primitives/0/attributes/COLOR_0", "outside [0, 1] (the first in element 0)")
         assert repr(values) not in msg and str(values) not in msg
+
+
+def test_the_asset_file_itself_must_be_a_regular_file(tmp_path):
+    os.mkfifo(tmp_path / "pipe.gltf")
+    with _deadline(20), pytest.raises(InputError, match="names a FIFO, not a regular file"):
+        read_gltf(tmp_path / "pipe.gltf")
+    with _deadline(20), pytest.raises(InputError, match="names a device, not a regular file"):
+        read_gltf("/dev/zero")
+
+
+def test_json_nested_too_deep_is_one_line(tmp_path):
+    path = tmp_path / "deep.gltf"
+    path.write_text('{"asset": {"version": "2.0"}, "extras": ' + "[" * 200_000 + "]" * 200_000 + "}")
+    msg = _refused(path, "JSON", "nested too deep")
+    assert "recursion" not in msg
+
+
+def test_json_size_is_checked_by_the_memory_guard_before_reading(tmp_path, monkeypatch):
+    from jaxpbr._memory import MemoryLimitError
+
+    path = tmp_path / "big.gltf"
+    with open(path, "wb") as f:
+        f.write(b'{"asset": {"version": "2.0"}, "extras": "')
+        f.truncate(200 << 20)  # 200 MB of JSON text (NUL bytes: never parsed)
+    monkeypatch.setenv("JAXPBR_MEMORY_LIMIT", "1")
+    with pytest.raises(MemoryLimitError, match="the size of the .gltf file"):
+        read_gltf(path)
