@@ -54,6 +54,10 @@ def run_batch(jobs, out, *, engine: str = "local", address: str | None = None, w
     """
     if engine not in ENGINES:
         raise InputError(f"engine {engine!r} is not one of {', '.join(ENGINES)}")
+    if engine == "ray":  # before the output folder is made: a refused run writes nothing
+        from .ray_engine import import_ray
+
+        import_ray()
     jobs = list(jobs)
     folder = OutputFolder(out)
     t_start = time.perf_counter()

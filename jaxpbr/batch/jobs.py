@@ -18,6 +18,11 @@ folder. docs/batch.md has every field.
 
 `load_jobs` checks every row and raises one `JobFileError` listing every problem, one line each:
 "<file>:<row>: <field>: <problem>; <fix>" (rows count from 1, as editors number lines).
+
+A job file is untrusted input: only a regular file of at most `MAX_JOB_FILE_BYTES` is read (a FIFO
+or a device is refused without waiting on it), a row nested deeper than `MAX_NESTING` or giving a
+key twice is refused, and job names stay inside the output folder and out of the run's own state
+(`store.STATE_DIR`, the summary), at most `MAX_NAME` characters.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import dataclasses
 import hashlib
 import inspect
 import json
+import os
 import math
 import re
 from pathlib import Path
@@ -39,8 +45,16 @@ from ..ibl.specular import LOD_BLENDS, MAPPINGS, PREFILTER_METHODS
 from ..rendering.aovs import AOVS
 from ..rendering.renderer import RenderOptions
 from ..rendering.scene import MAX_SUPERSAMPLE
+from ..rendering.scene_file import (
+    MAX_NESTING,
+    bracket_depth,
+    parse_toml,
+    read_regular_file,
+    read_scene_text,
+)
 from ..shading.lut import SMITH_VARIANTS
 from ..shading.material import Material
+from .store import _LEFTOVER, STATE_DIR, SUMMARY
 
 __all__ = ["BakeJob", "JobFileError", "RenderJob", "load_jobs", "parse_jobs"]
 
@@ -61,6 +75,18 @@ _RENDER_OPTIONS = {f.name: f for f in dataclasses.fields(RenderOptions)}
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*$")
 #: Images per job are capped like the command line's renders.
 MAX_SIDE = 16384
+#: The largest job file read, in bytes (64 MiB): a row is a few hundred bytes, so this is some
+#: 200,000 jobs (more belong in several files, each run on its own); the cap keeps a mistaken or
+#: hostile job file (/dev/zero, a multi-GB log) from being read whole into memory.
+MAX_JOB_FILE_BYTES = 64 << 20
+#: The longest job name, in characters (a 10,000-character name passed validation and failed when
+#: its files were written).
+MAX_NAME = 200
+#: The longest part of a job name (between slashes), in bytes: a file name has at most 255, and the
+#: engine adds up to 25 to the last part (".png", then the copy an output set keeps while it
+#: replaces a file: "." + part + ".png" + ".jaxpbr-old-" + 8 hex digits), 30 with a margin. Names
+#: are ASCII (`_NAME`), so MAX_NAME alone keeps to this today; the check stays if it is raised.
+MAX_COMPONENT = 255 - 30
 
 
 class JobFileError(InputError):
@@ -131,15 +157,55 @@ class BakeJob:
 
 def load_jobs(path) -> list:
     """Read and validate a job file -> [RenderJob | BakeJob] in file order (JobFileError lists
-    every bad row)."""
+    every bad row). Only a regular file of at most `MAX_JOB_FILE_BYTES` of UTF-8 is read
+    (InputError otherwise, before anything is read from a FIFO or a device)."""
     path = Path(path)
+    data = read_regular_file(path, limit=MAX_JOB_FILE_BYTES, what="job file",
+                             missing="give a JSON Lines file (docs/batch.md)",
+                             other="give a JSON Lines file (docs/batch.md)",
+                             smaller="split it into several job files")
     try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise InputError(f"job file {str(path)!r} does not exist; give a JSON Lines file (docs/batch.md)") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise InputError(f"cannot read job file {str(path)!r}: {e}") from None
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"job file {str(path)!r} is not UTF-8 text ({e.reason} at byte {e.start}); "
+                         f"save it as UTF-8 (JSON Lines)") from None
     return parse_jobs(text, base_dir=path.resolve().parent, source=path.name)
+
+
+class _DuplicateKey(Exception):
+    pass
+
+
+def _unique_keys(pairs) -> dict:
+    """json's object_pairs_hook: an object that gives a key twice is refused (json.loads keeps
+    the last one without a word)."""
+    out = {}
+    for k, v in pairs:
+        if k in out:
+            raise _DuplicateKey(k)
+        out[k] = v
+    return out
+
+
+_JSON_STRING = re.compile(r'"[^"\\]*(?:\\.[^"\\]*)*"')
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+
+
+def _row_too_deep(line: str) -> bool:
+    """Whether a row nests arrays and objects deeper than MAX_NESTING, from its brackets outside
+    strings (json.loads recurses, and a row nested 100,000 deep ended the run with a
+    RecursionError), up to an unterminated string, where json.loads stops too."""
+    if line.count("[") + line.count("{") <= MAX_NESTING:  # fewer brackets cannot nest deeper
+        return False
+    bare = _JSON_STRING.sub("", line)
+    bare = bare[: bare.find('"')] if '"' in bare else bare
+    return bracket_depth(_NOT_BRACKET.sub("", bare), stop=MAX_NESTING) > MAX_NESTING
+
+
+def _shown(x, n: int = 60) -> str:
+    """A value of a row in a message: its repr, cut to n characters."""
+    r = repr(x)
+    return r if len(r) <= n else r[: n - 3] + "..."
 
 
 def parse_jobs(text: str, *, base_dir, source: str = "<jobs>") -> list:
@@ -153,10 +219,26 @@ def parse_jobs(text: str, *, base_dir, source: str = "<jobs>") -> list:
         if not line.strip():
             continue
         where = f"{source}:{row}"
+        too_deep = (f"{where}: arrays and objects nested more than {MAX_NESTING} levels deep; a job row "
+                    f"nests 3 (docs/batch.md): fix the row")
+        if _row_too_deep(line):
+            problems.append(too_deep)
+            continue
         try:
-            obj = json.loads(line)
+            obj = json.loads(line, object_pairs_hook=_unique_keys)
         except json.JSONDecodeError as e:
             problems.append(f"{where}: not JSON ({e.msg} at column {e.colno}); write one JSON object per line")
+            continue
+        except _DuplicateKey as e:
+            problems.append(f"{where}: {_shown(e.args[0])}: the key is given twice in one object (JSON readers "
+                            f"keep one or the other); give it once")
+            continue
+        except RecursionError:  # a backstop: _row_too_deep finds any nesting that gets this deep
+            problems.append(too_deep)
+            continue
+        except ValueError as e:  # e.g. an integer of more than 4300 digits
+            problems.append(f"{where}: not JSON that can be read ({' '.join(str(e).split())[:120]}); "
+                            f"write one JSON object per line")
             continue
         if not isinstance(obj, dict):
             problems.append(f"{where}: expected a JSON object, got {type(obj).__name__}; write one object per line")
@@ -194,10 +276,11 @@ def _parse_row(obj: dict, row: int, base: Path, bad: list, stamps: dict):
     name = obj.get("name")
     if name is None:
         bad.append("name: missing; give every job an output name (e.g. \"sky/front\")")
-    elif not isinstance(name, str) or not _NAME.match(name) or any(p in (".", "..") for p in name.split("/")):
-        bad.append(f"name: expected a relative output name of letters, digits, '_', '-', '.' and '/' "
-                   f"(e.g. 'sky/front'), got {name!r}")
-        name = None
+    else:
+        problem = _name_problem(name, kind, obj.get("output"))
+        if problem:
+            bad.append(f"name: {problem}")
+            name = None
     if kind == "bake":
         return _parse_bake(obj, row, name, base, bad, stamps)
     for k in obj:
@@ -277,6 +360,33 @@ def _parse_bake(obj: dict, row: int, name, base: Path, bad: list, stamps: dict):
     return BakeJob(row=row, name=name, environment=environment, options=options, key=key)
 
 
+def _name_problem(name, kind: str, output) -> str | None:
+    """What keeps `name` from naming a job's outputs inside the output folder, or None."""
+    if isinstance(name, str) and len(name) > MAX_NAME:
+        return f"{len(name)} characters, more than the {MAX_NAME} a job name may have; give a shorter name"
+    if not isinstance(name, str) or not _NAME.match(name) or any(p in (".", "..") for p in name.split("/")):
+        return (f"expected a relative output name of letters, digits, '_', '-', '.' and '/' "
+                f"(e.g. 'sky/front'), got {_shown(name)}")
+    parts = name.split("/")
+    long = next((p for p in parts if len(p.encode()) > MAX_COMPONENT), None)
+    if long is not None:
+        return (f"the part {_shown(long, 40)} is {len(long.encode())} bytes, more than the {MAX_COMPONENT} a "
+                f"file name leaves it; split it with '/' or shorten it")
+    # casefold: on a case-insensitive file system .JAXPBR-BATCH is the state folder too
+    if any(p.casefold().startswith(STATE_DIR.casefold()) for p in parts):
+        return (f"{name!r} lies in {STATE_DIR!r}, the folder where the run keeps its lock and records; "
+                f"give a name outside it")
+    if name.casefold() == SUMMARY.casefold():
+        return f"{name!r} is the run's summary file; give another name"
+    if kind == "render":
+        formats = output.get("formats") if isinstance(output, dict) else None
+        for f in formats if isinstance(formats, list) and formats else ["png"]:
+            if isinstance(f, str) and _LEFTOVER.match(f"{parts[-1]}.{f}"):
+                return (f"{name!r} has the form of the temporary files a run removes when it starts "
+                        f"('.NAME.tmp-XXXXXXXX'), so its outputs would be removed; give another name")
+    return None
+
+
 def _suggest(word: str, choices) -> str:
     import difflib
 
@@ -298,7 +408,8 @@ def _input_file(value, base: Path, field: str, suffixes, bad: list, procedural=F
         bad.append(f"{field}: {value!r} is not one of {', '.join(suffixes)}{' or procedural:sky' if procedural else ''}")
         return None
     if not p.is_file():
-        bad.append(f"{field}: file {value!r} does not exist (paths are relative to the job file's folder)")
+        what = "is not a regular file" if p.exists() else "does not exist"
+        bad.append(f"{field}: file {_shown(value)} {what} (paths are relative to the job file's folder)")
         return None
     return str(p)
 
@@ -317,6 +428,11 @@ def _scene(value, base: Path, bad: list):
             return None
         if not isinstance(args, dict):
             bad.append(f"scene.args: expected an object of keyword arguments, got {args!r}")
+            return None
+        if factory_module_file(fac, base) is None:
+            bad.append(f"scene.factory: module {fac.partition(':')[0]!r} is not a Python file in the job file's folder "
+                       f"({base}); a factory is imported from there only (an installed module such as subprocess:run "
+                       "would let a job file run any command): put the module beside the job file")
             return None
         return ("factory", fac, json.dumps(args, sort_keys=True), str(base))
     p = _input_file(value, base, "scene", (".toml", ".gltf", ".glb"), bad)
@@ -405,11 +521,9 @@ def _file_render(scene) -> dict:
     itself is checked when the job loads it."""
     if not (isinstance(scene, Path) and scene.suffix.lower() == ".toml"):
         return {}
-    import tomllib
-
     try:
-        table = tomllib.loads(scene.read_text()).get("render", {})
-    except (OSError, ValueError):
+        table = parse_toml(read_scene_text(scene), name=str(scene)).get("render", {})
+    except InputError:  # reported when the job loads the file
         return {}
     return {k: v for k, v in table.items() if k in _RENDER_OPTIONS} if isinstance(table, dict) else {}
 
@@ -469,18 +583,28 @@ def _output(out, bad):
     return tuple(formats), tuple(aovs), display
 
 
-def _factory_file(scene) -> Path | None:
-    """The source file of a factory scene's module (found without importing it), for the key."""
-    if not isinstance(scene, tuple):
-        return None
+def factory_module_file(target: str, folder) -> Path | None:
+    """The source file of a factory's module ('module:function') if it is a Python file inside
+    `folder` (symbolic links resolved; found without importing it), else None: a factory runs code
+    from the job file's folder, never an installed module."""
     import importlib.machinery
 
-    top, _, rest = scene[1].partition(":")[0].partition(".")
-    spec = importlib.machinery.PathFinder.find_spec(top, [scene[3]])
-    if spec is None or not spec.origin or not rest:
-        return Path(spec.origin) if spec is not None and spec.origin and Path(spec.origin).is_file() else None
-    p = Path(spec.origin).parent.joinpath(*rest.split(".")).with_suffix(".py")
-    return p if p.is_file() else None
+    top, _, rest = target.partition(":")[0].partition(".")
+    spec = importlib.machinery.PathFinder.find_spec(top, [str(folder)])
+    if spec is None or not spec.origin or spec.origin in ("built-in", "frozen"):
+        return None
+    p = Path(spec.origin)
+    if rest:
+        p = p.parent.joinpath(*rest.split(".")).with_suffix(".py")
+    if not p.is_file():
+        return None
+    real, root = os.path.realpath(p), os.path.realpath(folder)
+    return p if real.startswith(root.rstrip(os.sep) + os.sep) else None
+
+
+def _factory_file(scene) -> Path | None:
+    """The source file of a factory scene's module, for the key."""
+    return factory_module_file(scene[1], scene[3]) if isinstance(scene, tuple) else None
 
 
 def _key(obj: dict, files, stamps: dict) -> str:

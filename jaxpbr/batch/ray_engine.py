@@ -11,6 +11,12 @@ A worker that dies (killed, out of memory, its node lost) fails its chunk: the d
 records of the chunk's jobs from the folder, counts those finished before the death as done, and
 sends the rest to a fresh actor, up to `retries` more attempts per job; then the job is marked
 failed with the cause. A job with a record is never sent again, so each job is done once.
+
+A cluster that can no longer run jobs (the node of this driver lost, its raylet killed; no node
+alive; the cluster not answering) ends the run with `ClusterLost`: the driver waits for results
+`POLL_S` seconds at a time and between waits, and after each dead worker, asks the cluster for its
+nodes (Ray marks a node whose raylet died dead after about 15 s of missed health checks). The
+jobs recorded so far stay done: running the same job file again resumes.
 """
 
 from __future__ import annotations
@@ -19,13 +25,35 @@ import collections
 import contextlib
 import logging
 import os
+import threading
 import warnings
 
 from ..errors import InputError
 from .store import OutputFolder
 from .work import Worker, failure
 
-__all__ = ["run_ray"]
+__all__ = ["ClusterLost", "import_ray", "run_ray"]
+
+#: Seconds the driver waits for a result before it asks the cluster whether its nodes are alive
+#: (a question to the cluster's control store, cheap; results that arrive end the wait at once).
+POLL_S = 5.0
+#: Seconds the cluster may take to answer that question before it is taken for gone.
+ASK_S = 20.0
+
+
+class ClusterLost(ConnectionError):
+    """The Ray cluster can no longer run the jobs (this driver's node lost, no node alive, or the
+    cluster not answering): the run ends, its finished jobs recorded."""
+
+
+def import_ray():
+    """The `ray` module, or InputError saying how to install it (checked before a run makes its
+    output folder)."""
+    try:
+        import ray
+    except ImportError:
+        raise InputError("--engine ray needs Ray: pip install 'jaxpbr[ray]' (or pip install ray)") from None
+    return ray
 
 
 class BatchActor:
@@ -73,10 +101,7 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
             worker_setup=None) -> dict:
     """Run ordered jobs on Ray actors; `report(name, result)` for each. -> {"workers", "pids",
     "replaced"} (how many actors ran and how many were started in place of dead ones)."""
-    try:
-        import ray
-    except ImportError:
-        raise InputError("--engine ray needs Ray: pip install 'jaxpbr[ray]' (or pip install ray)") from None
+    ray = import_ray()
     if not jobs:
         return {"workers": 0, "pids": [], "replaced": 0}
     started_here = not ray.is_initialized()
@@ -91,6 +116,7 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
                 ray.init(address=address, **kw)
     actors: list = []
     try:
+        node_id = _node_id(ray)
         # XLA spreads one render over every core of its machine: by default one actor per node,
         # holding the node's CPUs (two actors on a 2-core machine ran at half the rate of one).
         cpus = max(1, int(ray.cluster_resources().get("CPU", 1)))
@@ -114,13 +140,28 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
                     attempts[j.name] += 1
                 fut = actor.run_chunk.remote(js, {j.name: attempts[j.name] for j in js})
                 inflight[fut] = (actor, js)
-            ready, _ = ray.wait(list(inflight), num_returns=1)
+            try:
+                ready, _ = ray.wait(list(inflight), num_returns=1, timeout=POLL_S)
+            except ray.exceptions.RayError as e:  # the driver's connection to the cluster failed
+                raise ClusterLost(_lost(f"waiting for results failed ({_first_line(e)})")) from None
+            if not ready:  # nothing finished yet: is the cluster still there to finish it?
+                problem = _cluster_problem(ray, node_id)
+                if problem:
+                    raise ClusterLost(_lost(problem))
+                continue
             fut = ready[0]
             actor, js = inflight.pop(fut)
             try:
                 results = ray.get(fut)
             except ray.exceptions.RayError as e:
-                cause = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                cause = _first_line(e)
+                lost = _cluster_problem(ray, node_id)  # a worker lost with its node, or alone?
+                if lost:
+                    for j in js:
+                        rec = folder.completed(j)
+                        if rec is not None:  # finished (files and record) before the node went
+                            report(j.name, {"status": "done", "record": rec, "attempts": attempts[j.name]})
+                    raise ClusterLost(_lost(lost)) from None
                 retry = []
                 for j in js:
                     rec = folder.completed(j)
@@ -152,6 +193,50 @@ def run_ray(jobs, folder: OutputFolder, report, *, address=None, workers=None, r
             _kill(ray, a)
         if started_here:
             ray.shutdown()
+
+
+def _first_line(e: BaseException) -> str:
+    return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+
+
+def _lost(problem: str) -> str:
+    return (f"the Ray cluster can no longer run the jobs: {problem}; the jobs finished so far are recorded: "
+            f"restart Ray (or its node) and run the same job file again to do the rest")
+
+
+def _node_id(ray) -> str | None:
+    """The id of the Ray node this driver is attached to (None where Ray does not say)."""
+    try:
+        return ray.get_runtime_context().get_node_id()
+    except Exception:  # noqa: BLE001 - a client connection, an older Ray: checked by "any node alive"
+        return None
+
+
+def _cluster_problem(ray, node_id) -> str | None:
+    """Why the cluster cannot run jobs any more, or None: this driver's node dead (its raylet
+    killed), no node alive, or no answer within ASK_S seconds. The question is asked from a
+    thread, so that a cluster that does not answer cannot hold the driver."""
+    answer: dict = {}
+
+    def ask():
+        try:
+            answer["nodes"] = ray.nodes()
+        except Exception as e:  # noqa: BLE001 - reported as the cluster's answer
+            answer["error"] = e
+
+    t = threading.Thread(target=ask, name="jaxpbr-ray-nodes", daemon=True)
+    t.start()
+    t.join(ASK_S)
+    if t.is_alive():
+        return f"it did not answer within {ASK_S:g} s"
+    if "error" in answer:
+        return f"asking it for its nodes failed ({type(answer['error']).__name__}: {_first_line(answer['error'])})"
+    nodes = answer["nodes"]
+    if node_id is not None and not any(n.get("NodeID") == node_id and n.get("Alive") for n in nodes):
+        return f"the node this run is attached to ({node_id[:12]}) is dead (its raylet stopped)"
+    if not any(n.get("Alive") for n in nodes):
+        return "none of its nodes is alive"
+    return None
 
 
 def _kill(ray, actor) -> None:

@@ -28,6 +28,7 @@ import difflib
 import math
 import os
 import re
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -56,7 +57,18 @@ from ..shading.brdf_terms import MODELS, OPTION_CHOICES
 from ..shading.lights import DirectionalLight, PointLight, SpotLight
 from ..shading.material import EXTENSION_FIELDS, UNIT_FIELDS, Material
 
-__all__ = ["SceneFile", "hex_to_linear", "load_scene", "loads_scene"]
+__all__ = ["MAX_NESTING", "MAX_SCENE_BYTES", "SceneFile", "hex_to_linear", "load_scene", "loads_scene"]
+
+#: The largest scene file read, in bytes (8 MiB). A scene file describes a scene and names the files
+#: of its meshes and images, so real ones are a few KB (the examples: under 4 KB); the cap keeps a
+#: mistaken or hostile file (a multi-GB log renamed .toml) from being read whole into memory.
+MAX_SCENE_BYTES = 8 << 20
+#: The deepest nesting of tables and arrays read (the format's own deepest is 4: a colour in an
+#: inline material of an [[objects]] entry). tomllib parses nested arrays and inline tables by
+#: recursion and Python's stack ends a few hundred levels down, so deeper text is refused with a
+#: message before it is parsed (a scan of its brackets outside strings and comments), and a document
+#: nested deeper by table headers or dotted keys ([a.b.c...]) once parsed.
+MAX_NESTING = 64
 
 # Keys of each table (the documented format; docs/scene_format.md).
 _TOP = ("render", "output", "camera", "scene", "environment", "lights", "materials", "objects")
@@ -156,39 +168,180 @@ class SceneFile:
 def load_scene(path) -> SceneFile:
     """Read a scene TOML file (see docs/scene_format.md); paths inside it are relative to its folder.
 
-    Raises `InputError` with a one-line message naming the file, the key path and the fix.
+    Raises `InputError` with a one-line message naming the file, the key path and the fix. Only a
+    regular file of at most `MAX_SCENE_BYTES` is read (a FIFO or a device is refused without
+    waiting on it).
     """
     p = Path(os.fspath(path))
-    if not p.exists():
-        raise InputError(f"scene file {str(p)!r} does not exist; check the path")
-    if not p.is_file():
-        raise InputError(f"scene file {str(p)!r} is not a file; pass a .toml scene file")
-    if p.suffix.lower() in image.SUPPORTED_EXTENSIONS or _image_magic(p):
-        raise InputError(
-            f"{str(p)!r} is an image, not a scene file; jaxpbr render takes a .toml scene description "
-            f"(docs/scene_format.md): put the image in one, e.g. [environment] file = {p.name!r}"
-        )
-    try:
-        text = p.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise InputError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start}); save the file as UTF-8") from e
-    except OSError as e:
-        raise InputError(f"cannot read scene file {str(p)!r}: {e.strerror or e}; check its permissions") from e
+    text = read_scene_text(p)
     sf = loads_scene(text, p.parent, name=str(p))
     return dataclasses.replace(sf, path=p)
 
 
+def read_scene_text(path) -> str:
+    """The text of a scene file: a regular file of at most `MAX_SCENE_BYTES` bytes of UTF-8, not an
+    image (by name or by content); else `InputError` naming the file and the fix."""
+    p = Path(os.fspath(path))
+    if p.suffix.lower() in image.SUPPORTED_EXTENSIONS:
+        raise InputError(_an_image(p))
+
+    def not_an_image(head: bytes) -> None:
+        if head.startswith(_IMAGE_MAGIC):
+            raise InputError(_an_image(p))
+
+    data = read_regular_file(p, limit=MAX_SCENE_BYTES, what="scene file", head=not_an_image,
+                             missing="check the path", other="pass a .toml scene file",
+                             smaller="a scene file names its meshes and images, which are read from their own files")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{p}: not UTF-8 text ({e.reason} at byte {e.start}); save the file as UTF-8") from None
+
+
+def _an_image(p: Path) -> str:
+    return (f"{str(p)!r} is an image, not a scene file; jaxpbr render takes a .toml scene description "
+            f"(docs/scene_format.md): put the image in one, e.g. [environment] file = {p.name!r}")
+
+
 #: The first bytes of the image formats jaxpbr reads (EXR, PNG, Radiance HDR).
 _IMAGE_MAGIC = (b"\x76\x2f\x31\x01", b"\x89PNG", b"#?RADIANCE", b"#?RGBE")
+_NONBLOCK = getattr(os, "O_NONBLOCK", 0)  # POSIX: opening a FIFO for reading does not wait for a writer
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
 
 
-def _image_magic(p: Path) -> bool:
+def read_regular_file(path, *, limit: int, what: str, missing: str, other: str, smaller: str, head=None) -> bytes:
+    """The bytes of an input file that must be a regular file of at most `limit` bytes, read with
+    a bounded read; anything else raises `InputError` naming `what` and the fix.
+
+    The file is opened without blocking (a FIFO with no writer does not hold up the open), checked
+    on the open descriptor (fstat: a regular file, its declared size), then read to at most
+    `limit + 1` bytes (a file that grows while it is read, or a /proc-like file that declares no
+    size, is still refused). `missing`, `other`, `smaller`: the fixes for a path that does not
+    exist, is not a regular file, or is too large. `head`: optional callable given the file's
+    first bytes (up to 16) before its size is checked, to refuse a file by its content.
+    """
+    p = os.fspath(path)
+    flags = os.O_RDONLY | _NONBLOCK | getattr(os, "O_CLOEXEC", 0) | getattr(os, "O_BINARY", 0)
     try:
-        with open(p, "rb") as f:
-            head = f.read(10)
-    except OSError:
-        return False  # read_text below reports it
-    return head.startswith(_IMAGE_MAGIC)
+        fd = os.open(p, flags)
+    except FileNotFoundError:
+        raise InputError(f"{what} {p!r} does not exist; {missing}") from None
+    except IsADirectoryError:  # Windows
+        raise InputError(f"{what} {p!r} is a folder, not a regular file; {other}") from None
+    except OSError as e:
+        raise InputError(f"cannot read {what} {p!r}: {e.strerror or e}; check its permissions") from None
+    too_big = (f"{what} {p!r} is larger than {limit >> 20} MiB ({limit} bytes), the most a {what} may "
+               f"hold; {smaller}")
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = next((k for test, k in _KINDS if test(st.st_mode)), "not a regular file")
+            raise InputError(f"{what} {p!r} is {kind}, not a regular file; {other}")
+        data = _read_at_most(fd, 16)
+        if head is not None:
+            head(data)
+        if st.st_size > limit:
+            raise InputError(too_big)
+        data += _read_at_most(fd, limit + 1 - len(data))
+    except OSError as e:
+        raise InputError(f"cannot read {what} {p!r}: {e.strerror or e}; check the file") from None
+    finally:
+        os.close(fd)
+    if len(data) > limit:
+        raise InputError(too_big)
+    return data
+
+
+def _read_at_most(fd: int, n: int) -> bytes:
+    parts, left = [], n
+    while left > 0:
+        b = os.read(fd, min(left, 1 << 20))
+        if not b:
+            break
+        parts.append(b)
+        left -= len(b)
+    return b"".join(parts)
+
+
+# The strings and comments of TOML text, whose brackets nest nothing: multi-line basic and literal
+# strings (up to two quotes of their content may stand before the closing three), one-line basic
+# and literal strings, comments (each replaced by a letter for the scans). A quote left over opens
+# an unterminated string: the scans stop there, where tomllib stops with a syntax error.
+_TOML_INERT = re.compile(
+    r'"""[^"\\]*(?:(?:\\.|"(?!""))[^"\\]*)*"""(?:""?)?'
+    r"|'''[^']*(?:'(?!'')[^']*)*'''(?:''?)?"
+    r'|"[^"\\\n]*(?:\\.[^"\\\n]*)*"'
+    r"|'[^'\n]*'"
+    r"|#[^\n]*",
+    re.DOTALL,
+)
+_NOT_BRACKET = re.compile(r"[^\[\]{}]+")
+# A dotted key (or table header) of more than MAX_NESTING parts, in text whose strings are replaced
+# by a letter: tomllib checks each prefix of a dotted key, in time and memory quadratic in its parts
+# (a key of 100,000 parts took all the memory of the machine).
+_LONG_KEY = re.compile(rf"(?<![\w-])(?:[\w-]+[ \t]*\.[ \t]*){{{MAX_NESTING},}}[\w-]", re.ASCII)
+
+
+def bracket_depth(brackets: str, *, stop: int | None = None) -> int:
+    """The deepest nesting of a string of brackets ('[' and '{' open, ']' and '}' close): the
+    largest count of opens less closes over its prefixes, summed in blocks with NumPy (no
+    recursion, no Python loop per character). `stop`: return once the depth passes it."""
+    depth = best = 0
+    for i in range(0, len(brackets), 1 << 20):
+        a = np.frombuffer(brackets[i : i + (1 << 20)].encode("ascii"), np.uint8)
+        run = np.cumsum(np.where((a == ord("[")) | (a == ord("{")), 1, -1)) + depth
+        best = max(best, int(run.max()))
+        depth = int(run[-1])
+        if stop is not None and best > stop:
+            break
+    return best
+
+
+def parse_toml(text: str, *, name: str) -> dict:
+    """TOML text -> its document, nested at most `MAX_NESTING` levels (the brackets are checked
+    before tomllib, which recurses, parses them), a key or table given twice refused (by tomllib);
+    else `InputError` "<name>: ...". """
+    # Fewer brackets (dots) than the cap cannot nest deeper (make a longer dotted key).
+    if text.count("[") + text.count("{") > MAX_NESTING or text.count(".") >= MAX_NESTING:
+        inert = _TOML_INERT.sub("s", text)
+        inert = inert[: min((k for k in (inert.find('"'), inert.find("'")) if k >= 0), default=len(inert))]
+        if bracket_depth(_NOT_BRACKET.sub("", inert), stop=MAX_NESTING) > MAX_NESTING:
+            raise InputError(_too_deep(name, f"more than {MAX_NESTING}"))
+        if _LONG_KEY.search(inert):
+            raise InputError(f"{name}: a dotted key or table name of more than {MAX_NESTING} parts (tables nested "
+                             f"that deep are not read, and a scene nests 4: docs/scene_format.md); fix the file")
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{name}: invalid TOML: {_one_line(e)}; fix the syntax (format: docs/scene_format.md)") from None
+    except RecursionError:  # a backstop: the scan above finds any nesting that gets this deep
+        raise InputError(_too_deep(name, "too many")) from None
+    depth = _document_depth(doc)
+    if depth > MAX_NESTING:
+        raise InputError(_too_deep(name, f"more than {MAX_NESTING}"))
+    return doc
+
+
+def _too_deep(name: str, levels: str) -> str:
+    return (f"{name}: tables and arrays nested {levels} levels deep (at most {MAX_NESTING} are read, and a "
+            f"scene nests 4: docs/scene_format.md); fix the file")
+
+
+def _document_depth(doc) -> int:
+    """The nesting depth of a parsed document (its tables and arrays are level 1, what they hold
+    level 2, ...), walked with a stack; stops once past `MAX_NESTING`."""
+    best = 0
+    stack = [(doc, 0)]
+    while stack:
+        x, d = stack.pop()
+        best = max(best, d)
+        if best > MAX_NESTING:
+            break
+        for v in x.values() if isinstance(x, dict) else x:
+            if isinstance(v, (dict, list)):
+                stack.append((v, d + 1))
+    return best
 
 
 def loads_scene(text: str, base_dir=".", *, name: str = "<string>") -> SceneFile:
@@ -367,10 +520,7 @@ class _Loader:
     def load(self, text: str) -> SceneFile:
         if not isinstance(text, str):
             raise TypeError(f"loads_scene expects TOML text (str), got {type(text).__name__}")
-        try:
-            doc = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as e:
-            self.fail("", f"invalid TOML: {_one_line(e)}; fix the syntax (format: docs/scene_format.md)")
+        doc = parse_toml(text, name=self.name)
         self.check_keys(doc, _TOP, "")
         options = self.render_options(self.table(doc.get("render", {}), "render"))
         output = self.output(self.table(doc.get("output", {}), "output"), options.get("model", "gltf"))
