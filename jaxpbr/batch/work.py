@@ -41,7 +41,7 @@ from ..rendering.scene import Environment, Scene
 from ..rendering.scene_file import load_scene
 from ..rendering.textured import TexturedMaterial
 from ..shading.material import Material
-from .jobs import BakeJob, RenderJob
+from .jobs import BakeJob, RenderJob, factory_module_file
 from .store import OutputFolder
 
 __all__ = ["Worker", "failure"]
@@ -195,10 +195,18 @@ class Worker:
             if folder not in sys.path:
                 sys.path.insert(0, folder)
             mod_name, fn_name = target.split(":")
+            source_file = factory_module_file(target, folder)
             try:
-                fn = getattr(importlib.import_module(mod_name), fn_name)
+                module = importlib.import_module(mod_name)
+                fn = getattr(module, fn_name)
             except (ImportError, AttributeError) as e:
                 raise InputError(f"scene factory {target!r}: {e}; the module is imported with the job file's folder on sys.path") from None
+            # (the check of the job file, again: a module of that name imported earlier from elsewhere is refused)
+            loaded = getattr(module, "__file__", None)
+            if source_file is None or loaded is None or os.path.realpath(loaded) != os.path.realpath(source_file):
+                raise InputError(f"scene factory {target!r}: the module is not the Python file in the job file's folder "
+                                 f"({folder}) (a module of that name was imported from {loaded or 'the interpreter'}); "
+                                 "rename the factory's module")
             scene = fn(**json.loads(args))
             if not isinstance(scene, Scene):
                 raise InputError(f"scene factory {target!r} returned {type(scene).__name__}, not a jaxpbr.Scene")
