@@ -192,18 +192,28 @@ class Worker:
             _, target, args, folder = source
             import json
 
-            if folder not in sys.path:
-                sys.path.insert(0, folder)
             mod_name, fn_name = target.split(":")
             source_file = factory_module_file(target, folder)
+            if source_file is None:
+                raise InputError(f"scene factory {target!r}: the module is not a Python file in the job file's folder ({folder})")
+            # The job file's folder first on the path, and a module of that name imported from
+            # elsewhere (another job file's folder) forgotten: each job gets its own folder's module.
+            if folder in sys.path:
+                sys.path.remove(folder)
+            sys.path.insert(0, folder)
+            top = mod_name.partition(".")[0]
+            held = sys.modules.get(mod_name)
+            if held is not None and os.path.realpath(getattr(held, "__file__", "") or "") != os.path.realpath(source_file):
+                for name in [n for n in sys.modules if n == top or n.startswith(top + ".")]:
+                    del sys.modules[name]
+                importlib.invalidate_caches()
             try:
                 module = importlib.import_module(mod_name)
                 fn = getattr(module, fn_name)
             except (ImportError, AttributeError) as e:
                 raise InputError(f"scene factory {target!r}: {e}; the module is imported with the job file's folder on sys.path") from None
-            # (the check of the job file, again: a module of that name imported earlier from elsewhere is refused)
             loaded = getattr(module, "__file__", None)
-            if source_file is None or loaded is None or os.path.realpath(loaded) != os.path.realpath(source_file):
+            if loaded is None or os.path.realpath(loaded) != os.path.realpath(source_file):
                 raise InputError(f"scene factory {target!r}: the module is not the Python file in the job file's folder "
                                  f"({folder}) (a module of that name was imported from {loaded or 'the interpreter'}); "
                                  "rename the factory's module")
