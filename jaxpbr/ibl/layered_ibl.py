@@ -11,6 +11,8 @@ GGX-prefiltered environment, E_s the sheen albedo table, LD_c the Charlie-prefil
     material   = mix(dielectric, metal, metallic)
     sheen      = sheen_color LD_c(n, r_s) E_s(mu, r_s) + material (1 - max3(sheen_color) E_s(mu, r_s))
     coated     = sheen (1 - clearcoat Fc) + clearcoat Fc LD(R_c, r_c) (A_c + B_c),   Fc at n_c.v
+                 (with multiscatter also + clearcoat Fc (1 - A_c - B_c) Ebar(n_c): the coat lobe's
+                 Fdez-Aguera term, as the base's lobes get theirs)
     Lo         = occlusion coated
 
 Choices, each measured against the brute-force layered reference (`jaxpbr.ibl.reference_render`,
@@ -217,7 +219,17 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
         abc = lut_lookup(lut, ncv, jnp.broadcast_to(rc, ncv.shape))
         ld_cc = pre.sample(Rc, lod(rc))
         cc = (jnp.clip(m.clearcoat, 0.0, 1.0) * coat_fresnel(ncv))[..., None]
-        out = out * (1.0 - cc) + cc * ld_cc * (abc[..., 0] + abc[..., 1])[..., None]
+        e_c = (abc[..., 0] + abc[..., 1])[..., None]  # the coat lobe's albedo: its F is 1 (Fc is the layer weight)
+        coat = ld_cc * e_c
+        if multiscatter and irr is not None:
+            # The coat lobe is compensated like the base's lobes (`split_sum_weights`): with F0 = F90
+            # = 1, F_avg = 1 and FmsEms = Ess (1 - Ess) / Ess = 1 - Ess, so the compensated lobe
+            # reflects all of its weight clearcoat Fc (a uniform environment L gives clearcoat Fc L,
+            # as glTF-Sample-Viewer's coat term does). Without it the base was compensated and the
+            # coat not: a rough coat (r = 1, n.v = 1) reflected 1 - ln 2 = 0.31 of its weight.
+            e_nc = ebar if coat_normal is None else irr.sample(pack3(nc))
+            coat = coat + jnp.maximum(1.0 - e_c, 0.0) * e_nc
+        out = out * (1.0 - cc) + cc * coat
     return out
 
 
