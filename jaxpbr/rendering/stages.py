@@ -745,8 +745,11 @@ def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions,
             g = _mesh_geometry(scene, p_plan, opts, offset, prims[..., k])
         else:
             g = _geometry(scene, p_plan, opts, offset, prims[..., k])
-        c = _shade_pass(scene, assets, p_plan, opts, g, staged)
-        a = g["alpha"][..., None]
+        # The coverage as the texture stage leaves it: the geometry's alpha (factor x COLOR_0's A)
+        # times the base colour texture's A. (The geometry's own alpha, read here before, left the
+        # texture's A out: a BLEND surface whose alpha came from its texture was drawn opaque.)
+        c, a = _shade_pass(scene, assets, p_plan, opts, g, staged, coverage=True)
+        a = a[..., None]
         if k == p_plan.blend_layers - 1:
             a = jnp.ones_like(a)  # the last layer covers what is left
         out = a * c if out is None else out + keep * a * c
@@ -790,8 +793,9 @@ def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, l
     return jax.device_put(prim)
 
 
-def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool):
-    """Textures, direct lighting, the environment's suns and IBL + background of the G-buffer `g`."""
+def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool, *, coverage: bool = False):
+    """Textures, direct lighting, the environment's suns and IBL + background of the G-buffer `g`;
+    coverage=True (a BLEND layer): (colour, alpha), the alpha after the texture stage."""
     # The later stages see the pixels, not the meshes' arrays: meshes of other sizes reuse them.
     lean = _lean(scene)
     if staged:
@@ -813,12 +817,14 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     if isinstance(assets, PendingAssets):
         assets = assets.shapes() if is_ahead() else assets()
     if not staged:
-        return _shade_rest(lean, assets, p_plan, opts, g, direct)
-    suns = None
-    if p_plan.ibl and p_plan.env_lights:
-        suns = _shade_suns_jit(lean, _suns_inputs(assets), p_plan, opts, g)
-    assets, lean = _padded_cubes(assets, _stage_view(full, radiance=p_plan.env_background), p_plan)
-    return _shade_rest_jit(lean, assets, p_plan, opts, g, direct, suns)
+        c = _shade_rest(lean, assets, p_plan, opts, g, direct)
+    else:
+        suns = None
+        if p_plan.ibl and p_plan.env_lights:
+            suns = _shade_suns_jit(lean, _suns_inputs(assets), p_plan, opts, g)
+        assets, lean = _padded_cubes(assets, _stage_view(full, radiance=p_plan.env_background), p_plan)
+        c = _shade_rest_jit(lean, assets, p_plan, opts, g, direct, suns)
+    return (c, g["alpha"]) if coverage else c
 
 
 def _padded_cubes(assets, scene: Scene, p_plan: RenderPlan):
