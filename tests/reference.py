@@ -373,3 +373,17 @@ def polygon_moment(V):
     th = np.arctan2(nrm, np.sum(U * W, -1))
     m = 0.5 * np.sum(th[..., None] * cr / np.where(nrm > 0, nrm, 1.0)[..., None], -2)
     return m * np.sign(np.sum(m * V.mean(-2), -1))[..., None]
+
+
+def schlick_lambert_average(mu, k=256):
+    """C(mu) = (1/pi) integral (1 - v.h)^5 (n.l)+ dl over the hemisphere of l, by Gauss-Legendre in
+    (cos theta_l, phi): the Schlick-weighted cosine mean of a Lambert lobe seen at n.v = mu."""
+    x, w = np.polynomial.legendre.leggauss(k)
+    ct, wct = 0.5 * (x + 1), 0.5 * w
+    ph, wph = np.pi * (x + 1), np.pi * w
+    C, P = np.meshgrid(ct, ph, indexing="ij")
+    S = np.sqrt(1 - C * C)
+    l = np.stack([S * np.cos(P), S * np.sin(P), C], -1)  # noqa: E741
+    v = np.array([np.sqrt(1 - mu * mu), 0.0, mu])
+    voh = np.sqrt(np.maximum((1 + l @ v) / 2, 0))
+    return float(((1 - voh) ** 5 * C / np.pi * np.outer(wct, wph)).sum())

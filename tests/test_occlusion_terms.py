@@ -20,6 +20,7 @@ from jaxpbr.ibl.cubemap import Cubemap
 from jaxpbr.ibl.shade import shade_ibl
 from jaxpbr.shading.lights import shade_direct
 from jaxpbr.shading.lut import compute_brdf_lut
+from reference import schlick_lambert_average
 
 L_ENV = 1.7  # radiance of the uniform environment (its irradiance map stores E / pi = L)
 AO = np.array([1.0, 0.7, 0.5, 0.25, 0.0])
@@ -42,19 +43,6 @@ def _views(nov):
     return np.broadcast_to(np.array([0.0, 0.0, 1.0]), v.shape), v
 
 
-def _schlick_lambert(mu, k=192):
-    """(1/pi) integral (1 - v.h)^5 (n.l)+ dl over the hemisphere, Gauss-Legendre in (cos theta, phi)."""
-    x, w = np.polynomial.legendre.leggauss(k)
-    ct, wc = 0.5 * (x + 1), 0.5 * w
-    ph, wp = np.pi * (x + 1), np.pi * w
-    C, P = np.meshgrid(ct, ph, indexing="ij")
-    S = np.sqrt(1 - C * C)
-    l = np.stack([S * np.cos(P), S * np.sin(P), C], -1)
-    v = np.array([np.sqrt(1 - mu * mu), 0.0, mu])
-    voh = np.sqrt(np.maximum((1 + l @ v) / 2, 0))
-    return float(((1 - voh) ** 5 * C / np.pi * np.outer(wc, wp)).sum())
-
-
 # Rough texels, as DamagedHelmet's (roughness >= 0.6), and a smooth one.
 NOV = np.array([0.15, 0.5, 0.9, 0.5])
 ROUGH = np.array([0.6, 0.8, 1.0, 0.2])
@@ -74,7 +62,7 @@ def test_ibl_diffuse_is_occlusion_times_the_lambert_closed_form(lut):
     base = np.array([0.8, 0.5, 0.2])
     m = jp.Material(base_color=base, metallic=0.0, roughness=r, occlusion=ao)
     out = np.asarray(shade_ibl(n, v, m, _const_cube(L_ENV), _const_cube(0.0), lut))
-    C = np.tile([_schlick_lambert(x) for x in NOV], len(AO))  # _grid's order: ao-major
+    C = np.tile([schlick_lambert_average(x, 192) for x in NOV], len(AO))  # _grid's order: ao-major
     want = np.asarray(ao)[:, None] * L_ENV * base * 0.96 * (1 - C)[:, None]
     # C by 192^2 Gauss-Legendre nodes: 1e-10; the kernel's C(mu) fit: 1e-6 absolute (docs/math.md 6.1b).
     np.testing.assert_allclose(out, want, rtol=0, atol=3e-6 * L_ENV)
