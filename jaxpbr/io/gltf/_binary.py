@@ -213,10 +213,10 @@ def open_regular(path) -> int:
         raise
 
 
-def read_regular(path, n: int | None = None, offset: int = 0) -> bytes:
-    """Bytes [offset, offset + n) of a regular file (`open_regular`); n None: to the end of the
-    file as it is when opened (never more than its size then). Fewer bytes come back when the file
-    is shorter."""
+def read_regular(path, n: int | None = None, offset: int = 0) -> bytearray:
+    """Bytes [offset, offset + n) of a regular file (`open_regular`), read into one buffer (no
+    copy of it is made); n None: to the end of the file as it is when opened (never more than its
+    size then). Fewer bytes come back when the file is shorter."""
     fd = open_regular(path)
     try:
         size = os.fstat(fd).st_size
@@ -224,14 +224,14 @@ def read_regular(path, n: int | None = None, offset: int = 0) -> bytes:
         out = bytearray(n)
         view, got = memoryview(out), 0
         while got < n:
-            k = os.preadv(fd, [view[got:]], offset + got) if hasattr(os, "preadv") else None
-            if k is None:
-                os.lseek(fd, offset + got, os.SEEK_SET)
-                k = os.readv(fd, [view[got:]])
+            k = os.preadv(fd, [view[got:]], offset + got)
             if k == 0:
                 break
             got += k
-        return bytes(out[:got])
+        view.release()
+        if got < n:
+            del out[got:]
+        return out
     finally:
         os.close(fd)
 

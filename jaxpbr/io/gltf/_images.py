@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ... import _memory
-from ._binary import UriRefused, fail, get, loc, pointer, read_regular, read_uri, regular_size, resolve_uri
+from ._binary import UriRefused, fail, get, loc, open_regular, pointer, read_regular, read_uri, resolve_uri
 from ._types import GltfImage
 
 __all__ = ["PER_DECODED_VALUE", "SUPPORTED_MIME_TYPES", "header_shape", "image_source", "make_images"]
@@ -143,10 +143,15 @@ def image_source(gltf, buffers, i):
     if kind == "data":
         return header_shape(lambda offset, n: value[offset : offset + n]), len(value)
     try:
-        size = regular_size(value)
-        return header_shape(lambda offset, n: read_regular(value, n, offset)), size
+        fd = open_regular(value)
     except (OSError, ValueError):
         return None, None
+    try:
+        return header_shape(lambda offset, n: os.pread(fd, n, offset)), os.fstat(fd).st_size
+    except OSError:
+        return None, None
+    finally:
+        os.close(fd)
 
 
 def _png_problem(data: bytes, *, header_only: bool = False) -> str | None:
@@ -175,6 +180,8 @@ def _png_problem(data: bytes, *, header_only: bool = False) -> str | None:
 
 def _decode(file, where: str, data: bytes, mime: str, path: Path | None) -> np.ndarray:
     import OpenImageIO as oiio
+
+    from ..image import png_problem
 
     found = sniff(data)
     if mime not in SUPPORTED_MIME_TYPES or (found is not None and found not in SUPPORTED_MIME_TYPES):
@@ -208,8 +215,9 @@ def _decode(file, where: str, data: bytes, mime: str, path: Path | None) -> np.n
             _memory.require(f"decoding {where} ({spec.width}x{spec.height}, {spec.nchannels} channels)",
                             {"image": float(spec.width) * spec.height * spec.nchannels * PER_DECODED_VALUE},
                             where=f"glTF file {str(file)!r}", names={"image": "the image's resolution"})
-            if mime == "image/png" and (problem := _png_problem(data)) is not None:
-                fail(file, where, f"the PNG data ({len(data)} bytes) {problem}",
+            # (the chunks and the header were checked above: the image data's zlib stream now)
+            if mime == "image/png" and (problem := png_problem(data)) is not None:
+                fail(file, where, f"the PNG data ({len(data)} bytes) is corrupt: {problem}",
                      "the image file is damaged: export or download it again")
             pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
             err = inp.geterror() if pixels is None or inp.has_error else ""

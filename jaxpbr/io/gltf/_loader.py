@@ -234,7 +234,6 @@ class _Loader:
             materials.append(self.materials_reader.material(i))
         self.materials = materials
         self.default_material: int | None = None
-        self.shapes: dict[tuple[int, int], _Shape | None] = {}
         self.primitives: list[GltfPrimitive] = []
         self.lights: list[GltfLight] = []
         self.cameras: list[GltfCamera] = []
@@ -330,27 +329,18 @@ class _Loader:
         nodes = self.gltf.nodes or []
         parent = self._parents(nodes)
         no_scene = roots_at == "/nodes"
-        seen_roots: dict[int, int] = {}
+        # (the schema check has made the roots existing, distinct node indices)
         for k, r in enumerate(roots):
-            ref = roots_at if no_scene else f"{roots_at}/{k}"
-            if not isinstance(r, int) or isinstance(r, bool) or not 0 <= r < len(nodes):
-                fail(self.path, loc("scene graph", ref), f"node {r!r:.40} does not exist (the file has {len(nodes)})", _FIX)
-            if r in seen_roots:
-                fail(self.path, loc("scene graph", ref), f"lists node {r} twice (also at {roots_at}/{seen_roots[r]})", _FIX)
-            seen_roots[r] = k
             if parent[r] >= 0:
+                ref = roots_at if no_scene else f"{roots_at}/{k}"
                 fail(self.path, loc("scene graph", ref), f"lists node {r}, which is a child of node {parent[r]} "
                      f"({pointer('nodes', parent[r], 'children')}); a scene lists root nodes only", _FIX)
         out: list[_Visit] = []
-        visited = bytearray(len(nodes))
         eye = np.eye(4)
         eye.flags.writeable = False
         stack = [(r, eye) for r in reversed(list(roots))]
         while stack:
-            i, world_parent = stack.pop()
-            if visited[i]:  # (unreachable: one parent each, roots parentless)
-                fail(self.path, loc(f"node {i}", pointer("nodes", i)), "is reached twice in the node hierarchy", _FIX)
-            visited[i] = 1
+            i, world_parent = stack.pop()  # (each node once: one parent each, the roots parentless)
             node = nodes[i]
             matrix, t, r, sc = (get(node, k) for k in ("matrix", "translation", "rotation", "scale"))
             if matrix is None and t is None and r is None and sc is None:
@@ -375,23 +365,19 @@ class _Loader:
         return out
 
     def _parents(self, nodes) -> list[int]:
-        """parent[i]: the node listing node i among its children, or -1. A child index that is not
-        a node, a node that is its own child and a node listed by two parents (or twice by one)
-        are refused: the spec's node hierarchy is a set of disjoint strict trees."""
+        """parent[i]: the node listing node i among its children, or -1. A node that is its own
+        child and a node listed by two parents are refused: the spec's node hierarchy is a set of
+        disjoint strict trees. (The schema check has made each children list an array of distinct
+        node indices.)"""
         parent = [-1] * len(nodes)
         for i, node in enumerate(nodes):
-            children = get(node, "children", []) or []
-            if not isinstance(children, list):
-                fail(self.path, loc(f"node {i}", pointer("nodes", i, "children")), "children is not an array of node indices", _FIX)
-            for k, c in enumerate(children):
+            for k, c in enumerate(get(node, "children", []) or []):
                 ref = pointer("nodes", i, "children", k)
-                if not isinstance(c, int) or isinstance(c, bool) or not 0 <= c < len(nodes):
-                    fail(self.path, loc("scene graph", ref), f"node {c!r:.40} does not exist (the file has {len(nodes)})", _FIX)
                 if c == i:
                     fail(self.path, loc(f"node {i}", ref), "is its own child (a cycle in the node hierarchy)", _FIX)
                 if parent[c] >= 0:
-                    also = "twice" if parent[c] == i else f"also by node {parent[c]} ({pointer('nodes', parent[c], 'children')})"
-                    fail(self.path, loc(f"node {c}", ref), f"is listed as a child {also}; a node has one parent at most "
+                    fail(self.path, loc(f"node {c}", ref), f"is listed as a child also by node {parent[c]} "
+                         f"({pointer('nodes', parent[c], 'children')}); a node has one parent at most "
                          "(the node hierarchy must be a set of disjoint trees)", _FIX)
                 parent[c] = i
         # A cycle with one parent per node has no root: it is never reached from a scene, and a
