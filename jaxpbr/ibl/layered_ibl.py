@@ -104,10 +104,13 @@ def bent_reflection(n3, v3, T, B, strength, r):
     return tuple(2.0 * d * bn[i] - v3[i] for i in range(3))
 
 
-def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False, tangent=None, coat_normal=None, sheen_lut=None, charlie=None, volume_distance=None, transmit_direction=None):
+def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False, tangent=None, coat_normal=None, sheen_lut=None, charlie=None, volume_distance=None, transmit_direction=None, transmit_weight=False):
     """The layered split sum (module docstring). n3, v3: Vec3 unit; R packed (..., 3) mirror
     direction; nov, r: clamped (...). m: Material with extensions (metallic already clamped).
-    Returns (..., 3) without occlusion."""
+    Returns (..., 3) without occlusion; with transmit_weight=True (out, w): w (..., 3) the factor the
+    transmission lobe's incoming radiance has in out (energy, base colour, transmission, the volume's
+    attenuation, the metallic mix, sheen's albedo scaling and the coat's 1 - clearcoat Fc; 0 without
+    transmission), so that a caller can add what the scene changes in that radiance."""
     ext = m.extensions
     m = m.complete()
     M, mapping, blend = lookup_of(pre)
@@ -186,8 +189,11 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
         d_t = jnp.where(jnp.sum(d_t * d_t, -1, keepdims=True) > 0, d_t, -pack3(v3))
         if multiscatter:  # the multiply scattered reflection is not transmitted either
             energy = jnp.maximum(energy - jnp.max(fms_d, -1, keepdims=True), 0.0)
-        lt = pre.sample(d_t, lod(rt)) * energy * base * tr
-        diel = diel + (lt if att is None else lt * att)
+        tw = energy * base * tr if att is None else energy * base * tr * att
+        diel = diel + pre.sample(d_t, lod(rt)) * tw
+        tw = tw * (1.0 - metallic)
+    else:
+        tw = None
     metal = ld * (base * a3 + b3)
     if multiscatter:
         metal = metal + fms_m * ebar
@@ -207,7 +213,9 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
         e_s = sheen_lut_lookup(sheen_lut, nov, rs)[..., None]
         ld_c = _charlie_sample(charlie, pack3(n3), rs)
         sc = jnp.clip(m.sheen_color, 0.0, 1.0)  # traced values are not validated
-        out = sc * ld_c * e_s + out * sheen_albedo_scaling(sc, e_s[..., 0])[..., None]
+        scaling = sheen_albedo_scaling(sc, e_s[..., 0])[..., None]
+        out = sc * ld_c * e_s + out * scaling
+        tw = None if tw is None else tw * scaling
 
     if "clearcoat" in ext:
         nc = n3 if coat_normal is None else vnormalize(unpack3(coat_normal))
@@ -230,6 +238,9 @@ def shade_ibl_layered(n3, v3, R, nov, r, m, irr, pre, lut, *, multiscatter=False
             e_nc = ebar if coat_normal is None else irr.sample(pack3(nc))
             coat = coat + jnp.maximum(1.0 - e_c, 0.0) * e_nc
         out = out * (1.0 - cc) + cc * coat
+        tw = None if tw is None else tw * (1.0 - cc)
+    if transmit_weight:
+        return out, (jnp.zeros_like(out) if tw is None else jnp.broadcast_to(tw, out.shape))
     return out
 
 

@@ -64,6 +64,7 @@ def shade_ibl(
     charlie=None,
     volume_distance=None,
     transmit_direction=None,
+    transmit_weight: bool = False,
 ) -> jax.Array:
     """Image-based lighting radiance (..., 3) by the split sum.
 
@@ -87,6 +88,9 @@ def shade_ibl(
         (sheen), (...) path length in the medium and (..., 3) direction the transmitted light
         comes from (volume; defaults: thickness and the refracted -v). A Material without
         extension fields takes the core split sum above, unchanged.
+    transmit_weight: return (radiance, w) with w (..., 3) the factor of the transmission lobe's
+        incoming radiance in the result, occlusion included (0 without transmission): a renderer
+        adds w x (what the scene behind changes in that radiance) (`layered_ibl.shade_ibl_layered`).
     """
     check_options(model, what="IBL model", multiscatter=multiscatter)
     if irr is None and multiscatter:
@@ -115,8 +119,13 @@ def shade_ibl(
         out = shade_ibl_layered(
             n3, v3, R, nov, r, m, irr, pre, lut, multiscatter=multiscatter, tangent=tangent, coat_normal=coat_normal, sheen_lut=sheen_lut,
             charlie=charlie, volume_distance=volume_distance, transmit_direction=transmit_direction,
+            transmit_weight=transmit_weight,
         )
-        return out * m.occlusion[..., None]
+        if transmit_weight:
+            occ = m.occlusion[..., None]
+            return out[0] * occ, out[1] * occ
+        out = out * m.occlusion[..., None]
+    return (out, jnp.zeros_like(out)) if transmit_weight else out
     ab = lut_lookup(lut, nov, r)
     a, b = ab[..., 0], ab[..., 1]
     M, mapping, blend = lookup_of(pre)
@@ -148,4 +157,5 @@ def shade_ibl(
         fss_m, fms_m = split_sum_weights(base, a, b, multiscatter=True)
         metal = fss_m * ld + fms_m * ebar
         out = diel + (metal - diel) * metallic
-    return out * m.occlusion[..., None]
+    out = out * m.occlusion[..., None]
+    return (out, jnp.zeros_like(out)) if transmit_weight else out

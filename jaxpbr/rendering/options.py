@@ -11,6 +11,11 @@ from .._validate import positive_int
 from ..shading.brdf_terms import MODEL_REGISTRY, check_options
 
 
+#: Upper bounds of `RenderOptions.transmission_depth` and `transmission_samples`.
+MAX_TRANSMISSION_DEPTH = 8
+MAX_TRANSMISSION_SAMPLES = 64
+
+
 @dataclasses.dataclass(frozen=True)
 class RenderOptions:
     """Static render options (hashable; part of the compiled program's identity).
@@ -42,6 +47,18 @@ class RenderOptions:
         environment (`jaxpbr.rendering.shadows`; hard-edged). None (default): on for scenes with
         meshes (glTF assets), off for scenes of spheres and planes only; True / False force it.
         Image-based lighting itself is not shadowed (the materials' occlusion textures darken it).
+    transmission_depth: how many transmissive surfaces (KHR_materials_transmission) one after another
+        a transmitted ray passes and still sees the scene behind (default 1): at each, rays continue
+        through the surface (straight for thin walls; out of a volume sphere along its exit
+        direction) and the first surface they meet is shaded by the same stages; rays that escape,
+        and the transmission of the surfaces past the last level, see the prefiltered environment.
+        0: the environment only (the split sum's transmission lobe; nothing traced). Needs an
+        environment (the lobe's weights come from the split-sum LUT).
+    transmission_samples: rays per pixel at each level, drawn from the transmission lobe
+        (stratified, per-pixel rotated, deterministic): the prefiltered environment is the lobe's
+        unoccluded value and the rays add what the scene changes (a control variate), so smooth
+        transmission (roughness 0) is exact with one ray and rough transmission is noisy only where
+        the lobe straddles an edge of the scene behind (docs/extensions.md: error against samples).
     """
 
     model: str = "gltf"
@@ -56,6 +73,8 @@ class RenderOptions:
     dtype: str = "float32"
     extract_lights: bool = True
     shadows: bool | None = None
+    transmission_depth: int = 1
+    transmission_samples: int = 4
 
     @property
     def compensates(self) -> bool:
@@ -77,8 +96,13 @@ class RenderOptions:
         if name not in ("float32", "float64"):
             raise ValueError(f"dtype must be float32 or float64 (a name, NumPy or JAX dtype), got {self.dtype!r}")
         object.__setattr__(self, "dtype", name)  # normalised: equal options hash alike
-        for name in ("irradiance_size", "lut_size"):
+        for name in ("irradiance_size", "lut_size", "transmission_samples"):
             positive_int(name, getattr(self, name))
+        positive_int("transmission_depth", self.transmission_depth, minimum=0)
+        for name, cap in (("transmission_depth", MAX_TRANSMISSION_DEPTH), ("transmission_samples", MAX_TRANSMISSION_SAMPLES)):
+            if getattr(self, name) > cap:
+                raise ValueError(f"{name} must be at most {cap} (each level and each sample is one more pass over the image), "
+                                 f"got {getattr(self, name)}")
 
 
 _OPTION_FIELDS = tuple(f.name for f in dataclasses.fields(RenderOptions))

@@ -60,6 +60,8 @@ class RenderPlan:
     charlie_size: int = 0  # face size of the Charlie-prefiltered cube (sheen under IBL), 0: none
     shadows: bool = False  # shadow rays towards the lights and the extracted suns
     blend_layers: int = 1  # surfaces composited per pixel (> 1 with BLEND meshes)
+    transmission_depth: int = 0  # levels of transmitted rays traced into the scene (0: none)
+    transmission_samples: int = 0  # rays per pixel and level (0 without transmission tracing)
 
     def for_stages(self) -> RenderPlan:
         """The plan the staged programs are keyed by: the fields that only the precompute reads
@@ -83,6 +85,9 @@ class RenderPlan:
             parts.append(f"{self.env_lights} sun(s) split out of the environment as disc light(s)")
         if self.shadows:
             parts.append("shadows")
+        if self.transmission_depth:
+            parts.append(f"transmission traced through the scene ({self.transmission_depth} level(s), "
+                         f"{self.transmission_samples} ray(s) per pixel)")
         if self.extensions:
             parts.append("material extensions: " + ", ".join(self.extensions))
         if self.charlie_size:
@@ -216,7 +221,12 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCach
     shadows = opts.shadows if opts.shadows is not None else has_mesh
     shadows = bool(shadows and objects and (len(scene.lights) > 0 or n_env_lights > 0))
     blend = any(isinstance(ob, Mesh) and ob.alpha_mode == "BLEND" for ob in objects)
+    # Transmitted rays are traced where a material transmits, under an environment (the lobe's
+    # weights are the split sum's), with objects to see (a user's G-buffer has none).
+    tdepth = opts.transmission_depth if (ibl and objects and "transmission" in extensions) else 0
     return RenderPlan(
+        transmission_depth=tdepth,
+        transmission_samples=opts.transmission_samples if tdepth else 0,
         blend_layers=MAX_BLEND_LAYERS if blend else 1,
         shadows=shadows,
         direct=len(scene.lights) > 0,

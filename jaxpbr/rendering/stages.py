@@ -9,10 +9,11 @@ environment at mip 0 (or `Scene.background`)."""
 from __future__ import annotations
 
 import contextvars
+import dataclasses
 import functools
 import math
 import weakref
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -138,11 +139,14 @@ def _surface(objects, o, d, t, idx, dtype, need_uv: bool):
     a = tuple(anchor[:, i][idx] if K > 1 else anchor[0, i] for i in range(3))
     rel = tuple(p[i] - a[i] for i in range(3))
     n_sph = vnormalize(rel)
+    # A sphere seen from inside (a ray transmitted through its wall) shades its inner side.
+    inside = jnp.where(vdot(n_sph, d) > 0, -1.0, 1.0)
+    n_in = tuple(c * inside for c in n_sph)
     plane_px = is_plane[idx] if K > 1 else is_plane[0]
     n_pl = vnormalize(tuple((pn[:, i][idx] if K > 1 else pn[0, i]) for i in range(3)))
     facing = jnp.where(vdot(n_pl, d) > 0, -1.0, 1.0)  # planes are two-sided
     n_pl = tuple(c * facing for c in n_pl)
-    n = tuple(jnp.where(plane_px, n_pl[i], n_sph[i]) for i in range(3))
+    n = tuple(jnp.where(plane_px, n_pl[i], n_in[i]) for i in range(3))
     if not need_uv:
         return p, n, None, None
     # Sphere: u = 0.5 + atan2(x, z)/(2 pi), v = 0.5 - atan2(y, rho)/pi, T = (z, 0, -x)/rho.
@@ -362,13 +366,19 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         irr, pre, lut, _, sheen = assets
         n_e, v_e, kw = _env_frame(scene, p_plan, opts, g)
         sheen_kw = {} if sheen is None else {"sheen_lut": sheen[0], "charlie": sheen[1]}
-        ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, **kw, **sheen_kw)
+        if "behind" in g:
+            ibl, tw = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, transmit_weight=True,
+                                **kw, **sheen_kw)
+        else:
+            ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, **kw, **sheen_kw)
         if p_plan.env_lights:
             disc, ms = suns if suns is not None else _shade_suns(scene, _suns_inputs(assets), p_plan, opts, g)
             ibl = ibl + disc
             if ms is not None:
                 ibl = ibl + ms
         ibl = jnp.asarray(env.intensity, dtype) * ibl
+        if "behind" in g:
+            ibl = ibl + tw * _behind_change(scene, pre, p_plan, g["behind"], dtype)
         out = ibl if out is None else out + ibl
     if out is None:
         out = jnp.zeros(shape + (3,), dtype)
@@ -398,7 +408,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
             "hit": gb.hit,
             "ray": tuple(-c for c in view),
         }
-    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    o_px, d_px = _pass_rays(scene, p_plan, dtype, offset)
     o, d = unpack3(o_px), unpack3(d_px)
     objects = scene.objects
     ext = p_plan.extensions
@@ -416,7 +426,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         arrays = _mesh_arrays(scene, dtype)
         if prim is None:  # (BLEND layers pass the layer's primitives, cast once for all layers)
             prim = cast(arrays, o_px, d_px)
-        ddir, dorig = _ray_differentials(scene.camera, d, dtype) if need_uv else (None, None)
+        ddir, dorig = _pass_differentials(scene.camera, offset, d, dtype) if need_uv else (None, None)
         ms = mesh_surface(arrays, prim, o, d, need_uv=need_uv, ddir=ddir, dorig=dorig)
         on_mesh = prim >= 0
         idx_m = jnp.asarray(meshes, jnp.int32)[ms["object"]]
@@ -435,7 +445,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
             pos, n = ms["pos"], ms["n"]
             if need_uv:
                 uv, tangent, tw, uv1, duv = ms["uv"], ms["tangent"], ms["tangent_w"], ms["uv1"], ms["duv"]
-    if p_plan.shadows:
+    if p_plan.shadows or p_plan.transmission_depth:
         # The geometric normal (before normal maps): shadow rays leave the surface along it.
         ng = n if not meshes else (ms["ng"] if not analytic else tuple(jnp.where(on_mesh, ms["ng"][i], n_an[i]) for i in range(3)))
     m = _gather_material(_stack_materials(objects, dtype, ext), idx)
@@ -462,8 +472,9 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         if "color" in ms:
             a = a * jnp.where(on_mesh, ms["color"][..., 3], 1.0)
         g["alpha"] = jnp.where(hit & blend_k, a, 1.0)
-    if p_plan.shadows:
+    if p_plan.shadows or p_plan.transmission_depth:
         g["ng"] = ng
+    if p_plan.shadows:
         if p_plan.direct and light_shadows:
             lights = _cast_floats(list(scene.lights), dtype)
             g["vis"] = shadow_visibility(objects, arrays if meshes else None, pos, ng, lights, dtype)
@@ -477,6 +488,34 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         rad = jnp.stack([jnp.asarray(ob.radius if isinstance(ob, Sphere) else 0.0, dtype) for ob in objects]) * radii
         g["radius"] = rad[idx] if len(objects) > 1 else jnp.broadcast_to(rad[0], idx.shape)
     return g
+
+
+class Rays(NamedTuple):
+    """Rays a pass casts in place of the camera's (`offset` of the stages): the transmitted rays
+    (`_transmit_rays`). o, d: (..., 3) origins and unit directions; diff: (..., 4, 3) their ray
+    differentials dD/dx, dD/dy, dO/dx, dO/dy (texture filtering); key: (...) uint32, the ray's
+    index hashed (the next level's samples are drawn from it)."""
+
+    o: Any
+    d: Any
+    diff: Any
+    key: Any
+
+
+def _pass_rays(scene: Scene, p_plan: RenderPlan, dtype, offset):
+    """(origins, directions) (..., 3) of a pass: the camera's primary rays at sub-pixel `offset`,
+    or the given `Rays`."""
+    if isinstance(offset, Rays):
+        return offset.o.astype(dtype), offset.d.astype(dtype)
+    return primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+
+
+def _pass_differentials(cam, offset, d, dtype):
+    """`_ray_differentials` of a pass's rays: the camera's, or those the `Rays` carry."""
+    if isinstance(offset, Rays):
+        df = offset.diff.astype(dtype)
+        return (unpack3(df[..., 0, :]), unpack3(df[..., 1, :])), (unpack3(df[..., 2, :]), unpack3(df[..., 3, :]))
+    return _ray_differentials(cam, d, dtype)
 
 
 def _ray_differentials(cam, d, dtype):
@@ -533,6 +572,143 @@ def _volume_inputs(g, m: Material, dtype):
     return dist, d_t
 
 
+def _mix32(x):
+    """A 32-bit integer hash (uint32 in and out; Wellons' lowbias32)."""
+    x = x.astype(jnp.uint32)
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x7FEB352D)
+    x = x ^ (x >> 15)
+    x = x * jnp.uint32(0x846CA68B)
+    return x ^ (x >> 16)
+
+
+def _pixel_keys(shape, offset):
+    """uint32 keys of a camera pass's pixels: the pixel's index (the band's rows counted from its
+    first row) and the sub-pixel offset, hashed."""
+    H, W = shape
+    row0 = offset[2].astype(jnp.int32) if offset.shape[0] > 2 else 0
+    idx = (jnp.arange(H, dtype=jnp.int32)[:, None] + row0) * W + jnp.arange(W, dtype=jnp.int32)[None, :]
+    sub = (jnp.floor(offset[0] * 4096.0).astype(jnp.uint32) * jnp.uint32(4096) + jnp.floor(offset[1] * 4096.0).astype(jnp.uint32))
+    return _mix32(idx.astype(jnp.uint32) ^ _mix32(sub + jnp.uint32(0x9E3779B9)))
+
+
+def _unit_float(key, dtype):
+    return (key >> jnp.uint32(8)).astype(dtype) * (2.0**-24)
+
+
+def _transmit_rays(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, offset):
+    """The transmitted rays of a pass's surfaces: (`Rays` of shape (K * rows, ...), weights (K * rows, ...)),
+    K = the plan's transmission_samples, each sample's rays stacked along the first axis.
+
+    Each ray starts on the far side of the surface (`visibility.offset_ray_origin` along -ng) and
+    leaves along a direction drawn from the lobe the split sum prefilters for the transmission:
+    GGX half vectors about the lobe's centre d_c (n = v = d_c; `sampling.sample_ggx_h`) at the
+    lobe's roughness, mirrored about them, weighted by their cosine to d_c (the prefilter's
+    weight). The centre and roughness are the IBL term's (`layered_ibl`): thin walls d_c = the
+    ray's own direction at the base roughness; a volume sphere (thickness > 0) leaves from the exit
+    point of its refracted chord along the exact exit direction, a volume slab (planes, meshes)
+    along the ray, both at the refracted lobe's roughness. The samples are a K-point Hammersley set
+    rotated per ray by its hashed key (Cranley-Patterson): deterministic, stratified per pixel.
+    Weight 0 where the pixel has no transmission (or no hit)."""
+    from ..ibl.layered_ibl import refract
+    from ..shading.layered import refractive_index
+    from ..shading.sampling import hammersley, sample_ggx_h, tangent_frame
+    from .visibility import offset_ray_origin
+
+    dtype = jnp.dtype(opts.dtype)
+    K = p_plan.transmission_samples
+    m = g["m"]
+    ext = m.extensions
+    mc = m.complete(("transmission", "ior", "volume") if "volume" in ext else ("transmission",))
+    n, ng, pos, d = pack3(g["n"]), pack3(g["ng"]), pack3(g["pos"]), pack3(g["ray"])
+    shape = g["hit"].shape
+    tr = jnp.clip(mc.transmission, 0.0, 1.0) * (1.0 - jnp.clip(mc.metallic, 0.0, 1.0))
+    active = g["hit"] & (jnp.broadcast_to(tr, shape) > 0)
+    r = jnp.broadcast_to(jnp.clip(mc.roughness, 0.0, 1.0), shape)
+    centre = d
+    start = pos
+    leave = -ng  # (ng faces the viewer)
+    rt = r
+    if "volume" in ext:
+        thick = jnp.broadcast_to(mc.thickness > 0, shape)
+        ior = jnp.broadcast_to(jnp.maximum(refractive_index(mc), 1.0), shape)
+        rt = jnp.where(thick, r * jnp.sqrt(0.75 * (1.0 - 1.0 / ior)), r)
+        if "radius" in g:
+            # The sphere's exit point and direction (`_volume_inputs`: the refracted chord).
+            t_in = refract(d, n, 1.0 / ior)
+            cos_t = -jnp.sum(t_in * n, -1)
+            exit_p = pos + (2.0 * g["radius"] * cos_t)[..., None] * t_in
+            n_far = n + (2.0 * cos_t)[..., None] * t_in
+            n_far = n_far / jnp.maximum(jnp.linalg.norm(n_far, axis=-1, keepdims=True), small_sq(dtype))
+            d_out = refract(t_in, -n_far, ior)
+            sphere = thick & (g["radius"] > 0) & (jnp.sum(d_out * d_out, -1) > 0)
+            centre = jnp.where(sphere[..., None], d_out, centre)
+            start = jnp.where(sphere[..., None], exit_p, start)
+            leave = jnp.where(sphere[..., None], n_far, leave)
+    origin = offset_ray_origin(start.astype(jnp.float32), vnormalize_packed(leave).astype(jnp.float32)).astype(dtype)
+    # Ray differentials carried to the surface (dO' = dO + t dD; the directions' unchanged).
+    if isinstance(offset, Rays):
+        df = offset.diff.astype(dtype)
+        key = offset.key
+    else:
+        (dx, dy), dorig = _ray_differentials(scene.camera, g["ray"], dtype)
+        zero = jnp.zeros(shape + (3,), dtype)
+        o_x, o_y = (zero, zero) if dorig is None else (pack3(dorig[0]), pack3(dorig[1]))
+        df = jnp.stack([pack3(dx) + zero, pack3(dy) + zero, o_x, o_y], -2)
+        key = _pixel_keys(shape, offset)
+    t = g["t"][..., None]
+    df = jnp.stack([df[..., 0, :], df[..., 1, :], df[..., 2, :] + t * df[..., 0, :], df[..., 3, :] + t * df[..., 1, :]], -2)
+    # K stratified lobe samples per ray.
+    xi = hammersley(K, dtype)  # (K, 2)
+    rot = jnp.stack([_unit_float(_mix32(key ^ jnp.uint32(0x68E31DA4)), dtype), _unit_float(_mix32(key ^ jnp.uint32(0xB5297A4D)), dtype)], -1)
+    u = jnp.mod(xi.reshape((K,) + (1,) * len(shape) + (2,)) + rot, 1.0)
+    h_local = sample_ggx_h(u, (rt * rt)[None])  # (K, ..., 3)
+    tb = tangent_frame(jnp.broadcast_to(centre, shape + (3,)))
+    h = h_local[..., 0:1] * tb[0] + h_local[..., 1:2] * tb[1] + h_local[..., 2:3] * centre
+    cos_h = jnp.sum(centre * h, -1, keepdims=True)
+    w_dir = 2.0 * cos_h * h - centre
+    w = jnp.where(active, jnp.maximum(jnp.sum(w_dir * centre, -1), 0.0), 0.0)
+    child = _mix32(key[None] * jnp.uint32(K) + jnp.arange(K, dtype=jnp.uint32).reshape((K,) + (1,) * len(shape)) + jnp.uint32(0x9E3779B9))
+    flat = lambda x: x.reshape((K * shape[0],) + x.shape[2:])  # noqa: E731
+    rays = Rays(o=flat(jnp.broadcast_to(origin, (K,) + origin.shape)), d=flat(w_dir), diff=flat(jnp.broadcast_to(df, (K,) + df.shape)),
+                key=flat(child))
+    return rays, flat(w)
+
+
+def vnormalize_packed(x):
+    return pack3(vnormalize(unpack3(x)))
+
+
+def _transmitted(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, offset, staged: bool):
+    """What the transmitted rays of a pass's surfaces see (`_transmit_rays`): the scene's surfaces
+    shaded by the same stages one level deeper (that level's transmission traced again while levels
+    are left, one ray per ray), as {"L": radiance, "hit", "d": directions, "w": weights}, each (K * rows, ...)."""
+    rays, w = (_transmit_rays_jit if staged else _transmit_rays)(_lean(_stage_view(scene)) if staged else scene, p_plan, opts, g, offset)
+    # Deeper levels continue each ray with one ray of its own (a path per sample: K rays per level,
+    # not K^depth).
+    child = dataclasses.replace(p_plan, transmission_depth=p_plan.transmission_depth - 1, transmission_samples=1, band_rows=0)
+    c, hit = _render_pass(scene, assets, child, opts, rays, staged, with_hit=True)
+    return {"L": c, "hit": hit, "d": rays.d, "w": w}
+
+
+def _behind_change(scene: Scene, pre, p_plan: RenderPlan, b, dtype):
+    """(..., 3) what the scene changes in the transmission lobe's incoming radiance: the mean over
+    the K rays (weighted) of (radiance of the surface hit - the environment's along the ray), 0 for
+    rays that escape: added to the prefiltered environment's lobe value, it is the lobe integral of
+    the scene's radiance (a control variate: no noise where nothing stands behind)."""
+    K = p_plan.transmission_samples
+    env = scene.environment
+    rot = -jnp.asarray(env.rotation, dtype)
+    d_env = pack3(_rotate_y(unpack3(b["d"]), rot))
+    l_env = jnp.asarray(env.intensity, dtype) * pre.sample(d_env, 0.0).astype(dtype)
+    w = jnp.where(b["hit"], b["w"], 0.0)[..., None]
+    delta = w * (b["L"] - l_env)
+    rows = b["L"].shape[0] // K
+    delta = delta.reshape((K, rows) + delta.shape[1:]).sum(0)
+    wsum = b["w"][..., None].reshape((K, rows) + b["w"].shape[1:] + (1,)).sum(0)
+    return jnp.where(wsum > 0, delta / jnp.where(wsum > 0, wsum, 1.0), 0.0)
+
+
 def _texture(scene: Scene, k: int, opts: RenderOptions, g):
     m, n, coat_n, aniso_t, alpha = _apply_texture(
         scene.objects, k, g["idx"], g["uv"], g["tangent"], g["n"], g["m"], jnp.dtype(opts.dtype), g.get("coat_n"),
@@ -548,7 +724,7 @@ def _texture(scene: Scene, k: int, opts: RenderOptions, g):
     return out
 
 
-def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool = False):
+def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool = False, with_hit: bool = False):
     """One sample per pixel at sub-pixel `offset`.
 
     staged=True runs the stages -- geometry, each textured object, direct lighting, IBL +
@@ -561,9 +737,10 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     if staged:
         p_plan = p_plan.for_stages()
     if p_plan.blend_layers > 1:
-        return _blended_pass(scene, assets, p_plan, opts, offset, staged)
+        return _blended_pass(scene, assets, p_plan, opts, offset, staged, with_hit=with_hit)
     g = staged_geometry(scene, p_plan, opts, offset) if staged else _geometry(scene, p_plan, opts, offset)
-    return _shade_pass(scene, assets, p_plan, opts, g, staged)
+    c = _shade_pass(scene, assets, p_plan, opts, g, staged, rays=offset)
+    return (c, g["hit"]) if with_hit else c
 
 
 def staged_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, *, light_shadows: bool = True):
@@ -734,34 +911,35 @@ def _traced(tree) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
-def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool):
+def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool, with_hit: bool = False):
     """BLEND meshes: the nearest `blend_layers` surfaces of each pixel (cast once), each shaded as
     an image of its own by the same compiled stages, composited front to back with their alpha
     (C = sum_k a_k prod_{j<k} (1 - a_j) C_k; an opaque surface or the background ends the pixel)."""
     prims = _host_prims(scene, p_plan, opts, offset) if staged else _layer_prims(scene, p_plan, opts, offset)
-    out, keep = None, None
+    out, keep, hit = None, None, None
     for k in range(p_plan.blend_layers):
         if staged:
             g = _mesh_geometry(scene, p_plan, opts, offset, prims[..., k])
         else:
             g = _geometry(scene, p_plan, opts, offset, prims[..., k])
+        hit = g["hit"] if hit is None else hit
         # The coverage as the texture stage leaves it: the geometry's alpha (factor x COLOR_0's A)
         # times the base colour texture's A. (The geometry's own alpha, read here before, left the
         # texture's A out: a BLEND surface whose alpha came from its texture was drawn opaque.)
-        c, a = _shade_pass(scene, assets, p_plan, opts, g, staged, coverage=True)
+        c, a = _shade_pass(scene, assets, p_plan, opts, g, staged, coverage=True, rays=offset)
         a = a[..., None]
         if k == p_plan.blend_layers - 1:
             a = jnp.ones_like(a)  # the last layer covers what is left
         out = a * c if out is None else out + keep * a * c
         keep = (1.0 - a) if keep is None else keep * (1.0 - a)
-    return out
+    return (out, hit) if with_hit else out
 
 
 def _layer_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, layers: int | None = None):
     """The meshes' primitives of the primary rays: (...) with layers=1, else (..., layers) (BLEND;
     default the plan's layers)."""
     dtype = jnp.dtype(opts.dtype)
-    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    o_px, d_px = _pass_rays(scene, p_plan, dtype, offset)
     return cast(_mesh_arrays(scene, dtype), o_px, d_px, layers=p_plan.blend_layers if layers is None else layers)
 
 
@@ -769,7 +947,7 @@ def _cast_inputs(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset):
     """The primary rays the host ray engine casts (`mesh.cast`'s callback arguments), float32 as
     the engine traces them; the meshes' arrays come from `scene_host_arrays`."""
     dtype = jnp.dtype(opts.dtype)
-    o_px, d_px = primary_rays(scene.camera, dtype=dtype, offset=offset, rows=p_plan.band_rows)
+    o_px, d_px = _pass_rays(scene, p_plan, dtype, offset)
     return {"o": o_px.astype(jnp.float32), "d": d_px.astype(jnp.float32)}
 
 
@@ -793,9 +971,10 @@ def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, l
     return jax.device_put(prim)
 
 
-def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool, *, coverage: bool = False):
+def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, staged: bool, *, coverage: bool = False, rays=None):
     """Textures, direct lighting, the environment's suns and IBL + background of the G-buffer `g`;
-    coverage=True (a BLEND layer): (colour, alpha), the alpha after the texture stage."""
+    coverage=True (a BLEND layer): (colour, alpha), the alpha after the texture stage. rays: the
+    pass's `offset` (sub-pixel offset or `Rays`), from which transmitted rays continue."""
     # The later stages see the pixels, not the meshes' arrays: meshes of other sizes reuse them.
     lean = _lean(scene)
     if staged:
@@ -803,7 +982,7 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     for k in p_plan.textured:
         g = (_texture_jit if staged else _texture)(lean, k, opts, g)
     sink = GEOMETRY_SINK.get()
-    if sink is not None and staged and not is_ahead():
+    if sink is not None and staged and not is_ahead() and not isinstance(rays, Rays):
         sink.append(g)  # the textured G-buffer, for AOVs of the same pass (`aovs.render_with_aovs`)
     direct = (_shade_direct_jit if staged else _shade_direct)(lean, p_plan, opts, g)
     if p_plan.shadows and p_plan.env_lights:
@@ -816,6 +995,8 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
         assets = assets.shapes() if is_ahead() else assets()
+    if p_plan.transmission_depth and p_plan.ibl and rays is not None:
+        g = {**g, "behind": _transmitted(scene, assets, p_plan, opts, g, rays, staged)}
     if not staged:
         c = _shade_rest(lean, assets, p_plan, opts, g, direct)
     else:
@@ -914,6 +1095,7 @@ _texture_jit = cached_jit(_texture, static_argnums=(1, 2))
 _shade_direct_jit = cached_jit(_shade_direct, static_argnums=(1, 2))
 _shade_suns_jit = cached_jit(_shade_suns, static_argnums=(2, 3))
 _shade_rest_jit = cached_jit(_shade_rest, static_argnums=(2, 3), cpu_options=LOOP_EMITTERS)
+_transmit_rays_jit = cached_jit(_transmit_rays, static_argnums=(1, 2))
 
 
 def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
