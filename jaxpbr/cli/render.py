@@ -24,6 +24,7 @@ from ._common import (
     CLIError,
     Progress,
     float32_arg,
+    nonnegative_int_arg,
     positive_int_arg,
     raise_pending,
 )
@@ -60,6 +61,10 @@ def add_command(sub) -> None:
     r.add_argument("--model", choices=MODELS, default=None, help="BRDF model (default: gltf, or the scene's)")
     r.add_argument("--smith", choices=("correlated", "separable"), default=None, help="gltf model: height-correlated (default, the glTF spec) or separable Smith-GGX G2, in the direct lighting and the IBL LUT alike")
     r.add_argument("--no-extract-lights", dest="extract_lights", action="store_false", default=None, help="shade the whole environment with the split sum (no sun extraction; default: suns are split out and shaded as disc lights)")
+    r.add_argument("--transmission-depth", type=nonnegative_int_arg, default=None,
+                   help="transmissive surfaces a transmitted ray passes and still sees the scene behind (default: 2; 0: the environment only)")
+    r.add_argument("--transmission-samples", type=positive_int_arg, default=None,
+                   help="transmitted rays per pixel drawn from a rough transmission lobe (default: 4)")
     r.add_argument("--exposure", type=float32_arg(), default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
@@ -253,6 +258,14 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         options["smith"] = args.smith
     if args.extract_lights is not None:
         options["extract_lights"] = args.extract_lights
+    from ..rendering.options import MAX_TRANSMISSION_DEPTH, MAX_TRANSMISSION_SAMPLES
+
+    for name, cap in (("transmission_depth", MAX_TRANSMISSION_DEPTH), ("transmission_samples", MAX_TRANSMISSION_SAMPLES)):
+        value = getattr(args, name)
+        if value is not None:
+            if value > cap:
+                raise CLIError(f"--{name.replace('_', '-')} must be at most {cap} (each is one more pass over the image), got {value}")
+            options[name] = value
     opts = RenderOptions(**options)
     if opts.dtype == "float64":
         # A float64 render needs JAX's 64-bit mode (off by default): without it every float64

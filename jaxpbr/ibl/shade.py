@@ -124,8 +124,7 @@ def shade_ibl(
         if transmit_weight:
             occ = m.occlusion[..., None]
             return out[0] * occ, out[1] * occ
-        out = out * m.occlusion[..., None]
-    return (out, jnp.zeros_like(out)) if transmit_weight else out
+        return out * m.occlusion[..., None]
     ab = lut_lookup(lut, nov, r)
     a, b = ab[..., 0], ab[..., 1]
     M, mapping, blend = lookup_of(pre)

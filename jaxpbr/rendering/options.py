@@ -48,17 +48,22 @@ class RenderOptions:
         meshes (glTF assets), off for scenes of spheres and planes only; True / False force it.
         Image-based lighting itself is not shadowed (the materials' occlusion textures darken it).
     transmission_depth: how many transmissive surfaces (KHR_materials_transmission) one after another
-        a transmitted ray passes and still sees the scene behind (default 1): at each, rays continue
-        through the surface (straight for thin walls; out of a volume sphere along its exit
-        direction) and the first surface they meet is shaded by the same stages; rays that escape,
-        and the transmission of the surfaces past the last level, see the prefiltered environment.
-        0: the environment only (the split sum's transmission lobe; nothing traced). Needs an
-        environment (the lobe's weights come from the split-sum LUT).
-    transmission_samples: rays per pixel at each level, drawn from the transmission lobe
-        (stratified, per-pixel rotated, deterministic): the prefiltered environment is the lobe's
-        unoccluded value and the rays add what the scene changes (a control variate), so smooth
-        transmission (roughness 0) is exact with one ray and rough transmission is noisy only where
-        the lobe straddles an edge of the scene behind (docs/extensions.md: error against samples).
+        a transmitted ray passes and still sees the scene behind (default 2: both walls of a closed
+        thin-walled object, an analytic sphere or a double-sided mesh; a single-sided mesh's back
+        faces let rays through, so it takes one). At each level rays continue through the surface
+        (straight through thin walls; out of a volume sphere along its refracted chord's exit
+        direction; along the view through a volume slab) and the first surface they meet is shaded
+        by the same stages; rays that escape, and the transmission of surfaces past the last level,
+        see the prefiltered environment. A level none of whose rays meets a transmissive surface
+        traces nothing more. 0: the environment only (the split sum's lobe; nothing traced). Needs
+        an environment (the lobe's weights are the split sum's).
+    transmission_samples: rays per pixel at the first level (default 4; deeper levels continue each
+        ray with one), drawn from the transmission lobe (stratified, per-pixel rotated,
+        deterministic). The prefiltered environment stays the lobe's unoccluded value and the rays
+        add what the scene changes (a control variate): where nothing stands behind there is no
+        noise, and smooth transmission is exact with one ray (the plan takes one where every
+        transmissive material has roughness 0). Rough transmission before a high-contrast backdrop
+        is noisy at few rays: docs/extensions.md measures error against rays and time.
     """
 
     model: str = "gltf"
@@ -73,7 +78,7 @@ class RenderOptions:
     dtype: str = "float32"
     extract_lights: bool = True
     shadows: bool | None = None
-    transmission_depth: int = 1
+    transmission_depth: int = 2
     transmission_samples: int = 4
 
     @property

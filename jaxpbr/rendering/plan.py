@@ -224,9 +224,12 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCach
     # Transmitted rays are traced where a material transmits, under an environment (the lobe's
     # weights are the split sum's), with objects to see (a user's G-buffer has none).
     tdepth = opts.transmission_depth if (ibl and objects and "transmission" in extensions) else 0
+    # Smooth transmissive materials only (roughness 0 everywhere, traced values counting as rough):
+    # the lobe is a direction, and one ray per pixel is exact.
+    t_rough = max([r for (r, _, _), m in zip(ranges, mats, strict=True) if "transmission" in _material_extensions(m)[0]], default=1.0)
     return RenderPlan(
         transmission_depth=tdepth,
-        transmission_samples=opts.transmission_samples if tdepth else 0,
+        transmission_samples=(opts.transmission_samples if t_rough > 0 else 1) if tdepth else 0,
         blend_layers=MAX_BLEND_LAYERS if blend else 1,
         shadows=shadows,
         direct=len(scene.lights) > 0,

@@ -687,8 +687,42 @@ def _transmitted(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     # Deeper levels continue each ray with one ray of its own (a path per sample: K rays per level,
     # not K^depth).
     child = dataclasses.replace(p_plan, transmission_depth=p_plan.transmission_depth - 1, transmission_samples=1, band_rows=0)
+    if staged and not is_ahead() and not _traced((rays, w)):
+        # Only the rays of transmissive pixels are cast and shaded, gathered into a buffer of a
+        # power-of-two size (a few programs serve every count); none: nothing is traced.
+        active = np.flatnonzero(np.asarray(w).reshape(-1) > 0)
+        if active.size == 0:
+            return None
+        size = max(_MIN_TRANSMIT_BUFFER, 1 << int(active.size - 1).bit_length())
+        idx = jax.device_put(np.concatenate([active, np.full(size - active.size, active[0])]).astype(np.int32))
+        sub = _gather_rays_jit(rays, idx)
+        c, hit = _render_pass(scene, assets, child, opts, sub, staged, with_hit=True)
+        c, hit = _scatter_jit(c, hit, idx, int(active.size), w.shape)
+        return {"L": c, "hit": hit, "d": rays.d, "w": w}
     c, hit = _render_pass(scene, assets, child, opts, rays, staged, with_hit=True)
     return {"L": c, "hit": hit, "d": rays.d, "w": w}
+
+
+#: Smallest buffer of transmitted rays a staged pass gathers (`_transmitted`).
+_MIN_TRANSMIT_BUFFER = 1024
+
+
+def _gather_rays(rays: Rays, idx):
+    return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[len(rays.key.shape):])[idx], rays)
+
+
+def _scatter(c, hit, idx, n: int, shape):
+    """The gathered rays' (radiance, hit) back in their places (..., 3), (...); 0 / False elsewhere
+    (only the first n entries of idx are rays: the rest repeat the first)."""
+    total = int(np.prod(shape))
+    keep = jnp.arange(idx.shape[0]) < n
+    L = jnp.zeros((total, 3), c.dtype).at[idx].add(jnp.where(keep[:, None], c, 0.0))
+    h = jnp.zeros((total,), bool).at[idx].max(keep & hit)
+    return L.reshape(tuple(shape) + (3,)), h.reshape(shape)
+
+
+_gather_rays_jit = cached_jit(_gather_rays)
+_scatter_jit = cached_jit(_scatter, static_argnums=(3, 4))
 
 
 def _behind_change(scene: Scene, pre, p_plan: RenderPlan, b, dtype):
@@ -996,7 +1030,9 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
     if isinstance(assets, PendingAssets):
         assets = assets.shapes() if is_ahead() else assets()
     if p_plan.transmission_depth and p_plan.ibl and rays is not None:
-        g = {**g, "behind": _transmitted(scene, assets, p_plan, opts, g, rays, staged)}
+        behind = _transmitted(scene, assets, p_plan, opts, g, rays, staged)
+        if behind is not None:
+            g = {**g, "behind": behind}
     if not staged:
         c = _shade_rest(lean, assets, p_plan, opts, g, direct)
     else:
