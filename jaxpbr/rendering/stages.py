@@ -683,11 +683,17 @@ def _transmitted(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     """What the transmitted rays of a pass's surfaces see (`_transmit_rays`): the scene's surfaces
     shaded by the same stages one level deeper (that level's transmission traced again while levels
     are left, one ray per ray), as {"L": radiance, "hit", "d": directions, "w": weights}, each (K * rows, ...)."""
+    if staged and is_ahead():
+        # (the rays' count is known only once they are cast: the look-ahead stops here, before
+        # compiling programs for buffers no pass would use)
+        from .._program_cache import NotAhead
+
+        raise NotAhead("the transmitted rays are counted when cast")
     rays, w = (_transmit_rays_jit if staged else _transmit_rays)(_lean(_stage_view(scene)) if staged else scene, p_plan, opts, g, offset)
     # Deeper levels continue each ray with one ray of its own (a path per sample: K rays per level,
     # not K^depth).
     child = dataclasses.replace(p_plan, transmission_depth=p_plan.transmission_depth - 1, transmission_samples=1, band_rows=0)
-    if staged and not is_ahead() and not _traced((rays, w)):
+    if staged and not _traced((rays, w)):
         # Only the rays of transmissive pixels are cast and shaded, gathered into a buffer of a
         # power-of-two size (a few programs serve every count); none: nothing is traced.
         active = np.flatnonzero(np.asarray(w).reshape(-1) > 0)
