@@ -653,7 +653,7 @@ def _transmit_rays(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, off
     else:
         (dx, dy), dorig = _ray_differentials(scene.camera, g["ray"], dtype)
         zero = jnp.zeros(shape + (3,), dtype)
-        o_x, o_y = (zero, zero) if dorig is None else (pack3(dorig[0]), pack3(dorig[1]))
+        o_x, o_y = (zero, zero) if dorig is None else (pack3(dorig[0]) + zero, pack3(dorig[1]) + zero)
         df = jnp.stack([pack3(dx) + zero, pack3(dy) + zero, o_x, o_y], -2)
         key = _pixel_keys(shape, offset)
     t = g["t"][..., None]
