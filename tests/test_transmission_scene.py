@@ -347,3 +347,26 @@ def test_rough_glass_converges_to_the_reference_as_rays_grow(tmp_path, roughness
     assert env_only > 1.0 and means[0] < 0.8 * env_only
     # deterministic: the same rays again
     np.testing.assert_array_equal(render(path, transmission_samples=4), render(path, transmission_samples=4))
+
+
+def test_smooth_glass_under_an_orthographic_camera(smooth_asset):
+    """The same closed form with parallel camera rays (origins on the plane z = 5, along -z): the
+    transmitted rays carry the orthographic camera's origin differentials."""
+    ymag = 1.5
+    cam = jp.Camera(position=(0.0, 0.0, 5.0), target=(0.0, 0.0, 0.0), projection="orthographic", ymag=ymag, width=W, height=H)
+    scene = jp.load_gltf(smooth_asset, camera=cam, width=W, height=H, environment=uniform_sky())
+    img = np.asarray(jp.render(scene, extract_lights=False, shadows=False, multiscatter=False), np.float64)[..., 0]
+    x = (2 * (np.arange(W) + 0.5) / W - 1) * ymag * W / H
+    y = (1 - 2 * (np.arange(H) + 0.5) / H) * ymag
+    o = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.full((H, W), 5.0)), -1).reshape(-1, 3)
+    d = np.broadcast_to(np.array([0.0, 0.0, -1.0]), o.shape)
+    t, n = hit_sphere(o, d)
+    on = np.isfinite(t)
+    p = o + np.where(on, t, 0)[:, None] * d
+    F = schlick(np.clip(-(n @ np.array([0.0, 0.0, -1.0])), 0, 1))
+    seen, edge = behind(p, d)
+    ref = np.where(on, F + (1 - F) * seen, seen).reshape(H, W)
+    keep = (on.reshape(H, W)) & (edge.reshape(H, W) > 0.05)
+    assert keep.sum() > 200
+    err = np.abs(img - ref)[keep]
+    assert np.median(err) < 1e-5 and err.max() < 1e-4, (np.median(err), err.max())
