@@ -44,6 +44,7 @@ from .rendering.textured import TextureSlot
 from .rendering.scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
 from .shading.shipped_luts import brdf_lut
 from .ibl.specular import prefilter, prefilter_reference, roughness_to_lod
+from .reference import reference_render
 
 __all__ = [
     "__version__",
@@ -73,6 +74,7 @@ __all__ = [
     "demo",
     "render",
     "render_batch",
+    "reference_render",
     "brdf_lut",
     "compute_brdf_lut",
     "envs",

@@ -34,6 +34,7 @@ from .options import RenderOptions, _options
 from .plan import RenderPlan, plan
 from .scene import (
     Environment,
+    GBuffer,
     Plane,
     Scene,
     Sphere,
@@ -1167,18 +1168,26 @@ def gbuffer(scene: Scene, *, options: RenderOptions | None = None, **overrides):
     the groups some object uses, the others None). Off the surfaces (hit False) the values are
     undefined. A scene given as a G-buffer returns its own. Lights and environment are not read
     (nothing is precomputed); options as for `render` (only dtype matters)."""
-    from .scene import GBuffer
-
     if not isinstance(scene, Scene):
         raise TypeError(f"gbuffer expects a jaxpbr.Scene, got {type(scene).__name__}")
     opts = _options(options, overrides, "gbuffer")
     if scene.gbuffer is not None:
         return scene.gbuffer
     bare = evolve(scene, lights=(), environment=None, camera=evolve(scene.camera, supersample=1))
-    p = plan(bare, options=opts)
+    gb, _ = surface_buffer(bare, opts)
+    return gb
+
+
+def surface_buffer(scene: Scene, opts: RenderOptions):
+    """(`GBuffer` of the camera's pixel centres, (H, W, 3) geometric normals facing the viewer): what
+    `gbuffer` returns, with the normal secondary rays leave the surface along (the ground truth's,
+    `jaxpbr.reference`). scene: a Scene of objects (not a user G-buffer)."""
+    bare = evolve(scene, lights=(), environment=None, camera=evolve(scene.camera, supersample=1))
+    p = dataclasses.replace(plan(bare, options=opts), shadows=True)  # (shadows: the geometric normal)
     dtype = jnp.dtype(opts.dtype)
     g = staged_geometry(bare, p, opts, jax.device_put(np.asarray((0.5, 0.5), dtype)), light_shadows=False)
     lean = _lean(bare)
     for k in p.textured:
         g = _texture_jit(lean, k, opts, g)
-    return GBuffer(hit=g["hit"], position=pack3(g["pos"]), normal=pack3(g["n"]), view=pack3(g["view"]), material=g["m"])
+    gb = GBuffer(hit=g["hit"], position=pack3(g["pos"]), normal=pack3(g["n"]), view=pack3(g["view"]), material=g["m"])
+    return gb, pack3(g["ng"])

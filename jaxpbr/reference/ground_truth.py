@@ -1,0 +1,436 @@
+"""The ground truth of a render: direct lighting with visibility, integrated in float64.
+
+For each camera pixel centre (the surface `jaxpbr.gbuffer` gives: the same hit, shading normal and
+per-pixel material after textures as `render` shades) the reference estimates
+
+    Lo = emission + sum_lights f(v, l_k) (n.l_k)+ E_k V(l_k)
+         + integral over the sphere of f(v, l) (n.l)+ L_env(l) V(l) dl
+
+with f the glTF BRDF of `jaxpbr.brdf` (single scattering, no roughness floor beyond 0.001, the
+roughness at which a lobe is narrower than any environment's texel), L_env the environment's
+level 0 as a piecewise-constant function of its texels (the definition the float64 IBL references
+use) turned and scaled as the scene asks, and V the visibility of the environment along l: 0 when
+a ray from the surface (offset along the geometric normal, `visibility.offset_ray_origin`) meets a
+mesh triangle (either side: a surface blocks light from behind too), a sphere or a plane.
+The punctual lights are evaluated exactly (deltas), with shadow rays to them.
+
+The environment integral is estimated by multiple importance sampling with the balance heuristic,
+one direction per technique per sample (Veach 1997, the multi-sample model):
+
+* the environment: a texel drawn from the luminance x solid-angle distribution of level 0, a point
+  drawn uniformly in its face coordinates (density (1 + a^2 + b^2)^(3/2) / texel area per steradian);
+* the specular lobe: GGX visible normals (Heitz 2018) at the pixel's roughness, mirrored about them;
+* the diffuse lobe: cosine-weighted directions.
+
+Each sample's estimate is sum_t f L cos V / (p_env + p_ggx + p_cos) over the three directions; the
+image is the mean over `spp` samples (float64 accumulation) and `stderr` its standard error (the
+sample standard deviation / sqrt(spp)), per pixel and channel. Deterministic per `seed`.
+
+Not integrated (each refused with a message, not approximated): the transmission, volume and
+anisotropy extensions (their lobes need inputs the G-buffer does not carry: what lies below the
+surface, a tangent), disc lights (a `DirectionalLight` with an angular radius; the environment's
+own suns are part of its radiance and are integrated), environments given with suns split out
+(`Environment.lights`) and user G-buffers. Alpha-blended, masked and transmissive occluders block
+light as opaque ones; interreflection (bounces) is not part of it: this is the direct light.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import InputError
+from ..ibl.cubemap import dir_to_face, face_to_dir, texel_solid_angles
+from ..rendering.mesh import Mesh
+from ..rendering.options import RenderOptions
+from ..rendering.scene import Plane, Scene, Sphere
+from ..rendering.stages import scene_host_arrays, surface_buffer
+from ..rendering.visibility import TriangleAccel, offset_ray_origin
+from ..shading.layered import brdf
+from ..shading.lights import DirectionalLight, PointLight, SpotLight, shade_direct
+
+__all__ = ["MIN_REFERENCE_ROUGHNESS", "ReferenceImage", "reference_render"]
+
+#: Roughness floor of the ground truth's BRDF (alpha = 1e-6: a mirror for any environment texel).
+MIN_REFERENCE_ROUGHNESS = 1e-3
+#: Pixels per block of the integration (one compiled BRDF program per block shape).
+BLOCK = 4096
+#: Extensions whose lobes the ground truth does not integrate.
+_UNSUPPORTED = ("transmission", "volume", "anisotropy")
+#: The luminance weights of the environment's importance distribution (Rec. 709).
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+@dataclasses.dataclass(frozen=True)
+class ReferenceImage:
+    """A ground-truth render: image (H, W, 3) float64 linear radiance (the background where no
+    surface is hit), stderr (H, W, 3) its per-pixel standard error (0 off the surfaces), hit (H, W),
+    visible (H, W) the estimated cosine-weighted visible fraction of the environment at each surface
+    pixel (1 in the open, 0 fully enclosed; from the cosine-sampled directions), spp and the
+    seconds the integration took."""
+
+    image: np.ndarray
+    stderr: np.ndarray
+    hit: np.ndarray
+    visible: np.ndarray
+    spp: int
+    seconds: float
+
+
+def reference_render(scene: Scene, *, spp: int = 64, seed: int = 0, options: RenderOptions | None = None,
+                     progress=None, **overrides) -> ReferenceImage:
+    """The ground truth of `render(scene)`'s direct lighting (module docstring): float64 Monte Carlo
+    over the environment with visibility, the punctual lights with shadows, the emission.
+
+    spp: samples per pixel (each one direction per technique: environment, GGX, cosine).
+    seed: the random sequence (the same seed gives the same image).
+    options / overrides: `RenderOptions`; only `smith` (the BRDF's G) is read.
+    progress: optional callable(done, total) over the pixel blocks.
+    """
+    t0 = time.perf_counter()
+    if not isinstance(scene, Scene):
+        raise TypeError(f"reference_render expects a jaxpbr.Scene, got {type(scene).__name__}")
+    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 2:
+        raise ValueError(f"spp must be an int >= 2 (the standard error needs two samples), got {spp!r}")
+    if options is not None and not isinstance(options, RenderOptions):
+        raise TypeError(f"reference_render: options must be a jaxpbr.RenderOptions, got {type(options).__name__}")
+    opts = dataclasses.replace(options or RenderOptions(), **overrides)
+    if opts.model != "gltf":
+        raise ValueError(f"reference_render integrates the glTF BRDF; model {opts.model!r} has no ground truth here (use model='gltf')")
+    _check_scene(scene)
+    with jax.enable_x64(True):
+        gb, ng = surface_buffer(scene, dataclasses.replace(opts, dtype="float64"))
+        m = gb.material
+        for g in _UNSUPPORTED:
+            if g in m.extensions:
+                raise InputError(
+                    f"reference_render does not integrate KHR_materials_{g} (its lobe needs what the G-buffer does not carry); "
+                    f"render the scene without it to compare, or use jaxpbr.ibl.reference_render for spheres")
+        hit = np.asarray(gb.hit)
+        H, W = hit.shape
+        pos = np.asarray(gb.position, np.float64)
+        n = np.asarray(gb.normal, np.float64)
+        v = np.asarray(gb.view, np.float64)
+        ng = np.asarray(ng, np.float64)
+        leaves = jax.tree_util.tree_map(np.asarray, m)
+        occ = _Occluders(scene)
+        env = _EnvSampler(scene.environment) if scene.environment is not None else None
+        idx = np.flatnonzero(hit.reshape(-1))
+        mean = np.zeros((H * W, 3))
+        sq = np.zeros((H * W, 3))
+        vis = np.zeros(H * W)
+        rng = np.random.default_rng(seed)
+        blocks = range(0, idx.size, BLOCK)
+        for b, start in enumerate(blocks):
+            sel = idx[start:start + BLOCK]
+            mb = jax.tree_util.tree_map(lambda x, sel=sel: _take(x, sel, H, W), leaves)
+            P, N, V, NG = (a.reshape(-1, 3)[sel] for a in (pos, n, v, ng))
+            est, est_sq, visible = _integrate_block(P, N, V, NG, mb, env, occ, scene, opts, spp, rng)
+            mean[sel], sq[sel], vis[sel] = est, est_sq, visible
+            if progress is not None:
+                progress(b + 1, len(blocks))
+        var = np.maximum(sq - mean * mean, 0.0) * spp / (spp - 1)
+        stderr = np.sqrt(var / spp)
+        img = mean.reshape(H, W, 3)
+        bg = _background(scene, -v, hit)
+        img = np.where(hit[..., None], img, bg)
+        stderr = np.where(hit[..., None], stderr.reshape(H, W, 3), 0.0)
+    return ReferenceImage(image=img, stderr=stderr, hit=hit, visible=np.where(hit, vis.reshape(H, W), 0.0), spp=spp,
+                          seconds=time.perf_counter() - t0)
+
+
+def _check_scene(scene: Scene) -> None:
+    if scene.gbuffer is not None:
+        raise InputError("reference_render traces the scene's objects; a user G-buffer has none to occlude the light")
+    for light in scene.lights:
+        if not isinstance(light, (PointLight, DirectionalLight, SpotLight)):
+            raise InputError(f"reference_render takes point, directional and spot lights, got a {type(light).__name__} "
+                             "(pass the lights one by one)")
+        if isinstance(light, DirectionalLight) and np.any(np.asarray(light.angular_radius) > 0):
+            raise InputError("reference_render evaluates punctual lights only: a DirectionalLight with an angular radius "
+                             "(a disc) has no ground truth here; put the sun in the environment's radiance instead")
+    env = scene.environment
+    if env is not None and env.lights is not None:
+        raise InputError("the environment comes with suns split out of it (Environment.lights): its radiance is a residual; "
+                         "give reference_render the whole environment (its radiance, no lights)")
+
+
+def _take(x, sel, H, W):
+    """A per-pixel material leaf's values at the flat pixel indices sel."""
+    x = np.asarray(x, np.float64)
+    x = np.broadcast_to(x, (H, W) + x.shape[2:]) if x.shape[:2] != (H, W) else x
+    return x.reshape((H * W,) + x.shape[2:])[sel]
+
+
+# --------------------------------------------------------------------------------------------------
+# visibility
+
+
+class _Occluders:
+    """Rays against every object of the scene: the meshes through the ray engine (`TriangleAccel`,
+    every triangle blocks), spheres and planes in float64 here."""
+
+    def __init__(self, scene: Scene):
+        arrays = scene_host_arrays(scene, jnp.float32) if any(isinstance(o, Mesh) for o in scene.objects) else None
+        self.accel = None
+        if arrays is not None:
+            self.accel = TriangleAccel.build(np.asarray(arrays["positions"], np.float32), np.asarray(arrays["triangles"], np.int32))
+        self.spheres = [(np.asarray(o.center, np.float64), float(o.radius)) for o in scene.objects if isinstance(o, Sphere)]
+        self.planes = [(np.asarray(o.point, np.float64), np.asarray(o.normal, np.float64)) for o in scene.objects
+                       if isinstance(o, Plane)]
+
+    def occluded(self, o, d, tfar):
+        """bool (N,): something lies along o + t d, 0 < t < tfar (o already offset off its surface)."""
+        out = np.zeros(len(o), bool)
+        if self.accel is not None:
+            out |= np.asarray(self.accel.occluded(o.astype(np.float32), d.astype(np.float32), 0.0, tfar.astype(np.float32)))
+        for c, r in self.spheres:
+            oc = o - c
+            b = np.sum(oc * d, -1)
+            cc = np.sum(oc * oc, -1) - r * r
+            disc = b * b - cc
+            sq = np.sqrt(np.maximum(disc, 0.0))
+            t0, t1 = -b - sq, -b + sq
+            # the ray's origin sits on a sphere's surface when the sphere is the shaded object:
+            # only a crossing beyond a small fraction of the radius counts
+            eps = 1e-7 * max(r, 1.0)
+            t = np.where(t0 > eps, t0, t1)
+            out |= (disc > 0) & (t > eps) & (t < tfar)
+        for p, nn in self.planes:
+            den = d @ nn
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = ((p - o) @ nn) / den
+            out |= (np.abs(den) > 1e-300) & (t > 1e-7) & (t < tfar)
+        return out
+
+
+# --------------------------------------------------------------------------------------------------
+# the environment
+
+
+class _EnvSampler:
+    """The environment's level 0 (piecewise constant per texel) in the world: its radiance along
+    directions, and directions drawn from its luminance x solid angle with their density."""
+
+    def __init__(self, env):
+        lv = np.asarray(env.radiance.levels[0], np.float64)[..., :3]  # (6, S, S, 3)
+        self.S = lv.shape[1]
+        self.L = lv * float(np.asarray(env.intensity))
+        self.rot = float(np.asarray(env.rotation))
+        om = texel_solid_angles(self.S)
+        w = np.maximum(self.L @ _LUMA, 0.0) * om
+        total = w.sum()
+        if not np.isfinite(total):
+            raise InputError("the environment's radiance is not finite; it has no ground truth")
+        if total <= 0:  # a black environment: sample uniformly (every estimate is 0 anyway)
+            w = om
+            total = w.sum()
+        self.p_texel = (w / total).reshape(-1)
+        self.cdf = np.cumsum(self.p_texel)
+        self.cdf[-1] = 1.0
+
+    def _to_env(self, d):  # world -> the environment's frame (R_y(-rotation))
+        c, s = math.cos(-self.rot), math.sin(-self.rot)
+        return np.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
+
+    def _to_world(self, d):
+        c, s = math.cos(self.rot), math.sin(self.rot)
+        return np.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
+
+    def _texel(self, d_env):
+        face, s, t = dir_to_face(d_env, xp=np)
+        j = np.minimum((s * self.S).astype(int), self.S - 1)
+        i = np.minimum((t * self.S).astype(int), self.S - 1)
+        sc, tc = 2.0 * s - 1.0, 2.0 * t - 1.0
+        return face, i, j, sc, tc
+
+    def radiance(self, d):
+        face, i, j, _, _ = self._texel(self._to_env(d))
+        return self.L[face, i, j]
+
+    def pdf(self, d):
+        face, i, j, sc, tc = self._texel(self._to_env(d))
+        p = self.p_texel.reshape(6, self.S, self.S)[face, i, j]
+        return p * (1.0 + sc * sc + tc * tc) ** 1.5 / (2.0 / self.S) ** 2
+
+    def sample(self, u):
+        """(N, 3) unit world directions from (N, 3) uniform numbers."""
+        k = np.minimum(np.searchsorted(self.cdf, u[:, 0], side="right"), self.cdf.size - 1)
+        face, rem = np.divmod(k, self.S * self.S)
+        i, j = np.divmod(rem, self.S)
+        s = (j + u[:, 1]) / self.S
+        t = (i + u[:, 2]) / self.S
+        d = face_to_dir(face, s, t, xp=np)
+        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+        return self._to_world(d)
+
+
+def _background(scene: Scene, d, hit):
+    env = scene.environment
+    if env is not None and env.show_background:
+        with jax.enable_x64(False):
+            dd = d.reshape(-1, 3)
+            c, s = math.cos(-float(np.asarray(env.rotation))), math.sin(-float(np.asarray(env.rotation)))
+            de = np.stack([c * dd[:, 0] + s * dd[:, 2], dd[:, 1], -s * dd[:, 0] + c * dd[:, 2]], -1)
+            bg = np.asarray(env.radiance.sample(jnp.asarray(de, jnp.float32), 0.0), np.float64)[:, :3] * float(np.asarray(env.intensity))
+        return bg.reshape(d.shape)
+    return np.broadcast_to(np.asarray(scene.background, np.float64), d.shape)
+
+
+# --------------------------------------------------------------------------------------------------
+# the integral
+
+
+def _frame(n):
+    """(t, b) completing unit normals n (N, 3) to orthonormal frames (Duff et al. 2017)."""
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], -1)
+    bb = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], -1)
+    return t, bb
+
+
+def _ggx_d(noh, a2):
+    d = noh * noh * (a2 - 1.0) + 1.0
+    return a2 / (math.pi * d * d)
+
+
+def _g1(c, a2):
+    c = np.maximum(c, 1e-300)
+    return 2.0 * c / (c + np.sqrt(a2 + (1.0 - a2) * c * c))
+
+
+def _pdf_ggx(n, v, l, a2):
+    """Density (per steradian) of l = reflect(v, h) with h from the visible normals of GGX at a2."""
+    h = v + l
+    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-300)
+    noh = np.sum(n * h, -1)
+    nov = np.maximum(np.sum(n * v, -1), 1e-300)
+    ok = (np.sum(n * l, -1) > 0) & (noh > 0)
+    return np.where(ok, _g1(nov, a2) * _ggx_d(noh, a2) / (4.0 * nov), 0.0)
+
+
+def _sample_ggx(n, v, a, u):
+    """Heitz 2018: a visible normal of GGX (alpha a) for view v, in the world; l = reflect(v, h)."""
+    t, b = _frame(n)
+    vl = np.stack([np.sum(v * t, -1), np.sum(v * b, -1), np.sum(v * n, -1)], -1)
+    vh = np.stack([a * vl[:, 0], a * vl[:, 1], vl[:, 2]], -1)
+    vh /= np.linalg.norm(vh, axis=-1, keepdims=True)
+    lensq = vh[:, 0] ** 2 + vh[:, 1] ** 2
+    safe = np.where(lensq > 0, lensq, 1.0)
+    T1 = np.where(lensq[:, None] > 0, np.stack([-vh[:, 1], vh[:, 0], np.zeros_like(lensq)], -1) / np.sqrt(safe)[:, None],
+                  np.array([1.0, 0.0, 0.0]))
+    T2 = np.cross(vh, T1)
+    r = np.sqrt(u[:, 0])
+    phi = 2.0 * math.pi * u[:, 1]
+    t1 = r * np.cos(phi)
+    t2 = r * np.sin(phi)
+    s = 0.5 * (1.0 + vh[:, 2])
+    t2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - t1 * t1, 0.0)) + s * t2
+    nh = t1[:, None] * T1 + t2[:, None] * T2 + np.sqrt(np.maximum(1.0 - t1 * t1 - t2 * t2, 0.0))[:, None] * vh
+    hl = np.stack([a * nh[:, 0], a * nh[:, 1], np.maximum(nh[:, 2], 0.0)], -1)
+    hl /= np.maximum(np.linalg.norm(hl, axis=-1, keepdims=True), 1e-300)
+    h = hl[:, :1] * t + hl[:, 1:2] * b + hl[:, 2:3] * n
+    return 2.0 * np.sum(v * h, -1, keepdims=True) * h - v
+
+
+def _sample_cos(n, u):
+    t, b = _frame(n)
+    r = np.sqrt(u[:, 0])
+    phi = 2.0 * math.pi * u[:, 1]
+    z = np.sqrt(np.maximum(1.0 - u[:, 0], 0.0))
+    return (r * np.cos(phi))[:, None] * t + (r * np.sin(phi))[:, None] * b + z[:, None] * n
+
+
+@jax.jit
+def _brdf64(n, v, l, m, smith_correlated):
+    f_c = brdf(n, v, l, m, min_roughness=MIN_REFERENCE_ROUGHNESS, smith="correlated")
+    f_s = brdf(n, v, l, m, min_roughness=MIN_REFERENCE_ROUGHNESS, smith="separable")
+    return jnp.where(smith_correlated, f_c, f_s)
+
+
+def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng):
+    """(mean, mean of squares, visible fraction) over spp samples of one block of pixels."""
+    k = len(P)
+    pad = BLOCK - k  # (one compiled BRDF program for every block)
+    padf = (lambda x: np.concatenate([x, np.repeat(x[-1:], pad, 0)])) if pad > 0 else (lambda x: x)  # noqa: E731
+    mj = jax.tree_util.tree_map(lambda x: jnp.asarray(padf(x)), m)
+    nj, vj = jnp.asarray(padf(N)), jnp.asarray(padf(V))
+    corr = jnp.asarray(opts.smith != "separable")
+
+    def f(l):
+        return np.asarray(_brdf64(nj, vj, jnp.asarray(padf(l)), mj, corr))[:k]
+
+    # the geometric normal on the viewer's side, for the rays' origins
+    side = np.where(np.sum(NG * V, -1, keepdims=True) < 0, -NG, NG)
+    origin_up = offset_ray_origin(P.astype(np.float32), side.astype(np.float32)).astype(np.float64)
+    r = np.clip(np.asarray(m.roughness, np.float64).reshape(-1)[:k] if np.ndim(m.roughness) else np.full(k, float(m.roughness)), 0.0, 1.0)
+    a = np.maximum(r, MIN_REFERENCE_ROUGHNESS) ** 2
+    a2 = a * a
+    # the punctual lights: exact, with shadow rays
+    base = np.asarray(jax.device_get(_emission(mj)))[:k]
+    if scene.lights:
+        vis = []
+        for light in scene.lights:
+            if isinstance(light, DirectionalLight):
+                dl = -np.asarray(light.direction, np.float64)
+                dl = np.broadcast_to(dl / np.linalg.norm(dl), P.shape)
+                tfar = np.full(k, np.inf)
+            else:
+                dl = np.asarray(light.position, np.float64) - P
+                tfar = np.linalg.norm(dl, axis=-1)
+                dl = dl / np.maximum(tfar, 1e-300)[:, None]
+                tfar = tfar * (1.0 - 1e-6)
+            o = offset_ray_origin(P.astype(np.float32), np.where(np.sum(NG * dl, -1, keepdims=True) < 0, -NG, NG).astype(np.float32))
+            vis.append(~occ.occluded(o.astype(np.float64), dl, tfar))
+        vis = np.stack(vis, -1).astype(np.float64)
+        direct = shade_direct(jnp.asarray(padf(P)), nj, vj, _dark(mj), list(scene.lights), visibility=jnp.asarray(padf(vis)),
+                              smith=opts.smith)
+        base = base + np.asarray(direct)[:k]
+    acc = np.zeros((k, 3))
+    acc2 = np.zeros((k, 3))
+    visible = np.zeros(k)
+    # Latin hypercube per pixel: each of the 7 dimensions stratified over the spp samples (its own
+    # random permutation of the strata per pixel), jittered within each stratum.
+    strata = rng.permuted(np.broadcast_to(np.arange(spp)[:, None, None], (spp, k, 7)), axis=0)
+    uu = (strata + rng.random((spp, k, 7))) / spp
+    for s_i in range(spp):
+        est = np.zeros((k, 3))
+        if env is not None:
+            u = uu[s_i]
+            dirs = [env.sample(u[:, 0:3]), _sample_ggx(N, V, a, u[:, 3:5]), _sample_cos(N, u[:, 5:7])]
+            for t_i, l in enumerate(dirs):
+                nl = np.sum(N * l, -1)
+                p = env.pdf(l) + _pdf_ggx(N, V, l, a2) + np.maximum(nl, 0.0) / math.pi
+                up = np.sum(NG * l, -1) * np.sum(NG * V, -1) > 0  # leaves on the viewer's side
+                live = (nl > 0) & up & (p > 0)
+                blocked = np.zeros(k, bool)
+                if live.any():
+                    blocked[live] = occ.occluded(origin_up[live], l[live], np.full(int(live.sum()), np.inf))
+                if t_i == 2:  # the cosine-sampled direction: the visible fraction's estimate
+                    visible += np.where(up & ~blocked, 1.0, 0.0)
+                live &= ~blocked
+                if not live.any():
+                    continue
+                fl = f(l)
+                w = np.where(live, np.maximum(nl, 0.0) / np.where(live, p, 1.0), 0.0)
+                est += fl * env.radiance(l) * w[:, None]
+        x = base + est
+        acc += x
+        acc2 += x * x
+    return acc / spp, acc2 / spp, visible / spp
+
+
+@jax.jit
+def _emission(m):
+    return m.emission()
+
+
+def _dark(m):
+    return m.replace(emissive=jnp.zeros_like(m.emissive))  # (the emission is added once, apart)
