@@ -148,8 +148,20 @@ def test_what_has_no_ground_truth_is_refused():
                      objects=(jp.Sphere(center=(0, 0, 0), radius=1.0, material=glass),), environment=uniform_sky())
     with pytest.raises(InputError, match="KHR_materials_transmission"):
         reference_render(scene, spp=2)
-    sun = jp.DirectionalLight(direction=(0, -1, 0), angular_radius=0.01)
-    with pytest.raises(InputError, match="disc"):
-        reference_render(jp.Scene(camera=scene.camera, objects=scene.objects, lights=(sun,)), spp=2)
     with pytest.raises(ValueError, match="spp"):
         reference_render(scene, spp=1)
+
+
+def test_a_disc_light_on_a_lambertian_floor_is_its_cap_irradiance():
+    """A disc light (a sun of 10 degrees' radius, 40 degrees above the horizon) and no environment:
+    the ground truth samples the disc; a Lambertian floor receives albedo/pi x the disc's exact
+    irradiance (the renderer's closed form, `lights.cap_irradiance`), the same everywhere."""
+    m = jp.Material(**LAMBERT)
+    d = np.array([0.0, -np.sin(np.radians(40)), -np.cos(np.radians(40))])
+    sun = jp.DirectionalLight(direction=d, intensity=3.0, angular_radius=float(np.radians(10)))
+    cam = jp.Camera(position=(0.0, 4.0, 3.0), target=(0, 0, 0), width=12, height=8)
+    scene = jp.Scene(camera=cam, objects=(jp.Plane(point=(0, 0, 0), normal=(0, 1, 0), material=m),), lights=(sun,))
+    ref = reference_render(scene, spp=64, seed=4)
+    expect = ALBEDO / np.pi * 3.0 * np.sin(np.radians(40))  # a disc fully above the horizon: E = E_n cos
+    frac, bias = within(ref, np.full(ref.hit.shape, expect), ref.hit)
+    assert frac > 0.97 and abs(bias) < 0.01, (frac, bias)

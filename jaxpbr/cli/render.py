@@ -8,10 +8,11 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from .. import _program_cache, color
-from ..conventions import CONVENTIONS
+from ..conventions import CONVENTIONS, REC709_LUMA
 from ..io import image
 from ..io.atomic import OutputSet
 from ..rendering.demo import demo_environment, demo_scene
@@ -65,6 +66,10 @@ def add_command(sub) -> None:
                    help="transmissive surfaces a transmitted ray passes and still sees the scene behind (default: 2; 0: the environment only)")
     r.add_argument("--transmission-samples", type=positive_int_arg, default=None,
                    help="transmitted rays per pixel drawn from a rough transmission lobe (default: 4)")
+    r.add_argument("--reference", action="store_true",
+                   help="render the float64 ground truth of the direct light instead (environment with visibility, lights with shadows; "
+                   "jaxpbr.reference_render); with --hdr the EXR gets its per-pixel standard error as a layer")
+    r.add_argument("--spp", type=positive_int_arg, default=64, help="--reference: samples per pixel (default: %(default)s)")
     r.add_argument("--exposure", type=float32_arg(), default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
@@ -288,7 +293,16 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     # The display program is compiled ahead with a cold render's stages (`_program_cache.also_ahead`).
     frame = jax.ShapeDtypeStruct((H, W, 3), np.dtype(opts.dtype))
     with _program_cache.also_ahead(lambda: color.display(frame, ev, tonemap=tonemap, encoding=encoding)):
-        if args.aov:  # one geometry pass for the image and its AOVs where it can be shared
+        if args.reference:
+            from ..reference import reference_render
+
+            if args.aov:
+                raise CLIError("--reference writes the ground truth and its standard error; leave out --aov")
+            if args.spp < 2:
+                raise CLIError("--spp must be at least 2 with --reference (the standard error needs two samples)")
+            truth = reference_render(scene, spp=args.spp, options=opts, progress=Progress("reference"))
+            hdr_device = jnp.asarray(truth.image.astype(np.float32))
+        elif args.aov:  # one geometry pass for the image and its AOVs where it can be shared
             from ..rendering.aovs import render_with_aovs
 
             hdr_device, aov_values = render_with_aovs(scene, args.aov, options=opts, progress=progress)
@@ -315,12 +329,22 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     outs.add(out)
     image.write(out, display, bits=args.bits, encoding=encoding, encoded=True, metadata=metadata)
     print(f"wrote {out} ({W}x{H}, model {model}, {tonemap} + {encoding}; render {t_render:.2f} s incl. precompute and compile)")
-    print(f"  {the_plan.describe()}")
+    if args.reference:
+        surf = truth.hit
+        rel = float(np.mean(truth.stderr[surf] @ REC709_LUMA) / max(np.mean(truth.image[surf] @ REC709_LUMA), 1e-30)) if surf.any() else 0.0
+        print(f"  ground truth (float64, direct light with visibility): {truth.spp} spp in {truth.seconds:.2f} s; "
+              f"mean standard error {rel:.2%} of the surfaces' mean luminance; "
+              f"{np.mean(truth.visible[surf] < 0.9):.0%} of the surface pixels see under 90 % of the sky")
+    else:
+        print(f"  {the_plan.describe()}")
     if args.hdr:
         exr = out.with_suffix(".exr")
         hdr_meta = {k: v for k, v in metadata.items() if k not in ("jaxpbr:tonemap", "jaxpbr:encoding", "jaxpbr:exposure_ev")}
         hdr_meta["jaxpbr:content"] = "linear scene-referred radiance, Rec.709 primaries"
         layers = {}
+        if args.reference:
+            layers = {f"stderr.{c}": truth.stderr[..., i].astype(np.float32) for i, c in enumerate("RGB")}
+            hdr_meta["jaxpbr:content"] = "ground truth of the direct light, float64 Monte Carlo (layer stderr: its standard error)"
         if args.aov:
             from ..rendering.aovs import exr_layers
 

@@ -4,12 +4,13 @@ For each camera pixel centre (the surface `jaxpbr.gbuffer` gives: the same hit, 
 per-pixel material after textures as `render` shades) the reference estimates
 
     Lo = emission + sum_lights f(v, l_k) (n.l_k)+ E_k V(l_k)
-         + integral over the sphere of f(v, l) (n.l)+ L_env(l) V(l) dl
+         + integral over the sphere of f(v, l) (n.l)+ L_dist(l) V(l) dl
 
 with f the glTF BRDF of `jaxpbr.brdf` (single scattering, no roughness floor beyond 0.001, the
-roughness at which a lobe is narrower than any environment's texel), L_env the environment's
-level 0 as a piecewise-constant function of its texels (the definition the float64 IBL references
-use) turned and scaled as the scene asks, and V the visibility of the environment along l: 0 when
+roughness at which a lobe is narrower than any environment's texel), L_dist the distant light:
+the environment's level 0 as a piecewise-constant function of its texels (the definition the
+float64 IBL references use) turned and scaled as the scene asks, plus the suns split out of it
+(`Environment.lights`) and the scene's disc lights as uniform discs, and V the visibility of the environment along l: 0 when
 a ray from the surface (offset along the geometric normal, `visibility.offset_ray_origin`) meets a
 mesh triangle (either side: a surface blocks light from behind too), a sphere or a plane.
 The punctual lights are evaluated exactly (deltas), with shadow rays to them.
@@ -17,8 +18,9 @@ The punctual lights are evaluated exactly (deltas), with shadow rays to them.
 The environment integral is estimated by multiple importance sampling with the balance heuristic,
 one direction per technique per sample (Veach 1997, the multi-sample model):
 
-* the environment: a texel drawn from the luminance x solid-angle distribution of level 0, a point
-  drawn uniformly in its face coordinates (density (1 + a^2 + b^2)^(3/2) / texel area per steradian);
+* the distant light: a part drawn by its power (the texels, each disc), then a texel drawn from the
+  luminance x solid-angle distribution of level 0 and a point uniformly in its face coordinates
+  (density (1 + a^2 + b^2)^(3/2) / texel area per steradian), or a direction uniformly in a disc;
 * the specular lobe: GGX visible normals (Heitz 2018) at the pixel's roughness, mirrored about them;
 * the diffuse lobe: cosine-weighted directions.
 
@@ -28,9 +30,7 @@ sample standard deviation / sqrt(spp)), per pixel and channel. Deterministic per
 
 Not integrated (each refused with a message, not approximated): the transmission, volume and
 anisotropy extensions (their lobes need inputs the G-buffer does not carry: what lies below the
-surface, a tangent), disc lights (a `DirectionalLight` with an angular radius; the environment's
-own suns are part of its radiance and are integrated), environments given with suns split out
-(`Environment.lights`) and user G-buffers. Alpha-blended, masked and transmissive occluders block
+surface, a tangent) and user G-buffers. Alpha-blended, masked and transmissive occluders block
 light as opaque ones; interreflection (bounces) is not part of it: this is the direct light.
 """
 
@@ -70,7 +70,7 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722])
 class ReferenceImage:
     """A ground-truth render: image (H, W, 3) float64 linear radiance (the background where no
     surface is hit), stderr (H, W, 3) its per-pixel standard error (0 off the surfaces), hit (H, W),
-    visible (H, W) the estimated cosine-weighted visible fraction of the environment at each surface
+    visible (H, W) the estimated cosine-weighted visible fraction of the sky at each surface
     pixel (1 in the open, 0 fully enclosed; from the cosine-sampled directions), spp and the
     seconds the integration took."""
 
@@ -119,7 +119,8 @@ def reference_render(scene: Scene, *, spp: int = 64, seed: int = 0, options: Ren
         ng = np.asarray(ng, np.float64)
         leaves = jax.tree_util.tree_map(np.asarray, m)
         occ = _Occluders(scene)
-        env = _EnvSampler(scene.environment) if scene.environment is not None else None
+        discs = [x for x in scene.lights if _is_disc(x)]
+        env = _EnvSampler(scene.environment, discs) if (scene.environment is not None or discs) else None
         idx = np.flatnonzero(hit.reshape(-1))
         mean = np.zeros((H * W, 3))
         sq = np.zeros((H * W, 3))
@@ -151,13 +152,10 @@ def _check_scene(scene: Scene) -> None:
         if not isinstance(light, (PointLight, DirectionalLight, SpotLight)):
             raise InputError(f"reference_render takes point, directional and spot lights, got a {type(light).__name__} "
                              "(pass the lights one by one)")
-        if isinstance(light, DirectionalLight) and np.any(np.asarray(light.angular_radius) > 0):
-            raise InputError("reference_render evaluates punctual lights only: a DirectionalLight with an angular radius "
-                             "(a disc) has no ground truth here; put the sun in the environment's radiance instead")
-    env = scene.environment
-    if env is not None and env.lights is not None:
-        raise InputError("the environment comes with suns split out of it (Environment.lights): its radiance is a residual; "
-                         "give reference_render the whole environment (its radiance, no lights)")
+
+
+def _is_disc(light) -> bool:
+    return isinstance(light, DirectionalLight) and bool(np.any(np.asarray(light.angular_radius) > 0))
 
 
 def _take(x, sel, H, W):
@@ -214,23 +212,42 @@ class _Occluders:
 
 
 class _EnvSampler:
-    """The environment's level 0 (piecewise constant per texel) in the world: its radiance along
-    directions, and directions drawn from its luminance x solid angle with their density."""
+    """The distant light in the world: the environment's level 0 (piecewise constant per texel),
+    the suns split out of it (`Environment.lights`) and the scene's disc lights, each a uniform
+    disc of radiance color x intensity / (pi sin^2 radius); their radiance along directions, and
+    directions drawn from their power (texels by luminance x solid angle, discs uniformly inside)
+    with the density of the whole mixture."""
 
-    def __init__(self, env):
-        lv = np.asarray(env.radiance.levels[0], np.float64)[..., :3]  # (6, S, S, 3)
-        self.S = lv.shape[1]
-        self.L = lv * float(np.asarray(env.intensity))
-        self.rot = float(np.asarray(env.rotation))
+    def __init__(self, env, discs=()):
+        self.rot = float(np.asarray(env.rotation)) if env is not None else 0.0
+        scale = float(np.asarray(env.intensity)) if env is not None else 0.0
+        suns = []  # (unit direction towards the disc, cos radius, solid angle, radiance (3,))
+        for light, frame in [(x, True) for x in ((env.lights or ()) if env is not None else ())] + [(x, False) for x in discs]:
+            d = -np.asarray(light.direction, np.float64)
+            d = d / np.linalg.norm(d)
+            if frame:
+                d = self._to_world(d[None])[0]
+            th = float(np.asarray(light.angular_radius))
+            rad = np.asarray(light.color, np.float64) * float(np.asarray(light.intensity)) / (math.pi * math.sin(th) ** 2)
+            suns.append((d, math.cos(th), 2.0 * math.pi * (1.0 - math.cos(th)), rad * (scale if frame else 1.0)))
+        self.suns = suns
+        if env is not None:
+            lv = np.asarray(env.radiance.levels[0], np.float64)[..., :3]  # (6, S, S, 3)
+            self.S = lv.shape[1]
+            self.L = lv * scale
+        else:
+            self.S = 1
+            self.L = np.zeros((6, 1, 1, 3))
         om = texel_solid_angles(self.S)
         w = np.maximum(self.L @ _LUMA, 0.0) * om
-        total = w.sum()
-        if not np.isfinite(total):
+        if not np.isfinite(w.sum()) or not all(np.all(np.isfinite(x[3])) for x in suns):
             raise InputError("the environment's radiance is not finite; it has no ground truth")
-        if total <= 0:  # a black environment: sample uniformly (every estimate is 0 anyway)
-            w = om
-            total = w.sum()
-        self.p_texel = (w / total).reshape(-1)
+        powers = np.array([w.sum()] + [max(float(x[3] @ _LUMA), 0.0) * x[2] for x in suns])
+        if powers.sum() <= 0:  # nothing shines: sample the sphere uniformly (every estimate is 0)
+            w, powers = om, np.array([1.0] + [0.0] * len(suns))
+        self.p_part = powers / powers.sum()
+        w = w if w.sum() > 0 else om  # (black texels: never drawn, p_part[0] = 0)
+        self.p_texel = (w / w.sum()).reshape(-1)
         self.cdf = np.cumsum(self.p_texel)
         self.cdf[-1] = 1.0
 
@@ -251,23 +268,39 @@ class _EnvSampler:
 
     def radiance(self, d):
         face, i, j, _, _ = self._texel(self._to_env(d))
-        return self.L[face, i, j]
+        out = self.L[face, i, j]
+        for c, cmax, _, rad in self.suns:
+            out = out + np.where((d @ c >= cmax)[:, None], rad, 0.0)
+        return out
 
     def pdf(self, d):
         face, i, j, sc, tc = self._texel(self._to_env(d))
         p = self.p_texel.reshape(6, self.S, self.S)[face, i, j]
-        return p * (1.0 + sc * sc + tc * tc) ** 1.5 / (2.0 / self.S) ** 2
+        out = self.p_part[0] * p * (1.0 + sc * sc + tc * tc) ** 1.5 / (2.0 / self.S) ** 2
+        for k, (c, cmax, om, _) in enumerate(self.suns):
+            out = out + np.where(d @ c >= cmax, self.p_part[k + 1] / om, 0.0)
+        return out
 
     def sample(self, u):
-        """(N, 3) unit world directions from (N, 3) uniform numbers."""
-        k = np.minimum(np.searchsorted(self.cdf, u[:, 0], side="right"), self.cdf.size - 1)
+        """(N, 3) unit world directions from (N, 3) uniform numbers (u[:, 0] also picks the part)."""
+        edges = np.cumsum(self.p_part)
+        part = np.minimum(np.searchsorted(edges, u[:, 0], side="right"), len(edges) - 1)
+        lo = np.concatenate([[0.0], edges[:-1]])[part]
+        u0 = np.clip((u[:, 0] - lo) / np.maximum(self.p_part[part], 1e-300), 0.0, 1.0 - 1e-16)  # reused within the part
+        k = np.minimum(np.searchsorted(self.cdf, u0, side="right"), self.cdf.size - 1)
         face, rem = np.divmod(k, self.S * self.S)
         i, j = np.divmod(rem, self.S)
-        s = (j + u[:, 1]) / self.S
-        t = (i + u[:, 2]) / self.S
-        d = face_to_dir(face, s, t, xp=np)
-        d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-        return self._to_world(d)
+        d = face_to_dir(face, (j + u[:, 1]) / self.S, (i + u[:, 2]) / self.S, xp=np)
+        d = self._to_world(d / np.linalg.norm(d, axis=-1, keepdims=True))
+        for n_s, (c, cmax, _, _) in enumerate(self.suns):
+            on = part == n_s + 1
+            if on.any():
+                ct = 1.0 - u[on, 1] * (1.0 - cmax)
+                st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
+                phi = 2.0 * math.pi * u[on, 2]
+                t, b = _frame(np.broadcast_to(c, (int(on.sum()), 3)))
+                d[on] = (st * np.cos(phi))[:, None] * t + (st * np.sin(phi))[:, None] * b + ct[:, None] * c
+        return d
 
 
 def _background(scene: Scene, d, hit):
@@ -375,9 +408,10 @@ def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng):
     a2 = a * a
     # the punctual lights: exact, with shadow rays
     base = np.asarray(jax.device_get(_emission(mj)))[:k]
-    if scene.lights:
+    punctual = [x for x in scene.lights if not _is_disc(x)]
+    if punctual:
         vis = []
-        for light in scene.lights:
+        for light in punctual:
             if isinstance(light, DirectionalLight):
                 dl = -np.asarray(light.direction, np.float64)
                 dl = np.broadcast_to(dl / np.linalg.norm(dl), P.shape)
@@ -390,7 +424,7 @@ def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng):
             o = offset_ray_origin(P.astype(np.float32), np.where(np.sum(NG * dl, -1, keepdims=True) < 0, -NG, NG).astype(np.float32))
             vis.append(~occ.occluded(o.astype(np.float64), dl, tfar))
         vis = np.stack(vis, -1).astype(np.float64)
-        direct = shade_direct(jnp.asarray(padf(P)), nj, vj, _dark(mj), list(scene.lights), visibility=jnp.asarray(padf(vis)),
+        direct = shade_direct(jnp.asarray(padf(P)), nj, vj, _dark(mj), punctual, visibility=jnp.asarray(padf(vis)),
                               smith=opts.smith)
         base = base + np.asarray(direct)[:k]
     acc = np.zeros((k, 3))
