@@ -165,3 +165,24 @@ def test_a_disc_light_on_a_lambertian_floor_is_its_cap_irradiance():
     expect = ALBEDO / np.pi * 3.0 * np.sin(np.radians(40))  # a disc fully above the horizon: E = E_n cos
     frac, bias = within(ref, np.full(ref.hit.shape, expect), ref.hit)
     assert frac > 0.97 and abs(bias) < 0.01, (frac, bias)
+
+
+def test_command_line_writes_the_ground_truth_and_its_standard_error(tmp_path, capsys):
+    from jaxpbr.cli import main
+    from jaxpbr.io import image
+
+    scene = tmp_path / "s.toml"
+    scene.write_text(
+        '[camera]\nposition = [0, 2, 4]\ntarget = [0, 0, 0]\nwidth = 12\nheight = 8\n\n'
+        '[[objects]]\ntype = "sphere"\ncenter = [0, 0.5, 0]\nradius = 0.5\n[objects.material]\nbase_color = [0.5, 0.5, 0.5]\nmetallic = 0.0\n\n'
+        '[[objects]]\ntype = "plane"\npoint = [0, 0, 0]\nnormal = [0, 1, 0]\n\n'
+        '[environment]\nfile = "procedural:sky"\n')
+    out = tmp_path / "gt.png"
+    assert main(["render", str(scene), "--reference", "--spp", "4", "--hdr", "-o", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "ground truth" in printed and "4 spp" in printed
+    hdr = np.asarray(image.read(out.with_suffix(".exr")))
+    se = np.asarray(image.read(out.with_suffix(".exr"), channels=["stderr.R", "stderr.G", "stderr.B"]))
+    assert hdr.shape == se.shape == (8, 12, 3) and np.all(np.isfinite(hdr))
+    assert np.all(se >= 0) and se.max() > 0  # 4 samples: noisy, and said so
+    assert main(["render", str(scene), "--reference", "--spp", "1", "-o", str(out)]) == 2
