@@ -14,6 +14,9 @@ from ..shading.brdf_terms import MODEL_REGISTRY, check_options
 #: Upper bounds of `RenderOptions.transmission_depth` and `transmission_samples`.
 MAX_TRANSMISSION_DEPTH = 8
 MAX_TRANSMISSION_SAMPLES = 64
+#: The rungs of image-based light's visibility (`RenderOptions.ibl_visibility`), cheapest first.
+IBL_VISIBILITY = ("none", "occlusion", "ao", "ratio")
+MAX_IBL_SAMPLES = 256
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +67,18 @@ class RenderOptions:
         noise, and smooth transmission is exact with one ray (the plan takes one where every
         transmissive material has roughness 0). Rough transmission before a high-contrast backdrop
         is noisy at few rays: docs/extensions.md measures error against rays and time.
+    ibl_visibility: what the image-based light knows of what occludes it (docs/visibility.md):
+        "none": nothing (the unshadowed split sum; the materials' occlusion textures left out);
+        "occlusion" (default): the glTF occlusion texture only, where a material has one;
+        "ao": ibl_samples rays per pixel from the surface (cosine and GGX-lobe directions, in turn),
+        the diffuse term scaled by the cosine rays' visible fraction and the specular term by the
+        lobe rays'; "ratio": the ratio estimator of Heitz, Hill and McGuire (2018): the split sum
+        times sum_k w_k V_k / sum_k w_k over the same rays, w_k = f L cos / p (the BRDF, the
+        environment along the ray, the rays' mixture density), which converges to the shadowed
+        integral as the rays grow. The ray-traced rungs leave the occlusion texture out (the rays
+        see what it guesses) and shadow the residual environment (the suns split out of it have
+        shadow rays of their own).
+    ibl_samples: rays per pixel of the "ao" and "ratio" rungs (deterministic per pixel).
     """
 
     model: str = "gltf"
@@ -80,6 +95,8 @@ class RenderOptions:
     shadows: bool | None = None
     transmission_depth: int = 2
     transmission_samples: int = 4
+    ibl_visibility: str = "occlusion"
+    ibl_samples: int = 4
 
     @property
     def compensates(self) -> bool:
@@ -104,6 +121,11 @@ class RenderOptions:
         for name in ("irradiance_size", "lut_size", "transmission_samples"):
             positive_int(name, getattr(self, name))
         positive_int("transmission_depth", self.transmission_depth, minimum=0)
+        positive_int("ibl_samples", self.ibl_samples)
+        if self.ibl_visibility not in IBL_VISIBILITY:
+            raise ValueError(f"ibl_visibility must be one of {', '.join(map(repr, IBL_VISIBILITY))}, got {self.ibl_visibility!r}")
+        if self.ibl_samples > MAX_IBL_SAMPLES:
+            raise ValueError(f"ibl_samples must be at most {MAX_IBL_SAMPLES}, got {self.ibl_samples}")
         for name, cap in (("transmission_depth", MAX_TRANSMISSION_DEPTH), ("transmission_samples", MAX_TRANSMISSION_SAMPLES)):
             if getattr(self, name) > cap:
                 raise ValueError(f"{name} must be at most {cap} (each level and each sample is one more pass over the image), "

@@ -62,6 +62,8 @@ class RenderPlan:
     blend_layers: int = 1  # surfaces composited per pixel (> 1 with BLEND meshes)
     transmission_depth: int = 0  # levels of transmitted rays traced into the scene (0: none)
     transmission_samples: int = 0  # rays per pixel and level (0 without transmission tracing)
+    ibl_visibility: str = "occlusion"  # the IBL's visibility rung (`RenderOptions.ibl_visibility`)
+    ibl_samples: int = 0  # rays per pixel of the traced rungs (0 without them)
 
     def for_stages(self) -> RenderPlan:
         """The plan the staged programs are keyed by: the fields that only the precompute reads
@@ -85,6 +87,8 @@ class RenderPlan:
             parts.append(f"{self.env_lights} sun(s) split out of the environment as disc light(s)")
         if self.shadows:
             parts.append("shadows")
+        if self.ibl_samples:
+            parts.append(f"IBL visibility {self.ibl_visibility!r} ({self.ibl_samples} ray(s) per pixel)")
         if self.transmission_depth:
             parts.append(f"transmission traced through the scene ({self.transmission_depth} level(s), "
                          f"{self.transmission_samples} ray(s) per pixel)")
@@ -227,7 +231,13 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCach
     # Smooth transmissive materials only (roughness 0 everywhere, traced values counting as rough):
     # the lobe is a direction, and one ray per pixel is exact.
     t_rough = max([r for (r, _, _), m in zip(ranges, mats, strict=True) if "transmission" in _material_extensions(m)[0]], default=1.0)
+    traced_vis = ibl and bool(objects) and opts.ibl_visibility in ("ao", "ratio")
+    if opts.ibl_visibility in ("ao", "ratio") and scene.gbuffer is not None:
+        raise ValueError(f"ibl_visibility={opts.ibl_visibility!r} traces rays through the scene's objects; a scene given as a "
+                         "G-buffer has none (use 'occlusion' or 'none')")
     return RenderPlan(
+        ibl_visibility=opts.ibl_visibility if ibl else "occlusion",
+        ibl_samples=opts.ibl_samples if traced_vis else 0,
         transmission_depth=tdepth,
         transmission_samples=(opts.transmission_samples if t_rough > 0 else 1) if tdepth else 0,
         blend_layers=MAX_BLEND_LAYERS if blend else 1,

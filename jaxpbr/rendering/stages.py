@@ -367,11 +367,14 @@ def _shade_rest(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         irr, pre, lut, _, sheen = assets
         n_e, v_e, kw = _env_frame(scene, p_plan, opts, g)
         sheen_kw = {} if sheen is None else {"sheen_lut": sheen[0], "charlie": sheen[1]}
+        m_ibl = m if p_plan.ibl_visibility == "occlusion" else evolve(m, occlusion=jnp.ones_like(m.occlusion))
         if "behind" in g:
-            ibl, tw = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, transmit_weight=True,
+            ibl, tw = shade_ibl(n_e, v_e, m_ibl, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, transmit_weight=True,
                                 **kw, **sheen_kw)
         else:
-            ibl = shade_ibl(n_e, v_e, m, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, **kw, **sheen_kw)
+            ibl = shade_ibl(n_e, v_e, m_ibl, irr, pre, lut, model=opts.model, multiscatter=opts.compensates, **kw, **sheen_kw)
+        if "ibl_vis" in g:
+            ibl = _visible_ibl(scene, pre, p_plan, opts, g, ibl, (n_e, v_e, m_ibl, lut, kw, sheen_kw))
         if p_plan.env_lights:
             disc, ms = suns if suns is not None else _shade_suns(scene, _suns_inputs(assets), p_plan, opts, g)
             ibl = ibl + disc
@@ -446,7 +449,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
             pos, n = ms["pos"], ms["n"]
             if need_uv:
                 uv, tangent, tw, uv1, duv = ms["uv"], ms["tangent"], ms["tangent_w"], ms["uv1"], ms["duv"]
-    if p_plan.shadows or p_plan.transmission_depth:
+    if p_plan.shadows or p_plan.transmission_depth or p_plan.ibl_samples:
         # The geometric normal (before normal maps): shadow rays leave the surface along it.
         ng = n if not meshes else (ms["ng"] if not analytic else tuple(jnp.where(on_mesh, ms["ng"][i], n_an[i]) for i in range(3)))
     m = _gather_material(_stack_materials(objects, dtype, ext), idx)
@@ -473,7 +476,7 @@ def _geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, pri
         if "color" in ms:
             a = a * jnp.where(on_mesh, ms["color"][..., 3], 1.0)
         g["alpha"] = jnp.where(hit & blend_k, a, 1.0)
-    if p_plan.shadows or p_plan.transmission_depth:
+    if p_plan.shadows or p_plan.transmission_depth or p_plan.ibl_samples:
         g["ng"] = ng
     if p_plan.shadows:
         if p_plan.direct and light_shadows:
@@ -571,6 +574,114 @@ def _volume_inputs(g, m: Material, dtype):
     dist = jnp.where(sphere, chord, mc.thickness)
     d_t = jnp.where(sphere[..., None], d_out, -v)
     return dist, d_t
+
+
+def _ibl_directions(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, offset):
+    """(K, ..., 3) world directions of the IBL visibility rays of a pass's pixels, K = the plan's
+    ibl_samples: in turn cosine-distributed about the shading normal (even k) and reflected about
+    GGX visible normals of the view at the pixel's roughness (odd k; `sampling.sample_ggx_vndf`),
+    from a K-point Hammersley set rotated per pixel by its hashed key (deterministic)."""
+    from ..shading.brdf_terms import MIN_ROUGHNESS
+    from ..shading.sampling import hammersley, sample_cosine, sample_ggx_vndf, tangent_frame
+
+    dtype = jnp.dtype(opts.dtype)
+    K = p_plan.ibl_samples
+    n, v = pack3(g["n"]), pack3(g["view"])
+    shape = g["hit"].shape
+    key = offset.key if isinstance(offset, Rays) else _pixel_keys(shape, offset)
+    rot = jnp.stack([_unit_float(_mix32(key ^ jnp.uint32(0x2545F491)), dtype), _unit_float(_mix32(key ^ jnp.uint32(0x9E3779B9)), dtype)], -1)
+    xi = jnp.mod(hammersley(K, dtype).reshape((K,) + (1,) * len(shape) + (2,)) + rot, 1.0)
+    t, b = tangent_frame(n)
+    r = jnp.maximum(jnp.broadcast_to(jnp.clip(g["m"].roughness, 0.0, 1.0), shape), MIN_ROUGHNESS)
+    v_loc = jnp.stack([jnp.sum(v * t, -1), jnp.sum(v * b, -1), jnp.maximum(jnp.sum(v * n, -1), 1e-4)], -1)
+    out = []
+    for k in range(K):
+        if k % 2 == 0:
+            loc = sample_cosine(xi[k])
+            out.append(loc[..., 0:1] * t + loc[..., 1:2] * b + loc[..., 2:3] * n)
+        else:
+            h = sample_ggx_vndf(v_loc, xi[k], r * r)
+            h = h[..., 0:1] * t + h[..., 1:2] * b + h[..., 2:3] * n
+            out.append(2.0 * jnp.sum(v * h, -1, keepdims=True) * h - v)
+    return jnp.stack(out)
+
+
+def _ibl_segments(scene: Scene, opts: RenderOptions, pos, ng, dirs):
+    """`_light_segments` of the IBL visibility rays (directions (K, ..., 3))."""
+    dtype = jnp.dtype(opts.dtype)
+    return shadow_segments(scene.objects, pos, ng, [unpack3(dirs[k]) for k in range(dirs.shape[0])], dtype, directions_only=True)
+
+
+def _ibl_visibility(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, offset, staged: bool):
+    """{"d": (K, ..., 3) directions, "vis": (K, ..., C) visibility (C = 1, or 3 through transmissive
+    surfaces)} of the IBL visibility rays (`_ibl_directions`), traced like the lights' shadow rays."""
+    dirs = (_ibl_directions_jit if staged else _ibl_directions)(_lean(_stage_view(scene)) if staged else scene, p_plan, opts, g, offset)
+    if staged:
+        vis = _staged_shadows(_ibl_segments_jit, _stage_view(scene), opts, g["pos"], g["ng"], dirs, hit=g["hit"])
+    else:
+        dtype = jnp.dtype(opts.dtype)
+        vis = shadow_visibility(scene.objects, _mesh_arrays(scene, dtype), g["pos"], g["ng"],
+                                [unpack3(dirs[k]) for k in range(dirs.shape[0])], dtype, directions_only=True)
+    vis = vis if vis.ndim == len(g["hit"].shape) + 2 else vis[..., None]  # (..., K, C)
+    return {"d": dirs, "vis": jnp.moveaxis(vis, -2, 0)}
+
+
+def _visible_ibl(scene: Scene, pre, p_plan: RenderPlan, opts: RenderOptions, g, ibl, inputs):
+    """The IBL term with the visibility rung of the plan applied (`RenderOptions.ibl_visibility`).
+
+    "ratio": ibl x sum_k w_k V_k / sum_k w_k, w_k = f(v, l_k) (n.l_k)+ L(l_k) / p(l_k), L the
+    environment (the prefiltered map's level 0 along the ray, times the intensity: the residual the
+    split sum shades), p the rays' mixture density (the balance of cosine and GGX-visible-normal
+    sampling, half each; cosine alone for one ray). "ao": the diffuse part (the split sum less its
+    specular lobes, `shade_ibl` without irradiance) times the cosine rays' visible fraction, the
+    specular part times the lobe rays' (over the rays above the surface)."""
+    from ..shading.brdf_terms import MIN_ROUGHNESS
+    from ..shading.layered import brdf
+    from ..shading.sampling import pdf_cosine, pdf_ggx_vndf, pdf_reflect
+
+    dtype = jnp.dtype(opts.dtype)
+    n_e, v_e, m, lut, kw, sheen_kw = inputs
+    K = p_plan.ibl_samples
+    b = g["ibl_vis"]
+    dirs, vis = b["d"], b["vis"]
+    n, v = pack3(g["n"]), pack3(g["view"])
+    nl = jnp.sum(dirs * n, -1)  # (K, ...)
+    above = (nl > 0).astype(dtype)[..., None]
+    if p_plan.ibl_visibility == "ao":
+        cos_k = [k for k in range(K) if k % 2 == 0]
+        lobe_k = [k for k in range(K) if k % 2 == 1] or cos_k
+
+        def frac(ks):
+            num = sum(vis[k] * above[k] for k in ks)
+            den = sum(above[k] for k in ks)
+            return jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
+
+        spec = shade_ibl(n_e, v_e, m, None, pre, lut, model=opts.model, multiscatter=False,
+                         **{k: x for k, x in kw.items() if k != "transmit_direction"}, **sheen_kw)
+        spec = jnp.minimum(spec, ibl)
+        return frac(lobe_k) * spec + frac(cos_k) * (ibl - spec)
+    env = scene.environment
+    rot = -jnp.asarray(env.rotation, dtype)
+    r = jnp.maximum(jnp.clip(g["m"].roughness, 0.0, 1.0), MIN_ROUGHNESS)
+    a = r * r
+    nv = jnp.maximum(jnp.sum(n * v, -1), 1e-4)
+    num = jnp.zeros(ibl.shape, dtype)
+    den = jnp.zeros(ibl.shape, dtype)
+    bk = {k: x for k, x in _layer_kwargs(g, g["m"], dtype).items() if k in ("tangent", "coat_normal")}
+    for k in range(K):
+        lk = dirs[k]
+        h = vnormalize_packed(lk + v)
+        p_cos = pdf_cosine(jnp.maximum(nl[k], 0.0))
+        p_ggx = pdf_reflect(pdf_ggx_vndf(nv, jnp.sum(n * h, -1), jnp.sum(v * h, -1), a), jnp.sum(v * h, -1))
+        p = p_cos if K == 1 else 0.5 * (p_cos + p_ggx)
+        f = brdf(n, v, lk, g["m"], **bk)
+        l_env = pre.sample(pack3(_rotate_y(unpack3(lk), rot)), 0.0).astype(dtype)
+        w = jnp.where((p > 0)[..., None], f * jnp.maximum(nl[k], 0.0)[..., None] * l_env / jnp.where(p > 0, p, 1.0)[..., None], 0.0)
+        w = jnp.where(jnp.isfinite(w), w, 0.0)
+        num = num + w * vis[k]
+        den = den + w
+    ratio = jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
+    return ibl * ratio
 
 
 def _mix32(x):
@@ -1036,6 +1147,8 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         g = {**g, "vis_env": vis_env}
     if isinstance(assets, PendingAssets):
         assets = assets.shapes() if is_ahead() else assets()
+    if p_plan.ibl_samples:
+        g = {**g, "ibl_vis": _ibl_visibility(scene, p_plan, opts, g, rays, staged)}
     if p_plan.transmission_depth and p_plan.ibl and rays is not None:
         behind = _transmitted(scene, assets, p_plan, opts, g, rays, staged)
         if behind is not None:
@@ -1139,6 +1252,8 @@ _shade_direct_jit = cached_jit(_shade_direct, static_argnums=(1, 2))
 _shade_suns_jit = cached_jit(_shade_suns, static_argnums=(2, 3))
 _shade_rest_jit = cached_jit(_shade_rest, static_argnums=(2, 3), cpu_options=LOOP_EMITTERS)
 _transmit_rays_jit = cached_jit(_transmit_rays, static_argnums=(1, 2))
+_ibl_directions_jit = cached_jit(_ibl_directions, static_argnums=(1, 2))
+_ibl_segments_jit = cached_jit(_ibl_segments, static_argnums=(1,))
 
 
 def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
