@@ -66,6 +66,9 @@ def add_command(sub) -> None:
                    help="transmissive surfaces a transmitted ray passes and still sees the scene behind (default: 2; 0: the environment only)")
     r.add_argument("--transmission-samples", type=positive_int_arg, default=None,
                    help="transmitted rays per pixel drawn from a rough transmission lobe (default: 4)")
+    r.add_argument("--ibl-visibility", choices=("none", "occlusion", "ao", "ratio"), default=None,
+                   help="what the environment's light knows of what occludes it (default: occlusion, the glTF occlusion texture; docs/visibility.md)")
+    r.add_argument("--ibl-samples", type=positive_int_arg, default=None, help="rays per pixel of --ibl-visibility ao / ratio (default: 4)")
     r.add_argument("--reference", action="store_true",
                    help="render the float64 ground truth of the direct light instead (environment with visibility, lights with shadows; "
                    "jaxpbr.reference_render); with --hdr the EXR gets its per-pixel standard error as a layer")
@@ -263,8 +266,14 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         options["smith"] = args.smith
     if args.extract_lights is not None:
         options["extract_lights"] = args.extract_lights
-    from ..rendering.options import MAX_TRANSMISSION_DEPTH, MAX_TRANSMISSION_SAMPLES
+    from ..rendering.options import MAX_IBL_SAMPLES, MAX_TRANSMISSION_DEPTH, MAX_TRANSMISSION_SAMPLES
 
+    if args.ibl_visibility is not None:
+        options["ibl_visibility"] = args.ibl_visibility
+    if args.ibl_samples is not None:
+        if args.ibl_samples > MAX_IBL_SAMPLES:
+            raise CLIError(f"--ibl-samples must be at most {MAX_IBL_SAMPLES}, got {args.ibl_samples}")
+        options["ibl_samples"] = args.ibl_samples
     for name, cap in (("transmission_depth", MAX_TRANSMISSION_DEPTH), ("transmission_samples", MAX_TRANSMISSION_SAMPLES)):
         value = getattr(args, name)
         if value is not None:

@@ -934,6 +934,11 @@ def add_command(report_subparsers):
     )
     p.add_argument("--no-extensions", dest="extensions", action="store_const", const=None, help="no extension rows (the default)")
     p.add_argument("--extension-roughness", type=_float_list, default=None, help="spheres: roughness values of the extension rows (default: " + ",".join(f"{x:g}" for x in DEFAULT_EXTENSION_ROUGHNESS) + ")")
+    p.add_argument("--visibility", action="store_true",
+                   help="ASSET (or builtin:concave, a concave test scene): measure every rung of the IBL's visibility "
+                   "(none, occlusion, ao, ratio at --samples rays) against the float64 ground truth with visibility, with the time per frame")
+    p.add_argument("--samples", type=_int_list, default=None, help="--visibility: rays per pixel of the traced rungs (default: 1,4,16,64)")
+    p.add_argument("--spp", type=positive_int_arg, default=256, help="--visibility: the ground truth's samples per pixel (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_report_render)
     return p
@@ -948,6 +953,8 @@ def cmd_report_render(args) -> int:
     if not out_dir.is_dir():
         raise InputError(f"--output-dir {str(out_dir)!r} does not exist; create it first")
     log = (lambda m: None) if args.quiet else (lambda m: print(m, file=sys.stderr))
+    if args.visibility:
+        return _cmd_visibility(args, out_dir, log)
     if args.asset is not None:
         return _cmd_asset(args, out_dir, log)
     if args.width is not None or args.height is not None:
@@ -1007,6 +1014,50 @@ def _cmd_asset(args, out_dir: Path, log) -> int:
         irradiance_size=args.irradiance_size, lut_size=args.lut_size, extract_lights=args.extract_lights, log=log,
     )
     return _write_and_print(result, out_dir, f"render_report_{path.stem}", log)
+
+
+def _int_list(text: str) -> list[int]:
+    try:
+        vals = [int(x) for x in text.replace(",", " ").split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+    if not vals or any(not 1 <= x <= 256 for x in vals):
+        raise argparse.ArgumentTypeError(f"expected integers in [1, 256], got {text!r}")
+    return vals
+
+
+def _cmd_visibility(args, out_dir: Path, log) -> int:
+    """`report render ASSET --visibility`: the rungs against the ground truth (`report_visibility`)."""
+    from ..rendering.demo import concave_scene
+    from .report_visibility import DEFAULT_SAMPLES, visibility_markdown, visibility_report, write_visibility_report
+
+    if args.asset is None:
+        raise CLIError("--visibility measures an ASSET: a glTF file, or builtin:concave (a concave scene written in code)")
+    W, H = args.width or 320, args.height or 240
+    if args.spp < 2:
+        raise CLIError("--spp must be at least 2 (the ground truth's standard error needs two samples)")
+    if args.asset == "builtin:concave":
+        env = None
+        if args.env is not None:
+            require_environment(args.face_size, procedural=args.env.startswith("procedural:"))
+            env = Environment(radiance=load_environment([args.env], args.face_size))
+        scene, name = concave_scene(W, H, environment=env), "concave scene (builtin)"
+    else:
+        path = Path(args.asset)
+        if path.suffix.lower() not in (".gltf", ".glb") or not path.is_file():
+            raise CLIError(f"ASSET must be an existing glTF 2.0 file (.gltf or .glb) or builtin:concave, got {args.asset!r}")
+        if args.env is None:
+            raise CLIError("an ASSET is measured under an environment: add --environment FILE or --environment procedural:sky")
+        require_environment(args.face_size, procedural=args.env.startswith("procedural:"))
+        env = Environment(radiance=load_environment([args.env], args.face_size))
+        scene, name = load_gltf(path, width=W, height=H, asset_lights=False, environment=env), path.name
+    require_memory(f"a {W}x{H} ground truth", W * H * 2000.0, "lower --width/--height")
+    result = visibility_report(scene, name=name, samples=tuple(args.samples or DEFAULT_SAMPLES), spp=args.spp, log=log)
+    prefix = "visibility_report" if args.asset == "builtin:concave" else f"visibility_report_{Path(args.asset).stem}"
+    written = write_visibility_report(result, out_dir, prefix)
+    print(visibility_markdown(result))
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
 
 
 def _write_and_print(result: dict, out_dir: Path, prefix: str, log) -> int:

@@ -10,7 +10,8 @@ with f the glTF BRDF of `jaxpbr.brdf` (single scattering, no roughness floor bey
 roughness at which a lobe is narrower than any environment's texel), L_dist the distant light:
 the environment's level 0 as a piecewise-constant function of its texels (the definition the
 float64 IBL references use) turned and scaled as the scene asks, plus the suns split out of it
-(`Environment.lights`) and the scene's disc lights as uniform discs, and V the visibility of the environment along l: 0 when
+(`Environment.lights`) where its radiance no longer holds them (a baked set keeps its source as the
+radiance: the suns are in it), and the scene's disc lights, as uniform discs, and V the visibility of the environment along l: 0 when
 a ray from the surface (offset along the geometric normal, `visibility.offset_ray_origin`) meets a
 mesh triangle (either side: a surface blocks light from behind too), a sphere or a plane.
 The punctual lights are evaluated exactly (deltas), with shadow rays to them.
@@ -45,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import InputError
-from ..ibl.cubemap import dir_to_face, face_to_dir, texel_solid_angles
+from ..ibl.cubemap import dir_to_face, face_to_dir, texel_directions, texel_solid_angles
 from ..rendering.mesh import Mesh
 from ..rendering.options import RenderOptions
 from ..rendering.scene import Plane, Scene, Sphere
@@ -222,7 +223,10 @@ class _EnvSampler:
         self.rot = float(np.asarray(env.rotation)) if env is not None else 0.0
         scale = float(np.asarray(env.intensity)) if env is not None else 0.0
         suns = []  # (unit direction towards the disc, cos radius, solid angle, radiance (3,))
-        for light, frame in [(x, True) for x in ((env.lights or ()) if env is not None else ())] + [(x, False) for x in discs]:
+        split = list(env.lights or ()) if env is not None else []
+        if split and self._holds_suns(env, split):
+            split = []  # (a baked set's radiance is its source, suns included; its maps are the residual)
+        for light, frame in [(x, True) for x in split] + [(x, False) for x in discs]:
             d = -np.asarray(light.direction, np.float64)
             d = d / np.linalg.norm(d)
             if frame:
@@ -250,6 +254,29 @@ class _EnvSampler:
         self.p_texel = (w / w.sum()).reshape(-1)
         self.cdf = np.cumsum(self.p_texel)
         self.cdf[-1] = 1.0
+
+    @staticmethod
+    def _holds_suns(env, lights) -> bool:
+        """Whether the environment's radiance still holds the suns split out of it (`bake` keeps the
+        source as the radiance and the residual in its maps; a user's split can pass the residual):
+        the texels within a sun's disc (widened by two texels) carry at least half of its luminous
+        power above the map's median."""
+        lv = np.asarray(env.radiance.levels[0], np.float64)[..., :3]
+        S = lv.shape[1]
+        y = lv @ _LUMA
+        om = texel_solid_angles(S)
+        dirs = texel_directions(S)
+        med = float(np.median(y))
+        for light in lights:
+            c = -np.asarray(light.direction, np.float64)
+            c = c / np.linalg.norm(c)
+            widen = float(np.asarray(light.angular_radius)) + 2.0 * (math.pi / 2) / S
+            inside = dirs @ c >= math.cos(widen)
+            held = float(np.sum((y[inside] - med) * om[inside]))
+            power = float(np.asarray(light.color, np.float64) @ _LUMA) * float(np.asarray(light.intensity))
+            if held < 0.5 * power:
+                return False
+        return True
 
     def _to_env(self, d):  # world -> the environment's frame (R_y(-rotation))
         c, s = math.cos(-self.rot), math.sin(-self.rot)

@@ -26,6 +26,7 @@ from ..shading.lights import PointLight
 from ..shading.material import Material
 from .baked import read_baked
 from .cache import ASSETS
+from .mesh import Mesh
 from .scene import Camera, Environment, Scene, Sphere
 
 __all__ = [
@@ -271,3 +272,51 @@ def write_demo_glb(path, *, triangles: int = 1_000_000, lat: int | None = None, 
         f.write(struct.pack("<II", len(binary), 0x004E4942))  # BIN chunk
         f.write(binary)
     return DemoAsset(path=path, lat=n, triangles=49 * len(T), vertices=49 * len(P))
+
+
+def concave_scene(width: int = 320, height: int = 240, *, environment: Environment | None = None) -> Scene:
+    """A concave test scene written in code, all Lambertian meshes (specular 0): an open box (three
+    walls 2 high around a 4 x 4 floor, open towards the camera and the sky) on a ground 8 x 8, a
+    sphere in the box's back-left corner touching the floor and both walls, and two fins 0.3 apart
+    standing on the floor in front of the right wall (a slot). Its contacts, corners and slot are
+    where the environment's light is occluded; the ground in front of the box sees the whole sky. environment: default the demo's sky
+    with its sun (128^2 faces), turned so that the sun comes from the front right."""
+    grey = Material(base_color=(0.6, 0.6, 0.6), metallic=0.0, roughness=1.0, specular=0.0)
+    red = Material(base_color=(0.7, 0.25, 0.2), metallic=0.0, roughness=1.0, specular=0.0)
+
+    def quad(p0, p1, p2, p3, n=8):
+        # an n x n grid over the quad p0 p1 p2 p3 (counter-clockwise seen from its front)
+        u, v = np.meshgrid(np.linspace(0, 1, n + 1), np.linspace(0, 1, n + 1), indexing="ij")
+        P = ((1 - u) * (1 - v))[..., None] * p0 + (u * (1 - v))[..., None] * p1 + (u * v)[..., None] * p2 + ((1 - u) * v)[..., None] * p3
+        idx = np.arange((n + 1) ** 2).reshape(n + 1, n + 1)
+        a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+        tri = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+        return P.reshape(-1, 3).astype(np.float32), tri.astype(np.int32)
+
+    def mesh(parts, material):
+        pos, tri, off = [], [], 0
+        for P, T in parts:
+            pos.append(P)
+            tri.append(T + off)
+            off += len(P)
+        return Mesh(positions=np.concatenate(pos), triangles=np.concatenate(tri), material=material, double_sided=True)
+
+    A = lambda *x: np.asarray(x, np.float64)  # noqa: E731
+    box = mesh([
+        quad(A(-4, 0, 6), A(4, 0, 6), A(4, 0, -2), A(-4, 0, -2), 32),  # ground, inside the box and out (normal +y)
+        quad(A(-2, 0, -2), A(2, 0, -2), A(2, 2, -2), A(-2, 2, -2)),  # back wall (+z)
+        quad(A(-2, 0, 2), A(-2, 0, -2), A(-2, 2, -2), A(-2, 2, 2)),  # left wall (+x)
+        quad(A(2, 0, -2), A(2, 0, 2), A(2, 2, 2), A(2, 2, -2)),  # right wall (-x)
+    ], grey)
+    fins = mesh([
+        quad(A(1.0, 0, -0.5), A(1.0, 0, 1.0), A(1.0, 1.0, 1.0), A(1.0, 1.0, -0.5)),
+        quad(A(1.3, 0, 1.0), A(1.3, 0, -0.5), A(1.3, 1.0, -0.5), A(1.3, 1.0, 1.0)),
+    ], grey)
+    r = 0.6
+    pos, nrm, tri = uv_sphere(24)
+    ball = Mesh(positions=(np.asarray(pos) * r + np.array([-2 + r, r, -2 + r])).astype(np.float32), normals=np.asarray(nrm, np.float32),
+                triangles=np.asarray(tri, np.int32), material=red)
+    if environment is None:
+        environment = demo_environment(rotation=math.radians(150.0))
+    cam = Camera(position=(0.5, 5.0, 8.0), target=(0.0, 0.3, 0.5), fov_y_deg=45.0, width=width, height=height)
+    return Scene(camera=cam, objects=(box, fins, ball), environment=environment)
