@@ -90,7 +90,7 @@ def test_rungs_are_deterministic_and_planned():
         jp.RenderOptions(ibl_samples=0)
 
 
-@pytest.mark.slow  # ~30 s: four compiled gradients
+@pytest.mark.slow  # ~20 s: four compiled gradients and their finite differences
 @pytest.mark.parametrize("vis", ["none", "occlusion", "ao", "ratio"])
 def test_gradients_are_finite_under_every_rung(vis):
     import jax
@@ -107,5 +107,13 @@ def test_gradients_are_finite_under_every_rung(vis):
         img = jp.render(evolve(scene, objects=(f, wall), environment=env), extract_lights=False, ibl_visibility=vis, ibl_samples=2)
         return jnp.sum(img)
 
-    g_b, g_i = jax.grad(loss, argnums=(0, 1))(jnp.asarray([0.5, 0.5, 0.5]), jnp.asarray(1.0))
+    base, inten = jnp.asarray([0.5, 0.5, 0.5]), jnp.asarray(1.0)
+    g_b, g_i = jax.grad(loss, argnums=(0, 1))(base, inten)
     assert np.all(np.isfinite(np.asarray(g_b))) and np.isfinite(float(g_i)) and float(g_i) > 0
+    # against central differences (the visibility does not move with these: the same rays)
+    h = 1e-2
+    fd_i = (float(loss(base, inten + h)) - float(loss(base, inten - h))) / (2 * h)
+    np.testing.assert_allclose(float(g_i), fd_i, rtol=2e-3)
+    e = jnp.asarray([0.0, 1.0, 0.0])
+    fd_b = (float(loss(base + h * e, inten)) - float(loss(base - h * e, inten))) / (2 * h)
+    np.testing.assert_allclose(float(g_b[1]), fd_b, rtol=2e-3)

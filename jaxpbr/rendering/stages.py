@@ -635,10 +635,6 @@ def _visible_ibl(scene: Scene, pre, p_plan: RenderPlan, opts: RenderOptions, g, 
     sampling, half each; cosine alone for one ray). "ao": the diffuse part (the split sum less its
     specular lobes, `shade_ibl` without irradiance) times the cosine rays' visible fraction, the
     specular part times the lobe rays' (over the rays above the surface)."""
-    from ..shading.brdf_terms import MIN_ROUGHNESS
-    from ..shading.layered import brdf
-    from ..shading.sampling import pdf_cosine, pdf_ggx_vndf, pdf_reflect
-
     dtype = jnp.dtype(opts.dtype)
     n_e, v_e, m, lut, kw, sheen_kw = inputs
     K = p_plan.ibl_samples
@@ -660,28 +656,43 @@ def _visible_ibl(scene: Scene, pre, p_plan: RenderPlan, opts: RenderOptions, g, 
                          **{k: x for k, x in kw.items() if k != "transmit_direction"}, **sheen_kw)
         spec = jnp.minimum(spec, ibl)
         return frac(lobe_k) * spec + frac(cos_k) * (ibl - spec)
+    w = b["w"]  # (K, ..., 3) (`_ratio_weights`)
+    num = jnp.sum(w * vis, 0)
+    den = jnp.sum(w, 0)
+    ratio = jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
+    return ibl * ratio
+
+
+def _ratio_weights(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, dirs, pre):
+    """(K, ..., 3) the ratio estimator's weights f(v, l_k) (n.l_k)+ L(l_k) / p(l_k) of the IBL
+    visibility rays (`_visible_ibl`): a stage of its own (fused into the IBL stage, XLA:CPU
+    evaluated the K BRDFs there several times over)."""
+    from ..shading.brdf_terms import MIN_ROUGHNESS
+    from ..shading.layered import brdf
+    from ..shading.sampling import pdf_cosine, pdf_ggx_vndf, pdf_reflect
+
+    dtype = jnp.dtype(opts.dtype)
+    K = dirs.shape[0]
+    n, v = pack3(g["n"]), pack3(g["view"])
     env = scene.environment
     rot = -jnp.asarray(env.rotation, dtype)
     r = jnp.maximum(jnp.clip(g["m"].roughness, 0.0, 1.0), MIN_ROUGHNESS)
     a = r * r
     nv = jnp.maximum(jnp.sum(n * v, -1), 1e-4)
-    num = jnp.zeros(ibl.shape, dtype)
-    den = jnp.zeros(ibl.shape, dtype)
     bk = {k: x for k, x in _layer_kwargs(g, g["m"], dtype).items() if k in ("tangent", "coat_normal")}
+    out = []
     for k in range(K):
         lk = dirs[k]
+        nl = jnp.maximum(jnp.sum(lk * n, -1), 0.0)
         h = vnormalize_packed(lk + v)
-        p_cos = pdf_cosine(jnp.maximum(nl[k], 0.0))
+        p_cos = pdf_cosine(nl)
         p_ggx = pdf_reflect(pdf_ggx_vndf(nv, jnp.sum(n * h, -1), jnp.sum(v * h, -1), a), jnp.sum(v * h, -1))
         p = p_cos if K == 1 else 0.5 * (p_cos + p_ggx)
         f = brdf(n, v, lk, g["m"], **bk)
         l_env = pre.sample(pack3(_rotate_y(unpack3(lk), rot)), 0.0).astype(dtype)
-        w = jnp.where((p > 0)[..., None], f * jnp.maximum(nl[k], 0.0)[..., None] * l_env / jnp.where(p > 0, p, 1.0)[..., None], 0.0)
-        w = jnp.where(jnp.isfinite(w), w, 0.0)
-        num = num + w * vis[k]
-        den = den + w
-    ratio = jnp.where(den > 0, num / jnp.where(den > 0, den, 1.0), 1.0)
-    return ibl * ratio
+        w = jnp.where((p > 0)[..., None], f * nl[..., None] * l_env / jnp.where(p > 0, p, 1.0)[..., None], 0.0)
+        out.append(jnp.where(jnp.isfinite(w), w, 0.0))
+    return jnp.stack(out)
 
 
 def _mix32(x):
@@ -1149,6 +1160,10 @@ def _shade_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g
         assets = assets.shapes() if is_ahead() else assets()
     if p_plan.ibl_samples:
         g = {**g, "ibl_vis": _ibl_visibility(scene, p_plan, opts, g, rays, staged)}
+    if p_plan.ibl_samples and p_plan.ibl_visibility == "ratio":
+        pre = assets[1]
+        wfn = _ratio_weights_jit if staged else _ratio_weights
+        g = {**g, "ibl_vis": {**g["ibl_vis"], "w": wfn(_lean(_stage_view(scene)) if staged else scene, p_plan, opts, g, g["ibl_vis"]["d"], pre)}}
     if p_plan.transmission_depth and p_plan.ibl and rays is not None:
         behind = _transmitted(scene, assets, p_plan, opts, g, rays, staged)
         if behind is not None:
@@ -1254,6 +1269,7 @@ _shade_rest_jit = cached_jit(_shade_rest, static_argnums=(2, 3), cpu_options=LOO
 _transmit_rays_jit = cached_jit(_transmit_rays, static_argnums=(1, 2))
 _ibl_directions_jit = cached_jit(_ibl_directions, static_argnums=(1, 2))
 _ibl_segments_jit = cached_jit(_ibl_segments, static_argnums=(1,))
+_ratio_weights_jit = cached_jit(_ratio_weights, static_argnums=(1, 2))
 
 
 def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
