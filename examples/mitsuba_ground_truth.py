@@ -46,12 +46,15 @@ def write_obj(path: Path, mesh: Mesh) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def mitsuba_image(scene, spp: int, tmp: Path) -> np.ndarray:
+def mitsuba_image(scene, spp: int, tmp: Path, bounces: int = 0) -> np.ndarray:
+    """Mitsuba 3's image of the scene: `direct` (bounces 0) or `path` with max_depth = bounces + 2."""
     import mitsuba as mi
 
     mi.set_variant("scalar_rgb")
     cam = scene.camera
-    d = {"type": "scene", "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 1},
+    integrator = ({"type": "direct", "emitter_samples": 1, "bsdf_samples": 1} if bounces == 0 else
+                  {"type": "path", "max_depth": bounces + 2, "rr_depth": bounces + 3})
+    d = {"type": "scene", "integrator": integrator,
          "sensor": {"type": "perspective", "fov": float(cam.fov_y_deg), "fov_axis": "y",
                     "to_world": mi.ScalarTransform4f().look_at(origin=list(map(float, cam.position)), target=list(map(float, cam.target)),
                                                                up=list(map(float, cam.up))),
@@ -93,6 +96,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, nargs=2, default=(128, 96), metavar=("W", "H"))
     ap.add_argument("--spp", type=int, default=1024, help="samples per pixel of both ground truths")
+    ap.add_argument("--bounces", type=int, default=2, help="also compare reference_render(bounces=B) with Mitsuba's path tracer (0: not)")
     args = ap.parse_args(argv)
     W, H = args.size
     sky = jp.Environment(radiance=Cubemap.from_function(lambda d: 0.0 * d + 1.0, 32))
@@ -106,6 +110,7 @@ def main(argv=None):
         t0 = time.perf_counter()
         mi_img = mitsuba_image(scene, args.spp, Path(tmp))
         t_m = time.perf_counter() - t0
+        mi_path = mitsuba_image(scene, args.spp, Path(tmp), args.bounces) if args.bounces else None
     mask = interior(scene)
     ref = luma(mi_img)
     rows = [("jp.reference_render", truth.image, t_j)]
@@ -124,6 +129,18 @@ def main(argv=None):
         print(f"{name:34} {np.median(rel):8.2%} {rel.mean():8.2%} {np.percentile(rel, 90):8.2%} {bias:+8.2%} {t:8.1f}")
     se = luma(truth.stderr)[mask] / np.maximum(luma(truth.image)[mask], 1e-3)
     print(f"jp.reference_render's own standard error: {np.median(se):.2%} median")
+    if mi_path is not None:
+        t0 = time.perf_counter()
+        multi = jp.reference_render(scene, spp=args.spp, bounces=args.bounces)
+        t = time.perf_counter() - t0
+        refp = luma(mi_path)
+        rel = np.abs(luma(multi.image) - refp)[mask] / np.maximum(refp[mask], 1e-3)
+        bias = (luma(multi.image) - refp)[mask].mean() / refp[mask].mean()
+        gain = refp[mask].mean() / ref[mask].mean() - 1
+        name = f"reference_render bounces={args.bounces}"
+        out[name] = (np.median(rel), rel.mean(), np.percentile(rel, 90), bias)
+        print(f"{name} against Mitsuba's path tracer (max_depth {args.bounces + 2}; the bounces add {gain:.1%}): "
+              f"median {np.median(rel):.2%}, mean {rel.mean():.2%}, bias {bias:+.2%}, {t:.1f} s")
     return out
 
 

@@ -57,6 +57,23 @@ def test_floor_beside_an_infinite_wall_sees_half_the_sky():
     np.testing.assert_allclose(img, ALBEDO, rtol=2e-3)
 
 
+@pytest.mark.parametrize("bounces", [1, 3])
+def test_interreflection_between_a_floor_and_a_wall_sums_the_series(bounces):
+    """With bounces, each point sees half sky and half the other plane, whose radiance is the
+    previous order's: L_B = (a/2) sum_{j<=B} (a/2)^j (-> a / (2 - a), the converged radiosity)."""
+    m = jp.Material(**LAMBERT)
+    cam = jp.Camera(position=(0.7, 3.0, 4.0), target=(0.0, 0.6, 0.0), width=16, height=12)
+    scene = jp.Scene(camera=cam, objects=(jp.Plane(point=(0, 0, 0), normal=(0, 1, 0), material=m),
+                                          jp.Plane(point=(0, 0, 0), normal=(0, 0, 1), material=m)), environment=uniform_sky())
+    ref = reference_render(scene, spp=64, bounces=bounces, seed=5)
+    h = ALBEDO / 2
+    expect = h * sum(h ** j for j in range(bounces + 1))
+    got = ref.image[ref.hit][:, 0]
+    se_mean = np.sqrt(np.sum(ref.stderr[ref.hit][:, 0] ** 2)) / got.size
+    assert abs(got.mean() - expect) < 4 * se_mean + 1e-3, (got.mean(), expect, se_mean)
+    assert abs(got.mean() - expect) < 0.015 * expect
+
+
 def _wall_factor(x, z, half=1.0, height=1.0, n=64):
     """View factor from the floor point (x, 0, z) (normal +y) to the wall rectangle
     [-half, half] x [0, height] in the plane z = 0 (normal +z): Gauss-Legendre in float64."""
@@ -198,9 +215,11 @@ def test_the_ground_truth_agrees_with_mitsuba_on_the_same_triangles():
     spec = importlib.util.spec_from_file_location("mitsuba_ground_truth", path)
     ex = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ex)
-    out = ex.main(["--size", "64", "48", "--spp", "256"])
+    out = ex.main(["--size", "64", "48", "--spp", "256", "--bounces", "2"])
     median, _, _, bias = out["jp.reference_render"]
     assert abs(bias) < 0.01 and median < 0.04, out["jp.reference_render"]
     # the unshadowed split sum is far off on this concave scene; the ratio estimator is not biased
     assert out["jp.render ibl_visibility=none"][3] > 0.08
     assert abs(out["jp.render ibl_visibility=ratio K=16"][3]) < 0.02
+    # with two bounces, against Mitsuba's path tracer
+    assert abs(out["reference_render bounces=2"][3]) < 0.015, out["reference_render bounces=2"]

@@ -73,6 +73,8 @@ def add_command(sub) -> None:
                    help="render the float64 ground truth of the direct light instead (environment with visibility, lights with shadows; "
                    "jaxpbr.reference_render); with --hdr the EXR gets its per-pixel standard error as a layer")
     r.add_argument("--spp", type=positive_int_arg, default=64, help="--reference: samples per pixel (default: %(default)s)")
+    r.add_argument("--bounces", type=nonnegative_int_arg, default=0,
+                   help="--reference: interreflection, paths of up to this many further vertices (default: 0, the direct light)")
     r.add_argument("--exposure", type=float32_arg(), default=None, help="exposure in EV stops (default: 0, or the scene's)")
     r.add_argument(
         "--tonemap",
@@ -309,7 +311,9 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
                 raise CLIError("--reference writes the ground truth and its standard error; leave out --aov")
             if args.spp < 2:
                 raise CLIError("--spp must be at least 2 with --reference (the standard error needs two samples)")
-            truth = reference_render(scene, spp=args.spp, options=opts, progress=Progress("reference"))
+            if args.bounces > 16:
+                raise CLIError(f"--bounces must be at most 16, got {args.bounces}")
+            truth = reference_render(scene, spp=args.spp, bounces=args.bounces, options=opts, progress=Progress("reference"))
             hdr_device = jnp.asarray(truth.image.astype(np.float32))
         elif args.aov:  # one geometry pass for the image and its AOVs where it can be shared
             from ..rendering.aovs import render_with_aovs
@@ -341,7 +345,8 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     if args.reference:
         surf = truth.hit
         rel = float(np.mean(truth.stderr[surf] @ REC709_LUMA) / max(np.mean(truth.image[surf] @ REC709_LUMA), 1e-30)) if surf.any() else 0.0
-        print(f"  ground truth (float64, direct light with visibility): {truth.spp} spp in {truth.seconds:.2f} s; "
+        what = "direct light" if args.bounces == 0 else f"direct light and {args.bounces} bounce(s)"
+        print(f"  ground truth (float64, {what} with visibility): {truth.spp} spp in {truth.seconds:.2f} s; "
               f"mean standard error {rel:.2%} of the surfaces' mean luminance; "
               f"{np.mean(truth.visible[surf] < 0.9):.0%} of the surface pixels see under 90 % of the sky")
     else:

@@ -32,7 +32,9 @@ sample standard deviation / sqrt(spp)), per pixel and channel. Deterministic per
 Not integrated (each refused with a message, not approximated): the transmission, volume and
 anisotropy extensions (their lobes need inputs the G-buffer does not carry: what lies below the
 surface, a tangent) and user G-buffers. Alpha-blended, masked and transmissive occluders block
-light as opaque ones; interreflection (bounces) is not part of it: this is the direct light.
+light as opaque ones. Interreflection is an option (`bounces`, default 0: the direct light): paths
+continued by BRDF sampling through the surfaces they meet (the renderer's own hits, normals and
+textured materials, `stages.surface_of_rays`), each vertex adding its own light.
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from ..ibl.cubemap import dir_to_face, face_to_dir, texel_directions, texel_soli
 from ..rendering.mesh import Mesh
 from ..rendering.options import RenderOptions
 from ..rendering.scene import Plane, Scene, Sphere
-from ..rendering.stages import scene_host_arrays, surface_buffer
+from ..rendering.stages import scene_host_arrays, surface_buffer, surface_of_rays
 from ..rendering.visibility import TriangleAccel, offset_ray_origin
 from ..shading.layered import brdf
 from ..shading.lights import DirectionalLight, PointLight, SpotLight, shade_direct
@@ -83,12 +85,15 @@ class ReferenceImage:
     seconds: float
 
 
-def reference_render(scene: Scene, *, spp: int = 64, seed: int = 0, options: RenderOptions | None = None,
+def reference_render(scene: Scene, *, spp: int = 64, bounces: int = 0, seed: int = 0, options: RenderOptions | None = None,
                      progress=None, **overrides) -> ReferenceImage:
     """The ground truth of `render(scene)`'s direct lighting (module docstring): float64 Monte Carlo
     over the environment with visibility, the punctual lights with shadows, the emission.
 
     spp: samples per pixel (each one direction per technique: environment, GGX, cosine).
+    bounces: 0 (default) the direct light; B > 0 adds the light reflected by the scene's surfaces
+        along paths of up to B further vertices (interreflection; each vertex's own direct light
+        estimated the same way, paths continued by BRDF sampling).
     seed: the random sequence (the same seed gives the same image).
     options / overrides: `RenderOptions`; only `smith` (the BRDF's G) is read.
     progress: optional callable(done, total) over the pixel blocks.
@@ -98,6 +103,8 @@ def reference_render(scene: Scene, *, spp: int = 64, seed: int = 0, options: Ren
         raise TypeError(f"reference_render expects a jaxpbr.Scene, got {type(scene).__name__}")
     if isinstance(spp, bool) or not isinstance(spp, int) or spp < 2:
         raise ValueError(f"spp must be an int >= 2 (the standard error needs two samples), got {spp!r}")
+    if isinstance(bounces, bool) or not isinstance(bounces, int) or not 0 <= bounces <= 16:
+        raise ValueError(f"bounces must be an int in [0, 16], got {bounces!r}")
     if options is not None and not isinstance(options, RenderOptions):
         raise TypeError(f"reference_render: options must be a jaxpbr.RenderOptions, got {type(options).__name__}")
     opts = dataclasses.replace(options or RenderOptions(), **overrides)
@@ -132,7 +139,7 @@ def reference_render(scene: Scene, *, spp: int = 64, seed: int = 0, options: Ren
             sel = idx[start:start + BLOCK]
             mb = jax.tree_util.tree_map(lambda x, sel=sel: _take(x, sel, H, W), leaves)
             P, N, V, NG = (a.reshape(-1, 3)[sel] for a in (pos, n, v, ng))
-            est, est_sq, visible = _integrate_block(P, N, V, NG, mb, env, occ, scene, opts, spp, rng)
+            est, est_sq, visible = _integrate_block(P, N, V, NG, mb, env, occ, scene, opts, spp, rng, bounces)
             mean[sel], sq[sel], vis[sel] = est, est_sq, visible
             if progress is not None:
                 progress(b + 1, len(blocks))
@@ -415,34 +422,44 @@ def _brdf64(n, v, l, m, smith_correlated):
     return jnp.where(smith_correlated, f_c, f_s)
 
 
-def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng):
-    """(mean, mean of squares, visible fraction) over spp samples of one block of pixels."""
-    k = len(P)
-    pad = BLOCK - k  # (one compiled BRDF program for every block)
-    padf = (lambda x: np.concatenate([x, np.repeat(x[-1:], pad, 0)])) if pad > 0 else (lambda x: x)  # noqa: E731
-    mj = jax.tree_util.tree_map(lambda x: jnp.asarray(padf(x)), m)
-    nj, vj = jnp.asarray(padf(N)), jnp.asarray(padf(V))
-    corr = jnp.asarray(opts.smith != "separable")
+class _Vertex:
+    """A block of path vertices (surface points) with what the estimators need: positions P,
+    shading normals N, directions to the previous vertex V, geometric normals NG (any side), the
+    material (per-vertex leaves), padded to BLOCK for the compiled BRDF."""
 
-    def f(l):
-        return np.asarray(_brdf64(nj, vj, jnp.asarray(padf(l)), mj, corr))[:k]
+    def __init__(self, P, N, V, NG, m, opts):
+        self.k = k = len(P)
+        pad = BLOCK - k
+        self.padf = (lambda x: np.concatenate([x, np.repeat(x[-1:], pad, 0)])) if pad > 0 else (lambda x: x)  # noqa: E731
+        self.P, self.N, self.V, self.NG, self.m = P, N, V, NG, m
+        self.mj = jax.tree_util.tree_map(lambda x: jnp.asarray(self.padf(np.asarray(x))), m)
+        self.nj, self.vj = jnp.asarray(self.padf(N)), jnp.asarray(self.padf(V))
+        self.corr = jnp.asarray(opts.smith != "separable")
+        side = np.where(np.sum(NG * V, -1, keepdims=True) < 0, -NG, NG)  # the viewer's side
+        self.up_origin = offset_ray_origin(P.astype(np.float32), side.astype(np.float32)).astype(np.float64)
+        r = np.clip(np.broadcast_to(np.asarray(m.roughness, np.float64).reshape(-1)[:k], (k,)), 0.0, 1.0)
+        self.a = np.maximum(r, MIN_REFERENCE_ROUGHNESS) ** 2
 
-    # the geometric normal on the viewer's side, for the rays' origins
-    side = np.where(np.sum(NG * V, -1, keepdims=True) < 0, -NG, NG)
-    origin_up = offset_ray_origin(P.astype(np.float32), side.astype(np.float32)).astype(np.float64)
-    r = np.clip(np.asarray(m.roughness, np.float64).reshape(-1)[:k] if np.ndim(m.roughness) else np.full(k, float(m.roughness)), 0.0, 1.0)
-    a = np.maximum(r, MIN_REFERENCE_ROUGHNESS) ** 2
-    a2 = a * a
-    # the punctual lights: exact, with shadow rays
-    base = np.asarray(jax.device_get(_emission(mj)))[:k]
-    punctual = [x for x in scene.lights if not _is_disc(x)]
-    if punctual:
+    def f(self, l):
+        return np.asarray(_brdf64(self.nj, self.vj, jnp.asarray(self.padf(l)), self.mj, self.corr))[: self.k]
+
+    def leaves_up(self, l):
+        """bool (k,): l leaves on the viewer's side of the surface, above the shading normal's horizon."""
+        return (np.sum(self.NG * l, -1) * np.sum(self.NG * self.V, -1) > 0) & (np.sum(self.N * l, -1) > 0)
+
+    def fixed_light(self, scene, occ, opts):
+        """(k, 3) the emission and the punctual lights (exact, with shadow rays) at the vertices."""
+        out = np.asarray(jax.device_get(_emission(self.mj)))[: self.k]
+        punctual = [x for x in scene.lights if not _is_disc(x)]
+        if not punctual:
+            return out
+        P, NG = self.P, self.NG
         vis = []
         for light in punctual:
             if isinstance(light, DirectionalLight):
                 dl = -np.asarray(light.direction, np.float64)
                 dl = np.broadcast_to(dl / np.linalg.norm(dl), P.shape)
-                tfar = np.full(k, np.inf)
+                tfar = np.full(self.k, np.inf)
             else:
                 dl = np.asarray(light.position, np.float64) - P
                 tfar = np.linalg.norm(dl, axis=-1)
@@ -451,9 +468,54 @@ def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng):
             o = offset_ray_origin(P.astype(np.float32), np.where(np.sum(NG * dl, -1, keepdims=True) < 0, -NG, NG).astype(np.float32))
             vis.append(~occ.occluded(o.astype(np.float64), dl, tfar))
         vis = np.stack(vis, -1).astype(np.float64)
-        direct = shade_direct(jnp.asarray(padf(P)), nj, vj, _dark(mj), punctual, visibility=jnp.asarray(padf(vis)),
-                              smith=opts.smith)
-        base = base + np.asarray(direct)[:k]
+        direct = shade_direct(jnp.asarray(self.padf(P)), self.nj, self.vj, _dark(self.mj), punctual,
+                              visibility=jnp.asarray(self.padf(vis)), smith=opts.smith)
+        return out + np.asarray(direct)[: self.k]
+
+    def distant_light(self, env, occ, u):
+        """((k, 3) the distant light's estimate, (k,) whether the cosine direction is open): one
+        direction per technique from the uniform numbers u (k, 7), balance heuristic."""
+        k, N, V = self.k, self.N, self.V
+        est = np.zeros((k, 3))
+        opened = np.zeros(k, bool)
+        dirs = [env.sample(u[:, 0:3]), _sample_ggx(N, V, self.a, u[:, 3:5]), _sample_cos(N, u[:, 5:7])]
+        for t_i, l in enumerate(dirs):
+            nl = np.sum(N * l, -1)
+            p = env.pdf(l) + _pdf_ggx(N, V, l, self.a * self.a) + np.maximum(nl, 0.0) / math.pi
+            up = np.sum(self.NG * l, -1) * np.sum(self.NG * V, -1) > 0
+            live = (nl > 0) & up & (p > 0)
+            blocked = np.zeros(k, bool)
+            if live.any():
+                blocked[live] = occ.occluded(self.up_origin[live], l[live], np.full(int(live.sum()), np.inf))
+            if t_i == 2:
+                opened = up & ~blocked
+            live &= ~blocked
+            if live.any():
+                w = np.where(live, np.maximum(nl, 0.0) / np.where(live, p, 1.0), 0.0)
+                est += self.f(l) * env.radiance(l) * w[:, None]
+        return est, opened
+
+    def continue_path(self, u):
+        """(directions (k, 3), throughput f cos / p (k, 3)) of one continuation per vertex: cosine or
+        GGX visible normals with probability 1/2 each (u (k, 3)); 0 below the surface."""
+        N, V = self.N, self.V
+        l = np.where((u[:, 0] < 0.5)[:, None], _sample_cos(N, u[:, 1:3]), _sample_ggx(N, V, self.a, u[:, 1:3]))
+        nl = np.sum(N * l, -1)
+        p = 0.5 * (np.maximum(nl, 0.0) / math.pi + _pdf_ggx(N, V, l, self.a * self.a))
+        ok = self.leaves_up(l) & (p > 0)
+        w = np.where(ok, np.maximum(nl, 0.0) / np.where(ok, p, 1.0), 0.0)
+        return l, self.f(l) * w[:, None]
+
+
+def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng, bounces=0):
+    """(mean, mean of squares, visible fraction) over spp samples of one block of pixels. Each
+    sample: the pixel's fixed light (emission, punctual lights) and distant light, and with bounces
+    a path continued `bounces` times by BRDF sampling through the surfaces it meets, each vertex
+    adding its own fixed and distant light times the path's throughput (the distant light counts
+    only directions that escape and the continuation only those that hit: no light twice)."""
+    first = _Vertex(P, N, V, NG, m, opts)
+    k = first.k
+    base = first.fixed_light(scene, occ, opts)
     acc = np.zeros((k, 3))
     acc2 = np.zeros((k, 3))
     visible = np.zeros(k)
@@ -462,30 +524,72 @@ def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng):
     strata = rng.permuted(np.broadcast_to(np.arange(spp)[:, None, None], (spp, k, 7)), axis=0)
     uu = (strata + rng.random((spp, k, 7))) / spp
     for s_i in range(spp):
-        est = np.zeros((k, 3))
+        x = base.copy()
         if env is not None:
-            u = uu[s_i]
-            dirs = [env.sample(u[:, 0:3]), _sample_ggx(N, V, a, u[:, 3:5]), _sample_cos(N, u[:, 5:7])]
-            for t_i, l in enumerate(dirs):
-                nl = np.sum(N * l, -1)
-                p = env.pdf(l) + _pdf_ggx(N, V, l, a2) + np.maximum(nl, 0.0) / math.pi
-                up = np.sum(NG * l, -1) * np.sum(NG * V, -1) > 0  # leaves on the viewer's side
-                live = (nl > 0) & up & (p > 0)
-                blocked = np.zeros(k, bool)
-                if live.any():
-                    blocked[live] = occ.occluded(origin_up[live], l[live], np.full(int(live.sum()), np.inf))
-                if t_i == 2:  # the cosine-sampled direction: the visible fraction's estimate
-                    visible += np.where(up & ~blocked, 1.0, 0.0)
-                live &= ~blocked
-                if not live.any():
-                    continue
-                fl = f(l)
-                w = np.where(live, np.maximum(nl, 0.0) / np.where(live, p, 1.0), 0.0)
-                est += fl * env.radiance(l) * w[:, None]
-        x = base + est
+            est, opened = first.distant_light(env, occ, uu[s_i])
+            x += est
+            visible += opened
+        vert, through, rows = first, np.ones((k, 3)), np.arange(k)
+        for _ in range(bounces):
+            l, w = vert.continue_path(rng.random((vert.k, 3)))
+            through = through * w
+            live = np.any(through > 0, -1)
+            if not live.any():
+                break
+            hit = _surface_hits(scene, opts, vert.up_origin[live], l[live])
+            if hit is None:
+                break
+            sel, nxt = hit
+            rows = rows[live][sel]
+            through = through[live][sel]
+            vert = nxt
+            add = vert.fixed_light(scene, occ, opts)
+            if env is not None:
+                add = add + vert.distant_light(env, occ, rng.random((vert.k, 7)))[0]
+            np.add.at(x, rows, through * add)
         acc += x
         acc2 += x * x
     return acc / spp, acc2 / spp, visible / spp
+
+
+def _surface_hits(scene, opts, o, d):
+    """The surfaces rays o + t d (t > 0) meet: (indices of the rays that hit, their `_Vertex`), or
+    None when none does (`stages.surface_of_rays`: the renderer's own hit, normals and textured
+    materials)."""
+    if len(o) == 0:
+        return None
+    hits, P, N, NG, m = [], [], [], [], []
+    for s0 in range(0, len(o), BLOCK):
+        oo, dd = o[s0:s0 + BLOCK], d[s0:s0 + BLOCK]
+        n_b = len(oo)
+        pad = BLOCK - n_b
+        if pad:
+            oo = np.concatenate([oo, np.repeat(oo[-1:], pad, 0)])
+            dd = np.concatenate([dd, np.repeat(dd[-1:], pad, 0)])
+        gb, ng = surface_of_rays(scene, dataclasses.replace(opts, dtype="float64"), oo, dd)
+        h = np.asarray(gb.hit).reshape(-1)[:n_b]
+        idx = np.flatnonzero(h)
+        hits.append(idx + s0)
+        P.append(np.asarray(gb.position, np.float64).reshape(-1, 3)[idx])
+        N.append(np.asarray(gb.normal, np.float64).reshape(-1, 3)[idx])
+        NG.append(np.asarray(ng, np.float64).reshape(-1, 3)[idx])
+        m.append(jax.tree_util.tree_map(lambda x, idx=idx, n=BLOCK: _flat_leaf(x, n)[idx], gb.material))
+    sel = np.concatenate(hits)
+    if sel.size == 0:
+        return None
+    mm = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *m)
+    P, N, NG = np.concatenate(P), np.concatenate(N), np.concatenate(NG)
+    V = -d[sel]
+    # blocks of at most BLOCK vertices (one compiled BRDF program)
+    if len(sel) > BLOCK:
+        raise AssertionError("unreachable: a block's rays are at most BLOCK")
+    return sel, _Vertex(P, N, V, NG, mm, opts)
+
+
+def _flat_leaf(x, n):
+    x = np.asarray(x, np.float64)
+    x = np.broadcast_to(x, (n, 1) + x.shape[2:]) if x.shape[:2] != (n, 1) else x
+    return x.reshape((n,) + x.shape[2:])
 
 
 @jax.jit

@@ -1309,6 +1309,25 @@ def gbuffer(scene: Scene, *, options: RenderOptions | None = None, **overrides):
     return gb
 
 
+def surface_of_rays(scene: Scene, opts: RenderOptions, origins, directions):
+    """The surfaces rays meet: (`GBuffer` of shape (N, 1), (N, 1, 3) geometric normals facing the
+    ray's origin) for origins, directions (N, 3) (origins already off any surface they leave; no
+    ray differentials: textures at their finest level). What `gbuffer` gives for the camera's
+    pixels, for any rays (the ground truth's paths, `jaxpbr.reference`)."""
+    bare = evolve(scene, lights=(), environment=None, camera=evolve(scene.camera, supersample=1))
+    p = dataclasses.replace(plan(bare, options=opts), shadows=True, transmission_depth=0, transmission_samples=0, ibl_samples=0)
+    dtype = jnp.dtype(opts.dtype)
+    n = np.shape(origins)[0]
+    rays = Rays(o=jnp.asarray(np.reshape(origins, (n, 1, 3)), dtype), d=jnp.asarray(np.reshape(directions, (n, 1, 3)), dtype),
+                diff=jnp.zeros((n, 1, 4, 3), dtype), key=jnp.zeros((n, 1), jnp.uint32))
+    g = staged_geometry(bare, p, opts, rays, light_shadows=False)
+    lean = _lean(bare)
+    for k in p.textured:
+        g = _texture_jit(lean, k, opts, g)
+    gb = GBuffer(hit=g["hit"], position=pack3(g["pos"]), normal=pack3(g["n"]), view=pack3(g["view"]), material=g["m"])
+    return gb, pack3(g["ng"])
+
+
 def surface_buffer(scene: Scene, opts: RenderOptions):
     """(`GBuffer` of the camera's pixel centres, (H, W, 3) geometric normals facing the viewer): what
     `gbuffer` returns, with the normal secondary rays leave the surface along (the ground truth's,
