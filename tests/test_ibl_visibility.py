@@ -88,6 +88,9 @@ def test_rungs_are_deterministic_and_planned():
         jp.RenderOptions(ibl_visibility="ssao")
     with pytest.raises(ValueError, match="ibl_samples"):
         jp.RenderOptions(ibl_samples=0)
+    # render_batch does not trace them: refused, not silently dropped
+    with pytest.raises(ValueError, match="render_batch does not trace"):
+        jp.render_batch(scene, env_intensity=np.ones(2, np.float32), ibl_visibility="ratio")
 
 
 @pytest.mark.slow  # ~20 s: four compiled gradients and their finite differences

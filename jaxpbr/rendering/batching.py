@@ -143,6 +143,9 @@ def render_batch(
     from jax.sharding import Mesh
 
     opts = _options(options, overrides, "render_batch")
+    if opts.ibl_visibility in ("ao", "ratio"):
+        raise ValueError(f"render_batch does not trace the IBL visibility rays (ibl_visibility={opts.ibl_visibility!r}); "
+                         "render the images one by one with jaxpbr.render, or use 'occlusion' or 'none'")
     b: dict[str, Any] = {}
     sizes: list = []
     if materials is not None:
