@@ -253,25 +253,42 @@ def host_mesh_hits(arrays, parts, mask=None) -> list:
     calls back to it. arrays: the meshes' concatenated arrays (NumPy or concrete). mask: optional
     (...) bool, the points to trace (the pixels that hit a surface); the others, and those a part's
     "trace" leaves out (`shadow_segments(normal=)`), are given "not blocked" (their visibility
-    multiplies nothing or 0)."""
+    multiplies nothing or 0). The rays of every part go to the ray engine in one call (every light,
+    every IBL visibility sample of a pass), which spreads them over its threads at once."""
     tree = lambda x: None if x is None else jax.tree_util.tree_map(np.asarray, x)  # noqa: E731
     verts, tris = np.asarray(arrays["positions"], np.float32), np.asarray(arrays["triangles"])
     alpha, transmit = tree(arrays["alpha"]), tree(arrays.get("transmit"))
-    out = []
+    pieces, spans = [], []
     for p in parts:
-        o, d, tfar = np.asarray(p["o32"]), np.asarray(p["l"]), np.asarray(p["tfar"])
+        o, d, tfar = np.asarray(p["o32"], np.float32), np.asarray(p["l"], np.float32), np.asarray(p["tfar"], np.float32)
+        shape = tfar.shape
         sel = mask
         if p.get("trace") is not None:
             sel = np.asarray(p["trace"], bool) if mask is None else np.asarray(mask, bool) & np.asarray(p["trace"], bool)
-        if sel is None:
-            out.append(_host_occluded(verts, tris, o, d, tfar, alpha, transmit))
+        o = o.reshape(-1, 3)
+        d = np.broadcast_to(d, shape + (3,)).reshape(-1, 3)
+        tfar = tfar.reshape(-1)
+        rows = None if sel is None else np.flatnonzero(np.broadcast_to(np.asarray(sel, bool), shape).reshape(-1))
+        if rows is not None:
+            o, d, tfar = o[rows], d[rows], tfar[rows]
+        pieces.append((o, d, tfar))
+        spans.append((shape, rows, len(tfar)))
+    if not pieces:
+        return []
+    if len(pieces) == 1:
+        o, d, tfar = pieces[0]
+    else:
+        o, d, tfar = (np.concatenate([pc[i] for pc in pieces]) for i in range(3))
+    hit = _host_occluded(verts, tris, o, d, tfar, alpha, transmit) if len(tfar) else np.zeros((0,) + (() if transmit is None else (3,)))
+    out, start = [], 0
+    for shape, rows, n in spans:
+        h = hit[start:start + n]
+        start += n
+        if rows is None:
+            out.append(np.asarray(h).reshape(shape + (() if transmit is None else (3,))))
             continue
-        shape = tfar.shape
-        rows = np.flatnonzero(np.broadcast_to(np.asarray(sel, bool), shape).reshape(-1))
-        d_rows = d if d.ndim == 1 else d.reshape(-1, 3)[rows]
-        hit = _host_occluded(verts, tris, o.reshape(-1, 3)[rows], d_rows, tfar.reshape(-1)[rows], alpha, transmit)
         full = np.zeros(shape, bool) if transmit is None else np.ones(shape + (3,), np.float32)
-        full.reshape((-1,) + full.shape[len(shape):])[rows] = hit
+        full.reshape((-1,) + full.shape[len(shape):])[rows] = h
         out.append(full)
     return out
 
