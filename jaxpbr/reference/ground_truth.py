@@ -579,11 +579,7 @@ def _surface_hits(scene, opts, o, d):
         return None
     mm = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *m)
     P, N, NG = np.concatenate(P), np.concatenate(N), np.concatenate(NG)
-    V = -d[sel]
-    # blocks of at most BLOCK vertices (one compiled BRDF program)
-    if len(sel) > BLOCK:
-        raise AssertionError("unreachable: a block's rays are at most BLOCK")
-    return sel, _Vertex(P, N, V, NG, mm, opts)
+    return sel, _Vertex(P, N, -d[sel], NG, mm, opts)
 
 
 def _flat_leaf(x, n):

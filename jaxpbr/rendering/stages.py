@@ -640,7 +640,7 @@ def _visible_ibl(scene: Scene, pre, p_plan: RenderPlan, opts: RenderOptions, g, 
     K = p_plan.ibl_samples
     b = g["ibl_vis"]
     dirs, vis = b["d"], b["vis"]
-    n, v = pack3(g["n"]), pack3(g["view"])
+    n = pack3(g["n"])
     nl = jnp.sum(dirs * n, -1)  # (K, ...)
     above = (nl > 0).astype(dtype)[..., None]
     if p_plan.ibl_visibility == "ao":
