@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _program_cache, color
-from ..conventions import CONVENTIONS, REC709_LUMA
+from ..conventions import CONVENTIONS, luminance
 from ..io import image
 from ..io.atomic import OutputSet
 from ..rendering.demo import demo_environment, demo_scene
@@ -344,7 +344,7 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     print(f"wrote {out} ({W}x{H}, model {model}, {tonemap} + {encoding}; render {t_render:.2f} s incl. precompute and compile)")
     if args.reference:
         surf = truth.hit
-        rel = float(np.mean(truth.stderr[surf] @ REC709_LUMA) / max(np.mean(truth.image[surf] @ REC709_LUMA), 1e-30)) if surf.any() else 0.0
+        rel = float(np.mean(luminance(truth.stderr[surf])) / max(np.mean(luminance(truth.image[surf])), 1e-30)) if surf.any() else 0.0
         what = "direct light" if args.bounces == 0 else f"direct light and {args.bounces} bounce(s)"
         print(f"  ground truth (float64, {what} with visibility): {truth.spp} spp in {truth.seconds:.2f} s; "
               f"mean standard error {rel:.2%} of the surfaces' mean luminance; "

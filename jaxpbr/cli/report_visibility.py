@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import REC709_LUMA
+from ..conventions import luminance
 from ..io import image
 from ..io.atomic import OutputSet, atomic_write
 from ..reference import reference_render
@@ -41,7 +41,7 @@ OPEN_VISIBLE = 0.9
 
 
 def _luma(x):
-    return np.asarray(x, np.float64)[..., :3] @ np.asarray(REC709_LUMA)
+    return luminance(np.asarray(x, np.float64)[..., :3])
 
 
 def _stats(rel, diff, ref_y):

@@ -40,6 +40,7 @@ textured materials, `stages.surface_of_rays`), each vertex adding its own light.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 
@@ -47,6 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..conventions import luminance
 from ..errors import InputError
 from ..ibl.cubemap import dir_to_face, face_to_dir, texel_directions, texel_solid_angles
 from ..rendering.mesh import Mesh
@@ -65,8 +67,6 @@ MIN_REFERENCE_ROUGHNESS = 1e-3
 BLOCK = 4096
 #: Extensions whose lobes the ground truth does not integrate.
 _UNSUPPORTED = ("transmission", "volume", "anisotropy")
-#: The luminance weights of the environment's importance distribution (Rec. 709).
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -250,10 +250,10 @@ class _EnvSampler:
             self.S = 1
             self.L = np.zeros((6, 1, 1, 3))
         om = texel_solid_angles(self.S)
-        w = np.maximum(self.L @ _LUMA, 0.0) * om
+        w = np.maximum(luminance(self.L), 0.0) * om
         if not np.isfinite(w.sum()) or not all(np.all(np.isfinite(x[3])) for x in suns):
             raise InputError("the environment's radiance is not finite; it has no ground truth")
-        powers = np.array([w.sum()] + [max(float(x[3] @ _LUMA), 0.0) * x[2] for x in suns])
+        powers = np.array([w.sum()] + [max(float(luminance(x[3])), 0.0) * x[2] for x in suns])
         if powers.sum() <= 0:  # nothing shines: sample the sphere uniformly (every estimate is 0)
             w, powers = om, np.array([1.0] + [0.0] * len(suns))
         self.p_part = powers / powers.sum()
@@ -270,7 +270,7 @@ class _EnvSampler:
         power above the map's median."""
         lv = np.asarray(env.radiance.levels[0], np.float64)[..., :3]
         S = lv.shape[1]
-        y = lv @ _LUMA
+        y = luminance(lv)
         om = texel_solid_angles(S)
         dirs = texel_directions(S)
         med = float(np.median(y))
@@ -280,18 +280,16 @@ class _EnvSampler:
             widen = float(np.asarray(light.angular_radius)) + 2.0 * (math.pi / 2) / S
             inside = dirs @ c >= math.cos(widen)
             held = float(np.sum((y[inside] - med) * om[inside]))
-            power = float(np.asarray(light.color, np.float64) @ _LUMA) * float(np.asarray(light.intensity))
+            power = float(luminance(np.asarray(light.color, np.float64))) * float(np.asarray(light.intensity))
             if held < 0.5 * power:
                 return False
         return True
 
     def _to_env(self, d):  # world -> the environment's frame (R_y(-rotation))
-        c, s = math.cos(-self.rot), math.sin(-self.rot)
-        return np.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
+        return _rotate_y(d, -self.rot)
 
     def _to_world(self, d):
-        c, s = math.cos(self.rot), math.sin(self.rot)
-        return np.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
+        return _rotate_y(d, self.rot)
 
     def _texel(self, d_env):
         face, s, t = dir_to_face(d_env, xp=np)
@@ -337,13 +335,17 @@ class _EnvSampler:
         return d
 
 
+def _rotate_y(d, angle: float):
+    """Directions (N, 3) turned by `angle` about +Y (the environment's rotation, `Environment`)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
+
+
 def _background(scene: Scene, d, hit):
     env = scene.environment
     if env is not None and env.show_background:
         with jax.enable_x64(False):
-            dd = d.reshape(-1, 3)
-            c, s = math.cos(-float(np.asarray(env.rotation))), math.sin(-float(np.asarray(env.rotation)))
-            de = np.stack([c * dd[:, 0] + s * dd[:, 2], dd[:, 1], -s * dd[:, 0] + c * dd[:, 2]], -1)
+            de = _rotate_y(d.reshape(-1, 3), -float(np.asarray(env.rotation)))
             bg = np.asarray(env.radiance.sample(jnp.asarray(de, jnp.float32), 0.0), np.float64)[:, :3] * float(np.asarray(env.intensity))
         return bg.reshape(d.shape)
     return np.broadcast_to(np.asarray(scene.background, np.float64), d.shape)
@@ -415,11 +417,14 @@ def _sample_cos(n, u):
     return (r * np.cos(phi))[:, None] * t + (r * np.sin(phi))[:, None] * b + z[:, None] * n
 
 
-@jax.jit
-def _brdf64(n, v, l, m, smith_correlated):
-    f_c = brdf(n, v, l, m, min_roughness=MIN_REFERENCE_ROUGHNESS, smith="correlated")
-    f_s = brdf(n, v, l, m, min_roughness=MIN_REFERENCE_ROUGHNESS, smith="separable")
-    return jnp.where(smith_correlated, f_c, f_s)
+@functools.partial(jax.jit, static_argnames=("smith",))
+def _brdf64(n, v, l, m, *, smith):
+    return brdf(n, v, l, m, min_roughness=MIN_REFERENCE_ROUGHNESS, smith=smith)
+
+
+@functools.partial(jax.jit, static_argnames=("smith",))
+def _punctual64(p, n, v, m, lights, vis, *, smith):
+    return shade_direct(p, n, v, m, lights, visibility=vis, smith=smith)
 
 
 class _Vertex:
@@ -434,14 +439,14 @@ class _Vertex:
         self.P, self.N, self.V, self.NG, self.m = P, N, V, NG, m
         self.mj = jax.tree_util.tree_map(lambda x: jnp.asarray(self.padf(np.asarray(x))), m)
         self.nj, self.vj = jnp.asarray(self.padf(N)), jnp.asarray(self.padf(V))
-        self.corr = jnp.asarray(opts.smith != "separable")
+        self.smith = opts.smith
         side = np.where(np.sum(NG * V, -1, keepdims=True) < 0, -NG, NG)  # the viewer's side
         self.up_origin = offset_ray_origin(P.astype(np.float32), side.astype(np.float32)).astype(np.float64)
         r = np.clip(np.broadcast_to(np.asarray(m.roughness, np.float64).reshape(-1)[:k], (k,)), 0.0, 1.0)
         self.a = np.maximum(r, MIN_REFERENCE_ROUGHNESS) ** 2
 
     def f(self, l):
-        return np.asarray(_brdf64(self.nj, self.vj, jnp.asarray(self.padf(l)), self.mj, self.corr))[: self.k]
+        return np.asarray(_brdf64(self.nj, self.vj, jnp.asarray(self.padf(l)), self.mj, smith=self.smith))[: self.k]
 
     def leaves_up(self, l):
         """bool (k,): l leaves on the viewer's side of the surface, above the shading normal's horizon."""
@@ -468,8 +473,8 @@ class _Vertex:
             o = offset_ray_origin(P.astype(np.float32), np.where(np.sum(NG * dl, -1, keepdims=True) < 0, -NG, NG).astype(np.float32))
             vis.append(~occ.occluded(o.astype(np.float64), dl, tfar))
         vis = np.stack(vis, -1).astype(np.float64)
-        direct = shade_direct(jnp.asarray(self.padf(P)), self.nj, self.vj, _dark(self.mj), punctual,
-                              visibility=jnp.asarray(self.padf(vis)), smith=opts.smith)
+        direct = _punctual64(jnp.asarray(self.padf(P)), self.nj, self.vj, _dark(self.mj), punctual,
+                             jnp.asarray(self.padf(vis)), smith=opts.smith)
         return out + np.asarray(direct)[: self.k]
 
     def distant_light(self, env, occ, u):

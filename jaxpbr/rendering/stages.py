@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._api import keyword_only
-from .._numerics import cpu_cond, pack3, small_sq, unpack3, vcross, vdot, vnormalize
+from .._numerics import cpu_cond, pack3, safe_normalize, safe_sqrt, small_sq, unpack3, vcross, vdot, vnormalize
 from .._program_cache import LOOP_EMITTERS, cached_jit, is_ahead, running_now
 from .._pytree import evolve, fields_of, subtree, unchecked
 from ..ibl.cubemap import padded
@@ -684,7 +684,7 @@ def _ratio_weights(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, dir
     for k in range(K):
         lk = dirs[k]
         nl = jnp.maximum(jnp.sum(lk * n, -1), 0.0)
-        h = vnormalize_packed(lk + v)
+        h = safe_normalize(lk + v)
         p_cos = pdf_cosine(nl)
         p_ggx = pdf_reflect(pdf_ggx_vndf(nv, jnp.sum(n * h, -1), jnp.sum(v * h, -1), a), jnp.sum(v * h, -1))
         p = p_cos if K == 1 else 0.5 * (p_cos + p_ggx)
@@ -755,7 +755,7 @@ def _transmit_rays(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, off
     if "volume" in ext:
         thick = jnp.broadcast_to(mc.thickness > 0, shape)
         ior = jnp.broadcast_to(jnp.maximum(refractive_index(mc), 1.0), shape)
-        rt = jnp.where(thick, r * jnp.sqrt(0.75 * (1.0 - 1.0 / ior)), r)
+        rt = jnp.where(thick, r * safe_sqrt(0.75 * (1.0 - 1.0 / ior)), r)  # (sqrt'(0) at ior 1: safe_sqrt)
         if "radius" in g:
             # The sphere's exit point and direction (`_volume_inputs`: the refracted chord).
             t_in = refract(d, n, 1.0 / ior)
@@ -768,7 +768,7 @@ def _transmit_rays(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, off
             centre = jnp.where(sphere[..., None], d_out, centre)
             start = jnp.where(sphere[..., None], exit_p, start)
             leave = jnp.where(sphere[..., None], n_far, leave)
-    origin = offset_ray_origin(start.astype(jnp.float32), vnormalize_packed(leave).astype(jnp.float32)).astype(dtype)
+    origin = offset_ray_origin(start.astype(jnp.float32), safe_normalize(leave).astype(jnp.float32)).astype(dtype)
     # Ray differentials carried to the surface (dO' = dO + t dD; the directions' unchanged).
     if isinstance(offset, Rays):
         df = offset.diff.astype(dtype)
@@ -798,10 +798,6 @@ def _transmit_rays(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, g, off
     return rays, flat(w)
 
 
-def vnormalize_packed(x):
-    return pack3(vnormalize(unpack3(x)))
-
-
 def _transmitted(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, g, offset, staged: bool):
     """What the transmitted rays of a pass's surfaces see (`_transmit_rays`): the scene's surfaces
     shaded by the same stages one level deeper (that level's transmission traced again while levels
@@ -826,7 +822,7 @@ def _transmitted(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
         idx = jax.device_put(np.concatenate([active, np.full(size - active.size, active[0])]).astype(np.int32))
         sub = _gather_rays_jit(rays, idx)
         c, hit = _render_pass(scene, assets, child, opts, sub, staged, with_hit=True)
-        c, hit = _scatter_jit(c, hit, idx, int(active.size), w.shape)
+        c, hit = _scatter_jit(c, hit, idx, jnp.int32(active.size), w.shape)
         return {"L": c, "hit": hit, "d": rays.d, "w": w}
     c, hit = _render_pass(scene, assets, child, opts, rays, staged, with_hit=True)
     return {"L": c, "hit": hit, "d": rays.d, "w": w}
@@ -840,7 +836,7 @@ def _gather_rays(rays: Rays, idx):
     return jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[len(rays.key.shape):])[idx], rays)
 
 
-def _scatter(c, hit, idx, n: int, shape):
+def _scatter(c, hit, idx, n, shape):
     """The gathered rays' (radiance, hit) back in their places (..., 3), (...); 0 / False elsewhere
     (only the first n entries of idx are rays: the rest repeat the first)."""
     total = int(np.prod(shape))
@@ -851,7 +847,7 @@ def _scatter(c, hit, idx, n: int, shape):
 
 
 _gather_rays_jit = cached_jit(_gather_rays)
-_scatter_jit = cached_jit(_scatter, static_argnums=(3, 4))
+_scatter_jit = cached_jit(_scatter, static_argnums=(4,))  # (the count is an argument: no program per count)
 
 
 def _behind_change(scene: Scene, pre, p_plan: RenderPlan, b, dtype):
