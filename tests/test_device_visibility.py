@@ -10,6 +10,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr.rendering import execute, mesh, stages
+from jaxpbr.rendering.assets import _env_assets
 from jaxpbr.rendering.demo import uv_sphere
 from jaxpbr.rendering.options import RenderOptions
 from jaxpbr.rendering.plan import plan
@@ -203,3 +204,29 @@ def test_device_accel_is_remembered_for_the_same_arrays_and_rebuilt_for_new_ones
     mine += 1.0  # the caller's array, not the Mesh's
     np.testing.assert_array_equal(host.positions, P.astype(np.float32))
     assert mesh.device_accel([host]) is kept and len(asked) == n + 1
+
+
+@pytest.mark.parametrize("vis", ["ao", "ratio"])
+def test_the_ibl_visibility_rungs_trace_on_the_device_as_on_the_host(one_program, vis):
+    """The traced IBL rungs with the device BVH in the program (a GPU's path, run here on the CPU):
+    the image of the host engine's staged render, in render and in render_batch, and no callback
+    left in the program."""
+    from jaxpbr.rendering.demo import concave_scene
+
+    scene = concave_scene(width=24, height=18)
+    opts = RenderOptions(ibl_visibility=vis, ibl_samples=4)
+    one_program.staged = True
+    host = np.asarray(jp.render(scene, options=opts))
+    one_program.staged, one_program.device_visibility = False, True
+    device = np.asarray(jp.render(scene, options=opts))
+    np.testing.assert_allclose(device, host, rtol=1e-5, atol=1e-6)
+    batch = np.asarray(jp.render_batch(scene, env_intensity=np.asarray([1.0, 0.5], np.float32), options=opts))
+    np.testing.assert_allclose(batch[0], host, rtol=1e-5, atol=1e-6)
+    # not vacuous: the rays do shadow the box's inside against the unshadowed split sum
+    plain = np.asarray(jp.render(scene, options=RenderOptions(ibl_visibility="none")))
+    assert (host.sum(-1) < plain.sum(-1) - 1e-3).mean() > 0.2
+    p = plan(scene, options=opts)
+    accel_scene = execute._with_device_accel(scene, one_program)
+    assert isinstance(accel_scene, stages.AccelScene)
+    text = str(jax.make_jaxpr(stages._render_traced, static_argnums=(2, 3))(accel_scene, _env_assets(scene.environment, p, opts), p, opts))
+    assert "callback" not in text

@@ -88,9 +88,19 @@ def test_rungs_are_deterministic_and_planned():
         jp.RenderOptions(ibl_visibility="ssao")
     with pytest.raises(ValueError, match="ibl_samples"):
         jp.RenderOptions(ibl_samples=0)
-    # render_batch does not trace them: refused, not silently dropped
-    with pytest.raises(ValueError, match="render_batch does not trace"):
-        jp.render_batch(scene, env_intensity=np.ones(2, np.float32), ibl_visibility="ratio")
+
+
+def test_render_batch_traces_the_rungs_as_render_does():
+    """render_batch (staged on the CPU: the rays of each chunk in one program) gives each image what
+    render gives it, ray for ray: the wall's shadow is in every image of the batch."""
+    scene = wall_scene(12, 8)
+    ints = np.asarray([1.0, 0.5], np.float32)
+    opts = dict(extract_lights=False, multiscatter=False, ibl_visibility="ratio", ibl_samples=4)
+    imgs = np.asarray(jp.render_batch(scene, env_intensity=ints, **opts), np.float64)
+    for i, s in enumerate(ints):
+        one = shade(scene.replace(environment=scene.environment.replace(intensity=float(s))), "ratio", 4)
+        np.testing.assert_allclose(imgs[i], one, rtol=1e-6, atol=1e-7)
+    assert abs(imgs[0, ..., 0].mean() / (ALBEDO * 0.5) - 1) < 0.1  # shadowed, not the unshadowed ALBEDO
 
 
 @pytest.mark.slow  # ~20 s: four compiled gradients and their finite differences

@@ -370,3 +370,30 @@ def test_smooth_glass_under_an_orthographic_camera(smooth_asset):
     assert keep.sum() > 200
     err = np.abs(img - ref)[keep]
     assert np.median(err) < 1e-5 and err.max() < 1e-4, (np.median(err), err.max())
+
+
+def test_render_batch_and_one_program_trace_the_transmitted_rays(smooth_asset):
+    """render_batch (staged on the CPU) and a render as one program (a GPU's path, run here on the
+    CPU) see the quad through the glass as the staged render does. (Transmissive meshes walk their
+    shadow rays' hits on the host engine: the device BVH leaves them to it, `mesh.device_accel`.)"""
+    from jaxpbr.rendering import execute
+
+    cam = jp.Camera(**CAM, width=24, height=18)
+    scene = jp.load_gltf(smooth_asset, camera=cam, width=24, height=18, environment=uniform_sky())
+    opts = dict(extract_lights=False, shadows=False, multiscatter=False)
+    one = np.asarray(jp.render(scene, **opts))
+    old = np.asarray(jp.render(scene, transmission_depth=0, **opts))
+    assert np.abs(one - old).max() > 0.5  # the traced quad, not the sky, is behind the glass
+    ints = np.asarray([1.0, 0.5], np.float32)
+    batch = np.asarray(jp.render_batch(scene, env_intensity=ints, **opts))
+    np.testing.assert_allclose(batch[0], one, rtol=1e-5, atol=1e-6)
+    half = np.asarray(jp.render(scene.replace(environment=scene.environment.replace(intensity=0.5)), **opts))
+    np.testing.assert_allclose(batch[1], half, rtol=1e-5, atol=1e-6)
+    saved = (execute.EXECUTION.staged, execute.EXECUTION.device_visibility)
+    try:
+        execute.EXECUTION.staged, execute.EXECUTION.device_visibility = False, True
+        assert execute._with_device_accel(scene, execute.EXECUTION) is scene
+        device = np.asarray(jp.render(scene, **opts))
+    finally:
+        execute.EXECUTION.staged, execute.EXECUTION.device_visibility = saved
+    np.testing.assert_allclose(device, one, rtol=1e-5, atol=1e-6)

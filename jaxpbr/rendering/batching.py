@@ -21,7 +21,7 @@ from .execute import EXECUTION, _staged, _supersampled, _with_device_accel
 from .options import RenderOptions, _options
 from .plan import plan
 from .scene import Scene, TexturedMaterial
-from .stages import _geometry, _render_traced, _shade_direct, _shade_rest, _sun_shadows, _texture
+from .stages import _geometry, _ibl_visibility, _ratio_weights, _render_traced, _shade_direct, _shade_rest, _sun_shadows, _texture, _transmitted
 
 #: Default pixels per chunk of `render_batch` (images x pixels x samples), bounding memory.
 BATCH_CHUNK_PIXELS = 1 << 21
@@ -143,9 +143,6 @@ def render_batch(
     from jax.sharding import Mesh
 
     opts = _options(options, overrides, "render_batch")
-    if opts.ibl_visibility in ("ao", "ratio"):
-        raise ValueError(f"render_batch does not trace the IBL visibility rays (ibl_visibility={opts.ibl_visibility!r}); "
-                         "render the images one by one with jaxpbr.render, or use 'occlusion' or 'none'")
     b: dict[str, Any] = {}
     sizes: list = []
     if materials is not None:
@@ -259,6 +256,31 @@ def _sun_chunk(scene, bc, g, env_lights, *, p_plan, opts, objects_idx):
 
 
 @functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
+def _ibl_vis_chunk(scene, bc, g, off, pre, *, p_plan, opts, objects_idx):
+    """The IBL visibility rays of the traced rungs (`stages._ibl_visibility`) and, for "ratio",
+    their weights (`stages._ratio_weights`), per image: one program per chunk, the meshes' rays
+    through the ray engine (the callback on the CPU, the device BVH in the program off it)."""
+    def one(x, gx):
+        sc = _substitute(scene, x, objects_idx)
+        vis = _ibl_visibility(sc, p_plan, opts, gx, off, False)
+        if p_plan.ibl_visibility == "ratio":
+            vis = {**vis, "w": _ratio_weights(sc, p_plan, opts, gx, vis["d"], pre)}
+        return {**gx, "ibl_vis": vis}
+
+    return jax.vmap(one)(bc, g)
+
+
+@functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
+def _transmit_chunk(scene, bc, g, off, assets, *, p_plan, opts, objects_idx):
+    """What the transmitted rays see (`stages._transmitted`: the surfaces behind shaded one level
+    deeper), per image."""
+    def one(x, gx):
+        return {**gx, "behind": _transmitted(_substitute(scene, x, objects_idx), assets, p_plan, opts, gx, off, False)}
+
+    return jax.vmap(one)(bc, g)
+
+
+@functools.partial(jax.jit, static_argnames=_CHUNK_STATIC)
 def _rest_chunk(scene, bc, g, assets, direct, *, p_plan, opts, objects_idx):
     def one(x, gx, dx):
         return _shade_rest(_substitute(scene, x, objects_idx), assets, p_plan, opts, gx, dx)
@@ -283,6 +305,10 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
             direct = _direct_chunk(sc, bc, g, **kw)
             if p_plan.shadows and p_plan.env_lights:  # as `stages._shade_pass` does
                 g = _sun_chunk(sc, bc, g, assets[3], **kw)
+            if p_plan.ibl_samples:
+                g = _ibl_vis_chunk(sc, bc, g, off, assets[1], **kw)
+            if p_plan.transmission_depth and p_plan.ibl:
+                g = _transmit_chunk(sc, bc, g, off, assets, **kw)
             return _rest_chunk(sc, bc, g, assets, direct, **kw)
 
         return run
