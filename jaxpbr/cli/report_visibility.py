@@ -10,10 +10,15 @@ truth is `jaxpbr.reference_render` (float64 Monte Carlo of the direct light with
 
 Per rung, on the pixels where the truth sees a surface: the mean, median, 90th and 99th percentile
 of the per-pixel relative luminance error |Y - Y_ref| / Y_ref (Y_ref floored at 1 % of its mean),
-the bias (mean signed luminance difference over the mean reference luminance), each over all
+the image's relative L1 error sum |Y - Y_ref| / sum Y_ref (the per-pixel errors weighted by the
+truth's luminance: dark pixels do not dominate it), the bias (mean signed luminance difference over
+the mean reference luminance), each over all
 surface pixels, the open ones (the truth's visible fraction of the sky >= 0.9) and the occluded
 ones (< 0.9); the warm time per frame (median of --repeats renders) and its ratio to the "none"
-frame in the same process. Outputs: Markdown and JSON tables and a PNG per rung of the per-pixel
+frame in the same process. Pixels whose shading normal faces away from the viewer (n.v <= 0, where
+normal maps bend it) are counted and left out: the glTF BRDF the truth integrates (`jp.brdf`) is 0
+there, while the split sum, as Filament's and the glTF viewer's, clamps n.v and reflects; neither is a
+truth to measure against. Outputs: Markdown and JSON tables and a PNG per rung of the per-pixel
 relative error (black 0, white >= 50 %).
 """
 
@@ -30,7 +35,7 @@ from ..conventions import luminance
 from ..io import image
 from ..io.atomic import OutputSet, atomic_write
 from ..reference import reference_render
-from ..rendering.renderer import RenderOptions, render
+from ..rendering.renderer import RenderOptions, gbuffer, render
 
 __all__ = ["DEFAULT_SAMPLES", "OPEN_VISIBLE", "visibility_markdown", "visibility_report", "write_visibility_report"]
 
@@ -49,7 +54,7 @@ def _stats(rel, diff, ref_y):
         return None
     return {"pixels": int(rel.size), "mean": float(rel.mean()), "median": float(np.median(rel)),
             "p90": float(np.percentile(rel, 90)), "p99": float(np.percentile(rel, 99)),
-            "bias": float(diff.mean() / max(ref_y.mean(), 1e-300))}
+            "l1": float(np.abs(diff).sum() / max(ref_y.sum(), 1e-300)), "bias": float(diff.mean() / max(ref_y.mean(), 1e-300))}
 
 
 def visibility_report(scene, *, name: str = "scene", samples=DEFAULT_SAMPLES, spp: int = 256, seed: int = 0,
@@ -59,7 +64,10 @@ def visibility_report(scene, *, name: str = "scene", samples=DEFAULT_SAMPLES, sp
     t0 = time.perf_counter()
     truth = reference_render(scene, spp=spp, seed=seed)
     log(f"ground truth: {spp} spp in {truth.seconds:.1f} s")
-    hit = truth.hit
+    g = gbuffer(scene)
+    facing = np.sum(np.asarray(g.normal, np.float64) * np.asarray(g.view, np.float64), -1) > 0
+    back = truth.hit & ~facing
+    hit = truth.hit & facing
     ref_y = _luma(truth.image)
     floor = 0.01 * ref_y[hit].mean() if hit.any() else 1e-300
     open_px = hit & (truth.visible >= OPEN_VISIBLE)
@@ -95,7 +103,7 @@ def visibility_report(scene, *, name: str = "scene", samples=DEFAULT_SAMPLES, sp
     return {"config": {"scene": name, "width": W, "height": H, "spp": spp, "seed": seed, "samples": list(samples),
                        "open_visible": OPEN_VISIBLE, "repeats": repeats, "seconds": time.perf_counter() - t0},
             "truth": {"seconds": truth.seconds, "surface_pixels": int(hit.sum()), "open_pixels": int(open_px.sum()),
-                      "occluded_pixels": int(occ_px.sum()), "stderr_mean": float(se.mean()), "stderr_p90": float(np.percentile(se, 90))},
+                      "occluded_pixels": int(occ_px.sum()), "back_facing_pixels": int(back.sum()), "stderr_mean": float(se.mean()), "stderr_p90": float(np.percentile(se, 90))},
             "rungs": rungs, "errors": errors}
 
 
@@ -104,17 +112,18 @@ def visibility_markdown(result: dict) -> str:
     lines = [
         f"IBL visibility against the ground truth: {c['scene']}, {c['width']}x{c['height']}, truth {c['spp']} spp "
         f"({tr['seconds']:.1f} s; its standard error {tr['stderr_mean']:.2%} mean, {tr['stderr_p90']:.2%} p90 of the luminance); "
-        f"{tr['surface_pixels']} surface pixels, {tr['open_pixels']} open (visible >= {c['open_visible']:g}), {tr['occluded_pixels']} occluded",
+        f"{tr['surface_pixels']} surface pixels, {tr['open_pixels']} open (visible >= {c['open_visible']:g}), {tr['occluded_pixels']} occluded"
+        + (f"; {tr['back_facing_pixels']} left out (shading normal facing away from the viewer)" if tr.get("back_facing_pixels") else ""),
         "",
-        "| rung | mean | median | p90 | p99 | bias | open mean | occluded mean | occluded bias | s/frame | x none |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| rung | mean | median | p90 | p99 | L1 | bias | open mean | occluded mean | occluded L1 | occluded bias | s/frame | x none |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["rungs"]:
         a, o, q = r["all"], r["open"], r["occluded"]
         f = (lambda d, k: f"{d[k]:.1%}" if d else "-")  # noqa: E731
         signed = (lambda d: f"{d['bias']:+.1%}" if d else "-")  # noqa: E731
-        lines.append(f"| {r['label']} | {a['mean']:.1%} | {a['median']:.1%} | {a['p90']:.1%} | {a['p99']:.1%} | {a['bias']:+.1%} | "
-                     f"{f(o, 'mean')} | {f(q, 'mean')} | {signed(q)} | "
+        lines.append(f"| {r['label']} | {a['mean']:.1%} | {a['median']:.1%} | {a['p90']:.1%} | {a['p99']:.1%} | {a['l1']:.1%} | {a['bias']:+.1%} | "
+                     f"{f(o, 'mean')} | {f(q, 'mean')} | {f(q, 'l1')} | {signed(q)} | "
                      f"{r['seconds']:.3f} | {r['x_none']:.2f} |")
     return "\n".join(lines)
 

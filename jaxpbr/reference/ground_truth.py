@@ -65,6 +65,8 @@ __all__ = ["MIN_REFERENCE_ROUGHNESS", "ReferenceImage", "reference_render"]
 MIN_REFERENCE_ROUGHNESS = 1e-3
 #: Pixels per block of the integration (one compiled BRDF program per block shape).
 BLOCK = 4096
+#: Samples of a block's distant light estimated together (3 rays each: one call of the ray engine).
+SAMPLE_CHUNK = 8
 #: Extensions whose lobes the ground truth does not integrate.
 _UNSUPPORTED = ("transmission", "volume", "anisotropy")
 
@@ -237,7 +239,7 @@ class _EnvSampler:
             d = -np.asarray(light.direction, np.float64)
             d = d / np.linalg.norm(d)
             if frame:
-                d = self._to_world(d[None])[0]
+                d = _rotate_y(d[None], self.rot)[0]
             th = float(np.asarray(light.angular_radius))
             rad = np.asarray(light.color, np.float64) * float(np.asarray(light.intensity)) / (math.pi * math.sin(th) ** 2)
             suns.append((d, math.cos(th), 2.0 * math.pi * (1.0 - math.cos(th)), rad * (scale if frame else 1.0)))
@@ -261,6 +263,7 @@ class _EnvSampler:
         self.p_texel = (w / w.sum()).reshape(-1)
         self.cdf = np.cumsum(self.p_texel)
         self.cdf[-1] = 1.0
+        self._arrays = None
 
     @staticmethod
     def _holds_suns(env, lights) -> bool:
@@ -285,54 +288,74 @@ class _EnvSampler:
                 return False
         return True
 
-    def _to_env(self, d):  # world -> the environment's frame (R_y(-rotation))
-        return _rotate_y(d, -self.rot)
+    def arrays(self) -> dict:
+        """The tables as float64 device arrays, for the compiled estimator (`_distant_proposals`)."""
+        if self._arrays is None:
+            ns = len(self.suns)
+            edges = np.cumsum(self.p_part)
+            self._arrays = {k: jnp.asarray(v, jnp.float64) for k, v in {
+                "L": self.L, "p_texel": self.p_texel, "cdf": self.cdf, "p_part": self.p_part, "edges": edges,
+                "lo": np.concatenate([[0.0], edges[:-1]]), "rot": np.array([math.cos(self.rot), math.sin(self.rot)]),
+                "sun_c": np.array([x[0] for x in self.suns]).reshape(ns, 3), "sun_cmax": np.array([x[1] for x in self.suns]),
+                "sun_om": np.array([x[2] for x in self.suns]), "sun_rad": np.array([x[3] for x in self.suns]).reshape(ns, 3)}.items()}
+        return self._arrays
 
-    def _to_world(self, d):
-        return _rotate_y(d, self.rot)
 
-    def _texel(self, d_env):
-        face, s, t = dir_to_face(d_env, xp=np)
-        j = np.minimum((s * self.S).astype(int), self.S - 1)
-        i = np.minimum((t * self.S).astype(int), self.S - 1)
-        sc, tc = 2.0 * s - 1.0, 2.0 * t - 1.0
-        return face, i, j, sc, tc
+# The distant light's sampling, density and radiance on the tables of `_EnvSampler.arrays` (E), in
+# JAX (float64 inside `_distant_proposals`).
 
-    def radiance(self, d):
-        face, i, j, _, _ = self._texel(self._to_env(d))
-        out = self.L[face, i, j]
-        for c, cmax, _, rad in self.suns:
-            out = out + np.where((d @ c >= cmax)[:, None], rad, 0.0)
-        return out
 
-    def pdf(self, d):
-        face, i, j, sc, tc = self._texel(self._to_env(d))
-        p = self.p_texel.reshape(6, self.S, self.S)[face, i, j]
-        out = self.p_part[0] * p * (1.0 + sc * sc + tc * tc) ** 1.5 / (2.0 / self.S) ** 2
-        for k, (c, cmax, om, _) in enumerate(self.suns):
-            out = out + np.where(d @ c >= cmax, self.p_part[k + 1] / om, 0.0)
-        return out
+def _turn(d, E, sign):
+    """Directions (N, 3) turned by sign x the environment's rotation about +Y (+1: environment ->
+    world, -1: world -> environment)."""
+    c, s = E["rot"][0], sign * E["rot"][1]
+    return jnp.stack([c * d[:, 0] + s * d[:, 2], d[:, 1], -s * d[:, 0] + c * d[:, 2]], -1)
 
-    def sample(self, u):
-        """(N, 3) unit world directions from (N, 3) uniform numbers (u[:, 0] also picks the part)."""
-        edges = np.cumsum(self.p_part)
-        part = np.minimum(np.searchsorted(edges, u[:, 0], side="right"), len(edges) - 1)
-        lo = np.concatenate([[0.0], edges[:-1]])[part]
-        u0 = np.clip((u[:, 0] - lo) / np.maximum(self.p_part[part], 1e-300), 0.0, 1.0 - 1e-16)  # reused within the part
-        k = np.minimum(np.searchsorted(self.cdf, u0, side="right"), self.cdf.size - 1)
-        face, rem = np.divmod(k, self.S * self.S)
-        i, j = np.divmod(rem, self.S)
-        d = face_to_dir(face, (j + u[:, 1]) / self.S, (i + u[:, 2]) / self.S, xp=np)
-        d = self._to_world(d / np.linalg.norm(d, axis=-1, keepdims=True))
-        for n_s, (c, cmax, _, _) in enumerate(self.suns):
-            on = part == n_s + 1
-            if on.any():
-                ct = 1.0 - u[on, 1] * (1.0 - cmax)
-                st = np.sqrt(np.maximum(1.0 - ct * ct, 0.0))
-                phi = 2.0 * math.pi * u[on, 2]
-                t, b = _frame(np.broadcast_to(c, (int(on.sum()), 3)))
-                d[on] = (st * np.cos(phi))[:, None] * t + (st * np.sin(phi))[:, None] * b + ct[:, None] * c
-        return d
+
+def _env_texel(E, d_env):
+    S = E["L"].shape[1]
+    face, s, t = dir_to_face(d_env, xp=jnp)
+    j = jnp.minimum((s * S).astype(jnp.int32), S - 1)
+    i = jnp.minimum((t * S).astype(jnp.int32), S - 1)
+    return face, i, j, 2.0 * s - 1.0, 2.0 * t - 1.0
+
+
+def _env_radiance(E, d):
+    face, i, j, _, _ = _env_texel(E, _turn(d, E, -1.0))
+    inside = d @ E["sun_c"].T >= E["sun_cmax"]  # (N, suns)
+    return E["L"][face, i, j] + inside.astype(d.dtype) @ E["sun_rad"]
+
+
+def _env_pdf(E, d):
+    S = E["L"].shape[1]
+    face, i, j, sc, tc = _env_texel(E, _turn(d, E, -1.0))
+    p = E["p_texel"].reshape(6, S, S)[face, i, j]
+    out = E["p_part"][0] * p * (1.0 + sc * sc + tc * tc) ** 1.5 / (2.0 / S) ** 2
+    inside = d @ E["sun_c"].T >= E["sun_cmax"]
+    return out + inside.astype(d.dtype) @ (E["p_part"][1:] / jnp.maximum(E["sun_om"], 1e-300))
+
+
+def _env_sample(E, u):
+    """(N, 3) unit world directions from (N, 3) uniform numbers (u[:, 0] also picks the part:
+    the texels or a disc, by power)."""
+    S = E["L"].shape[1]
+    n_parts = E["p_part"].shape[0]
+    part = jnp.minimum(jnp.searchsorted(E["edges"], u[:, 0], side="right"), n_parts - 1)
+    u0 = jnp.clip((u[:, 0] - E["lo"][part]) / jnp.maximum(E["p_part"][part], 1e-300), 0.0, 1.0 - 1e-16)  # reused within the part
+    k = jnp.minimum(jnp.searchsorted(E["cdf"], u0, side="right"), E["cdf"].shape[0] - 1)
+    face, rem = jnp.divmod(k, S * S)
+    i, j = jnp.divmod(rem, S)
+    d = face_to_dir(face, (j + u[:, 1]) / S, (i + u[:, 2]) / S, xp=jnp)
+    d = _turn(d / jnp.linalg.norm(d, axis=-1, keepdims=True), E, 1.0)
+    for n_s in range(n_parts - 1):
+        c, cmax = E["sun_c"][n_s], E["sun_cmax"][n_s]
+        ct = 1.0 - u[:, 1] * (1.0 - cmax)
+        st = jnp.sqrt(jnp.maximum(1.0 - ct * ct, 0.0))
+        phi = 2.0 * math.pi * u[:, 2]
+        t, b = _frame(jnp.broadcast_to(c, d.shape), jnp)
+        on_disc = (st * jnp.cos(phi))[:, None] * t + (st * jnp.sin(phi))[:, None] * b + ct[:, None] * c
+        d = jnp.where((part == n_s + 1)[:, None], on_disc, d)
+    return d
 
 
 def _rotate_y(d, angle: float):
@@ -355,13 +378,13 @@ def _background(scene: Scene, d, hit):
 # the integral
 
 
-def _frame(n):
+def _frame(n, xp=np):
     """(t, b) completing unit normals n (N, 3) to orthonormal frames (Duff et al. 2017)."""
-    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    sign = xp.where(n[:, 2] >= 0, 1.0, -1.0)
     a = -1.0 / (sign + n[:, 2])
     b = n[:, 0] * n[:, 1] * a
-    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], -1)
-    bb = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], -1)
+    t = xp.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], -1)
+    bb = xp.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], -1)
     return t, bb
 
 
@@ -370,51 +393,51 @@ def _ggx_d(noh, a2):
     return a2 / (math.pi * d * d)
 
 
-def _g1(c, a2):
-    c = np.maximum(c, 1e-300)
-    return 2.0 * c / (c + np.sqrt(a2 + (1.0 - a2) * c * c))
+def _g1(c, a2, xp=np):
+    c = xp.maximum(c, 1e-300)
+    return 2.0 * c / (c + xp.sqrt(a2 + (1.0 - a2) * c * c))
 
 
-def _pdf_ggx(n, v, l, a2):
+def _pdf_ggx(n, v, l, a2, xp=np):
     """Density (per steradian) of l = reflect(v, h) with h from the visible normals of GGX at a2."""
     h = v + l
-    h = h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), 1e-300)
-    noh = np.sum(n * h, -1)
-    nov = np.maximum(np.sum(n * v, -1), 1e-300)
-    ok = (np.sum(n * l, -1) > 0) & (noh > 0)
-    return np.where(ok, _g1(nov, a2) * _ggx_d(noh, a2) / (4.0 * nov), 0.0)
+    h = h / xp.maximum(xp.linalg.norm(h, axis=-1, keepdims=True), 1e-300)
+    noh = xp.sum(n * h, -1)
+    nov = xp.maximum(xp.sum(n * v, -1), 1e-300)
+    ok = (xp.sum(n * l, -1) > 0) & (noh > 0)
+    return xp.where(ok, _g1(nov, a2, xp) * _ggx_d(noh, a2) / (4.0 * nov), 0.0)
 
 
-def _sample_ggx(n, v, a, u):
+def _sample_ggx(n, v, a, u, xp=np):
     """Heitz 2018: a visible normal of GGX (alpha a) for view v, in the world; l = reflect(v, h)."""
-    t, b = _frame(n)
-    vl = np.stack([np.sum(v * t, -1), np.sum(v * b, -1), np.sum(v * n, -1)], -1)
-    vh = np.stack([a * vl[:, 0], a * vl[:, 1], vl[:, 2]], -1)
-    vh /= np.linalg.norm(vh, axis=-1, keepdims=True)
+    t, b = _frame(n, xp)
+    vl = xp.stack([xp.sum(v * t, -1), xp.sum(v * b, -1), xp.sum(v * n, -1)], -1)
+    vh = xp.stack([a * vl[:, 0], a * vl[:, 1], vl[:, 2]], -1)
+    vh = vh / xp.linalg.norm(vh, axis=-1, keepdims=True)
     lensq = vh[:, 0] ** 2 + vh[:, 1] ** 2
-    safe = np.where(lensq > 0, lensq, 1.0)
-    T1 = np.where(lensq[:, None] > 0, np.stack([-vh[:, 1], vh[:, 0], np.zeros_like(lensq)], -1) / np.sqrt(safe)[:, None],
-                  np.array([1.0, 0.0, 0.0]))
-    T2 = np.cross(vh, T1)
-    r = np.sqrt(u[:, 0])
+    safe = xp.where(lensq > 0, lensq, 1.0)
+    T1 = xp.where(lensq[:, None] > 0, xp.stack([-vh[:, 1], vh[:, 0], xp.zeros_like(lensq)], -1) / xp.sqrt(safe)[:, None],
+                  xp.array([1.0, 0.0, 0.0]))
+    T2 = xp.cross(vh, T1)
+    r = xp.sqrt(u[:, 0])
     phi = 2.0 * math.pi * u[:, 1]
-    t1 = r * np.cos(phi)
-    t2 = r * np.sin(phi)
+    t1 = r * xp.cos(phi)
+    t2 = r * xp.sin(phi)
     s = 0.5 * (1.0 + vh[:, 2])
-    t2 = (1.0 - s) * np.sqrt(np.maximum(1.0 - t1 * t1, 0.0)) + s * t2
-    nh = t1[:, None] * T1 + t2[:, None] * T2 + np.sqrt(np.maximum(1.0 - t1 * t1 - t2 * t2, 0.0))[:, None] * vh
-    hl = np.stack([a * nh[:, 0], a * nh[:, 1], np.maximum(nh[:, 2], 0.0)], -1)
-    hl /= np.maximum(np.linalg.norm(hl, axis=-1, keepdims=True), 1e-300)
+    t2 = (1.0 - s) * xp.sqrt(xp.maximum(1.0 - t1 * t1, 0.0)) + s * t2
+    nh = t1[:, None] * T1 + t2[:, None] * T2 + xp.sqrt(xp.maximum(1.0 - t1 * t1 - t2 * t2, 0.0))[:, None] * vh
+    hl = xp.stack([a * nh[:, 0], a * nh[:, 1], xp.maximum(nh[:, 2], 0.0)], -1)
+    hl = hl / xp.maximum(xp.linalg.norm(hl, axis=-1, keepdims=True), 1e-300)
     h = hl[:, :1] * t + hl[:, 1:2] * b + hl[:, 2:3] * n
-    return 2.0 * np.sum(v * h, -1, keepdims=True) * h - v
+    return 2.0 * xp.sum(v * h, -1, keepdims=True) * h - v
 
 
-def _sample_cos(n, u):
-    t, b = _frame(n)
-    r = np.sqrt(u[:, 0])
+def _sample_cos(n, u, xp=np):
+    t, b = _frame(n, xp)
+    r = xp.sqrt(u[:, 0])
     phi = 2.0 * math.pi * u[:, 1]
-    z = np.sqrt(np.maximum(1.0 - u[:, 0], 0.0))
-    return (r * np.cos(phi))[:, None] * t + (r * np.sin(phi))[:, None] * b + z[:, None] * n
+    z = xp.sqrt(xp.maximum(1.0 - u[:, 0], 0.0))
+    return (r * xp.cos(phi))[:, None] * t + (r * xp.sin(phi))[:, None] * b + z[:, None] * n
 
 
 @functools.partial(jax.jit, static_argnames=("smith",))
@@ -425,6 +448,35 @@ def _brdf64(n, v, l, m, *, smith):
 @functools.partial(jax.jit, static_argnames=("smith",))
 def _punctual64(p, n, v, m, lights, vis, *, smith):
     return shade_direct(p, n, v, m, lights, visibility=vis, smith=smith)
+
+
+@functools.partial(jax.jit, static_argnames=("smith",))
+def _distant_proposals(N, V, NG, a, m, E, u, *, smith):
+    """The distant light's three proposals per sample (the environment, GGX visible normals, the
+    cosine) for S samples of k pixels (u (S, k, 7); N, V, NG (k, 3), a (k,), m per pixel) ->
+    directions (3, S, k, 3), live (3, S, k) (above both normals, density > 0: to be traced),
+    contributions (3, S, k, 3) f L cos / (p_env + p_ggx + p_cos) as if unblocked, and up (3, S, k)
+    (on the viewer's side of the geometric normal)."""
+    S, k = u.shape[:2]
+    tile = lambda x: jnp.broadcast_to(x, (S,) + x.shape).reshape((S * k,) + x.shape[1:])  # noqa: E731
+    N, V, NG, a = tile(N), tile(V), tile(NG), tile(a)
+    m = jax.tree_util.tree_map(tile, m)
+    u = u.reshape(S * k, 7)
+    dirs, lives, cs, ups = [], [], [], []
+    for l in (_env_sample(E, u[:, 0:3]), _sample_ggx(N, V, a, u[:, 3:5], jnp), _sample_cos(N, u[:, 5:7], jnp)):
+        nl = jnp.sum(N * l, -1)
+        p = _env_pdf(E, l) + _pdf_ggx(N, V, l, a * a, jnp) + jnp.maximum(nl, 0.0) / math.pi
+        up = jnp.sum(NG * l, -1) * jnp.sum(NG * V, -1) > 0
+        live = (nl > 0) & up & (p > 0)
+        w = jnp.where(live, jnp.maximum(nl, 0.0) / jnp.where(live, p, 1.0), 0.0)
+        f = brdf(N, V, l, m, min_roughness=MIN_REFERENCE_ROUGHNESS, smith=smith)
+        c = jnp.where(live[:, None], f * _env_radiance(E, l) * w[:, None], 0.0)
+        dirs.append(l)
+        lives.append(live)
+        cs.append(c)
+        ups.append(up)
+    shape = lambda xs: jnp.stack(xs).reshape((3, S, k) + xs[0].shape[1:])  # noqa: E731
+    return shape(dirs), shape(lives), shape(cs), shape(ups)
 
 
 class _Vertex:
@@ -439,11 +491,13 @@ class _Vertex:
         self.P, self.N, self.V, self.NG, self.m = P, N, V, NG, m
         self.mj = jax.tree_util.tree_map(lambda x: jnp.asarray(self.padf(np.asarray(x))), m)
         self.nj, self.vj = jnp.asarray(self.padf(N)), jnp.asarray(self.padf(V))
+        self.ngj = jnp.asarray(self.padf(NG))
         self.smith = opts.smith
         side = np.where(np.sum(NG * V, -1, keepdims=True) < 0, -NG, NG)  # the viewer's side
         self.up_origin = offset_ray_origin(P.astype(np.float32), side.astype(np.float32)).astype(np.float64)
         r = np.clip(np.broadcast_to(np.asarray(m.roughness, np.float64).reshape(-1)[:k], (k,)), 0.0, 1.0)
         self.a = np.maximum(r, MIN_REFERENCE_ROUGHNESS) ** 2
+        self.aj = jnp.asarray(self.padf(self.a))
 
     def f(self, l):
         return np.asarray(_brdf64(self.nj, self.vj, jnp.asarray(self.padf(l)), self.mj, smith=self.smith))[: self.k]
@@ -478,27 +532,23 @@ class _Vertex:
         return out + np.asarray(direct)[: self.k]
 
     def distant_light(self, env, occ, u):
-        """((k, 3) the distant light's estimate, (k,) whether the cosine direction is open): one
-        direction per technique from the uniform numbers u (k, 7), balance heuristic."""
-        k, N, V = self.k, self.N, self.V
-        est = np.zeros((k, 3))
-        opened = np.zeros(k, bool)
-        dirs = [env.sample(u[:, 0:3]), _sample_ggx(N, V, self.a, u[:, 3:5]), _sample_cos(N, u[:, 5:7])]
-        for t_i, l in enumerate(dirs):
-            nl = np.sum(N * l, -1)
-            p = env.pdf(l) + _pdf_ggx(N, V, l, self.a * self.a) + np.maximum(nl, 0.0) / math.pi
-            up = np.sum(self.NG * l, -1) * np.sum(self.NG * V, -1) > 0
-            live = (nl > 0) & up & (p > 0)
-            blocked = np.zeros(k, bool)
-            if live.any():
-                blocked[live] = occ.occluded(self.up_origin[live], l[live], np.full(int(live.sum()), np.inf))
-            if t_i == 2:
-                opened = up & ~blocked
-            live &= ~blocked
-            if live.any():
-                w = np.where(live, np.maximum(nl, 0.0) / np.where(live, p, 1.0), 0.0)
-                est += self.f(l) * env.radiance(l) * w[:, None]
-        return est, opened
+        """((S, k, 3) the distant light's estimates, (S, k) whether the cosine direction is open) of
+        S samples at once: one direction per technique per sample from the uniform numbers u
+        (S, k, 7), balance heuristic; the proposals compiled (`_distant_proposals`), the 3 S k rays
+        in one call of the ray engine."""
+        S, k = u.shape[0], self.k
+        # padded to a whole chunk of samples and a whole block of pixels: one compiled program
+        rows = SAMPLE_CHUNK if S > 1 else 1
+        u = jnp.asarray(np.pad(u, ((0, rows - S), (0, BLOCK - k), (0, 0)), constant_values=0.5))
+        d, live, c, up = jax.device_get(_distant_proposals(self.nj, self.vj, self.ngj, self.aj, self.mj, env.arrays(), u,
+                                                           smith=self.smith))
+        d, live, c, up = d[:, :S, :k], live[:, :S, :k], c[:, :S, :k], up[:, :S, :k]  # (3, S, k, ...)
+        blocked = np.zeros(live.shape, bool)
+        if live.any():
+            o = np.broadcast_to(self.up_origin, live.shape + (3,))
+            blocked[live] = occ.occluded(o[live], d[live], np.full(int(live.sum()), np.inf))
+        est = np.sum(np.where(blocked[..., None], 0.0, c), 0)
+        return est, up[2] & ~blocked[2]
 
     def continue_path(self, u):
         """(directions (k, 3), throughput f cos / p (k, 3)) of one continuation per vertex: cosine or
@@ -528,32 +578,34 @@ def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng, bounces=0)
     # random permutation of the strata per pixel), jittered within each stratum.
     strata = rng.permuted(np.broadcast_to(np.arange(spp)[:, None, None], (spp, k, 7)), axis=0)
     uu = (strata + rng.random((spp, k, 7))) / spp
-    for s_i in range(spp):
-        x = base.copy()
+    for c0 in range(0, spp, SAMPLE_CHUNK):  # the distant light of SAMPLE_CHUNK samples together
+        n_c = min(SAMPLE_CHUNK, spp - c0)
+        x = np.broadcast_to(base, (n_c, k, 3)).copy()
         if env is not None:
-            est, opened = first.distant_light(env, occ, uu[s_i])
-            x += est
-            visible += opened
-        vert, through, rows = first, np.ones((k, 3)), np.arange(k)
-        for _ in range(bounces):
-            l, w = vert.continue_path(rng.random((vert.k, 3)))
-            through = through * w
-            live = np.any(through > 0, -1)
-            if not live.any():
-                break
-            hit = _surface_hits(scene, opts, vert.up_origin[live], l[live])
-            if hit is None:
-                break
-            sel, nxt = hit
-            rows = rows[live][sel]
-            through = through[live][sel]
-            vert = nxt
-            add = vert.fixed_light(scene, occ, opts)
-            if env is not None:
-                add = add + vert.distant_light(env, occ, rng.random((vert.k, 7)))[0]
-            np.add.at(x, rows, through * add)
-        acc += x
-        acc2 += x * x
+            ests, opens = first.distant_light(env, occ, uu[c0:c0 + n_c])
+            x += ests
+            visible += opens.sum(0)
+        for s_i in range(n_c if bounces else 0):  # each sample's path, through its own surfaces
+            vert, through, rows = first, np.ones((k, 3)), np.arange(k)
+            for _ in range(bounces):
+                l, w = vert.continue_path(rng.random((vert.k, 3)))
+                through = through * w
+                live = np.any(through > 0, -1)
+                if not live.any():
+                    break
+                hit = _surface_hits(scene, opts, vert.up_origin[live], l[live])
+                if hit is None:
+                    break
+                sel, nxt = hit
+                rows = rows[live][sel]
+                through = through[live][sel]
+                vert = nxt
+                add = vert.fixed_light(scene, occ, opts)
+                if env is not None:
+                    add = add + vert.distant_light(env, occ, rng.random((1, vert.k, 7)))[0][0]
+                np.add.at(x[s_i], rows, through * add)
+        acc += x.sum(0)
+        acc2 += np.sum(x * x, 0)
     return acc / spp, acc2 / spp, visible / spp
 
 
