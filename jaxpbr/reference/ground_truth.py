@@ -482,11 +482,13 @@ def _distant_proposals(N, V, NG, a, m, E, u, *, smith):
 class _Vertex:
     """A block of path vertices (surface points) with what the estimators need: positions P,
     shading normals N, directions to the previous vertex V, geometric normals NG (any side), the
-    material (per-vertex leaves), padded to BLOCK for the compiled BRDF."""
+    material (per-vertex leaves), padded to BLOCK times a power of two for the compiled programs
+    (a few shapes serve every count)."""
 
     def __init__(self, P, N, V, NG, m, opts):
         self.k = k = len(P)
-        pad = BLOCK - k
+        self.size = BLOCK * (1 << max(0, -(-k // BLOCK) - 1).bit_length())
+        pad = self.size - k
         self.padf = (lambda x: np.concatenate([x, np.repeat(x[-1:], pad, 0)])) if pad > 0 else (lambda x: x)  # noqa: E731
         self.P, self.N, self.V, self.NG, self.m = P, N, V, NG, m
         self.mj = jax.tree_util.tree_map(lambda x: jnp.asarray(self.padf(np.asarray(x))), m)
@@ -539,7 +541,7 @@ class _Vertex:
         S, k = u.shape[0], self.k
         # padded to a whole chunk of samples and a whole block of pixels: one compiled program
         rows = SAMPLE_CHUNK if S > 1 else 1
-        u = jnp.asarray(np.pad(u, ((0, rows - S), (0, BLOCK - k), (0, 0)), constant_values=0.5))
+        u = jnp.asarray(np.pad(u, ((0, rows - S), (0, self.size - k), (0, 0)), constant_values=0.5))
         d, live, c, up = jax.device_get(_distant_proposals(self.nj, self.vj, self.ngj, self.aj, self.mj, env.arrays(), u,
                                                            smith=self.smith))
         d, live, c, up = d[:, :S, :k], live[:, :S, :k], c[:, :S, :k], up[:, :S, :k]  # (3, S, k, ...)
@@ -585,8 +587,12 @@ def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng, bounces=0)
             ests, opens = first.distant_light(env, occ, uu[c0:c0 + n_c])
             x += ests
             visible += opens.sum(0)
-        for s_i in range(n_c if bounces else 0):  # each sample's path, through its own surfaces
-            vert, through, rows = first, np.ones((k, 3)), np.arange(k)
+        if bounces:
+            # every sample's path at once, each through its own surfaces (rows of x flattened)
+            flat = x.reshape(n_c * k, 3)
+            tile = lambda a: np.concatenate([a] * n_c)  # noqa: E731
+            vert = _Vertex(tile(P), tile(N), tile(V), tile(NG), jax.tree_util.tree_map(tile, m), opts)
+            through, rows = np.ones((n_c * k, 3)), np.arange(n_c * k)
             for _ in range(bounces):
                 l, w = vert.continue_path(rng.random((vert.k, 3)))
                 through = through * w
@@ -603,7 +609,7 @@ def _integrate_block(P, N, V, NG, m, env, occ, scene, opts, spp, rng, bounces=0)
                 add = vert.fixed_light(scene, occ, opts)
                 if env is not None:
                     add = add + vert.distant_light(env, occ, rng.random((1, vert.k, 7)))[0][0]
-                np.add.at(x[s_i], rows, through * add)
+                np.add.at(flat, rows, through * add)
         acc += x.sum(0)
         acc2 += np.sum(x * x, 0)
     return acc / spp, acc2 / spp, visible / spp
