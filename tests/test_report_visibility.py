@@ -28,3 +28,31 @@ def test_visibility_report_on_the_concave_scene(tmp_path, capsys):
     assert rows["ratio K=16"]["all"]["mean"] < rows["ratio K=1"]["all"]["mean"]
     assert rows["ao K=16"]["occluded"]["mean"] < none["mean"]
     assert (tmp_path / "visibility_report.png").stat().st_size > 0 and (tmp_path / "visibility_report.md").is_file()
+    # the image's L1 error (luminance-weighted) falls too; nothing is left out on flat-shaded walls
+    assert rows["ratio K=16"]["occluded"]["l1"] < 0.6 * none["l1"]
+    assert res["truth"]["back_facing_pixels"] == 0
+
+
+def test_pixels_whose_shading_normal_faces_away_are_left_out_and_counted(monkeypatch):
+    """Where a normal map bends the shading normal away from the viewer the truth's BRDF is 0 and the
+    split sum's is not: those pixels are counted apart, not measured."""
+    import numpy as np
+
+    from jaxpbr.cli import report_visibility as rv
+    from jaxpbr.rendering.demo import concave_scene
+
+    scene = concave_scene(16, 12)
+    real = rv.gbuffer
+
+    def bent(sc):  # the G-buffer with the left half's normals turned to face away from the viewer
+        g = real(sc)
+        n = np.asarray(g.normal).copy()
+        n[:, :8] = np.asarray(g.view)[:, :8] * -1.0
+        return g.replace(normal=n)
+
+    monkeypatch.setattr(rv, "gbuffer", bent)
+    res = rv.visibility_report(scene, samples=(1,), spp=4, repeats=1, log=lambda *_: None)
+    hit = rv.reference_render(scene, spp=2).hit
+    assert res["truth"]["back_facing_pixels"] == int(hit[:, :8].sum()) > 0
+    assert res["truth"]["surface_pixels"] == int(hit[:, 8:].sum())
+    assert "left out" in rv.visibility_markdown(res)
