@@ -37,7 +37,7 @@ def disc_irradiance(lights, d):
 def main(names):
     d = texel_directions(32).reshape(-1, 3)
     for name in names:
-        env = load_environment([name], 64)
+        env = load_environment([name], face_size=64)
         ex = extract_lights(env)
         with jax.enable_x64(True):
             ref = np.asarray(irradiance_at(jp.Cubemap((np.asarray(env.levels[0], np.float64),)), d, method="exact", chunk=16))
@@ -49,9 +49,9 @@ def main(names):
             return f"{100 * e.mean():.2f} / {100 * e.max():.1f} %"
 
         print(
-            f"{Path(name).name}: {len(ex.lights)} light(s); SH9 of the whole map {err(flat(jp.irradiance(env, 32, method='sh9')))}; "
-            f"SH9 of the residual + discs {err(flat(jp.irradiance(ex.residual, 32, method='sh9')) + discs)}; "
-            f"exact residual + discs {err(flat(jp.irradiance(ex.residual, 32)) + discs)}"
+            f"{Path(name).name}: {len(ex.lights)} light(s); SH9 of the whole map {err(flat(jp.irradiance(env, size=32, method='sh9')))}; "
+            f"SH9 of the residual + discs {err(flat(jp.irradiance(ex.residual, size=32, method='sh9')) + discs)}; "
+            f"exact residual + discs {err(flat(jp.irradiance(ex.residual, size=32)) + discs)}"
         )
 
 

@@ -67,10 +67,10 @@ def main(argv=None):
     args = ap.parse_args(argv)
     envs = {"sky+sun": jp.envs.sky_with_sun_cubemap(args.face_size)}
     if args.hdr:
-        envs[Path(args.hdr).stem] = load_environment([args.hdr], args.face_size)
+        envs[Path(args.hdr).stem] = load_environment([args.hdr], face_size=args.face_size)
     mask, n, v, p = sphere_gbuffer(args.pixels)
     n32, v32, p32 = (jnp.asarray(a, jnp.float32) for a in (n, v, p))
-    lut = brdf_lut(128)
+    lut = brdf_lut(size=128)
     print(f"IBL term, white spheres, {args.pixels}^2 px, environments at {args.face_size}^2; mean relative error of luminance (bias)")
     for name, env in envs.items():
         env = Cubemap((jnp.asarray(env.levels[0], jnp.float32),), env.metadata)

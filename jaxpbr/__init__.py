@@ -22,6 +22,7 @@ from .shading.layered import brdf
 from .conventions import CONVENTIONS
 from .ibl.baked import write_baked
 from .ibl.cubemap import Cubemap
+from .ibl.cubeio import load_environment
 from .ibl.diffuse import irradiance, sh9_irradiance, sh9_project
 from .ibl.shade import shade_ibl
 from .shading.lights import (
@@ -36,7 +37,7 @@ from .shading.lut import compute_brdf_lut, lut_lookup, lut_reference
 from .shading.material import Material
 from .rendering.baked import read_baked
 from .rendering.gltf_scene import load_gltf
-from .rendering.scene_file import load_scene
+from .rendering.scene_file import load_scene, loads_scene
 from .rendering.mesh import Mesh
 from .rendering.renderer import RenderOptions, bake, clear_caches, render, render_batch
 from .rendering.texture import Texture
@@ -64,8 +65,10 @@ __all__ = [
     "Mesh",
     "Texture",
     "TextureSlot",
+    "load_environment",
     "load_gltf",
     "load_scene",
+    "loads_scene",
     "Plane",
     "RenderOptions",
     "Scene",

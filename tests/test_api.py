@@ -5,8 +5,9 @@ The signature check walks `jaxpbr.__all__` and the `__all__` of the public modul
 function (and the constructors of the public classes) with `inspect.signature`, and fails for a
 parameter that is an option but can be passed positionally. A positional parameter is taken to be
 an option if it has a default value or an option's name (`OPTION_NAMES`); `DATA` is the declared
-allow-list of positional parameters that are data (or the one leading size users pass positionally,
-as the README does: `jp.irradiance(env, 32)`, `jp.brdf_lut(128)`, `Cubemap.from_equirect(img, 256)`).
+allow-list of positional parameters that are data (or the one leading size of a constructor users pass
+positionally: `Cubemap.from_equirect(img, 256)`). The precomputes' sizes are options, keyword-only:
+`jp.irradiance(env, size=32)`, `jp.prefilter(env, size=128)`, `jp.brdf_lut(size=128)`.
 """
 
 import dataclasses
@@ -70,12 +71,7 @@ DATA = {
     # the primary argument, positional in the README: tonemap(x, "aces"), encode(x, "srgb")
     "jaxpbr.color.tonemap": ("operator",),
     "jaxpbr.color.encode": ("transfer",),
-    # the one leading size (README / examples pass it positionally)
-    "jaxpbr.shading.shipped_luts.brdf_lut": ("size",),
-    "jaxpbr.shading.shipped_luts.sheen_lut": ("size",),  # the table's resolution, as brdf_lut(128)
-    "jaxpbr.shading.lut.compute_brdf_lut": ("size",),
-    "jaxpbr.ibl.diffuse.irradiance": ("size",),
-    "jaxpbr.ibl.specular.prefilter": ("size",),
+    # the one leading size of a cube map's constructor
     "jaxpbr.ibl.cubemap.Cubemap.from_equirect": ("face_size",),
     "jaxpbr.ibl.cubemap.Cubemap.from_function": ("face_size",),
     "jaxpbr.ibl.envs.sky_with_sun_cubemap": ("face_size",),
@@ -94,6 +90,8 @@ DATA = {
     "jaxpbr.rendering.demo.demo_scene": ("width", "height"),
     "jaxpbr.rendering.demo.learnopengl_scene": ("width", "height"),
     "jaxpbr.rendering.demo.sphere_grid": ("rows", "cols"),
+    # where the text's relative paths resolve: the data's context
+    "jaxpbr.rendering.scene_file.loads_scene": ("base_dir",),
 }
 
 _POSITIONAL = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
@@ -191,11 +189,19 @@ def test_the_check_can_fail():
         del PUBLIC["tests.wrong"]
 
 
+def _env():
+    return jp.Cubemap([jnp.ones((6, 4, 4, 3), jnp.float32)])
+
+
 @pytest.mark.parametrize(
     "call,old_name",
     [
-        (lambda: jp.brdf_lut(8, "correlated"), "smith"),
-        (lambda: jp.compute_brdf_lut(8, "correlated"), "smith"),
+        (lambda: jp.brdf_lut(8, "correlated"), "size, smith"),
+        (lambda: jp.compute_brdf_lut(8, "correlated"), "size, smith"),
+        (lambda: jp.brdf_lut(8), "size"),
+        (lambda: jp.shading.shipped_luts.sheen_lut(8, samples=64, use_shipped=False), "size"),
+        (lambda: jp.irradiance(_env(), 2), "size"),
+        (lambda: jp.prefilter(_env(), 4, num_levels=1, samples=16), "size"),
         (lambda: jp.lut_reference(0.5, 0.5, "correlated"), "smith"),
         (lambda: jp.roughness_to_lod(0.5, 4, "linear"), "mapping"),
         (lambda: jp.ibl.specular.level_roughness(4, "linear"), "mapping"),
@@ -284,7 +290,7 @@ def test_an_unused_option_with_its_default_value_is_allowed(model, name, value):
 
 def test_multiscatter_follows_the_registry_in_shade_ibl_and_render_options():
     env = jp.Cubemap([jnp.ones((6, 4 >> m, 4 >> m, 3)) for m in range(3)], {"roughness_mapping": "linear"})
-    lut = jp.compute_brdf_lut(8, smith="schlick_ggx", dtype=jnp.float64)
+    lut = jp.compute_brdf_lut(size=8, smith="schlick_ggx", dtype=jnp.float64)
     n = jnp.asarray([0.0, 0.0, 1.0])
     m = jp.Material()
     with pytest.raises(ValueError, match="multiscatter is defined for the gltf model only"):
@@ -313,7 +319,7 @@ def test_brdf_and_lut_smith_vocabularies_are_distinct():
     # (separable) Smith-GGX G2; the LUT's Schlick-GGX (k = alpha/2) is not a brdf choice.
     assert set(OPTION_CHOICES["smith"]) & set(jp.shading.lut.SMITH_VARIANTS) == {"correlated", "separable"}
     with pytest.raises(ValueError, match="smith must be one of"):
-        jp.compute_brdf_lut(8, smith="schlick_k_r_plus_1")
+        jp.compute_brdf_lut(size=8, smith="schlick_k_r_plus_1")
     with pytest.raises(ValueError, match="unknown smith"):
         jp.brdf(*_simple(), smith="schlick_ggx")
 
@@ -382,3 +388,36 @@ def test_cli_render_passes_the_options_value(monkeypatch, tmp_path):
     assert set(seen) == {"options", "progress"} and seen["options"] == RenderOptions(model="learnopengl")
     assert seen["progress"] is None
     assert dataclasses.is_dataclass(seen["options"])
+
+
+# ------------------------------------------------------------------------------------------
+# One front door: what the README and the docs' examples use is a `jp.` name
+# ------------------------------------------------------------------------------------------
+
+_ROOT = __import__("pathlib").Path(__file__).resolve().parents[1]
+
+
+def _python_blocks(path):
+    import re
+
+    return re.findall(r"```python\n(.*?)```", path.read_text(), flags=re.S)
+
+
+def test_every_name_the_readme_and_docs_use_is_public():
+    """Every `jp.NAME` in the Python examples of the README and docs/ is in `jaxpbr.__all__`, and
+    the README's examples import nothing but `jaxpbr as jp` (no `from jaxpbr.x.y import ...`)."""
+    import re
+
+    docs = [_ROOT / "README.md"] + sorted((_ROOT / "docs").glob("*.md"))
+    used, missing = set(), []
+    for path in docs:
+        for block in _python_blocks(path):
+            for name in re.findall(r"\bjp\.([A-Za-z_]\w*)", block):
+                used.add(name)
+                if name not in jp.__all__:
+                    missing.append(f"{path.name}: jp.{name}")
+    assert not missing, missing
+    assert {"load_environment", "render", "Scene", "load_gltf"} <= used  # the walk reads the examples
+    readme_imports = [ln for b in _python_blocks(_ROOT / "README.md") for ln in b.splitlines()
+                      if re.match(r"\s*(from jaxpbr|import jaxpbr\.)", ln)]
+    assert not readme_imports, readme_imports

@@ -39,8 +39,8 @@ CUBE_FUNCTIONS = {
     "prefilter": lambda c: jp.prefilter(c, num_levels=2, samples=16),
     "prefilter(method='reference')": lambda c: jp.prefilter(c, num_levels=2, method="reference"),
     "prefilter_reference": lambda c: jp.prefilter_reference(c, DIRS, 0.5, supersample=1),
-    "irradiance": lambda c: jp.irradiance(c, 4),
-    "irradiance(method='sh9')": lambda c: jp.irradiance(c, 4, method="sh9"),
+    "irradiance": lambda c: jp.irradiance(c, size=4),
+    "irradiance(method='sh9')": lambda c: jp.irradiance(c, size=4, method="sh9"),
     "diffuse.irradiance_at": lambda c: jp.ibl.diffuse.irradiance_at(c, DIRS),
     "sh9_project": lambda c: jp.sh9_project(c),
     "prefilter_charlie": lambda c: prefilter_charlie(c, size=S, num_levels=2),
@@ -101,8 +101,8 @@ def test_zero_texels_are_accepted():
 
 TRACEABLE = {
     "prefilter": lambda lv: jp.prefilter(jp.Cubemap((lv,)), num_levels=2, samples=16).levels[1],
-    "irradiance": lambda lv: jp.irradiance(jp.Cubemap((lv,)), 4).levels[0],
-    "irradiance(method='sh9')": lambda lv: jp.irradiance(jp.Cubemap((lv,)), 4, method="sh9").levels[0],
+    "irradiance": lambda lv: jp.irradiance(jp.Cubemap((lv,)), size=4).levels[0],
+    "irradiance(method='sh9')": lambda lv: jp.irradiance(jp.Cubemap((lv,)), size=4, method="sh9").levels[0],
     "sh9_project": lambda lv: jp.sh9_project(jp.Cubemap((lv,))),
     "prefilter_charlie": lambda lv: prefilter_charlie(jp.Cubemap((lv,)), size=S, num_levels=2).levels[1],
 }

@@ -18,7 +18,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr.ibl import diffuse, specular
-from jaxpbr.rendering import renderer
+from jaxpbr.rendering import renderer, stages
 
 FACE = 16
 
@@ -225,12 +225,12 @@ def test_asset_cache_refuses_a_tracer():
 
 
 def test_one_program_render_equals_the_staged_one(monkeypatch):
-    """`render` runs staged on XLA:CPU and as one program elsewhere (renderer.STAGED = None lets
+    """`render` runs staged on XLA:CPU and as one program elsewhere (renderer.EXECUTION.staged = None lets
     the backend decide); both give the same image (float rounding of a differently fused program)."""
     scene = _scene(0.4, _env())
-    monkeypatch.setattr(renderer, "STAGED", True)
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)
     staged = np.asarray(jp.render(scene))
-    monkeypatch.setattr(renderer, "STAGED", False)
+    monkeypatch.setattr(renderer.EXECUTION, "staged", False)
     fused = np.asarray(jp.render(scene))
     np.testing.assert_allclose(fused, staged, rtol=2e-5, atol=2e-6)
 
@@ -238,15 +238,15 @@ def test_one_program_render_equals_the_staged_one(monkeypatch):
 def test_supersampling_compiles_one_geometry_program(monkeypatch):
     """The sub-pixel offset is traced: s = 1, 2, 3 reuse one compiled geometry program (issue 13:
     it was a static argument, s^2 programs)."""
-    monkeypatch.setattr(renderer, "STAGED", True)  # the staged path (the CPU default) is the one measured
-    renderer._geometry_jit.clear_cache() if hasattr(renderer._geometry_jit, "clear_cache") else None
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)  # the staged path (the CPU default) is the one measured
+    stages._geometry_jit.clear_cache() if hasattr(stages._geometry_jit, "clear_cache") else None
     env = _env()
-    before = renderer._geometry_jit._cache_size()
+    before = stages._geometry_jit._cache_size()
     for s in (1, 2, 3):
         scene = _scene(0.4, env).replace(camera=jp.Camera(position=(0.0, 0.0, 3.2), width=12, height=12, supersample=s))
         img = jp.render(scene)
         assert np.all(np.isfinite(np.asarray(img)))
-    assert renderer._geometry_jit._cache_size() - before == 1
+    assert stages._geometry_jit._cache_size() - before == 1
 
 
 def test_renders_share_the_process_worker_pool(monkeypatch):
@@ -257,7 +257,7 @@ def test_renders_share_the_process_worker_pool(monkeypatch):
 
     from jaxpbr.rendering import execute
 
-    monkeypatch.setattr(renderer, "STAGED", True)  # the maps overlap the stages on the staged path
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)  # the maps overlap the stages on the staged path
     seen = []
     real = execute._asset_irradiance
 
@@ -279,22 +279,22 @@ def test_renders_share_the_process_worker_pool(monkeypatch):
 
 @pytest.mark.parametrize("s", [1, 2])
 def test_a_large_render_runs_in_bands_equal_to_the_whole(monkeypatch, s):
-    """Images above renderer.BAND_PIXELS render in bands of rows (issue 13: memory grew with the
+    """Images above renderer.EXECUTION.band_pixels render in bands of rows (issue 13: memory grew with the
     image: 8K took 5.7 GB); the band's first row is an argument, so every band of a size reuses
     one geometry program, and the image is the whole-image render's (last band cropped) to within
     float32 rounding: XLA:CPU splits a loop across its threads by the array's size (the whole
     image's suns stage here, not a band's), and the split loop's code rounds a few pixels
     differently (measured: 14 of 1380 values, at most 1.8e-7 relative; with the
     cpu-parallel-task-assigner pass disabled the two are equal bit for bit)."""
-    monkeypatch.setattr(renderer, "STAGED", True)  # bands are the staged path's (the CPU default)
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)  # bands are the staged path's (the CPU default)
     env = _env()
     scene = _scene(0.4, env).replace(camera=jp.Camera(position=(0.0, 0.0, 3.2), width=20, height=23, supersample=s))
     whole = np.asarray(jp.render(scene))
-    monkeypatch.setattr(renderer, "BAND_PIXELS", 20 * 5)  # 5-row bands: 4 whole + one cropped
-    before = renderer._geometry_jit._cache_size()
+    monkeypatch.setattr(renderer.EXECUTION, "band_pixels", 20 * 5)  # 5-row bands: 4 whole + one cropped
+    before = stages._geometry_jit._cache_size()
     calls = []
     banded = np.asarray(jp.render(scene, progress=lambda d, t: calls.append((d, t))))
-    assert renderer._geometry_jit._cache_size() - before <= 1  # 5 bands x s^2 passes, at most one new program
+    assert stages._geometry_jit._cache_size() - before <= 1  # 5 bands x s^2 passes, at most one new program
     np.testing.assert_allclose(banded, whole, rtol=1e-6, atol=0)
     total = 5 * s * s  # a progress report per pass, the last when the image is ready
     assert calls == [(k, total) for k in range(1, total + 1)], calls
@@ -309,7 +309,7 @@ def test_render_with_separable_smith_uses_its_lut_and_shadows_more():
 
     env = jp.bake(_env(face=8), smith="separable")
     assert env.lut_smith == "separable"
-    np.testing.assert_allclose(np.asarray(env.lut), np.asarray(compute_brdf_lut(128, smith="separable")), atol=0)
+    np.testing.assert_allclose(np.asarray(env.lut), np.asarray(compute_brdf_lut(size=128, smith="separable")), atol=0)
     scene = _scene(0.6, _env(face=8), metallic=1.0, size=12)
     # single scattering: the compensation would give the darker lobe more back
     sep = np.asarray(jp.render(scene, smith="separable", multiscatter=False))
@@ -322,7 +322,7 @@ def test_render_with_separable_smith_uses_its_lut_and_shadows_more():
 def test_a_large_render_under_jit_and_grad_runs_in_bands(monkeypatch):
     """The staged path is also taken while tracing on the CPU: bands must join on the device (a
     host buffer raised TracerArrayConversionError under jit for images above BAND_PIXELS)."""
-    monkeypatch.setattr(renderer, "STAGED", True)
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)
     env = jp.bake(_env(face=8))
 
     def loss(r):
@@ -330,7 +330,7 @@ def test_a_large_render_under_jit_and_grad_runs_in_bands(monkeypatch):
         return jp.render(scene).mean()
 
     whole = jax.jit(jax.value_and_grad(loss))(0.4)
-    monkeypatch.setattr(renderer, "BAND_PIXELS", 12 * 4)
+    monkeypatch.setattr(renderer.EXECUTION, "band_pixels", 12 * 4)
     banded = jax.jit(jax.value_and_grad(loss))(0.4)
     np.testing.assert_allclose(np.asarray(banded), np.asarray(whole), rtol=1e-6)
     assert np.isfinite(np.asarray(banded)).all()

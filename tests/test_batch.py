@@ -166,7 +166,7 @@ def test_local_run_outputs_records_and_resume(tmp_path):
         _sys.path.remove(str(tmp_path))
     scene = mod.ball()
     scene = scene.replace(camera=scene.camera.replace(width=20, height=12),
-                          environment=jp.Environment(radiance=jp.envs.sky_with_sun_cubemap(256), rotation=np.radians(30)))
+                          environment=jp.rendering.demo.demo_environment(rotation=np.radians(30)))  # procedural:sky: the demo's baked sky
     np.testing.assert_array_equal(img[..., :3], np.asarray(jp.render(scene)))
     rec = OutputFolder(out).completed(jobs[3])
     assert set(rec["outputs"]) == {"lit.png", "lit.exr"}

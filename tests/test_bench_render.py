@@ -95,9 +95,9 @@ def tables(env32):
     """irradiance 16^2; as the 'prefiltered' map the environment's own mip pyramid (the lookup is the
     same whatever the levels hold, and the unblurred sun, 3000 vs ~1, is the stiffest content for
     it); the shipped 128^2 LUT."""
-    irr = jp.irradiance(env32, 16)
+    irr = jp.irradiance(env32, size=16)
     pre = Cubemap(env32.with_mips().levels, {"roughness_mapping": "linear"})
-    lut = jp.brdf_lut(128)
+    lut = jp.brdf_lut(size=128)
     return irr, pre, lut
 
 

@@ -138,7 +138,7 @@ def test_default_num_levels_and_prefilter_default_chain():
     assert default_num_levels(128, floor=8, min_levels=2) == 5 and default_num_levels(128, floor=1) == 8
     assert default_num_levels(64, min_levels=2) == 3
     env = Cubemap([jnp.asarray(np.random.default_rng(0).uniform(0.5, 2.0, (6, 256, 256, 3)), jnp.float32)])
-    pre = prefilter(env, 64, samples=16)
+    pre = prefilter(env, size=64, samples=16)
     assert [lv.shape[1] for lv in pre.levels] == [64, 32, 16, 8, 4]
     md = pre.metadata
     assert (md["mapping_levels"], md["chain_floor"], md["lod_blend"], md["level_roughness"]) == ("5", "4", "mean_cosine", "0,0.25,0.5,0.75,1")
@@ -153,7 +153,7 @@ def test_default_num_levels_and_prefilter_default_chain():
     big = prefilter(env, samples=16, exact_texels=0)
     assert [lv.shape[1] for lv in big.levels] == [256, 128, 64, 32, 16] and big.metadata["chain_floor"] == "16"
     # A chain asked for by length keeps it; the floor it reaches is recorded.
-    assert prefilter(env, 32, num_levels=6, samples=16).metadata["chain_floor"] == "1"
+    assert prefilter(env, size=32, num_levels=6, samples=16).metadata["chain_floor"] == "1"
 
 
 def _linear_chain(S, M, c):
@@ -225,7 +225,7 @@ def _stepped_map(M, info):
 def test_maps_without_lod_blend_keep_the_old_lookup(mapping):
     r = jnp.asarray([0.0, 0.15, 0.4, 0.7, 1.0])
     n = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0]), (5, 3))
-    lut = jp.compute_brdf_lut(16, dtype=jnp.float64)
+    lut = jp.compute_brdf_lut(size=16, dtype=jnp.float64)
     m = jp.Material(base_color=jnp.ones(3), metallic=jnp.ones(5), roughness=r)
     old = _stepped_map(6, {"roughness_mapping": mapping})
     new = _stepped_map(6, {"roughness_mapping": mapping, "lod_blend": "mean_cosine"})

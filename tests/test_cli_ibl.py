@@ -143,7 +143,7 @@ def test_ibl_bakes_the_charlie_cube_and_the_sheen_channel_of_the_lut(tmp_path):
 
     # The Charlie cube read back is prefilter_charlie of the same environment (float32 file).
     levels, meta, info = read_ktx2(tmp_path / "charlie.ktx2")
-    expect = prefilter_charlie(load_environment(["procedural:sky"], 16), size=8, num_levels=3)
+    expect = prefilter_charlie(load_environment(["procedural:sky"], face_size=16), size=8, num_levels=3)
     assert info["face_count"] == 6 and len(levels) == 3
     for got, want in zip(levels, expect.levels):
         np.testing.assert_allclose(got[..., :3], np.asarray(want), rtol=1e-6, atol=0)
@@ -153,7 +153,7 @@ def test_ibl_bakes_the_charlie_cube_and_the_sheen_channel_of_the_lut(tmp_path):
     # LUT: R, G = the GGX split sum, B = the sheen albedo table, same layout.
     img, hdr = image.read_with_metadata(tmp_path / "brdf_lut.exr")
     assert img.shape == (128, 128, 3)
-    np.testing.assert_allclose(img[..., :2], np.asarray(brdf_lut(128)), atol=1e-6)
+    np.testing.assert_allclose(img[..., :2], np.asarray(brdf_lut(size=128)), atol=1e-6)
     np.testing.assert_array_equal(img[..., 2], np.asarray(sheen_lut()))
     assert "B = E_sheen" in hdr["jaxpbr:channels"]
 
@@ -299,7 +299,7 @@ def test_six_face_input(tmp_path):
     levels, _, _ = read_ktx2(out)
     from jaxpbr.ibl.diffuse import irradiance
 
-    expect = np.asarray(irradiance(Cubemap(faces), 4).levels[0])
+    expect = np.asarray(irradiance(Cubemap(faces), size=4).levels[0])
     np.testing.assert_allclose(levels[0][..., :3], expect, rtol=1e-6)
     assert main(["irradiance", *paths[:5], "-o", str(out)]) != 0
 

@@ -14,7 +14,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr.cli import _cache
-from jaxpbr.rendering import renderer
+from jaxpbr.rendering import renderer, stages
 
 #: At most this many XLA programs for the demo from a cold start (issue 10: 221 before).
 MAX_PROGRAMS = 25
@@ -138,7 +138,7 @@ def test_asset_cache_disk_hit_inside_a_trace_stores_no_tracer(disk_assets, monke
 
     first = np.asarray(traced_render(1.0))  # r = 1: the whole chain, as a traced roughness needs
     renderer.ASSETS.clear()
-    monkeypatch.setattr(renderer, "STAGED", False)
+    monkeypatch.setattr(renderer.EXECUTION, "staged", False)
     traced = np.asarray(jax.jit(traced_render)(1.0))
     assert renderer.ASSETS.stats["prefilter"]["disk"] == 1
     assert not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(list(renderer.ASSETS._store.values())))
@@ -179,11 +179,11 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
     ea, eb = jp.bake(jp.Environment(radiance=a)), jp.bake(jp.Environment(radiance=b))
     assert dict(ea.radiance.info) != dict(eb.radiance.info)  # provenance differs ...
     assert eb.radiance.metadata["environment"] == "another one"  # ... and is kept
-    stages = (renderer._geometry_jit, renderer._shade_direct_jit, renderer._shade_suns_jit, renderer._shade_rest_jit)
+    programs = (stages._geometry_jit, stages._shade_direct_jit, stages._shade_suns_jit, stages._shade_rest_jit)
     jp.render(scene(ea))
-    sizes = [f._cache_size() for f in stages]
+    sizes = [f._cache_size() for f in programs]
     img = jp.render(scene(eb))
-    assert [f._cache_size() for f in stages] == sizes
+    assert [f._cache_size() for f in programs] == sizes
     assert np.isfinite(np.asarray(img)).all()
     # a different lookup rule is a different program
     from jaxpbr.ibl.cubemap import CubeInfo
@@ -199,7 +199,7 @@ def test_environments_differing_in_content_and_provenance_share_every_program():
     img = jp.render(scene(smaller))
     # (counts as deltas: jax.jit's caches are per process, and an earlier test in this worker may
     # have compiled a sun stage of its own)
-    assert [f._cache_size() for f in stages] == [sizes[0], sizes[1], sizes[2], sizes[3] + 1]
+    assert [f._cache_size() for f in programs] == [sizes[0], sizes[1], sizes[2], sizes[3] + 1]
     assert np.isfinite(np.asarray(img)).all()
 
 

@@ -632,7 +632,7 @@ def test_sh9_single_bright_texel_is_a_directional_light():
     expect = np.maximum(0.25 + t / 2 + (5 / 16) * (3 * t * t - 1) / 2, 0.0) / math.pi
     np.testing.assert_allclose(module(env, n, "sh9")[:, 0], expect, rtol=0, atol=1e-14)
     # The irradiance map stores the clamped values at its texel centres.
-    out = np.asarray(irradiance(Cubemap(jnp.asarray(env)), 4, method="sh9").levels[0])[..., 0]
+    out = np.asarray(irradiance(Cubemap(jnp.asarray(env)), size=4, method="sh9").levels[0])[..., 0]
     t = texel_directions(4) @ d
     np.testing.assert_allclose(
         out, np.maximum(0.25 + t / 2 + (5 / 16) * (3 * t * t - 1) / 2, 0.0) / math.pi, atol=1e-14
@@ -696,7 +696,7 @@ def test_source_size(random_env, source_size):
 
 def test_irradiance_map_structure_and_default_source(random_env):
     env = Cubemap(jnp.asarray(random_env))
-    out = irradiance(env, 8)
+    out = irradiance(env, size=8)
     assert out.levels[0].shape == (6, 8, 8, 3) and out.num_levels == 1 and out.dtype == env.dtype
     md = out.metadata
     assert md["irradiance_method"] == "exact" and md["irradiance_source_size"] == "32" and "E/pi" in md["quantity"]
@@ -704,11 +704,11 @@ def test_irradiance_map_structure_and_default_source(random_env):
     np.testing.assert_allclose(
         np.asarray(out.levels[0]), module(random_env, texel_directions(8), "exact").reshape(6, 8, 8, 3), rtol=1e-13
     )
-    out = irradiance(env, 4, method="sh9")
+    out = irradiance(env, size=4, method="sh9")
     assert out.metadata["irradiance_method"] == "sh9" and "irradiance_source_size" not in out.metadata
     # default source size is min(S, 64)
     big = Cubemap(jnp.ones((6, 128, 128, 1)))
-    out = irradiance(big, 2)
+    out = irradiance(big, size=2)
     assert out.metadata["irradiance_source_size"] == "64"
     np.testing.assert_allclose(np.asarray(out.levels[0]), 1.0, rtol=1e-4)  # moments at S=128: ~1e-6
 
@@ -719,11 +719,11 @@ def test_progress_is_reported_and_changes_nothing(random_env, method):
     convolution reports its chunks from inside the one program; sh9 reports once."""
     env = Cubemap(jnp.asarray(random_env))
     calls = []
-    out = irradiance(env, 8, method=method, chunk=4, progress=lambda d, t: calls.append((d, t)))
+    out = irradiance(env, size=8, method=method, chunk=4, progress=lambda d, t: calls.append((d, t)))
     total = 6 * 8 * 8 // 4 if method == "exact" else 1  # 96 chunks of 4 texels: one report each
     assert calls[-1] == (total, total) and [d for d, _ in calls] == sorted({d for d, _ in calls}), calls
     assert len(calls) == (96 if method == "exact" else 1)
-    np.testing.assert_array_equal(np.asarray(out.levels[0]), np.asarray(irradiance(env, 8, method=method, chunk=4).levels[0]))
+    np.testing.assert_array_equal(np.asarray(out.levels[0]), np.asarray(irradiance(env, size=8, method=method, chunk=4).levels[0]))
 
 
 @pytest.mark.parametrize("method", ["exact", "sh9"])
@@ -767,19 +767,19 @@ def test_batch_shapes(random_env):
 def test_bad_arguments():
     env = Cubemap(jnp.ones((6, 32, 32, 1)))
     with pytest.raises(ValueError, match="unknown irradiance method 'fast'"):
-        irradiance(env, 8, method="fast")
+        irradiance(env, size=8, method="fast")
     with pytest.raises(ValueError, match="unknown irradiance method"):
         irradiance_at(env, jnp.ones(3), method="SH9")
     for size in (0, -8, 8.0):
         with pytest.raises(ValueError, match="size must be a positive integer"):
-            irradiance(env, size)
+            irradiance(env, size=size)
     for src in (12, 64, 3):
         with pytest.raises(ValueError, match="must divide the environment face size 32 by a power of two"):
-            irradiance(env, 8, source_size=src)
+            irradiance(env, size=8, source_size=src)
     with pytest.raises(ValueError, match="source_size must be a positive integer"):
-        irradiance(env, 8, source_size=0)
+        irradiance(env, size=8, source_size=0)
     with pytest.raises(ValueError, match="chunk must be a positive integer"):
-        irradiance(env, 8, chunk=0)
+        irradiance(env, size=8, chunk=0)
 
 
 def test_no_normals_give_an_empty_result():

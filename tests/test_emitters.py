@@ -98,7 +98,7 @@ def test_the_layered_bsdf_is_as_accurate_with_either_emitter():
 @pytest.fixture(scope="module")
 def maps():
     env = jp.envs.sky_with_sun_cubemap(16)
-    return env, jp.irradiance(env, 8), jp.prefilter(env, 16), jp.brdf_lut()
+    return env, jp.irradiance(env, size=8), jp.prefilter(env, size=16), jp.brdf_lut()
 
 
 @pytest.mark.slow

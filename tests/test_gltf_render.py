@@ -181,12 +181,12 @@ def test_meshes_of_other_sizes_reuse_the_shading_programs():
         return jp.render(jp.Scene(camera=cam, objects=[Mesh(positions=P, triangles=T, normals=N, material=mat)], lights=[SUN], environment=env))
 
     draw(8)
-    direct, suns, rest = R._shade_direct_jit._cache_size(), R._shade_suns_jit._cache_size(), R._shade_rest_jit._cache_size()
+    direct, suns, rest = stages._shade_direct_jit._cache_size(), stages._shade_suns_jit._cache_size(), stages._shade_rest_jit._cache_size()
     builds = mesh_mod.ACCELS.builds
     draw(11)
     draw(11)
-    assert R._shade_direct_jit._cache_size() == direct and R._shade_rest_jit._cache_size() == rest
-    assert R._shade_suns_jit._cache_size() == suns > 0
+    assert stages._shade_direct_jit._cache_size() == direct and stages._shade_rest_jit._cache_size() == rest
+    assert stages._shade_suns_jit._cache_size() == suns > 0
     assert mesh_mod.ACCELS.builds == builds + 1
 
 

@@ -203,11 +203,11 @@ def test_api_prefilter_refuses_huge_samples_naming_the_argument(small_env):
 
 def test_api_lut_irradiance_and_cubes_refuse_huge_sizes(small_env):
     with pytest.raises(ValueError, match=r"^compute_brdf_lut: .* GB of memory.*lower samples"):
-        jp.brdf_lut(8, samples=4_000_000_000)
+        jp.brdf_lut(size=8, samples=4_000_000_000)
     with pytest.raises(ValueError, match=r"^compute_brdf_lut: .* GB of memory.*lower size"):
-        jp.brdf_lut(100_000)
+        jp.brdf_lut(size=100_000)
     with pytest.raises(ValueError, match=r"^irradiance: .* GB of memory.*lower size"):
-        jp.irradiance(small_env, 100_000)
+        jp.irradiance(small_env, size=100_000)
     with pytest.raises(ValueError, match=r"^Cubemap.from_function: .* GB of memory.*lower face_size"):
         envs.sky_with_sun_cubemap(1_000_000)
     with pytest.raises(ValueError, match=r"^Cubemap.from_equirect: .* GB of memory.*lower face_size"):
@@ -218,8 +218,8 @@ def test_api_bake_and_render_refuse_before_any_work(small_env, monkeypatch):
     def started(*a, **k):
         raise AssertionError("a precompute started before the refusal")
 
-    monkeypatch.setattr(jp.rendering.renderer.specular, "prefilter", started)
-    monkeypatch.setattr(jp.rendering.renderer.extract, "extract_lights", started)
+    monkeypatch.setattr(jp.ibl.specular, "prefilter", started)
+    monkeypatch.setattr(jp.ibl.extract, "extract_lights", started)
     env = jp.Environment(radiance=small_env)
     with pytest.raises(ValueError, match=r"^bake: .* GB of memory.*lower prefilter_samples"):
         jp.bake(env, prefilter_samples=4_000_000_000)

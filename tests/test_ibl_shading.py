@@ -20,7 +20,7 @@ def const_cube(value, size=4, levels=3, dtype=jnp.float64):
 
 @pytest.fixture(scope="module")
 def luts():
-    return {s: compute_brdf_lut(32, smith=s, dtype=jnp.float64) for s in ("correlated", "schlick_ggx")}
+    return {s: compute_brdf_lut(size=32, smith=s, dtype=jnp.float64) for s in ("correlated", "schlick_ggx")}
 
 
 def _dirs(nov, phi=0.3):

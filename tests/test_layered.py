@@ -68,8 +68,8 @@ def small_ibl():
     from jaxpbr.ibl import sheen_prefilter
 
     return (
-        jp.irradiance(env, 8),
-        jp.prefilter(env, 16),
+        jp.irradiance(env, size=8),
+        jp.prefilter(env, size=16),
         jp.brdf_lut(),
         jp.shading.shipped_luts.sheen_lut(),
         sheen_prefilter.prefilter_charlie(env, size=8),
@@ -643,7 +643,7 @@ def test_split_sum_diffuse_weight_stays_bounded_at_grazing_views():
     core's 1 (a ratio to 1 - E_core made it 1042x at n.v = 1e-4), and specular 0 gives the spec's
     weight 1 exactly: under a constant environment L = 1 a white specular-0 dielectric returns 1."""
     env = jp.Cubemap.from_function(lambda d: jnp.ones(d.shape[:-1] + (3,)), 8)
-    irr, pre, lut = jp.irradiance(env, 4), jp.prefilter(env, 8), jp.brdf_lut()
+    irr, pre, lut = jp.irradiance(env, size=4), jp.prefilter(env, size=8), jp.brdf_lut()
     mu = np.array([1e-4, 1e-3, 0.05, 0.5, 1.0])
     n = np.tile([0.0, 0.0, 1.0], (len(mu), 1))
     v = np.stack([np.sqrt(1 - mu * mu), np.zeros_like(mu), mu], -1)

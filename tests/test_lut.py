@@ -202,7 +202,7 @@ SMALL = {"correlated": ((32, 24), jnp.float32), "schlick_ggx": ((24, 32), jnp.fl
 
 @pytest.fixture(scope="module")
 def small_luts():
-    return {s: compute_brdf_lut(size, smith=s, dtype=dt) for s, (size, dt) in SMALL.items()}
+    return {s: compute_brdf_lut(size=size, smith=s, dtype=dt) for s, (size, dt) in SMALL.items()}
 
 
 @pytest.mark.parametrize("smith", SMITH_VARIANTS)
@@ -262,8 +262,8 @@ def test_schlick_is_a_deprecated_alias_of_schlick_ggx():
     """The LUT's Schlick-GGX (k = alpha/2) is "schlick_ggx" (distinct from brdf's Smith-GGX
     "separable"); the old name "schlick" still works, with a DeprecationWarning."""
     with pytest.warns(DeprecationWarning, match="schlick_ggx"):
-        old = compute_brdf_lut(8, smith="schlick")
-    np.testing.assert_array_equal(np.asarray(old), np.asarray(compute_brdf_lut(8, smith="schlick_ggx")))
+        old = compute_brdf_lut(size=8, smith="schlick")
+    np.testing.assert_array_equal(np.asarray(old), np.asarray(compute_brdf_lut(size=8, smith="schlick_ggx")))
     with pytest.warns(DeprecationWarning, match="schlick_ggx"):
         ref_old = lut_reference(0.5, 0.5, smith="schlick")
     np.testing.assert_array_equal(ref_old, lut_reference(0.5, 0.5, smith="schlick_ggx"))
@@ -272,7 +272,7 @@ def test_schlick_is_a_deprecated_alias_of_schlick_ggx():
 def test_positional_smith_still_works_with_a_deprecation_warning():
     with pytest.warns(DeprecationWarning, match="smith=... by keyword"):
         old = compute_brdf_lut(8, "schlick_ggx")
-    np.testing.assert_array_equal(np.asarray(old), np.asarray(compute_brdf_lut(8, smith="schlick_ggx")))
+    np.testing.assert_array_equal(np.asarray(old), np.asarray(compute_brdf_lut(size=8, smith="schlick_ggx")))
     with pytest.warns(DeprecationWarning, match="positionally"):
         np.testing.assert_array_equal(lut_reference(0.5, 0.5, "correlated"), lut_reference(0.5, 0.5))
     with pytest.raises(TypeError, match="positional"):
@@ -430,7 +430,7 @@ def test_full_size_lut_every_texel_within_1e4_of_reference(n, smith):
     reference, both Smith variants (measured max 1.4e-6; the reference takes ~1-2 min at 256^2)."""
     c = _centres(n)
     R, M = np.meshgrid(c, c, indexing="ij")
-    lut = np.asarray(compute_brdf_lut(n, smith=smith), np.float64)
+    lut = np.asarray(compute_brdf_lut(size=n, smith=smith), np.float64)
     err = np.abs(lut - lut_reference(M, R, smith=smith))
     assert err.max() < 1e-4
     assert err.max() < 1e-5  # the documented margin of the default rule

@@ -33,7 +33,7 @@ def _const_cube(value, size=4, levels=3):
 
 @pytest.fixture(scope="module")
 def lut():
-    return compute_brdf_lut(32, smith="correlated", dtype=jnp.float64)
+    return compute_brdf_lut(size=32, smith="correlated", dtype=jnp.float64)
 
 
 def _views(nov):

@@ -79,7 +79,7 @@ def env():
 
 @pytest.mark.parametrize("method", ["exact", "sh9"])
 def test_irradiance(env, method):
-    n, bad = not_highest(lambda lv: diffuse.irradiance(jp.Cubemap([lv]), 8, method=method).levels[0], env.levels[0])
+    n, bad = not_highest(lambda lv: diffuse.irradiance(jp.Cubemap([lv]), size=8, method=method).levels[0], env.levels[0])
     assert n > 0 and not bad, bad[:3]
 
 
@@ -103,7 +103,7 @@ def test_prefilter_reference(env):
 
 
 def test_lut():
-    n, bad = not_highest(lambda: compute_brdf_lut(8))
+    n, bad = not_highest(lambda: compute_brdf_lut(size=8))
     assert not bad, bad[:3]
 
 

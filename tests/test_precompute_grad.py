@@ -101,8 +101,8 @@ def test_jit_equals_eager(dtype, rtol):
     for m in range(M):
         assert jitted[m].dtype == dtype
         np.testing.assert_allclose(np.asarray(jitted[m]), np.asarray(eager[m]), rtol=rtol, err_msg=f"level {m}")
-    e = irradiance(Cubemap((lv,)), 8).levels[0]
-    j = jax.jit(lambda x: irradiance(Cubemap((x,)), 8).levels[0])(lv)
+    e = irradiance(Cubemap((lv,)), size=8).levels[0]
+    j = jax.jit(lambda x: irradiance(Cubemap((x,)), size=8).levels[0])(lv)
     assert j.dtype == dtype
     np.testing.assert_allclose(np.asarray(j), np.asarray(e), rtol=rtol)
 
@@ -166,7 +166,7 @@ def test_irradiance_grad_matches_finite_differences():
     w = jnp.asarray(rng.normal(size=(6, 8, 8, 3)))
 
     def loss(x):
-        return jnp.sum(w * irradiance(Cubemap((x,)), 8).levels[0])
+        return jnp.sum(w * irradiance(Cubemap((x,)), size=8).levels[0])
 
     check_fd(loss, lv, probe_texels(lv, 3, rng))
 
@@ -180,7 +180,7 @@ def test_float32_gradients_are_finite():
     w = [rng.normal(size=(6, S >> m, S >> m, 3)).astype(np.float32) for m in range(M)]
 
     def loss(x):
-        return sum(jnp.sum(wm * lm) for wm, lm in zip(w, pf(x))) + jnp.sum(irradiance(Cubemap((x,)), 8).levels[0])
+        return sum(jnp.sum(wm * lm) for wm, lm in zip(w, pf(x))) + jnp.sum(irradiance(Cubemap((x,)), size=8).levels[0])
 
     with jax.enable_x64(False):  # every intermediate float32 (x64 on, the split would run in float64)
         g = jax.jit(jax.grad(loss))(jnp.asarray(lv))

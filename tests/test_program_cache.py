@@ -341,7 +341,7 @@ def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():
     from jaxpbr.rendering.options import RenderOptions
     from jaxpbr.rendering.plan import _env_split, plan
 
-    radiance = load_environment(["procedural:sky"], 16)
+    radiance = load_environment(["procedural:sky"], face_size=16)
     sphere = jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=0.7))
     cam = jp.Camera(position=(0.0, 0.0, 4.0), target=(0.0, 0.0, 0.0), width=8, height=8, fov_y_deg=40.0)
     variants = [{"mapping": "quadratic", "irradiance_size": 8}, {"model": "learnopengl", "extract_lights": False}]
@@ -414,7 +414,7 @@ def test_a_cold_staged_render_traces_and_compiles_each_stage_once_ahead(cache_di
     floor = jp.Plane(point=(0.0, -0.8, 0.0), normal=(0.0, 1.0, 0.0), material=jp.Material(roughness=0.9))
     scene = jp.Scene(camera=jp.Camera(position=(0.0, 1.0, 5.0), target=(0.0, 0.0, 0.0), width=40, height=24, fov_y_deg=45.0),
                      objects=[*meshes, floor], lights=[jp.PointLight(position=(2.0, 4.0, 3.0), intensity=50.0)],
-                     environment=jp.Environment(radiance=load_environment(["procedural:sky"], 16)))
+                     environment=jp.Environment(radiance=load_environment(["procedural:sky"], face_size=16)))
     jp.clear_caches()
     traced, finished = [], []
     orig_trace, orig_finish = pc.cached_jit._trace, pc.cached_jit._finish

@@ -397,7 +397,7 @@ def test_traced_metallic_out_of_range_is_clamped_in_ibl(model, multiscatter):
     """The IBL term clamped metallic only in its multiscatter mix: f0() and diffuse_color() read
     the raw value, so a traced metallic -1 shaded brighter than metallic 0."""
     env = jp.Cubemap([np.ones((6, 2, 2, 3), np.float32)])
-    lut = np.asarray(jp.compute_brdf_lut(8, smith="schlick_ggx" if model == "learnopengl" else "correlated"))
+    lut = np.asarray(jp.compute_brdf_lut(size=8, smith="schlick_ggx" if model == "learnopengl" else "correlated"))
     n, v = jnp.array([0.0, 0.0, 1.0]), jnp.array([0.0, 0.6, 0.8])
 
     def f(met):
@@ -434,7 +434,7 @@ def test_a_grey_panorama_becomes_rgb_radiance(tmp_path):
 
     grey = tmp_path / "grey.exr"
     image.write(grey, np.full((16, 32), 2.0, np.float32))
-    cube = load_environment(str(grey), 8)
+    cube = load_environment(str(grey), face_size=8)
     assert cube.channels == 3
     np.testing.assert_allclose(np.asarray(cube.levels[0]), 2.0, rtol=1e-6)
 

@@ -11,6 +11,8 @@ import reference as ref
 
 import jaxpbr as jp
 from jaxpbr.rendering import renderer as R
+from jaxpbr.rendering import stages as stages_
+from jaxpbr.rendering.assets import _env_assets as env_assets_
 from jaxpbr.rendering.demo import learnopengl_scene, sphere_grid
 from jaxpbr.rendering.scene import (
     intersect_plane,
@@ -309,9 +311,9 @@ def test_gbuffer_scene_equals_direct_kernels():
     env = small_env()
     lights = [jp.PointLight(position=(2.0, 3.0, 4.0), intensity=30.0)]
     img = np.asarray(jp.render(jp.Scene(gbuffer=g, lights=lights, environment=jp.Environment(radiance=env)), extract_lights=False))
-    irr = jp.irradiance(env, 32)
+    irr = jp.irradiance(env, size=32)
     pre = jp.prefilter(env)
-    lut = jp.brdf_lut(128)
+    lut = jp.brdf_lut(size=128)
     # Jitted (one program each instead of ~200 eager primitive compilations).
     # render's default for glTF: the multiple-scattering compensation of the IBL term.
     kernels = jax.jit(lambda p, n, v, m: jp.shade_direct(p, n, v, m, lights) + jp.shade_ibl(n, v, m, irr, pre, lut, multiscatter=True))
@@ -340,8 +342,8 @@ def test_supersampling_is_the_mean_of_jittered_renders():
 def _primitives(scene, **options):
     opts = R.RenderOptions(**options)
     p = R.plan(scene, options=opts)
-    assets = R._env_assets(scene.environment, p, opts) if p.ibl else None
-    jaxpr = jax.make_jaxpr(lambda s, a: R._render_traced(s, a, p, opts))(scene, assets)
+    assets = env_assets_(scene.environment, p, opts) if p.ibl else None
+    jaxpr = jax.make_jaxpr(lambda s, a: stages_._render_traced(s, a, p, opts))(scene, assets)
     text = str(jaxpr)
     return p, text
 
@@ -387,8 +389,8 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     img = np.asarray(jp.render(scene, options=ss))
     assert seen["levels"] == 3 and np.isfinite(img).all()
     # The truncated chain gives the same image as the full chain (lod <= 1.15 never reads beyond).
-    full = R._env_assets(env, dataclasses.replace(p, prefilter_levels=5), ss)
-    want = np.asarray(R._render_jit(scene, full, dataclasses.replace(p, prefilter_levels=5), ss))
+    full = env_assets_(env, dataclasses.replace(p, prefilter_levels=5), ss)
+    want = np.asarray(stages_._render_jit(scene, full, dataclasses.replace(p, prefilter_levels=5), ss))
     np.testing.assert_allclose(img, want, rtol=1e-6, atol=1e-7)
     # A dielectric brings the irradiance map back.
     p2 = R.plan(scene.replace(objects=scene.objects + (jp.Sphere(center=(0, 2, 0), material=jp.Material(metallic=0.5, roughness=0.3)),)))
@@ -424,7 +426,7 @@ def test_a_cache_passed_in_is_the_only_one_read_and_filled(monkeypatch, staged):
     """`render(cache=)`, `bake(cache=)` and `render_batch(cache=)`: the environment's maps (and the
     suns split out of it) come from and go into the given AssetCache, on the staged path and the
     one-program path alike; the process's default `ASSETS` is neither read nor filled."""
-    monkeypatch.setattr(R, "STAGED", staged)
+    monkeypatch.setattr(R.EXECUTION, "staged", staged)
     R.ASSETS.clear()
     scene = jp.Scene(
         camera=jp.Camera(width=8, height=6),
@@ -522,7 +524,7 @@ def test_gbuffer_scene_with_extracted_sun_equals_kernels():
     img = np.asarray(jp.render(scene))
     ex = extract_lights(env)
     (sun,) = ex.lights
-    irr, pre, lut = jp.irradiance(ex.residual, 32), jp.prefilter(ex.residual), jp.brdf_lut(128)
+    irr, pre, lut = jp.irradiance(ex.residual, size=32), jp.prefilter(ex.residual), jp.brdf_lut(size=128)
     # with the default compensation: of the residual's IBL term and of the sun (its FmsEms times its irradiance)
     want = jax.jit(lambda n, v, m: jp.shade_direct(np.zeros(3), n, v, m, sun) + jp.shade_ibl(n, v, m, irr, pre, lut, multiscatter=True)
                    + jp.ibl.shade.disc_multiscatter(n, v, m, lut, [sun]))(n, v, m)

@@ -49,7 +49,7 @@ def batched_materials(B=5):
 
 
 def take(tree, i):
-    from jaxpbr.rendering.renderer import _batched
+    from jaxpbr.rendering.batching import _batched
 
     return jax.tree_util.tree_map(lambda x: x[i], _batched("batch", tree)[1])
 
@@ -130,10 +130,10 @@ SHARD_SCRIPT = textwrap.dedent(
     mats = batched_materials(7)  # not a multiple of 4: padding path
     sharded = jp.render_batch(scene, materials=mats, chunk=2)
     # The sharded path runs each device's share as one program per chunk; on one device XLA:CPU
-    # runs the stages as separate programs (renderer.STAGED = None). Compare like with like:
-    jp.rendering.renderer.STAGED = False
+    # runs the stages as separate programs (renderer.EXECUTION.staged = None). Compare like with like:
+    jp.rendering.renderer.EXECUTION.staged = False
     single = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
-    jp.rendering.renderer.STAGED = None
+    jp.rendering.renderer.EXECUTION.staged = None
     staged = jp.render_batch(scene, materials=mats, chunk=2, devices=1)
     a, b, c = np.asarray(sharded), np.asarray(single), np.asarray(staged)
     rel = float((np.abs(a - b) / np.maximum(np.abs(b), 1e-6)).max())
@@ -173,7 +173,7 @@ def test_staged_batch_equals_a_loop_of_renders(monkeypatch):
     rounding)."""
     from jaxpbr.rendering import renderer
 
-    monkeypatch.setattr(renderer, "STAGED", True)
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)
     scene = base_scene()
     mats = batched_materials(5)
     imgs = np.asarray(jp.render_batch(scene, materials=mats, chunk=2))
@@ -189,7 +189,7 @@ def test_staged_batch_shadows_the_suns_split_out_of_the_environment(monkeypatch)
     suns' shadow stage runs per chunk, as `render`'s does)."""
     from jaxpbr.rendering import renderer
 
-    monkeypatch.setattr(renderer, "STAGED", True)
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)
     sky = jp.envs.sky_with_sun_cubemap(16)
     scene = base_scene().replace(environment=jp.Environment(radiance=sky), lights=[])
     from jaxpbr.rendering.options import RenderOptions

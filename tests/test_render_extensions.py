@@ -8,7 +8,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr.ibl import sheen_prefilter
-from jaxpbr.rendering import renderer
+from jaxpbr.rendering import renderer, stages
 from jaxpbr.shading.material import EXTENSION_FIELDS
 
 
@@ -133,11 +133,11 @@ def test_sphere_volume_path_and_exit_direction():
     v = np.stack([np.sqrt(1 - mu * mu), np.zeros(3), mu], -1)
     g = dict(n=jp._numerics.unpack3(jnp.asarray(n)), view=jp._numerics.unpack3(jnp.asarray(v)), radius=jnp.full(3, 2.0))
     m = jp.Material(thickness=jnp.full(3, 0.1), ior=jnp.full(3, 1.0))
-    dist, d = renderer._volume_inputs(g, m, jnp.float64)
+    dist, d = stages._volume_inputs(g, m, jnp.float64)
     np.testing.assert_allclose(np.asarray(dist), 4.0 * mu, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(d), -v, atol=1e-12)
     m = m.replace(ior=jnp.full(3, 1.5))
-    dist, d = renderer._volume_inputs(g, m, jnp.float64)
+    dist, d = stages._volume_inputs(g, m, jnp.float64)
     ti = np.arccos(mu)
     tt = np.arcsin(np.sin(ti) / 1.5)
     np.testing.assert_allclose(np.asarray(dist), 4.0 * np.cos(tt), rtol=1e-12)
@@ -201,11 +201,11 @@ def test_the_anisotropy_texture_does_not_turn_the_normal_map():
         kw = {} if direction is None else {"anisotropy_texture": np.full((2, 2, 3), direction)}
         tm = jp.TexturedMaterial(factors=f, normal_texture=tilted, **kw)
         objects = (jp.Sphere(material=tm),)
-        m = renderer._gather_material(renderer._stack_materials(objects, jnp.float32, ("anisotropy",)), jnp.zeros((H, W), jnp.int32))
+        m = stages._gather_material(stages._stack_materials(objects, jnp.float32, ("anisotropy",)), jnp.zeros((H, W), jnp.int32))
         n = unpack3(jnp.tile(jnp.array([0.0, 0.0, 1.0]), (H, W, 1)))
         t = unpack3(jnp.tile(jnp.array([1.0, 0.0, 0.0]), (H, W, 1)))
         uv = (jnp.full((H, W), 0.25), jnp.full((H, W), 0.25))
-        _, n_out, _, aniso, _ = renderer._apply_texture(objects, 0, jnp.zeros((H, W), jnp.int32), uv, t, n, m, jnp.float32)
+        _, n_out, _, aniso, _ = stages._apply_texture(objects, 0, jnp.zeros((H, W), jnp.int32), uv, t, n, m, jnp.float32)
         normals.append(np.stack([np.asarray(c) for c in n_out], -1))
         if direction is not None:
             np.testing.assert_allclose(np.stack([np.asarray(c) for c in aniso], -1)[0, 0], [0.0, 1.0, 0.0], atol=1e-6)

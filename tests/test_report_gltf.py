@@ -193,7 +193,7 @@ def test_cli_asset_report(tmp_path, capsys):
 def test_report_measures_what_render_draws(tmp_path):
     """The report's split-sum IBL term at its measured pixels equals `render` (IBL only, single
     scattering) of the same G-buffer: the report measures the image the renderer makes."""
-    env = load_environment(["procedural:sky"], 16)
+    env = load_environment(["procedural:sky"], face_size=16)
     scene = jp.load_gltf(textured_asset(tmp_path / "t.glb"), width=32, height=24)
     res = asset_report(scene, env, face_size=16, pixels=48, log=_quiet)
     smp = res["samples"]
@@ -221,7 +221,7 @@ def test_mesh_sphere_matches_the_sphere_report(tmp_path):
     luminance. A wrong view vector, normal, material or pixel set moves these by far more (the
     dielectric's IBL error is 0.39 %, the metal's 2.7 %).
     """
-    env = load_environment(["procedural:sky"], 16)
+    env = load_environment(["procedural:sky"], face_size=16)
     r, m = 0.5, 0.0
     sph = render_report(env, env_name="sky", roughness=(r,), metallic=(m,), pixels=24, repeats=1, log=_quiet)["materials"][0]
     scene = jp.load_gltf(sphere_asset(tmp_path / "s.glb", r, m), width=24, height=24)
@@ -239,7 +239,7 @@ def test_mesh_sphere_matches_the_sphere_report(tmp_path):
 @pytest.mark.slow
 def test_mesh_sphere_matches_the_sphere_report_metal(tmp_path):
     """As above for a metal at roughness 0.3 (IBL error ~2.7 %; same tolerance)."""
-    env = load_environment(["procedural:sky"], 16)
+    env = load_environment(["procedural:sky"], face_size=16)
     r, m = 0.3, 1.0
     sph = render_report(env, env_name="sky", roughness=(r,), metallic=(m,), pixels=24, repeats=1, log=_quiet)["materials"][0]
     scene = jp.load_gltf(sphere_asset(tmp_path / "s.glb", r, m), width=24, height=24)
@@ -279,7 +279,7 @@ def test_smooth_assets_are_refused_with_the_floor(tmp_path):
     the floor, before any reference work."""
     scene = jp.load_gltf(sphere_asset(tmp_path / "mirror.glb", 0.02, 1.0, n_lat=8), width=8, height=8)
     with pytest.raises(ValueError, match="floor"):
-        asset_report(scene, load_environment(["procedural:sky"], 16), face_size=16, log=_quiet)
+        asset_report(scene, load_environment(["procedural:sky"], face_size=16), face_size=16, log=_quiet)
     with pytest.raises(TypeError):
         asset_report("not a scene", log=_quiet)
 

@@ -163,7 +163,7 @@ def test_reference_validates_its_arguments():
 
 @pytest.fixture(scope="module")
 def shipped128():
-    return np.asarray(sl.sheen_lut(128))
+    return np.asarray(sl.sheen_lut(size=128))
 
 
 def test_manifest_lists_the_sheen_tables_within_target():
@@ -179,7 +179,7 @@ def test_manifest_lists_the_sheen_tables_within_target():
 @pytest.mark.parametrize("n", [128, 256])
 def test_shipped_tables_match_reference_at_edges_and_sampled_texels(n):
     """The four edges and 300 random texels (every texel: the slow test below)."""
-    e = sheen_lut_error(np.asarray(sl.sheen_lut(n)), texels=300, seed=n)
+    e = sheen_lut_error(np.asarray(sl.sheen_lut(size=n)), texels=300, seed=n)
     assert e["max"] <= 2e-6
 
 
@@ -188,7 +188,7 @@ def test_shipped_tables_match_reference_at_edges_and_sampled_texels(n):
 def test_shipped_tables_every_texel_match_reference(n):
     """Every texel of the shipped tables (rows below r = 0.045 hold E at the floor): measured max
     1.18e-6 / 1.24e-6, mean 9.7e-8 / 9.8e-8 (128^2 / 256^2); requirement 1e-4. ~8 s / ~40 s."""
-    e = sheen_lut_error(np.asarray(sl.sheen_lut(n)), texels=None)
+    e = sheen_lut_error(np.asarray(sl.sheen_lut(size=n)), texels=None)
     assert e["all_texels"] and e["max"] <= 2e-6 and e["mean"] <= 2e-7
 
 
@@ -210,7 +210,7 @@ def test_shipped_files_equal_the_computed_tables(shipped128):
 
 @pytest.mark.slow
 def test_shipped_256_equals_the_computed_table():
-    np.testing.assert_allclose(np.asarray(sl.sheen_lut(256)), np.asarray(compute_sheen_lut(256)), rtol=4e-7, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(sl.sheen_lut(size=256)), np.asarray(compute_sheen_lut(256)), rtol=4e-7, atol=1e-9)
 
 
 @pytest.mark.parametrize("n", [128, 256])
@@ -220,7 +220,7 @@ def test_range_of_e_and_where_it_exceeds_one(n):
     visibility fit is not energy conserving at grazing view for narrow lobes (E = 4.14 at texel
     [0, 0] of 128^2, 4.37 of 256^2; confirmed by Monte Carlo above), so E > 1 in that corner
     (the shipped tables agree with the reference to 1.3e-6 at every texel, so this holds for both)."""
-    e = np.asarray(sl.sheen_lut(n), np.float64)
+    e = np.asarray(sl.sheen_lut(size=n), np.float64)
     mu, r = _texel_grid(n)
     assert (e >= 0).all() and (e[:, :8] > 0).all()  # 0: float32 underflow of e^-160 at NoV ~ 1, r = 0.045
     assert e[(r >= 0.26) | (mu >= 0.055)].max() <= 1 + 1e-6
@@ -318,9 +318,9 @@ def test_lookup_shapes_and_bad_table():
 
 
 def test_non_matching_parameters_are_computed():
-    a = np.asarray(sl.sheen_lut(16))
+    a = np.asarray(sl.sheen_lut(size=16))
     np.testing.assert_array_equal(a, np.asarray(compute_sheen_lut(16)))
-    b = np.asarray(sl.sheen_lut((8, 16), samples=4 * 8**2))
+    b = np.asarray(sl.sheen_lut(size=(8, 16), samples=4 * 8**2))
     assert b.shape == (8, 16)
 
 

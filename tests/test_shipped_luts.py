@@ -21,18 +21,18 @@ def test_manifest_lists_both_sizes_and_variants_within_target():
 
 
 def test_brdf_lut_serves_the_shipped_file_and_regeneration_agrees():
-    lut = np.asarray(jp.brdf_lut(128))
+    lut = np.asarray(jp.brdf_lut(size=128))
     assert lut.shape == (128, 128, 2) and lut.dtype == np.float32
     np.testing.assert_array_equal(lut, _load("brdf_lut_128_correlated.exr"))
     # Regenerate with the same code path: identical up to float32 evaluation order (< 2e-6 is
     # the documented float32-node effect of compute_brdf_lut).
-    fresh = np.asarray(compute_brdf_lut(128))
+    fresh = np.asarray(compute_brdf_lut(size=128))
     np.testing.assert_allclose(lut, fresh, atol=2e-6, rtol=0)
 
 
 @pytest.mark.parametrize("smith", ["correlated", "schlick_ggx"])
 def test_shipped_256_against_independent_reference_at_sampled_texels(smith):
-    lut = np.asarray(jp.brdf_lut(256, smith=smith))
+    lut = np.asarray(jp.brdf_lut(size=256, smith=smith))
     rng = np.random.default_rng(3)
     j = np.concatenate([[0, 0, 255, 255], rng.integers(0, 256, 60)])
     i = np.concatenate([[0, 255, 0, 255], rng.integers(0, 256, 60)])
@@ -41,17 +41,17 @@ def test_shipped_256_against_independent_reference_at_sampled_texels(smith):
 
 
 def test_non_matching_parameters_are_computed():
-    a = np.asarray(jp.brdf_lut(16, smith="schlick_ggx"))
-    np.testing.assert_array_equal(a, np.asarray(compute_brdf_lut(16, smith="schlick_ggx")))
-    b = np.asarray(jp.brdf_lut(128, use_shipped=False, samples=6 * 8**2))
+    a = np.asarray(jp.brdf_lut(size=16, smith="schlick_ggx"))
+    np.testing.assert_array_equal(a, np.asarray(compute_brdf_lut(size=16, smith="schlick_ggx")))
+    b = np.asarray(jp.brdf_lut(size=128, use_shipped=False, samples=6 * 8**2))
     assert np.abs(b - _load("brdf_lut_128_correlated.exr")).max() > 0  # a different rule was run
 
 
 def test_schlick_ggx_is_served_from_the_schlick_file_and_the_old_name_still_works():
-    lut = np.asarray(jp.brdf_lut(128, smith="schlick_ggx"))
+    lut = np.asarray(jp.brdf_lut(size=128, smith="schlick_ggx"))
     np.testing.assert_array_equal(lut, _load("brdf_lut_128_schlick.exr"))
     with pytest.warns(DeprecationWarning, match="schlick_ggx"):
-        old = np.asarray(jp.brdf_lut(128, smith="schlick"))
+        old = np.asarray(jp.brdf_lut(size=128, smith="schlick"))
     np.testing.assert_array_equal(old, lut)
     with pytest.warns(DeprecationWarning, match="positionally"):
         np.testing.assert_array_equal(np.asarray(jp.brdf_lut(128, "schlick_ggx")), lut)

@@ -234,7 +234,7 @@ def test_level0_is_the_source():
     om = ref_solid_angles(16)[..., None]
     for method in ("fis", "reference"):
         for k, size in ((2, 8), (4, 4)):
-            out = prefilter(env, size, num_levels=1, method=method)
+            out = prefilter(env, size=size, num_levels=1, method=method)
             ref = (src * om).reshape(6, size, k, size, k, 3).sum((2, 4)) / om.reshape(6, size, k, size, k, 1).sum(
                 (2, 4)
             )
@@ -256,10 +256,10 @@ def test_structure_and_metadata():
     # Progress in chunks of work (30 rows in chunks of 8: 4 reports from inside the program), the
     # last one (total, total); the result is the same as without progress.
     calls = []
-    out = prefilter(env, 4, num_levels=3, samples=samples_list(3, 64), chunk=8, progress=lambda done, total: calls.append((done, total)))
+    out = prefilter(env, size=4, num_levels=3, samples=samples_list(3, 64), chunk=8, progress=lambda done, total: calls.append((done, total)))
     assert calls[-1] == (4, 4) and [d for d, _ in calls] == [1, 2, 3, 4], calls
     assert [lv.shape[1] for lv in out.levels] == [4, 2, 1]
-    quiet = prefilter(env, 4, num_levels=3, samples=samples_list(3, 64), chunk=8)
+    quiet = prefilter(env, size=4, num_levels=3, samples=samples_list(3, 64), chunk=8)
     for a, b in zip(out.levels, quiet.levels):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     out = prefilter(env, num_levels=2, samples=samples_list(2, 64))
@@ -507,9 +507,9 @@ def test_bad_arguments():
     env = rand_env(16, C=1)
     for size in (12, 32, 3, 0):
         with pytest.raises(ValueError, match="size"):
-            prefilter(env, size)
+            prefilter(env, size=size)
     with pytest.raises(ValueError, match="divided by a power of two"):
-        prefilter(env, 12)
+        prefilter(env, size=12)
     with pytest.raises(ValueError, match="unknown prefilter method 'mc'"):
         prefilter(env, method="mc")
     with pytest.raises(ValueError, match="unknown roughness->mip mapping"):
@@ -517,7 +517,7 @@ def test_bad_arguments():
     with pytest.raises(ValueError, match="at most 5 levels; asked for 6"):
         prefilter(env, num_levels=6)
     with pytest.raises(ValueError, match="at most 3 levels"):
-        prefilter(env, 4, num_levels=4)
+        prefilter(env, size=4, num_levels=4)
     with pytest.raises(ValueError, match="num_levels must be a positive integer"):
         prefilter(env, num_levels=0)
     with pytest.raises(ValueError, match="samples has 3 entries; expected one per level \\(5\\)"):

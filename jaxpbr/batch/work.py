@@ -30,14 +30,13 @@ from .. import color
 from ..conventions import CONVENTIONS
 from ..errors import InputError
 from ..ibl.baked import STEMS, write_baked
-from ..ibl.cubeio import load_environment
 from ..io import image
 from ..io.atomic import OutputSet
 from ..rendering.aovs import exr_layers, render_with_aovs
 from ..rendering.demo import demo_scene
-from ..rendering.gltf_scene import load_gltf
+from ..rendering.gltf_scene import environment_from, load_gltf
 from ..rendering.renderer import RenderOptions, check_memory, plan, render
-from ..rendering.scene import Environment, Scene
+from ..rendering.scene import Scene
 from ..rendering.scene_file import load_scene
 from ..rendering.textured import TexturedMaterial
 from ..shading.material import Material
@@ -60,6 +59,10 @@ class _LRU(OrderedDict):
         while len(self) > KEEP:
             self.popitem(last=False)
         return value
+
+
+def _is_gltf(source) -> bool:
+    return isinstance(source, (str, Path)) and Path(source).suffix.lower() in (".gltf", ".glb")
 
 
 class Worker:
@@ -147,8 +150,12 @@ class Worker:
         """The job's scene -> (Scene, the scene file's render options, its display settings)."""
         W, H = job.width, job.height
         own_env = job.environment is None  # the demo's sky is not built for a job that replaces it
+        # A glTF asset's camera follows `load_gltf`'s rules with the job's overrides (as `jaxpbr render
+        # ASSET --camera-position ...` does): they are part of what is loaded.
+        c = job.camera or {}
+        view = tuple((k, tuple(np.ravel(c[k]).tolist())) for k in ("position", "target", "fov_y") if k in c) if _is_gltf(job.scene) else ()
         base, file_options, file_display = self._scenes.get_or(
-            (repr(job.scene), W, H, own_env), lambda: self._load_scene(job.scene, W, H, environment=own_env))
+            (repr(job.scene), W, H, own_env, view), lambda: self._load_scene(job.scene, W, H, environment=own_env, view=dict(view)))
         cam = base.camera
         if cam is not None:
             changes = {}
@@ -168,8 +175,9 @@ class Worker:
             raise InputError(f"job {job.name!r}: camera: the scene has no camera to change (a G-buffer scene)")
         env = base.environment
         if job.environment is not None:
-            cube = self._envs.get_or(job.environment, lambda: load_environment(job.environment))
-            env = Environment(radiance=cube)
+            # (the same environment as `jaxpbr render --environment` and `load_gltf` read: the demo's
+            # baked sky for procedural:sky)
+            env = self._envs.get_or(job.environment, lambda: environment_from(job.environment))
         if env is not None and (job.environment_intensity is not None or job.environment_rotation is not None):
             changes = {}
             if job.environment_intensity is not None:
@@ -185,7 +193,7 @@ class Worker:
             base = base.replace(objects=[_with_material(o, job.material) for o in base.objects])
         return base, file_options, file_display
 
-    def _load_scene(self, source, W, H, *, environment: bool = True):
+    def _load_scene(self, source, W, H, *, environment: bool = True, view=None):
         if source == "demo":
             return demo_scene(W or 1280, H or 720, environment=environment), {}, {}
         if isinstance(source, tuple):  # ("factory", "module:function", args-json, folder)
@@ -225,7 +233,10 @@ class Worker:
         if path.suffix.lower() == ".toml":
             sf = load_scene(path)
             return sf.scene, dict(sf.options), dict(sf.output)
-        return load_gltf(path, width=W or 1280, height=H or 720), {}, {}
+        view = view or {}
+        fov = view.get("fov_y")
+        return load_gltf(path, width=W or 1280, height=H or 720, camera_position=view.get("position"), camera_target=view.get("target"),
+                         fov_y_deg=None if fov is None else float(fov[0])), {}, {}
 
     # -- bake jobs ----------------------------------------------------------------------------
 

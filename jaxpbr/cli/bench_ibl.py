@@ -80,7 +80,7 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
         ]
 
     # LUT --------------------------------------------------------------------------------------
-    lut, _t = time_calls(lambda: np.asarray(compute_brdf_lut(256)), rounds=2)
+    lut, _t = time_calls(lambda: np.asarray(compute_brdf_lut(size=256)), rounds=2)
     lfirst, t_lut = _t.first, _t.best
     e_lut = lut_error(lut, smith="correlated", texels=None)
     hl, _t = time_calls(lambda: hammersley_lut(256, 1024), rounds=2)
@@ -94,12 +94,12 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
     ]
 
     # irradiance -------------------------------------------------------------------------------
-    irr, _t = time_calls(lambda: to_host(irradiance(env, 32)), rounds=2)
+    irr, _t = time_calls(lambda: to_host(irradiance(env, size=32)), rounds=2)
     ifirst, t_irr = _t.first, _t.best
     e_irr = irradiance_error(env, irr, texels=1024)
-    full, _t = time_calls(lambda: to_host(irradiance(env, 32, source_size=env.face_size)), rounds=1)
+    full, _t = time_calls(lambda: to_host(irradiance(env, size=32, source_size=env.face_size)), rounds=1)
     _, t_full = _t.first, _t.best
-    sh, _t = time_calls(lambda: to_host(irradiance(env, 32, method="sh9")), rounds=2)
+    sh, _t = time_calls(lambda: to_host(irradiance(env, size=32, method="sh9")), rounds=2)
     _, t_sh = _t.first, _t.best
     e_sh = irradiance_error(env, sh, texels=1024)
     lines += [
@@ -123,6 +123,6 @@ def add_command(bsub) -> None:
 def cmd_bench_ibl(args) -> int:
     require_environment(args.face_size, procedural=not args.env)
     require_environment(args.face_size, procedural=not args.env, samples=args.baseline_samples, samples_flag="--baseline-samples")
-    env = load_environment([args.env] if args.env else ["procedural:sky"], args.face_size)
+    env = load_environment([args.env] if args.env else ["procedural:sky"], face_size=args.face_size)
     print(bench_ibl(env, args.env or "procedural sky+sun", baseline_samples=args.baseline_samples))
     return 0

@@ -127,9 +127,9 @@ def make_ibl(face_size: int = 128, *, irradiance_size: int = 32, lut_size: int =
 
     times = {}
     env, times["environment"] = timed(lambda: envs.sky_with_sun_cubemap(face_size))
-    irr, times["irradiance"] = timed(lambda: irradiance(env, min(irradiance_size, face_size)))
+    irr, times["irradiance"] = timed(lambda: irradiance(env, size=min(irradiance_size, face_size)))
     pre, times["prefilter"] = timed(lambda: prefilter(env))
-    lut, times["brdf_lut"] = timed(lambda: brdf_lut(lut_size))
+    lut, times["brdf_lut"] = timed(lambda: brdf_lut(size=lut_size))
     return IBLTables(env, irr, pre, jnp.asarray(lut, jnp.float32), times)
 
 
@@ -212,7 +212,7 @@ def bench_render_gbuffer(
     jl = jax_point_lights(lights)
 
     # The library's own path: jp.render of a G-buffer scene (staged programs: direct lighting,
-    # then IBL; see renderer._render_pass). The LUT is the shipped one render loads. Single
+    # then IBL; see stages._render_pass). The LUT is the shipped one render loads. Single
     # scattering, the model the NumPy port computes (render's default compensates it).
     scene = Scene(
         gbuffer=GBuffer(

@@ -78,7 +78,7 @@ def add_commands(sub) -> None:
 
     def common_env(p):
         p.add_argument("env", nargs="+", metavar="ENV", help=ENVIRONMENT_HELP)
-        p.add_argument("--face-size", type=positive_int_arg, default=None, help="face size of the environment cube (default: from the panorama, 256 for procedural)")
+        p.add_argument("--face-size", type=positive_int_arg, default=None, help="face size of the environment cube (default: from the panorama, 128 for procedural: the demo's sky)")
         p.add_argument("--clamp-negative", action="store_true", help="set negative input pixels to 0 (with a warning) instead of failing")
 
     def common_out(p, default, suffixes):
@@ -265,7 +265,7 @@ def _lut(args, outs: OutputSet) -> dict:
         return _sheen_lut(args, outs, out)
     t0 = time.perf_counter()
     smith = _smith(args)
-    lut = np.asarray(brdf_lut(args.size, smith=smith, samples=args.samples, use_shipped=False, progress=None if args.quiet else Progress("lut")))
+    lut = np.asarray(brdf_lut(size=args.size, smith=smith, samples=args.samples, use_shipped=False, progress=None if args.quiet else Progress("lut")))
     seconds = time.perf_counter() - t0
     asset = lut_asset(lut, smith=smith, samples=args.samples, seconds=seconds, measure_error=not args.no_error, full_check=args.full_check)
     side = write_asset(out, asset, outputs=outs)
@@ -281,7 +281,7 @@ def _sheen_lut(args, outs: OutputSet, out: Path) -> dict:
     from ..shading.shipped_luts import sheen_lut
 
     t0 = time.perf_counter()
-    lut = np.asarray(sheen_lut(args.size, samples=args.samples, use_shipped=False, progress=None if args.quiet else Progress("lut")))
+    lut = np.asarray(sheen_lut(size=args.size, samples=args.samples, use_shipped=False, progress=None if args.quiet else Progress("lut")))
     seconds = time.perf_counter() - t0
     err = None if args.no_error else sheen_lut_error(lut, texels=None if args.full_check else 1024)
     meta = {
@@ -312,7 +312,7 @@ def _irradiance(args, outs: OutputSet) -> dict:
     env = _load(args, "irradiance")
     bars = _bars(args.quiet)
     t0 = time.perf_counter()
-    irr = irradiance(env, args.size, method=args.method, progress=_bar(bars, "irradiance"))
+    irr = irradiance(env, size=args.size, method=args.method, progress=_bar(bars, "irradiance"))
     np.asarray(irr.levels[0])
     seconds = time.perf_counter() - t0
     asset = irradiance_asset(env, irr, method=args.method, seconds=seconds, measure_error=not args.no_error, progress=bars)
@@ -337,7 +337,7 @@ def _prefilter(args, outs: OutputSet) -> dict:
     _prefilter_checks(args, env, out)
     bars = _bars(args.quiet)
     t0 = time.perf_counter()
-    pre = prefilter(env, args.size, num_levels=args.levels, mapping=args.mapping, lod_blend=args.lod_blend, method=args.method,
+    pre = prefilter(env, size=args.size, num_levels=args.levels, mapping=args.mapping, lod_blend=args.lod_blend, method=args.method,
                     samples=args.samples, exact_texels=args.exact_texels, progress=_bar(bars, "prefilter"))
     [np.asarray(lv) for lv in pre.levels]
     seconds = time.perf_counter() - t0

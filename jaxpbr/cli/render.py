@@ -15,8 +15,8 @@ from .. import _program_cache, color
 from ..conventions import CONVENTIONS, luminance
 from ..io import image
 from ..io.atomic import OutputSet
-from ..rendering.demo import demo_environment, demo_scene
-from ..rendering.renderer import BAND_PIXELS, RenderOptions, check_memory, plan, render
+from ..rendering.demo import demo_scene
+from ..rendering.renderer import EXECUTION, RenderOptions, check_memory, plan, render
 from ..rendering.scene import MAX_SUPERSAMPLE
 from ..rendering.scene_file import load_scene
 from ..shading.brdf_terms import MODELS
@@ -149,54 +149,30 @@ def _vec3_arg(text: str) -> tuple[float, float, float]:
 
 
 def _gltf_scene(args):
-    """The scene of a glTF asset with the command line's environment and camera."""
+    """The scene of a glTF asset with the command line's environment and camera (the rules of
+    `jaxpbr.load_gltf`, `gltf_scene.scene_from_asset`)."""
     import warnings
 
-    from ..ibl.cubeio import load_environment
     from ..io.gltf import read_gltf
-    from ..rendering.gltf_scene import frame_bounds, scene_from_asset
+    from ..rendering.gltf_scene import scene_from_asset
     from ..rendering.plan import mesh_engine
-    from ..rendering.scene import Camera, Environment
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         asset = read_gltf(args.scene, roots=args.asset_root or (), ray_engine=mesh_engine())
     for w in caught:
         print(f"jaxpbr: warning: {w.message}")
-    W, H = args.width or 1280, args.height or 720
-    env = None
-    if args.environment is not None:
-        # procedural:sky is the demo's sky (128^2 faces), baked as the demo's (the shipped set).
-        if args.environment == "procedural:sky":
-            env = demo_environment(intensity=args.environment_intensity)
-        else:
-            env = Environment(radiance=load_environment(args.environment), intensity=args.environment_intensity)
-    cam = None
-    if args.camera_position is not None or args.camera_target is not None or args.fov_y is not None or not asset.cameras:
-        pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], fov_y_deg=45.0 if args.fov_y is None else args.fov_y, aspect=W / H)
-        first = next((c for c in asset.cameras if c.type == "perspective"), None)
-        if first is not None and args.camera_position is None and args.camera_target is None:
-            pos, tgt = first.position, first.position + first.forward
-        if args.fov_y is not None:
-            fov = args.fov_y
-        else:
-            fov = math.degrees(first.yfov) if first is not None else 45.0
-        cam = Camera(
-            position=tuple(pos if args.camera_position is None else args.camera_position),
-            target=tuple(tgt if args.camera_target is None else args.camera_target),
-            fov_y_deg=fov,
-            width=W, height=H, supersample=args.supersample or 1,
-        )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        gs = scene_from_asset(asset, camera=cam, width=W, height=H, environment=env)
+        gs = scene_from_asset(
+            asset, width=args.width or 1280, height=args.height or 720, camera_position=args.camera_position,
+            camera_target=args.camera_target, fov_y_deg=args.fov_y, supersample=args.supersample or 1,
+            environment=args.environment, environment_intensity=args.environment_intensity,
+        )
     for note in gs.notes:
         print(f"jaxpbr: note: {note}")
-    scene = gs.scene
-    if cam is None and args.supersample:
-        scene = scene.replace(camera=scene.camera.replace(supersample=args.supersample))
     s = asset.summary()
-    return scene, f"glTF {Path(args.scene).name}: {s['triangles']} triangles, {s['materials']} materials"
+    return gs.scene, f"glTF {Path(args.scene).name}: {s['triangles']} triangles, {s['materials']} materials"
 
 
 def _aov_names(text: str | None) -> tuple[str, ...]:
@@ -299,7 +275,8 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
     t0 = time.perf_counter()
     the_plan = plan(scene, options=opts)
     # A bar only when there is more than one pass (bands of a large image, sub-pixel samples).
-    passes = scene.camera.supersample ** 2 * (1 if W * H <= BAND_PIXELS else -(-H // max(1, BAND_PIXELS // W)))
+    band = EXECUTION.band_pixels
+    passes = scene.camera.supersample ** 2 * (1 if W * H <= band else -(-H // max(1, band // W)))
     progress = Progress("render") if passes > 1 else None
     # The display program is compiled ahead with a cold render's stages (`_program_cache.also_ahead`).
     frame = jax.ShapeDtypeStruct((H, W, 3), np.dtype(opts.dtype))

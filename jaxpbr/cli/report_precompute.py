@@ -60,7 +60,7 @@ def lut_rows(sizes=(64, 128, 256), samples=(None,), smiths=("correlated", "schli
         for size in sizes:
             for n in samples:
                 kw = {} if n is None else {"samples": n}
-                lut, _t = time_calls(lambda: to_host(compute_brdf_lut(size, smith=smith, **kw)), rounds=2)
+                lut, _t = time_calls(lambda: to_host(compute_brdf_lut(size=size, smith=smith, **kw)), rounds=2)
                 first, best = _t.first, _t.best
                 # Every texel up to 128^2; above that the edges + 4096 random texels (the every-texel
                 # figures of the shipped 256^2 LUTs are in luts/MANIFEST.json).
@@ -74,7 +74,7 @@ def irradiance_rows(env, env_name: str, size: int = 32, source_sizes=(16, 32, 64
     rows = []
     configs = [("exact", s) for s in source_sizes if s <= env.face_size] + [("sh9", None)]
     for method, src in configs:
-        irr, _t = time_calls(lambda: to_host(irradiance(env, size, method=method, source_size=src)), rounds=2)
+        irr, _t = time_calls(lambda: to_host(irradiance(env, size=size, method=method, source_size=src)), rounds=2)
         first, best = _t.first, _t.best
         err = irradiance_error(env, irr, texels=1024)
         rows.append(dict(what="irradiance", env=env_name, variant=method if src is None else f"exact src {src}^2", param=src or 9, seconds=best, compile_s=max(0.0, first - best), mean=err["mean"], max=err["max"], unit="rel"))
@@ -310,7 +310,7 @@ def precompute_report(env_paths=(), *, out_prefix="precompute_report", face_size
     `face_size`; `quick` leaves it out of the full report and shortens it with chain_only."""
     environments = [("procedural sky+sun", envs.sky_with_sun_cubemap(face_size))]
     for p in env_paths:
-        environments.append((Path(p).name, load_environment([str(p)], face_size)))
+        environments.append((Path(p).name, load_environment([str(p)], face_size=face_size)))
     log("prefiltered chain: floor x mapping x lod blend, linear environment (closed form)")
     chain = chain_rows(sizes=(64, 128) if quick else (64, 128, 256), lookups=300 if quick else 600, log=log)
     for name, env in environments:

@@ -258,9 +258,9 @@ class _SplitSum:
             ex = _extract.extract_lights(env)
             ss_env, self.extracted, discs = ex.residual, ex.info["lights"], list(ex.lights)
         self.ss_env = ss_env
-        self.lut = brdf_lut(lut_size)
-        self.irr = irradiance(ss_env, irradiance_size)
-        self.pre = prefilter(ss_env, prefilter_size)
+        self.lut = brdf_lut(size=lut_size)
+        self.irr = irradiance(ss_env, size=irradiance_size)
+        self.pre = prefilter(ss_env, size=prefilter_size)
         jax.block_until_ready((self.lut, self.irr.levels, self.pre.levels))
         self.precompute_s = time.perf_counter() - t0
         f32 = jnp.float32
@@ -318,7 +318,7 @@ def _environment(env, face_size: int, env_name: str | None):
     "procedural:sky" or a Cubemap."""
     if isinstance(env, (str, Path)):
         env_name = env_name or str(env)
-        env = load_environment([str(env)], face_size)
+        env = load_environment([str(env)], face_size=face_size)
     elif env is None:
         env_name = env_name or "procedural sky+sun"
         env = envs.sky_with_sun_cubemap(face_size)
@@ -630,7 +630,7 @@ def asset_report(
     log(f"render report: {asset_name}, {W}x{H} G-buffer ({gbuffer_s:.2f} s), {flat.size} px on the asset, {idx.size} measured; {env_name} at {env.face_size}^2")
 
     ss = _SplitSum(env, [], extract_lights=extract_lights, irradiance_size=irradiance_size,
-                   prefilter_size=_renderer._prefilter_size(Environment(radiance=env), _renderer.RenderOptions()), lut_size=lut_size)
+                   prefilter_size=_renderer.prefilter_size(Environment(radiance=env), _renderer.RenderOptions()), lut_size=lut_size)
     ss.log_setup(log)
     f32 = jnp.float32
     n32, v32, p32 = (jnp.asarray(a[idx], f32) for a in (n, v, p))
@@ -971,7 +971,7 @@ def cmd_report_render(args) -> int:
     materials = len(roughness) * len(metallic)
     require_memory(f"a {pixels}x{pixels} report of {materials} materials", pixels**2 * (3000.0 + 100.0 * materials), "lower --pixels")
     require_environment(args.face_size, procedural=env_arg.startswith("procedural:"))
-    env = load_environment([env_arg], args.face_size)
+    env = load_environment([env_arg], face_size=args.face_size)
     result = render_report(
         env,
         env_name=_env_name(env_arg),
@@ -1008,7 +1008,7 @@ def _cmd_asset(args, out_dir: Path, log) -> int:
     require_memory(f"a {W}x{H} G-buffer and {pixels} reference pixels", W * H * 300.0 + pixels * 3000.0, "lower --width/--height or --pixels")
     require_environment(args.face_size, procedural=args.env.startswith("procedural:"))
     scene = load_gltf(path, width=W, height=H, asset_lights=False)
-    env = load_environment([args.env], args.face_size)
+    env = load_environment([args.env], face_size=args.face_size)
     result = asset_report(
         scene, env, env_name=_env_name(args.env), asset_name=path.name, face_size=args.face_size, pixels=pixels,
         irradiance_size=args.irradiance_size, lut_size=args.lut_size, extract_lights=args.extract_lights, log=log,
@@ -1040,7 +1040,7 @@ def _cmd_visibility(args, out_dir: Path, log) -> int:
         env = None
         if args.env is not None:
             require_environment(args.face_size, procedural=args.env.startswith("procedural:"))
-            env = Environment(radiance=load_environment([args.env], args.face_size))
+            env = Environment(radiance=load_environment([args.env], face_size=args.face_size))
         scene, name = concave_scene(W, H, environment=env), "concave scene (builtin)"
     else:
         path = Path(args.asset)
@@ -1049,7 +1049,7 @@ def _cmd_visibility(args, out_dir: Path, log) -> int:
         if args.env is None:
             raise CLIError("an ASSET is measured under an environment: add --environment FILE or --environment procedural:sky")
         require_environment(args.face_size, procedural=args.env.startswith("procedural:"))
-        env = Environment(radiance=load_environment([args.env], args.face_size))
+        env = Environment(radiance=load_environment([args.env], face_size=args.face_size))
         scene, name = load_gltf(path, width=W, height=H, asset_lights=False, environment=env), path.name
     require_memory(f"a {W}x{H} ground truth", W * H * 2000.0, "lower --width/--height")
     result = visibility_report(scene, name=name, samples=tuple(args.samples or DEFAULT_SAMPLES), spp=args.spp, log=log)

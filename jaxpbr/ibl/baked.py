@@ -214,7 +214,7 @@ def load_source(environment, *, face_size=None, clamp_negative: bool = False, ki
     if isinstance(environment, (str, Path)) or (isinstance(environment, (list, tuple)) and environment
                                                 and all(isinstance(p, (str, Path)) for p in environment)):
         _guard_cube(kind, face_size, names)
-        env = load_environment(environment, face_size, clamp_negative=clamp_negative)
+        env = load_environment(environment, face_size=face_size, clamp_negative=clamp_negative)
         _guard_cube(kind, env.face_size, names)
         return env
     cube = _radiance_of(environment)
@@ -431,7 +431,7 @@ def _sheen_table(lut_size: int, *, measure_error: bool, progress) -> dict:
     n_r, n_nov = lut_shape(lut_size)
     entry = next((e for e in shipped_manifest().get("sheen_luts", []) if e["size"] == [n_r, n_nov] and e["samples"] == SHEEN_SAMPLES), None)
     t0 = time.perf_counter()
-    table = np.asarray(sheen_lut(lut_size, progress=None if entry else _step(progress, "sheen lut")), np.float32)
+    table = np.asarray(sheen_lut(size=lut_size, progress=None if entry else _step(progress, "sheen lut")), np.float32)
     info = {
         "channel": "B",
         "quantity": "E_sheen(NoV, r) = int D_charlie V_charlie (n.l) dl (KHR_materials_sheen): the albedo scaling "
@@ -586,6 +586,13 @@ def write_baked(
         default up to 5) and put the sheen albedo in the LUT's B channel; False leaves both out.
     extract: split the suns out first (`extract.extract_lights`): the cubes hold the residual and
         lights.json the disc lights.
+
+    The defaults differ from `jaxpbr.bake`'s on purpose, and `jaxpbr ibl` follows these. The set is
+    for an engine that reads files: the sheen cube is in it (an engine cannot compute it later,
+    where a render computes it when a scene needs it), and the suns stay in the cubes unless asked
+    (`extract=True`, `--extract-lights`), since an engine that reads only the cubes would lose the
+    suns' light. `jaxpbr.bake` prepares an `Environment` for `jaxpbr.render`: it splits the suns
+    as a render does (`RenderOptions.extract_lights`, on by default) and leaves the sheen cube out.
     radiance: also store the environment itself (level 0, before any extraction) as
         `radiance.<container>`: `read_baked` then draws it as the background (without it, the
         prefiltered map's level 0, which lacks the extracted suns).
@@ -665,7 +672,7 @@ def write_baked(
 
     guard_irradiance(irradiance_size, names=names)
     t0 = time.perf_counter()
-    irr = irradiance(env, irradiance_size, method=irradiance_method, progress=_step(progress, "irradiance"))
+    irr = irradiance(env, size=irradiance_size, method=irradiance_method, progress=_step(progress, "irradiance"))
     np.asarray(irr.levels[0])
     seconds = time.perf_counter() - t0
     index = {"sheen": sheen, "irradiance": put("irradiance", irradiance_asset(
@@ -674,7 +681,7 @@ def write_baked(
         index["radiance"] = put("radiance", radiance_asset(source))
 
     t0 = time.perf_counter()
-    pre = prefilter(env, size, num_levels=levels, mapping=mapping, lod_blend=lod_blend, method=method, samples=samples,
+    pre = prefilter(env, size=size, num_levels=levels, mapping=mapping, lod_blend=lod_blend, method=method, samples=samples,
                     exact_texels=exact_texels, progress=_step(progress, "prefilter"))
     [np.asarray(lv) for lv in pre.levels]
     seconds = time.perf_counter() - t0
@@ -686,7 +693,7 @@ def write_baked(
     table = _sheen_table(lut_size, measure_error=measure_error, progress=progress) if sheen else None
 
     t0 = time.perf_counter()
-    lut = np.asarray(brdf_lut(lut_size, smith=smith, samples=None, use_shipped=False, progress=_step(progress, "lut")))
+    lut = np.asarray(brdf_lut(size=lut_size, smith=smith, samples=None, use_shipped=False, progress=_step(progress, "lut")))
     seconds = time.perf_counter() - t0
     index["brdf_lut"] = put("brdf_lut", lut_asset(lut, smith=smith, samples=None, seconds=seconds, sheen=table,
                                                   measure_error=measure_error))

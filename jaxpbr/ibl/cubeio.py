@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._api import keyword_only
 from .._memory import cube_bytes, require
 from .._validate import positive_int
 from ..errors import InputError
@@ -30,17 +31,20 @@ ENVIRONMENT_HELP = (
 FACE_FILE_NAMES = ("px", "nx", "py", "ny", "pz", "nz")
 
 
-#: Face size of "procedural:sky" when `load_environment` is given none.
-PROCEDURAL_FACE_SIZE = 256
+#: Face size of "procedural:sky" when none is given: one sky everywhere, the demo's (`jaxpbr render`'s
+#: default scene and `--environment procedural:sky`, batch jobs, `jaxpbr ibl`, scene files, and
+#: `load_environment`), whose baked set the package ships (`jaxpbr/_demo_sky`).
+PROCEDURAL_FACE_SIZE = 128
 
 
-def load_environment(paths, face_size: int | None = None, *, clamp_negative: bool = False) -> Cubemap:
+@keyword_only("face_size")
+def load_environment(paths, *, face_size: int | None = None, clamp_negative: bool = False) -> Cubemap:
     """Read an environment -> float32 `Cubemap` (level 0 only).
 
     paths: one equirect panorama (.hdr/.exr, width = 2 x height), six square face images in the
         order +X -X +Y -Y +Z -Z, or ["procedural:sky"] (`envs.sky_with_sun_cubemap`).
     face_size: cube face size; default: the power of two nearest to a quarter of the panorama's
-        width (256 for the procedural sky). Six faces can only be reduced by powers of two.
+        width (`PROCEDURAL_FACE_SIZE`, 128, for the procedural sky: the demo's). Six faces can only be reduced by powers of two.
     clamp_negative: set negative pixels to 0 with a `UserWarning` instead of failing.
 
     Raises `InputError` (naming the problem and the fix) for a missing or unreadable file, a

@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._api import keyword_only
 from .._memory import irradiance_bytes, require
 from .._numerics import HIGHEST, map_row_chunks, progress_token, row_chunk_count
 from .._program_cache import cpu_jit
@@ -234,10 +235,11 @@ def _source_size(S: int, source_size: int | None) -> int:
     return source_size
 
 
+@keyword_only("size")
 def irradiance(
     env: Cubemap,
-    size: int = 32,
     *,
+    size: int = 32,
     method: str = "exact",
     source_size: int | None = None,
     chunk: int = 16,

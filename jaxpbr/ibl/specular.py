@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._api import keyword_only
 from .._memory import check_samples, prefilter_bytes, require
 from .._numerics import (
     HIGHEST,
@@ -366,10 +367,11 @@ def prefilter_lookup(num_levels: int, *, mapping: str, lod_blend: str = DEFAULT_
     }
 
 
+@keyword_only("size")
 def prefilter(
     env: Cubemap,
-    size: int | None = None,
     *,
+    size: int | None = None,
     num_levels: int | None = None,
     max_level: int | None = None,
     mapping: str = "linear",

@@ -25,7 +25,7 @@ from ..ibl.cubemap import Cubemap
 from ..shading import shipped_luts
 from .cache import AssetCache, cache_or_default, content_key
 from .options import RenderOptions, _lut_smith, _options
-from .plan import RenderPlan, _asset_bytes, _charlie_size, _env_split, _prefilter_size
+from .plan import RenderPlan, _asset_bytes, _charlie_size, _env_split, prefilter_size
 from .scene import Environment
 
 
@@ -87,7 +87,7 @@ def _asset_sheen(env: Environment, p: RenderPlan, opts: RenderOptions, cache: As
     dtype = jnp.dtype(opts.dtype)
     table = env.sheen_lut
     if table is None:
-        table = cache_or_default(cache).get("sheen_lut", (opts.lut_size, dtype.name), lambda: shipped_luts.sheen_lut(opts.lut_size))
+        table = cache_or_default(cache).get("sheen_lut", (opts.lut_size, dtype.name), lambda: shipped_luts.sheen_lut(size=opts.lut_size))
     charlie = env.charlie
     if charlie is None:
         from ..ibl import sheen_prefilter
@@ -128,7 +128,7 @@ def _asset_lut(env: Environment, opts: RenderOptions, cache: AssetCache | None =
         lut = env.lut
     else:
         lut = cache_or_default(cache).get(
-            "lut", (opts.lut_size, smith, dtype.name), lambda: shipped_luts.brdf_lut(opts.lut_size, smith=smith, dtype=dtype)
+            "lut", (opts.lut_size, smith, dtype.name), lambda: shipped_luts.brdf_lut(size=opts.lut_size, smith=smith, dtype=dtype)
         )
     return jnp.asarray(lut, dtype)
 
@@ -140,7 +140,7 @@ def _asset_irradiance(env: Environment, p: RenderPlan, opts: RenderOptions, key,
     if irr is None:
         src = env.radiance
         params = (opts.irradiance_size, opts.irradiance_method)
-        compute = lambda: diffuse.irradiance(src, opts.irradiance_size, method=opts.irradiance_method)
+        compute = lambda: diffuse.irradiance(src, size=opts.irradiance_size, method=opts.irradiance_method)
         irr = compute() if key is None else cache_or_default(cache).get("irradiance", (key,) + params, compute)
     return _in_dtype(irr, opts)
 
@@ -155,7 +155,7 @@ def _asset_prefiltered(env: Environment, p: RenderPlan, opts: RenderOptions, key
             kw = {} if opts.prefilter_samples is None else {"samples": opts.prefilter_samples}
             return specular.prefilter(
                 src,
-                p.prefilter_size,
+                size=p.prefilter_size,
                 num_levels=p.mapping_levels,
                 max_level=p.prefilter_levels - 1,
                 mapping=opts.mapping,
@@ -204,11 +204,15 @@ def bake(
     sheen albedo table (`Environment.charlie`, `.sheen_lut`). Off by default: the cube costs ~5x the
     GGX prefilter, and a render of a sheen material on an environment without it computes (and
     caches) it then.
+
+    The suns are split out of the environment as a render splits them (`extract_lights`, on by
+    default). `jaxpbr.write_baked` and `jaxpbr ibl` write files for an engine and default the other
+    way on both counts (the sheen cube in, the suns left in the cubes); their docstring says why.
     """
     if not isinstance(environment, Environment):
         raise TypeError(f"bake expects a jaxpbr.Environment, got {type(environment).__name__}")
     opts = _options(options, overrides, "bake")
-    size = _prefilter_size(environment, opts)
+    size = prefilter_size(environment, opts)
     if environment.prefiltered is not None:
         levels = environment.prefiltered.num_levels
         M = int(environment.prefiltered.metadata.get("mapping_levels", levels))

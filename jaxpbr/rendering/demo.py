@@ -19,6 +19,7 @@ import numpy as np
 
 from .._program_cache import package_digest
 from ..ibl.baked import INDEX, write_baked
+from ..ibl.cubeio import PROCEDURAL_FACE_SIZE
 from ..ibl.cubemap import Cubemap
 from ..ibl.envs import sky_with_sun_cubemap
 from ..io.atomic import write_json
@@ -41,7 +42,7 @@ DEMO_BASE_COLOR = (0.95, 0.64, 0.37)
 #: (world azimuth atan2(z, x) = +40 degrees, 20 degrees up), so the spheres are front-lit.
 DEMO_ENV_ROTATION = math.radians(-75.0)
 #: Face size of the demo's sky (and of `jaxpbr render ASSET --environment procedural:sky`).
-DEMO_FACE_SIZE = 128
+DEMO_FACE_SIZE = PROCEDURAL_FACE_SIZE
 #: The options of `write_baked` the shipped demo sky was written with: the maps a render of the sky
 #: computes with the default options (the suns split out, the GGX chain of the face size, the
 #: irradiance) and the sky itself (the background), as exact float32 EXR faces; no sheen (the demo

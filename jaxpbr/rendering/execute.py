@@ -3,8 +3,8 @@ program (elsewhere, and under transformations), in bands of rows for large image
 sub-pixel sample, with the assets of a concrete environment computed on the process's worker pool
 while the first stages compile and run.
 
-`Execution` holds the settings (`EXECUTION`, the process's: `renderer.STAGED` and
-`renderer.BAND_PIXELS` read and set its fields); `worker_pool` is the one pool of worker threads,
+`Execution` holds the settings (`EXECUTION`, the process's: `renderer.EXECUTION.staged` and
+`.band_pixels`); `worker_pool` is the one pool of worker threads,
 started on first use and kept for the life of the process."""
 
 from __future__ import annotations

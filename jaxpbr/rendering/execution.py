@@ -47,5 +47,5 @@ class Execution:
         return jax.default_backend() == "cpu"
 
 
-#: The process's execution settings (`renderer.STAGED` / `renderer.BAND_PIXELS` are its fields).
+#: The process's execution settings (also `jaxpbr.rendering.renderer.EXECUTION`).
 EXECUTION = Execution()

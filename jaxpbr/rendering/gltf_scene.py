@@ -181,13 +181,78 @@ def lights_from_asset(asset: GltfAsset) -> list:
     return out
 
 
+def environment_from(spec, *, intensity: float = 1.0, rotation: float = 0.0):
+    """The `Environment` a user names, as every entry point reads it (`load_gltf`, `jaxpbr render
+    --environment`, batch jobs): None (none), an `Environment` (as it is), "procedural:sky" (the
+    demo's sky at `cubeio.PROCEDURAL_FACE_SIZE`, the baked set the package ships: a render
+    precomputes nothing), or an environment file (`jaxpbr.load_environment`: a 2:1 .hdr/.exr
+    panorama, or six face images), then turned by `rotation` (radians about +Y) and scaled by
+    `intensity`."""
+    from ..ibl.cubeio import load_environment
+    from .demo import demo_environment
+    from .scene import Environment
+
+    if spec is None:
+        return None
+    if isinstance(spec, Environment):
+        env = spec
+    elif isinstance(spec, str) and spec == "procedural:sky":
+        env = demo_environment()
+    else:
+        env = Environment(radiance=load_environment(spec))
+    if intensity != 1.0 or rotation != 0.0:
+        env = env.replace(intensity=intensity, rotation=rotation)
+    return env
+
+
+def _asset_camera(asset: GltfAsset, width: int, height: int, notes: set, *, position=None, target=None, fov_y_deg=None,
+                  supersample: int = 1) -> Camera:
+    """The camera rules of every entry point (`load_gltf`, `jaxpbr render ASSET`, batch jobs):
+    without overrides, the asset's first camera (perspective or orthographic) at width x height,
+    else a perspective camera framing the asset's bounds from the front-right, above, with a
+    45-degree vertical field of view. Overrides (`position`, `target`, `fov_y_deg`) make a
+    perspective camera: what is not given comes from the asset's first perspective camera (its
+    pose when neither position nor target is given, its field of view), else from the framing."""
+    aspect = width / height
+    size = {"width": width, "height": height, "supersample": supersample}
+    overridden = position is not None or target is not None or fov_y_deg is not None
+    cam = asset.cameras[0] if asset.cameras else None
+    if cam is not None and not overridden:
+        pose = {"position": tuple(cam.position), "target": tuple(cam.position + cam.forward), "up": tuple(cam.up), **size}
+        if cam.type == "orthographic":
+            # glTF's xmag and ymag are the view's half width and height; the image's aspect
+            # ratio sets the width (as for a perspective camera's aspectRatio).
+            if abs(abs(cam.xmag) / abs(cam.ymag) - aspect) > 1e-3:
+                notes.add(f"the orthographic camera's xmag/ymag {abs(cam.xmag) / abs(cam.ymag):.4g} differs from the image's "
+                          f"aspect ratio {aspect:.4g}: ymag (the view's height) is kept")
+            return Camera(projection="orthographic", ymag=abs(cam.ymag), **pose)
+        if cam.aspect_ratio is not None and abs(cam.aspect_ratio - aspect) > 1e-3:
+            notes.add(f"the camera's aspectRatio {cam.aspect_ratio:.4g} differs from the image's {aspect:.4g}: the vertical field of view is kept")
+        return Camera(fov_y_deg=math.degrees(cam.yfov), **pose)
+    first = next((c for c in asset.cameras if c.type == "perspective"), None)
+    fov = fov_y_deg if fov_y_deg is not None else (math.degrees(first.yfov) if first is not None else 45.0)
+    up = (0.0, 1.0, 0.0)
+    if first is not None and position is None and target is None:
+        pos, tgt, up = first.position, first.position + first.forward, tuple(first.up)
+    else:
+        pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], fov_y_deg=fov, aspect=aspect)
+    return Camera(position=tuple(pos if position is None else position), target=tuple(tgt if target is None else target),
+                  up=up, fov_y_deg=fov, **size)
+
+
 def scene_from_asset(
     asset: GltfAsset,
     *,
     camera: Camera | None = None,
     width: int = 1280,
     height: int = 720,
+    camera_position=None,
+    camera_target=None,
+    fov_y_deg: float | None = None,
+    supersample: int = 1,
     environment=None,
+    environment_intensity: float = 1.0,
+    environment_rotation: float = 0.0,
     lights=(),
     asset_lights: bool = True,
     background=(0.0, 0.0, 0.0),
@@ -198,25 +263,9 @@ def scene_from_asset(
     notes: set[str] = set()
     meshes = meshes_from_asset(asset, notes)
     if camera is None:
-        cam = asset.cameras[0] if asset.cameras else None
-        aspect = width / height
-        if cam is not None:
-            pose = {"position": tuple(cam.position), "target": tuple(cam.position + cam.forward), "up": tuple(cam.up),
-                    "width": width, "height": height}
-            if cam.type == "orthographic":
-                # glTF's xmag and ymag are the view's half width and height; the image's aspect
-                # ratio sets the width (as for a perspective camera's aspectRatio).
-                camera = Camera(projection="orthographic", ymag=abs(cam.ymag), **pose)
-                if abs(abs(cam.xmag) / abs(cam.ymag) - aspect) > 1e-3:
-                    notes.add(f"the orthographic camera's xmag/ymag {abs(cam.xmag) / abs(cam.ymag):.4g} differs from the image's "
-                              f"aspect ratio {aspect:.4g}: ymag (the view's height) is kept")
-            else:
-                camera = Camera(fov_y_deg=math.degrees(cam.yfov), **pose)
-                if cam.aspect_ratio is not None and abs(cam.aspect_ratio - aspect) > 1e-3:
-                    notes.add(f"the camera's aspectRatio {cam.aspect_ratio:.4g} differs from the image's {aspect:.4g}: the vertical field of view is kept")
-        else:
-            pos, tgt = frame_bounds(asset.bounds[0], asset.bounds[1], aspect=width / height)
-            camera = Camera(position=tuple(pos), target=tuple(tgt), fov_y_deg=45.0, width=width, height=height)
+        camera = _asset_camera(asset, width, height, notes, position=camera_position, target=camera_target,
+                               fov_y_deg=fov_y_deg, supersample=supersample)
+    environment = environment_from(environment, intensity=environment_intensity, rotation=environment_rotation)
     all_lights = (lights_from_asset(asset) if asset_lights else []) + list(lights)
     scene = Scene(camera=camera, objects=tuple(meshes), lights=tuple(all_lights), environment=environment, background=background)
     notes = tuple(sorted(notes))
@@ -232,18 +281,31 @@ def load_gltf(
     camera: Camera | None = None,
     width: int = 1280,
     height: int = 720,
+    camera_position=None,
+    camera_target=None,
+    fov_y_deg: float | None = None,
+    supersample: int = 1,
     environment=None,
+    environment_intensity: float = 1.0,
+    environment_rotation: float = 0.0,
     lights=(),
     asset_lights: bool = True,
     background=(0.0, 0.0, 0.0),
     roots=(),
 ) -> Scene:
-    """A glTF 2.0 asset (.gltf or .glb) as a `Scene` that `jaxpbr.render` draws.
+    """A glTF 2.0 asset (.gltf or .glb) as a `Scene` that `jaxpbr.render` draws. The command line
+    (`jaxpbr render ASSET`) and batch jobs build their scenes with the same rules (`scene_from_asset`).
 
     scene: which scene of the file (default: the file's default scene).
-    camera: a `Camera`; default the asset's first perspective camera (with width x height), else
-        a camera framing the asset's bounds from the front-right, above.
-    environment: an `Environment` (image-based lighting and background) or None.
+    camera: a `Camera`; default the asset's first camera (with width x height), else a camera
+        framing the asset's bounds from the front-right, above (45-degree field of view).
+        camera_position, camera_target, fov_y_deg: a perspective camera with these; what is not
+        given comes from the asset's first perspective camera, else from the framing.
+        supersample: the camera's samples per pixel side.
+    environment: image-based lighting and background: an `Environment`, "procedural:sky" (the
+        demo's sky, the baked set the package ships), an environment file (a 2:1 .hdr/.exr
+        panorama, or six face images), or None; turned by environment_rotation (radians about
+        +Y) and scaled by environment_intensity.
     lights: extra lights added to the asset's own KHR_lights_punctual lights (`asset_lights=False`
         leaves those out).
     roots: folders besides the asset's own that its buffer and image URIs may name (by default
@@ -256,6 +318,7 @@ def load_gltf(
 
     asset = read_gltf(path, scene=scene, roots=roots, ray_engine=mesh_engine())
     return scene_from_asset(
-        asset, camera=camera, width=width, height=height, environment=environment, lights=lights,
-        asset_lights=asset_lights, background=background,
+        asset, camera=camera, width=width, height=height, camera_position=camera_position, camera_target=camera_target,
+        fov_y_deg=fov_y_deg, supersample=supersample, environment=environment, environment_intensity=environment_intensity,
+        environment_rotation=environment_rotation, lights=lights, asset_lights=asset_lights, background=background,
     ).scene

@@ -171,7 +171,7 @@ def _union_extensions(mats) -> tuple[str, ...]:
     return tuple(g for g in EXTENSIONS if g in present)
 
 
-def _prefilter_size(env: Environment, opts: RenderOptions) -> int:
+def prefilter_size(env: Environment, opts: RenderOptions) -> int:
     if env.prefiltered is not None:
         return env.prefiltered.face_size
     S0 = env.radiance.face_size
@@ -205,7 +205,7 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCach
     env = scene.environment
     ibl = env is not None
     if ibl:
-        size = _prefilter_size(env, opts)
+        size = prefilter_size(env, opts)
         if env.prefiltered is not None:
             M = int(env.prefiltered.metadata.get("mapping_levels", env.prefiltered.num_levels))
             levels = env.prefiltered.num_levels
@@ -347,7 +347,7 @@ def _asset_bytes(env: Environment, p: RenderPlan, opts: RenderOptions, where: st
         parts["prefilter_samples"] = pre["samples"]
     if p.ibl_diffuse and env.irradiance is None:
         parts["irradiance_size"] = _memory.irradiance_bytes(opts.irradiance_size)["size"]
-    if env.lut is None and shipped_luts._shipped_entry(opts.lut_size, opts.lut_size, _lut_smith(opts), DEFAULT_LUT_SAMPLES) is None:
+    if env.lut is None and shipped_luts.shipped_entry(opts.lut_size, opts.lut_size, _lut_smith(opts), DEFAULT_LUT_SAMPLES) is None:
         parts["lut_size"] = sum(_memory.lut_bytes(opts.lut_size, opts.lut_size, DEFAULT_LUT_SAMPLES).values())
     return parts
 

@@ -31,48 +31,19 @@ other modules and users import from it:
 * `execute`: `render` and how it runs (staged or one program, bands, sub-pixel passes, workers);
 * `batching`: `render_batch`.
 
-The execution settings `STAGED` and `BAND_PIXELS` are read and set through this module too: they
-are the fields `staged` and `band_pixels` of `execute.EXECUTION` (`renderer.STAGED = False` sets
-`EXECUTION.staged`).
+How `render` runs (staged or one program, the band size, the rays on the device) is the process's
+`EXECUTION` (`execution.Execution`): `renderer.EXECUTION.staged = False` runs one program per render.
 """
 
 from __future__ import annotations
 
-import sys
-import types
-
-# the modules, for callers that reach them through this one (`renderer.specular.prefilter`)
-from ..ibl import diffuse, extract, specular  # noqa: F401
-from . import execute as _execute
-from .assets import _env_assets, bake  # noqa: F401
-from .batching import BATCH_CHUNK_PIXELS, _batched, render_batch  # noqa: F401
+from .assets import bake  # noqa: F401
+from .batching import BATCH_CHUNK_PIXELS, render_batch  # noqa: F401
 from .cache import ASSETS, AssetCache, content_key  # noqa: F401
-from .execute import EXECUTION, Execution, clear_caches, render, worker_pool  # noqa: F401
-from .options import RenderOptions, _options  # noqa: F401
-from .plan import (  # noqa: F401
-    DEFAULT_PREFILTER_SIZE,
-    RenderPlan,
-    _prefilter_size,
-    check_memory,
-    plan,
-)
-from .stages import (  # noqa: F401
-    UNROLL_MAX_SPHERES,
-    _apply_texture,
-    _gather_material,
-    _geometry_jit,
-    _lean,
-    _render_jit,
-    _render_pass,
-    _render_traced,
-    _shade_direct_jit,
-    _shade_rest_jit,
-    _shade_suns_jit,
-    _stack_materials,
-    _texture_jit,
-    _volume_inputs,
-    gbuffer,
-)
+from .execute import EXECUTION, Execution, clear_caches, render  # noqa: F401
+from .options import RenderOptions  # noqa: F401
+from .plan import DEFAULT_PREFILTER_SIZE, RenderPlan, check_memory, plan, prefilter_size  # noqa: F401
+from .stages import UNROLL_MAX_SPHERES, gbuffer  # noqa: F401
 
 __all__ = [
     "ASSETS",
@@ -85,15 +56,3 @@ __all__ = [
     "render",
     "render_batch",
 ]
-
-def _forwarded(field: str) -> property:
-    """A field of the process's execution settings (`execute.EXECUTION`), read and set here."""
-    return property(lambda self: getattr(_execute.EXECUTION, field), lambda self, value: setattr(_execute.EXECUTION, field, value))
-
-
-class _Facade(types.ModuleType):
-    STAGED = _forwarded("staged")
-    BAND_PIXELS = _forwarded("band_pixels")
-
-
-sys.modules[__name__].__class__ = _Facade

@@ -636,7 +636,7 @@ class _Loader:
         rotation = self.number(t.get("rotation_deg", 0.0), "environment.rotation_deg")
         show = self.boolean(t.get("show_background", True), "environment.show_background")
         try:
-            cube = load_environment(paths, face_size, clamp_negative=clamp)
+            cube = load_environment(paths, face_size=face_size, clamp_negative=clamp)
         except InputError as e:
             msg = _one_line(e).replace("--clamp-negative", "clamp_negative = true").replace("--face-size", "face_size")
             self.fail(key, msg)

@@ -270,10 +270,10 @@ def _lut_fast(token, *, n_r, n_nov, m, smith, node_dtype, rows_per_chunk):
     return map_row_chunks(jax.vmap(row), rows_per_chunk, r, token=token)
 
 
-@keyword_only("smith")
+@keyword_only("size", "smith")
 def compute_brdf_lut(
-    size=128,
     *,
+    size=128,
     smith: str = "correlated",
     samples: int = DEFAULT_SAMPLES,
     dtype=jnp.float32,

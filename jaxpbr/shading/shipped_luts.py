@@ -48,7 +48,7 @@ def shipped_manifest() -> dict:
 _MANIFEST_SMITH = {"correlated": "correlated", "schlick_ggx": "schlick"}
 
 
-def _shipped_entry(n_r: int, n_nov: int, smith: str, samples: int):
+def shipped_entry(n_r: int, n_nov: int, smith: str, samples: int):
     name = _MANIFEST_SMITH.get(smith)  # "separable" is not shipped: computed on first use
     if name is None:
         return None
@@ -68,9 +68,9 @@ def _load(filename: str, channels: int = 2) -> np.ndarray:
     return arr
 
 
-@keyword_only("smith")
+@keyword_only("size", "smith")
 def brdf_lut(
-    size=128, *, smith: str = "correlated", samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True, progress=None
+    *, size=128, smith: str = "correlated", samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True, progress=None
 ):
     """Split-sum BRDF LUT (n_r, n_nov, 2) of (A, B); layout of `jaxpbr.shading.lut.compute_brdf_lut`.
 
@@ -86,10 +86,10 @@ def brdf_lut(
     n_r, n_nov = lut_shape(size)
     n = DEFAULT_SAMPLES if samples is None else samples
     if use_shipped and jnp.dtype(dtype) == jnp.dtype(jnp.float32):
-        entry = _shipped_entry(n_r, n_nov, smith, n)
+        entry = shipped_entry(n_r, n_nov, smith, n)
         if entry is not None:
             return jax.device_put(_load(entry["file"]))  # (jnp.asarray would compile a copy program)
-    return compute_brdf_lut(size, smith=smith, samples=n, dtype=dtype, progress=progress)
+    return compute_brdf_lut(size=size, smith=smith, samples=n, dtype=dtype, progress=progress)
 
 
 def _shipped_sheen_entry(n_r: int, n_nov: int, samples: int):
@@ -100,7 +100,8 @@ def _shipped_sheen_entry(n_r: int, n_nov: int, samples: int):
 
 
 
-def sheen_lut(size=128, *, samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True, progress=None):
+@keyword_only("size")
+def sheen_lut(*, size=128, samples: int | None = None, dtype=jnp.float32, use_shipped: bool = True, progress=None):
     """Sheen albedo table E (n_r, n_nov) (KHR_materials_sheen; layout of
     `jaxpbr.shading.sheen_lut.compute_sheen_lut`, read it with `jaxpbr.shading.sheen_lut.sheen_lut_lookup`).
 
