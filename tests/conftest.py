@@ -135,17 +135,56 @@ def _release_programs_when_mappings_run_high():
         gc.collect()
 
 
+#: The slice of the slow set CI runs with the default suite (tests/ci_slice.txt: the cheapest slow test
+#: of every file that has slow tests, by measured duration; `python tests/ci_slice.py DURATIONS_LOG`
+#: writes it). `JAXPBR_CI_SLICE=1` (set by .ci/run) adds it to the default selection.
+CI_SLICE = Path(__file__).with_name("ci_slice.txt")
+
+
+def _listed(path: Path) -> set:
+    return {line.strip() for line in path.read_text().splitlines() if line.strip() and not line.startswith("#")}
+
+
+def pytest_configure(config):
+    if os.environ.get("JAXPBR_CI_SLICE") and config.option.markexpr == "not slow":
+        config.option.markexpr = "not slow or ci_slice"
+
+
+def pytest_sessionstart(session):
+    """With JAXPBR_REQUIRE_ORACLES=1 (set by .ci/run) the independent oracles must be there: a missing
+    one ends the session with an error instead of skipping the checks that need it."""
+    if not os.environ.get("JAXPBR_REQUIRE_ORACLES") or hasattr(session.config, "workerinput"):
+        return
+    import shutil
+
+    root = Path(__file__).resolve().parent.parent / "node_modules"
+    missing = [] if shutil.which("node") else ["node"]
+    for package, marker in (("gltf-validator", "gltf-validator/package.json"), ("mikktspace", "mikktspace/package.json"),
+                            ("@gltf-transform/cli", ".bin/gltf-transform")):
+        if not (root / marker).exists():
+            missing.append(f"{package} ({root / marker})")
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        missing.append("ray (pip install '.[ray]')")
+    if missing:
+        pytest.exit(f"JAXPBR_REQUIRE_ORACLES is set but these are missing: {', '.join(missing)}; "
+                    "install them (.ci/run does) or unset it", returncode=3)
+
+
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config, items):
-    """Mark the listed tests slow before `-m 'not slow'` deselects by marker."""
-    listed = {
-        line.strip() for line in SLOW_LIST.read_text().splitlines() if line.strip() and not line.startswith("#")
-    }
+    """Mark the listed tests slow before `-m 'not slow'` deselects by marker, and the CI slice's
+    `ci_slice`."""
+    listed = _listed(SLOW_LIST)
+    in_slice = _listed(CI_SLICE) if CI_SLICE.exists() else set()
     seen = set()
     for item in items:
         if item.nodeid in listed:
             item.add_marker(pytest.mark.slow)
             seen.add(item.nodeid)
+        if item.nodeid in in_slice:
+            item.add_marker(pytest.mark.ci_slice)
     # A renamed test or a changed parameter id would silently move a slow test into the default
     # suite: a run that collects every test file names the stale entries.
     if not config.args or [Path(a).resolve() for a in config.args] == [Path(config.rootpath, "tests").resolve()]:
@@ -153,3 +192,8 @@ def pytest_collection_modifyitems(config, items):
         if stale:
             raise pytest.UsageError(f"{SLOW_LIST.name} names {len(stale)} test(s) that were not collected "
                                     f"(renamed or removed? update the list): {stale[:5]}")
+        slow_ids = {item.nodeid for item in items if item.get_closest_marker("slow")}
+        off = sorted(in_slice - slow_ids)
+        if off:
+            raise pytest.UsageError(f"{CI_SLICE.name} names {len(off)} test(s) that are not collected slow tests "
+                                    f"(python tests/ci_slice.py rewrites it): {off[:5]}")

@@ -6,7 +6,10 @@ import sys
 import textwrap
 from pathlib import Path
 
+import dataclasses
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -203,3 +206,29 @@ def test_staged_batch_shadows_the_suns_split_out_of_the_environment(monkeypatch)
     np.testing.assert_allclose(imgs[0], one, rtol=2e-6, atol=1e-6)
     unshadowed = np.asarray(jp.render(scene))
     assert np.abs(one - unshadowed).max() > 0.05 * np.abs(unshadowed).max()  # the shadows are visible
+
+
+def test_staged_batch_of_meshes_casts_every_ray_on_the_host_as_render_does(monkeypatch):
+    """With meshes, the staged batch casts each chunk's primary rays, the lights' and the suns'
+    shadow rays and the IBL visibility rays on the host ray engine, all images in one call each,
+    and gives each image what `render` gives it (cameras batched: every image its own rays)."""
+    from jaxpbr.rendering import batching, renderer
+    from jaxpbr.rendering.demo import concave_scene
+
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)
+    scene = concave_scene(24, 18).replace(lights=[jp.PointLight((0.5, 1.5, 1.0), intensity=20.0)])
+    cam = scene.camera
+    pos = np.asarray(cam.position, np.float32)
+    P = np.stack([pos, pos + np.float32([0.8, 0.2, 0.0]), pos + np.float32([-0.6, -0.3, 0.4])])
+    opts = jp.RenderOptions(shadows=True, ibl_visibility="ratio", ibl_samples=2)
+    calls = []
+    real = batching.host_mesh_hits
+    monkeypatch.setattr(batching, "host_mesh_hits", lambda *a, **k: calls.append(1) or real(*a, **k))
+    imgs = np.asarray(jp.render_batch(scene, cameras=cam.replace(position=jnp.asarray(P)), options=opts))
+    assert len(calls) == 3  # lights, suns, IBL rays: one engine call each for the whole chunk
+    for i in range(3):
+        one = np.asarray(jp.render(scene.replace(camera=cam.replace(position=tuple(P[i]))), options=opts))
+        np.testing.assert_allclose(imgs[i], one, rtol=2e-5, atol=1e-6)
+    # not vacuous: the point light's and the sun's shadows are in the image
+    plain = np.asarray(jp.render(scene.replace(camera=cam.replace(position=tuple(P[0]))), options=dataclasses.replace(opts, shadows=False)))
+    assert (np.abs(plain - imgs[0]).max(-1) > 1e-3).mean() > 0.05
