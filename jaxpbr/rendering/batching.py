@@ -141,8 +141,11 @@ def render_batch(
       with `jax.sharding` (shard_map over a 1-D mesh "batch"); each device renders its share in
       chunks. Results equal the single-device path to float rounding (measured: at most 1 ulp;
       the per-device programs are compiled separately and XLA may fuse them differently).
-    options, cache, **overrides: as for `render`. Precomputes are shared by the whole batch (rotations
-    and intensities need none).
+    options, cache, **overrides: as for `render`, the traced IBL visibility rungs and transmission
+      included. Precomputes are shared by the whole batch (rotations and intensities need none).
+    On the CPU each chunk's rays (primary, shadow, IBL visibility) go to the host ray engine in one
+    call per kind between the chunk's programs, as `render`'s staged stages cast them; elsewhere the
+    opaque meshes' rays are traced in the program through the device BVH.
     """
     from jax.sharding import Mesh
 
