@@ -155,14 +155,13 @@ def pytest_sessionstart(session):
     one ends the session with an error instead of skipping the checks that need it."""
     if not os.environ.get("JAXPBR_REQUIRE_ORACLES") or hasattr(session.config, "workerinput"):
         return
-    import shutil
+    # (where the tests look for them: the checkout's node_modules, or the JAXPBR_* variables)
+    from gltf_writer import gltf_transform_missing, validator_missing
 
-    root = Path(__file__).resolve().parent.parent / "node_modules"
-    missing = [] if shutil.which("node") else ["node"]
-    for package, marker in (("gltf-validator", "gltf-validator/package.json"), ("mikktspace", "mikktspace/package.json"),
-                            ("@gltf-transform/cli", ".bin/gltf-transform")):
-        if not (root / marker).exists():
-            missing.append(f"{package} ({root / marker})")
+    missing = [why for why in (validator_missing(), gltf_transform_missing()) if why]
+    mikk = Path(os.environ.get("JAXPBR_MIKKTSPACE_JS", Path(__file__).resolve().parent.parent / "node_modules" / "mikktspace"))
+    if not (mikk / "package.json").is_file():
+        missing.append(f"the npm package mikktspace ({mikk}; npm install --no-save mikktspace)")
     try:
         import ray  # noqa: F401
     except ImportError:

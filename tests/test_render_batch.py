@@ -232,3 +232,39 @@ def test_staged_batch_of_meshes_casts_every_ray_on_the_host_as_render_does(monke
     # not vacuous: the point light's and the sun's shadows are in the image
     plain = np.asarray(jp.render(scene.replace(camera=cam.replace(position=tuple(P[0]))), options=dataclasses.replace(opts, shadows=False)))
     assert (np.abs(plain - imgs[0]).max(-1) > 1e-3).mean() > 0.05
+
+
+def _floor_and_occluder(occluder_material, sphere=False):
+    grey = jp.Material(base_color=(0.7, 0.7, 0.7), metallic=0.0, roughness=0.8)
+    floor = jp.Mesh(positions=np.float32([[-3, 0, -3], [3, 0, -3], [3, 0, 3], [-3, 0, 3]]),
+                    triangles=np.int32([[0, 2, 1], [0, 3, 2]]), material=grey)
+    if sphere:
+        occ = jp.Sphere(center=(0.0, 0.8, 0.0), radius=0.4, material=occluder_material)
+    else:
+        occ = jp.Mesh(positions=np.float32([[-0.6, 0.8, -0.6], [0.6, 0.8, -0.6], [0.6, 0.8, 0.6], [-0.6, 0.8, 0.6]]),
+                      triangles=np.int32([[0, 2, 1], [0, 3, 2]]), material=occluder_material, double_sided=True)
+    cam = jp.Camera(position=(0.0, 4.0, 4.0), target=(0.0, 0.0, 0.0), width=16, height=12)
+    return jp.Scene(camera=cam, objects=(floor, occ), lights=[jp.PointLight((0.1, 3.0, 0.1), intensity=30.0)])
+
+
+@pytest.mark.parametrize("case", ["adds", "removes"])
+def test_batched_materials_that_change_transmission_shadow_as_render_does(monkeypatch, case):
+    """Transmission is a static part of a material: batched materials can add it to an occluder or
+    take it away, which changes what its shadow lets through; each image equals `render`'s."""
+    from jaxpbr.rendering import renderer
+
+    monkeypatch.setattr(renderer.EXECUTION, "staged", True)
+    if case == "adds":
+        scene = _floor_and_occluder(jp.Material(base_color=(0.8, 0.8, 0.8), metallic=0.0, roughness=0.5))
+        mats = jp.Material(base_color=(0.8, 0.8, 0.8), metallic=0.0, roughness=0.5, transmission=np.float32([1.0, 0.6]))
+    else:
+        scene = _floor_and_occluder(jp.Material(base_color=(0.8, 0.8, 0.8), metallic=0.0, roughness=0.5, transmission=1.0), sphere=True)
+        mats = jp.Material(base_color=np.float32([[0.8, 0.8, 0.8], [0.3, 0.6, 0.9]]), metallic=0.0, roughness=0.5)
+    opts = jp.RenderOptions(shadows=True)
+    imgs = np.asarray(jp.render_batch(scene, materials=mats, objects=[1], options=opts))
+    for i in range(2):
+        m = jax.tree_util.tree_map(lambda x: x[i] if np.ndim(x) and np.shape(x)[0] == 2 else x, mats)
+        objs = list(scene.objects)
+        objs[1] = objs[1].replace(material=m)
+        one = np.asarray(jp.render(scene.replace(objects=objs), options=opts))
+        np.testing.assert_allclose(imgs[i], one, rtol=2e-5, atol=1e-6)

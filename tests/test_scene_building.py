@@ -113,3 +113,16 @@ def test_an_environment_file_is_read_the_same_way(asset, tmp_path):
     _same(lib, _batch(asset, {}, str(hdr), 1.0, tmp_path))
     np.testing.assert_array_equal(np.asarray(lib.environment.radiance.levels[0]),
                                   np.asarray(jp.load_environment(str(hdr)).levels[0]))
+
+
+def test_an_environment_keeps_the_rotation_and_intensity_not_given(asset):
+    from jaxpbr.rendering.gltf_scene import environment_from
+
+    env = demo_environment().replace(rotation=1.0, intensity=3.0)
+    e = environment_from(env, intensity=2.0)
+    assert float(e.rotation) == 1.0 and float(e.intensity) == 2.0
+    e = environment_from(env, rotation=0.5)
+    assert float(e.rotation) == 0.5 and float(e.intensity) == 3.0
+    assert environment_from(env) is env
+    lib = jp.load_gltf(asset, width=W, height=H, environment=env, environment_rotation=0.25)
+    assert float(lib.environment.rotation) == 0.25 and float(lib.environment.intensity) == 3.0

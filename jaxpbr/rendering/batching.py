@@ -319,7 +319,12 @@ def _host_traced(scene, kw, bc) -> bool:
     meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
     if scene.gbuffer is not None or kw["p_plan"].blend_layers != 1 or not meshes:
         return False
-    return "materials" not in bc or all(m.alpha_mode == "OPAQUE" and not transmits(m.material) for m in meshes)
+    if "materials" not in bc:
+        return True
+    # (transmission is static: batched materials can add it to or remove it from any object, which
+    # changes whether shadows are coloured and what they let through)
+    return (all(m.alpha_mode == "OPAQUE" for m in meshes) and not transmits(bc["materials"])
+            and not any(transmits(ob.material) for ob in scene.objects if getattr(ob, "material", None) is not None))
 
 
 @functools.partial(jax.jit, static_argnames=("k",) + _CHUNK_STATIC)

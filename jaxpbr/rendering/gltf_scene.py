@@ -181,13 +181,13 @@ def lights_from_asset(asset: GltfAsset) -> list:
     return out
 
 
-def environment_from(spec, *, intensity: float = 1.0, rotation: float = 0.0):
+def environment_from(spec, *, intensity: float | None = None, rotation: float | None = None):
     """The `Environment` a user names, as every entry point reads it (`load_gltf`, `jaxpbr render
     --environment`, batch jobs): None (none), an `Environment` (as it is), "procedural:sky" (the
     demo's sky at `cubeio.PROCEDURAL_FACE_SIZE`, the baked set the package ships: a render
     precomputes nothing), or an environment file (`jaxpbr.load_environment`: a 2:1 .hdr/.exr
     panorama, or six face images), then turned by `rotation` (radians about +Y) and scaled by
-    `intensity`."""
+    `intensity` where given (None keeps the environment's own, 0 and 1 for a new one)."""
     from ..ibl.cubeio import load_environment
     from .demo import demo_environment
     from .scene import Environment
@@ -200,9 +200,8 @@ def environment_from(spec, *, intensity: float = 1.0, rotation: float = 0.0):
         env = demo_environment()
     else:
         env = Environment(radiance=load_environment(spec))
-    if intensity != 1.0 or rotation != 0.0:
-        env = env.replace(intensity=intensity, rotation=rotation)
-    return env
+    changes = {k: v for k, v in (("intensity", intensity), ("rotation", rotation)) if v is not None}
+    return env.replace(**changes) if changes else env
 
 
 def _asset_camera(asset: GltfAsset, width: int, height: int, notes: set, *, position=None, target=None, fov_y_deg=None,
@@ -251,8 +250,8 @@ def scene_from_asset(
     fov_y_deg: float | None = None,
     supersample: int = 1,
     environment=None,
-    environment_intensity: float = 1.0,
-    environment_rotation: float = 0.0,
+    environment_intensity: float | None = None,
+    environment_rotation: float | None = None,
     lights=(),
     asset_lights: bool = True,
     background=(0.0, 0.0, 0.0),
@@ -286,8 +285,8 @@ def load_gltf(
     fov_y_deg: float | None = None,
     supersample: int = 1,
     environment=None,
-    environment_intensity: float = 1.0,
-    environment_rotation: float = 0.0,
+    environment_intensity: float | None = None,
+    environment_rotation: float | None = None,
     lights=(),
     asset_lights: bool = True,
     background=(0.0, 0.0, 0.0),
@@ -304,8 +303,8 @@ def load_gltf(
         supersample: the camera's samples per pixel side.
     environment: image-based lighting and background: an `Environment`, "procedural:sky" (the
         demo's sky, the baked set the package ships), an environment file (a 2:1 .hdr/.exr
-        panorama, or six face images), or None; turned by environment_rotation (radians about
-        +Y) and scaled by environment_intensity.
+        panorama, or six face images), or None; environment_rotation (radians about +Y) and
+        environment_intensity replace its rotation and intensity where given.
     lights: extra lights added to the asset's own KHR_lights_punctual lights (`asset_lights=False`
         leaves those out).
     roots: folders besides the asset's own that its buffer and image URIs may name (by default
