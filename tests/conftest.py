@@ -122,6 +122,23 @@ def _mappings() -> int | None:
         return None
 
 
+@pytest.fixture(autouse=True)
+def _cache_folders_as_they_were():
+    """The folders the command line gives the renderer's caches (`cli._cache.enable_assets`, run by
+    every in-process `jaxpbr.cli.main`) are set back after each test: a later test of the same
+    worker that counts its precomputes would otherwise find maps on disk (which test ran before it
+    depends on how the workers share the suite)."""
+    from jaxpbr import _program_cache
+    from jaxpbr.rendering.cache import ASSETS
+    from jaxpbr.rendering.mesh import ACCELS
+
+    saved = (ASSETS.directory, ACCELS.directory, _program_cache.directory())
+    yield
+    ASSETS.use_directory(saved[0])
+    ACCELS.use_directory(saved[1])
+    _program_cache.use_directory(saved[2])
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_programs_when_mappings_run_high():
     yield
