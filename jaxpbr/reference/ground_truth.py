@@ -56,7 +56,9 @@ from ..rendering.options import RenderOptions
 from ..rendering.scene import Plane, Scene, Sphere
 from ..rendering.stages import scene_host_arrays, surface_buffer, surface_of_rays
 from ..rendering.visibility import TriangleAccel, offset_ray_origin
+from .._numerics import safe_normalize
 from ..shading.layered import brdf
+from ..shading.sampling import pdf_cosine, pdf_ggx_vndf, pdf_reflect, sample_cosine, sample_ggx_vndf, tangent_frame
 from ..shading.lights import DirectionalLight, PointLight, SpotLight, shade_direct
 
 __all__ = ["MIN_REFERENCE_ROUGHNESS", "ReferenceImage", "reference_render"]
@@ -352,7 +354,7 @@ def _env_sample(E, u):
         ct = 1.0 - u[:, 1] * (1.0 - cmax)
         st = jnp.sqrt(jnp.maximum(1.0 - ct * ct, 0.0))
         phi = 2.0 * math.pi * u[:, 2]
-        t, b = _frame(jnp.broadcast_to(c, d.shape), jnp)
+        t, b = tangent_frame(jnp.broadcast_to(c, d.shape))
         on_disc = (st * jnp.cos(phi))[:, None] * t + (st * jnp.sin(phi))[:, None] * b + ct[:, None] * c
         d = jnp.where((part == n_s + 1)[:, None], on_disc, d)
     return d
@@ -378,66 +380,37 @@ def _background(scene: Scene, d, hit):
 # the integral
 
 
-def _frame(n, xp=np):
-    """(t, b) completing unit normals n (N, 3) to orthonormal frames (Duff et al. 2017)."""
-    sign = xp.where(n[:, 2] >= 0, 1.0, -1.0)
-    a = -1.0 / (sign + n[:, 2])
-    b = n[:, 0] * n[:, 1] * a
-    t = xp.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], -1)
-    bb = xp.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], -1)
-    return t, bb
+def _to_world(loc, t, b, n):
+    return loc[..., 0:1] * t + loc[..., 1:2] * b + loc[..., 2:3] * n
 
 
-def _ggx_d(noh, a2):
-    d = noh * noh * (a2 - 1.0) + 1.0
-    return a2 / (math.pi * d * d)
+def _sample_ggx(n, v, a, u):
+    """l = reflect(v, h), h a GGX visible normal (alpha a) of view v about n (`sampling.sample_ggx_vndf`), world."""
+    t, b = tangent_frame(n)
+    v_loc = jnp.stack([jnp.sum(v * t, -1), jnp.sum(v * b, -1), jnp.maximum(jnp.sum(v * n, -1), 1e-12)], -1)
+    h = _to_world(sample_ggx_vndf(v_loc, u, a), t, b, n)
+    return 2.0 * jnp.sum(v * h, -1, keepdims=True) * h - v
 
 
-def _g1(c, a2, xp=np):
-    c = xp.maximum(c, 1e-300)
-    return 2.0 * c / (c + xp.sqrt(a2 + (1.0 - a2) * c * c))
+def _sample_cos(n, u):
+    t, b = tangent_frame(n)
+    return _to_world(sample_cosine(u), t, b, n)
 
 
-def _pdf_ggx(n, v, l, a2, xp=np):
-    """Density (per steradian) of l = reflect(v, h) with h from the visible normals of GGX at a2."""
-    h = v + l
-    h = h / xp.maximum(xp.linalg.norm(h, axis=-1, keepdims=True), 1e-300)
-    noh = xp.sum(n * h, -1)
-    nov = xp.maximum(xp.sum(n * v, -1), 1e-300)
-    ok = (xp.sum(n * l, -1) > 0) & (noh > 0)
-    return xp.where(ok, _g1(nov, a2, xp) * _ggx_d(noh, a2) / (4.0 * nov), 0.0)
+def _pdf_ggx(n, v, l, a):
+    """Density (per steradian) of `_sample_ggx`'s l (`sampling.pdf_ggx_vndf`, `pdf_reflect`); 0 below n."""
+    h = safe_normalize(v + l)
+    vh = jnp.sum(v * h, -1)
+    p = pdf_reflect(pdf_ggx_vndf(jnp.sum(n * v, -1), jnp.sum(n * h, -1), vh, a), vh)
+    return jnp.where(jnp.sum(n * l, -1) > 0, p, 0.0)
 
 
-def _sample_ggx(n, v, a, u, xp=np):
-    """Heitz 2018: a visible normal of GGX (alpha a) for view v, in the world; l = reflect(v, h)."""
-    t, b = _frame(n, xp)
-    vl = xp.stack([xp.sum(v * t, -1), xp.sum(v * b, -1), xp.sum(v * n, -1)], -1)
-    vh = xp.stack([a * vl[:, 0], a * vl[:, 1], vl[:, 2]], -1)
-    vh = vh / xp.linalg.norm(vh, axis=-1, keepdims=True)
-    lensq = vh[:, 0] ** 2 + vh[:, 1] ** 2
-    safe = xp.where(lensq > 0, lensq, 1.0)
-    T1 = xp.where(lensq[:, None] > 0, xp.stack([-vh[:, 1], vh[:, 0], xp.zeros_like(lensq)], -1) / xp.sqrt(safe)[:, None],
-                  xp.array([1.0, 0.0, 0.0]))
-    T2 = xp.cross(vh, T1)
-    r = xp.sqrt(u[:, 0])
-    phi = 2.0 * math.pi * u[:, 1]
-    t1 = r * xp.cos(phi)
-    t2 = r * xp.sin(phi)
-    s = 0.5 * (1.0 + vh[:, 2])
-    t2 = (1.0 - s) * xp.sqrt(xp.maximum(1.0 - t1 * t1, 0.0)) + s * t2
-    nh = t1[:, None] * T1 + t2[:, None] * T2 + xp.sqrt(xp.maximum(1.0 - t1 * t1 - t2 * t2, 0.0))[:, None] * vh
-    hl = xp.stack([a * nh[:, 0], a * nh[:, 1], xp.maximum(nh[:, 2], 0.0)], -1)
-    hl = hl / xp.maximum(xp.linalg.norm(hl, axis=-1, keepdims=True), 1e-300)
-    h = hl[:, :1] * t + hl[:, 1:2] * b + hl[:, 2:3] * n
-    return 2.0 * xp.sum(v * h, -1, keepdims=True) * h - v
-
-
-def _sample_cos(n, u, xp=np):
-    t, b = _frame(n, xp)
-    r = xp.sqrt(u[:, 0])
-    phi = 2.0 * math.pi * u[:, 1]
-    z = xp.sqrt(xp.maximum(1.0 - u[:, 0], 0.0))
-    return (r * xp.cos(phi))[:, None] * t + (r * xp.sin(phi))[:, None] * b + z[:, None] * n
+@jax.jit
+def _continuations(N, V, a, u):
+    """(directions, densities) of one path continuation per vertex: cosine or GGX visible normals
+    with probability 1/2 each (u (k, 3))."""
+    l = jnp.where((u[:, 0] < 0.5)[:, None], _sample_cos(N, u[:, 1:3]), _sample_ggx(N, V, a, u[:, 1:3]))
+    return l, 0.5 * (pdf_cosine(jnp.sum(N * l, -1)) + _pdf_ggx(N, V, l, a))
 
 
 @functools.partial(jax.jit, static_argnames=("smith",))
@@ -463,9 +436,9 @@ def _distant_proposals(N, V, NG, a, m, E, u, *, smith):
     m = jax.tree_util.tree_map(tile, m)
     u = u.reshape(S * k, 7)
     dirs, lives, cs, ups = [], [], [], []
-    for l in (_env_sample(E, u[:, 0:3]), _sample_ggx(N, V, a, u[:, 3:5], jnp), _sample_cos(N, u[:, 5:7], jnp)):
+    for l in (_env_sample(E, u[:, 0:3]), _sample_ggx(N, V, a, u[:, 3:5]), _sample_cos(N, u[:, 5:7])):
         nl = jnp.sum(N * l, -1)
-        p = _env_pdf(E, l) + _pdf_ggx(N, V, l, a * a, jnp) + jnp.maximum(nl, 0.0) / math.pi
+        p = _env_pdf(E, l) + _pdf_ggx(N, V, l, a) + pdf_cosine(nl)
         up = jnp.sum(NG * l, -1) * jnp.sum(NG * V, -1) > 0
         live = (nl > 0) & up & (p > 0)
         w = jnp.where(live, jnp.maximum(nl, 0.0) / jnp.where(live, p, 1.0), 0.0)
@@ -555,10 +528,8 @@ class _Vertex:
     def continue_path(self, u):
         """(directions (k, 3), throughput f cos / p (k, 3)) of one continuation per vertex: cosine or
         GGX visible normals with probability 1/2 each (u (k, 3)); 0 below the surface."""
-        N, V = self.N, self.V
-        l = np.where((u[:, 0] < 0.5)[:, None], _sample_cos(N, u[:, 1:3]), _sample_ggx(N, V, self.a, u[:, 1:3]))
-        nl = np.sum(N * l, -1)
-        p = 0.5 * (np.maximum(nl, 0.0) / math.pi + _pdf_ggx(N, V, l, self.a * self.a))
+        l, p = (np.asarray(x)[: self.k] for x in _continuations(self.nj, self.vj, self.aj, jnp.asarray(self.padf(u))))
+        nl = np.sum(self.N * l, -1)
         ok = self.leaves_up(l) & (p > 0)
         w = np.where(ok, np.maximum(nl, 0.0) / np.where(ok, p, 1.0), 0.0)
         return l, self.f(l) * w[:, None]
