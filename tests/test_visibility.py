@@ -613,3 +613,91 @@ def test_large_mesh_against_brute_force(backend):
     srt = np.sort(t_all, 1)[:, :2]
     got = np.asarray(h.t)
     np.testing.assert_allclose(np.where(np.isfinite(srt), srt, 0), np.where(np.isfinite(got), got, 0), rtol=1e-5)
+
+
+# --------------------------------------------------------------------------------------------------
+# the compiled first round of the embree backend
+
+
+def test_opaque_products_round_as_numpy():
+    """`bvh.opaque_mul`: a compiled sum of products rounds operation by operation as NumPy's
+    (XLA:CPU fuses a plain x * y + z into an FMA, rounded once: the plain program differs)."""
+    rng = np.random.default_rng(2)
+    x, y, z, w = (rng.normal(size=4096).astype(np.float32) for _ in range(4))
+    expect = x * y - z * w
+    zero = np.int32(0)
+    plain = np.asarray(jax.jit(lambda x, y, z, w: x * y - z * w)(x, y, z, w))
+    mul = jax.jit(lambda x, y, z, w, zero: bvh_mod.opaque_mul(zero)(x, y) - bvh_mod.opaque_mul(zero)(z, w))
+    np.testing.assert_array_equal(np.asarray(mul(x, y, z, w, zero)), expect)
+    if jax.default_backend() == "cpu":  # (the reason for it: not a requirement on other compilers)
+        assert (plain != expect).any()
+
+
+def test_table_rows_buckets():
+    from jaxpbr.rendering.visibility import _table_rows
+
+    assert _table_rows(1) == 4096 and _table_rows(4096) == 4096 and _table_rows(4097) == 4608 and _table_rows(8191) == 8192
+    for n in (5000, 81920, 1310720, 3_000_001):
+        r = _table_rows(n)
+        assert n <= r <= 1.125 * n + 1
+    assert len({_table_rows(n) for n in range((1 << 20) + 1, (1 << 21) + 1, 997)}) == 8  # eight sizes per octave
+
+
+def _ties_mesh():
+    """A unit-square grid (rays through shared edges and vertices), a coplanar copy of part of it
+    (equal t, near pairs), a sheet crossing it at an angle, and a far, small icosphere (large |o|
+    against small triangles): every reason the first round sends a ray on."""
+    k = 16
+    g = np.stack(np.meshgrid(np.arange(k + 1.0), np.arange(k + 1.0), indexing="ij"), -1).reshape(-1, 2)
+    v = np.concatenate([g, np.zeros((len(g), 1))], 1)
+    idx = np.arange((k + 1) ** 2).reshape(k + 1, k + 1)
+    f = np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:]], -1).reshape(-1, 3),
+                        np.stack([idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 3)])
+    copy = f[: len(f) // 4]
+    sheet_v = np.array([[2.0, 2.0, -1.0], [9.0, 2.0, 1.0], [2.0, 9.0, -1.0]])
+    sv, sf = icosphere(3, radius=0.05, center=(40.0, 40.0, -30.0))
+    verts = np.concatenate([v, sheet_v, sv])
+    faces = np.concatenate([f, copy[:, ::-1], [[len(v), len(v) + 1, len(v) + 2]], sf + len(v) + 3])
+    return verts, faces
+
+
+@pytest.mark.skipif(not embree_available(), reason="embreex not installed")
+@pytest.mark.parametrize("exact_ties", [True, False])
+def test_embree_compiled_first_round_equals_the_numpy_rounds(exact_ties, monkeypatch):
+    """Primary rays through the compiled first round (`_first_round`: embree's proposals tested in
+    one compiled program, the rays it cannot settle sent through the NumPy rounds) give the hits of
+    the NumPy rounds alone, t, prim and float64 barycentrics bit for bit: on exact ties (rays
+    straight down through grid edges and vertices), coplanar copies, a crossing sheet, grazing
+    rays and distant rays onto small triangles; blocks padded (the last block partly empty)."""
+    from jaxpbr.rendering import visibility
+
+    v, f = _ties_mesh()
+    rng = np.random.default_rng(12)
+    n = 9000
+    xy = rng.integers(-1, 18, (n, 2)) + rng.choice([0.0, 0.5, 1.0, 0.25, 1 / 3], (n, 2))
+    o = np.concatenate([xy, rng.uniform(0.5, 3.0, (n, 1))], 1)
+    d = np.concatenate([rng.normal(0.0, 0.02, (n, 2)) * rng.choice([0.0, 1.0], (n, 1)), -np.ones((n, 1))], 1)
+    graze = rng.random(n) < 0.1  # nearly in the grid's plane
+    d[graze] = np.concatenate([rng.normal(size=(graze.sum(), 2)), -rng.uniform(1e-4, 1e-2, (graze.sum(), 1))], 1)
+    far = rng.random(n) < 0.15  # from far away onto the small icosphere
+    o[far] = [40.0, 40.0, 200.0]
+    d[far] = np.array([40.0, 40.0, -30.0]) + rng.normal(scale=0.03, size=(far.sum(), 3)) - o[far]
+    o, d = o.astype(np.float32), d.astype(np.float32)
+    acc = TriangleAccel.build(v, f, backend="embree", exact_ties=exact_ties)
+    monkeypatch.setattr(visibility, "KERNEL_MIN_RAYS", 1 << 40)
+    reference = acc.intersect(o, d)
+    monkeypatch.setattr(visibility, "KERNEL_MIN_RAYS", 1)
+    monkeypatch.setattr(visibility, "REFINE_BLOCK", 4096)
+    calls = []
+    closest = acc._impl.closest
+    monkeypatch.setattr(acc._impl, "closest", lambda *a, **k: calls.append(len(a[0])) or closest(*a, **k))
+    compiled = acc.intersect(o, d)
+    hit = np.asarray(reference.prim) >= 0
+    assert 0.4 < hit.mean() < 0.95 and hit[far].mean() > 0.5
+    assert calls and 0 < sum(calls) < hit.sum()  # some rays, not all, went on to the NumPy rounds
+    for a, b in zip(compiled, reference):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    lean = acc.intersect(o, d, barycentrics=False)
+    assert lean.b1 is None
+    np.testing.assert_array_equal(lean.prim, reference.prim)
+    np.testing.assert_array_equal(lean.t, reference.t)

@@ -56,6 +56,7 @@ renderer's shading stages never recompile because of the geometry.
 
 from __future__ import annotations
 
+import operator
 from typing import NamedTuple
 
 import jax
@@ -139,6 +140,20 @@ class BVH(NamedTuple):
 # the ray/triangle test, shared by NumPy (host) and jax.numpy (traversal)
 
 
+def opaque_mul(zero):
+    """A product XLA cannot fuse into a neighbouring sum (x * y + z as one FMA, rounded once, which
+    XLA:CPU does whatever its flags say): the float bits go through an integer XOR with `zero`, a
+    0 of the product's width passed to the program at run time (a traced value, so it is not folded
+    away). Expressions written with it round as NumPy's, operation by operation."""
+
+    def mul(a, b):
+        p = a * b
+        ints = jnp.int64 if p.dtype == jnp.float64 else jnp.int32
+        return jax.lax.bitcast_convert_type(jax.lax.bitcast_convert_type(p, ints) ^ zero.astype(ints), p.dtype)
+
+    return mul
+
+
 def _pick(x0, x1, x2, k, xp):
     """Component k (0, 1 or 2, per ray) of a vector given as its three components: exact selects."""
     return xp.where(k == 0, x0, xp.where(k == 1, x1, x2))
@@ -164,19 +179,20 @@ def ray_setup(d, xp=np):
     return kx, ky, kz, sx, sy, sz, ok
 
 
-def _woop_core(a, b, c, sx, sy, sz, xp):
+def _woop_core(a, b, c, sx, sy, sz, xp, mul=operator.mul):
     """The test on vertex coordinates relative to the ray origin, already permuted to
-    (kx, ky, kz): a, b, c are 3-tuples. Returns (hit-before-range-check, t, u, v, w, det)."""
+    (kx, ky, kz): a, b, c are 3-tuples. Returns (hit-before-range-check, t, u, v, w, det).
+    mul: the product (`opaque_mul` for a compiled program that must round as NumPy does)."""
 
     def sheared(p):
-        return p[0] - sx * p[2], p[1] - sy * p[2]
+        return p[0] - mul(sx, p[2]), p[1] - mul(sy, p[2])
 
     ax, ay = sheared(a)
     bx, by = sheared(b)
     cx, cy = sheared(c)
 
     def edge(px, py, qx, qy):  # 2 (px qy - py qx), exactly antisymmetric in (p, q)
-        return (px * qy - py * qx) - (py * qx - px * qy)
+        return (mul(px, qy) - mul(py, qx)) - (mul(py, qx) - mul(px, qy))
 
     u = edge(cx, cy, bx, by)  # weight of v0 (edge v1-v2)
     v = edge(ax, ay, cx, cy)  # weight of v1 (edge v2-v0)
@@ -186,7 +202,7 @@ def _woop_core(a, b, c, sx, sy, sz, xp):
     det = (u + v) + w
     hit = ~(neg & pos) & (det != 0)
     det = xp.where(hit, det, xp.ones_like(det))
-    t = ((u * (sz * a[2]) + v * (sz * b[2])) + w * (sz * c[2])) / det
+    t = ((mul(u, mul(sz, a[2])) + mul(v, mul(sz, b[2]))) + mul(w, mul(sz, c[2]))) / det
     hit = hit & (xp.abs(t) < np.inf)
     return hit, t, u, v, w, det
 
@@ -208,20 +224,21 @@ def watertight_test(o, setup, v0, v1, v2, xp=np):
     return hit & ok, t, v / det, w / det
 
 
-def barycentrics(o, d, v0, v1, v2, xp=np):
+def barycentrics(o, d, v0, v1, v2, xp=np, mul=operator.mul):
     """Barycentric weights (b1, b2) of the point where the ray (o, d) meets the plane of (v0, v1,
     v2), by Moller-Trumbore (edges from v0: its error grows with |o - v0| / edge length rather than
-    with |o|^2 / area as the watertight test's ratios do), clamped into the triangle."""
+    with |o|^2 / area as the watertight test's ratios do), clamped into the triangle. mul: as in
+    `_woop_core`."""
     e1 = [v1[..., i] - v0[..., i] for i in range(3)]
     e2 = [v2[..., i] - v0[..., i] for i in range(3)]
     s = [o[..., i] - v0[..., i] for i in range(3)]
     dd = [d[..., i] for i in range(3)]
 
     def cross(a, b):
-        return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+        return (mul(a[1], b[2]) - mul(a[2], b[1]), mul(a[2], b[0]) - mul(a[0], b[2]), mul(a[0], b[1]) - mul(a[1], b[0]))
 
     def dot(a, b):
-        return (a[0] * b[0] + a[1] * b[1]) + a[2] * b[2]
+        return (mul(a[0], b[0]) + mul(a[1], b[1])) + mul(a[2], b[2])
 
     p = cross(dd, e2)
     det = dot(e1, p)

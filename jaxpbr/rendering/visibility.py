@@ -79,6 +79,7 @@ import numpy as np
 from jaxpbr.errors import InputError
 
 from .._numerics import cross_rows
+from .._program_cache import cached_jit
 from . import bvh as _bvh
 from .bvh import (
     BVH,
@@ -430,6 +431,67 @@ def _triangle_tables(tri: np.ndarray):
     return valid, alt
 
 
+#: Rays per call of the compiled first round (`_first_round`): one size, so that its program is
+#: compiled once per triangle-table size (`_table_rows`).
+REFINE_BLOCK = 1 << 16
+#: Queries of fewer primary rays are refined in NumPy only (`_EmbreeBackend.closest`).
+KERNEL_MIN_RAYS = 1 << 14
+#: The compiled first round's near-edge tolerance is this much wider than the NumPy test's, and it
+#: calls a ray done only when the hit is within this share of the tie zone: margins far above the
+#: float32 rounding of its tests (float64 in NumPy), so that every ray the NumPy round would refine
+#: or continue is also sent on by the compiled one (the bound on the done test: the hit lies within
+#: sqrt 3 (S + |o|) of the origin, so float32 rounding of t costs at most 0.06 of the zone).
+NEAR_WIDEN = 1.0 + 2.0**-10
+DONE_SHARE = 0.5
+
+
+def _table_rows(n: int) -> int:
+    """Rows of the compiled first round's triangle tables for n triangles: at least 4096, rounded up
+    to an eighth of the largest power of two <= n (at most 12.5 % padding; eight compiled sizes
+    per octave)."""
+    n = max(int(n), 4096)
+    step = 1 << (n.bit_length() - 4)
+    return -(-n // step) * step
+
+
+def _first_round(tables, scale, zero32, zero64, o, d, pid, te, *, bary: bool):
+    """The first round of `_EmbreeBackend.closest` for primary rays (tnear = 0, tfar = inf, no
+    previous hit), compiled: for rays (o, d) (B, 3) float32 and embree's proposals (pid (B,) int32
+    primID, -1 for a miss; te (B,) float32), the watertight test of the proposal with NumPy's
+    rounding (`bvh.opaque_mul`), and whether the ray needs the NumPy rounds (the test rejects the
+    proposal, the hit is near an edge or on a triangle with near pairs, or it is not done). Returns
+    (t, prim, hard) and with bary the float64 barycentrics (b1, b2) of the proposal: for the rays
+    that are not hard, the values `closest` and `barycentrics` give (the same expressions)."""
+    tri9, alt, flagged, ids = tables
+    mul = _bvh.opaque_mul(zero32)
+    hitm = pid >= 0
+    prop = ids[jnp.maximum(pid, 0)]
+    kx, ky, kz, sx, sy, sz, okd = _bvh.ray_setup(d, jnp)
+    v = tri9[prop]
+
+    def rel(j):
+        q0, q1, q2 = v[:, 3 * j] - o[:, 0], v[:, 3 * j + 1] - o[:, 1], v[:, 3 * j + 2] - o[:, 2]
+        return tuple(_bvh._pick(q0, q1, q2, k, jnp) for k in (kx, ky, kz))
+
+    hit, t, u, w1, w2, det = _bvh._woop_core(rel(0), rel(1), rel(2), sx, sy, sz, jnp, mul)
+    ok = hit & okd & (t >= 0)
+    tol_abs = F32(TIE_TOL) * (scale + jnp.sqrt(jnp.sum(o * o, 1)))
+    dn = jnp.sqrt(jnp.sum(d * d, 1))
+    tol_t = tol_abs / jnp.where(dn > 0, dn, F32(1))
+    a = alt[prop]
+    wide = tol_abs * F32(NEAR_WIDEN)
+    near = ((u / det) * a[:, 0] <= wide) | ((w1 / det) * a[:, 1] <= wide) | ((w2 / det) * a[:, 2] <= wide)
+    easy = ok & ~flagged[prop] & ~near & (t <= te + F32(DONE_SHARE) * tol_t)
+    out = (jnp.where(hitm, t, jnp.inf), jnp.where(hitm, prop, -1), hitm & ~easy)
+    if bary:
+        f64 = [x.astype(jnp.float64) for x in (o, d, v[:, 0:3], v[:, 3:6], v[:, 6:9])]
+        out += tuple(jnp.where(hitm, x, 0.0) for x in _bvh.barycentrics(*f64, jnp, _bvh.opaque_mul(zero64)))
+    return out
+
+
+_first_round_jit = cached_jit(_first_round, static_argnames=("bary",))
+
+
 class _EmbreeBackend:
     """embree scene + the host-side data of the exact refinement: the float32 triangles in the
     caller's order, altitudes (near-edge test), welded-vertex adjacency, near pairs."""
@@ -472,6 +534,7 @@ class _EmbreeBackend:
         self.n_near_pairs = len(pairs)
         # (rays hit, rays refined, rays going on) of the latest embree rounds, for tuning
         self.rounds_log = collections.deque(maxlen=64)
+        self._compiled_tables = None  # the compiled first round's tables, made on first use
 
     # -- embree calls ------------------------------------------------------------------------------
     def _pool_get(self):
@@ -654,6 +717,52 @@ class _EmbreeBackend:
             best_t[sub], best_p[sub] = t, p
         return best_t, best_p
 
+    def _tables(self):
+        """The compiled first round's tables on JAX's CPU device, padded to `_table_rows`: the
+        float32 vertices (rows of 9), the altitudes in float32, the near-pair flags, and the embree
+        primID -> triangle id map (made on first use: queries of few rays never need them)."""
+        with self._lock:
+            if self._compiled_tables is None:
+                rows = _table_rows(self.n_tri)
+                pad = rows - self.n_tri
+                host = (np.pad(self.tri.reshape(-1, 9), ((0, pad), (0, 0))), np.pad(self.alt.astype(F32), ((0, pad), (0, 0))),
+                        np.pad(self.flagged, (0, pad)), np.pad(self.ids, (0, rows - self.ids.size)))
+                cpu = jax.devices("cpu")[0]
+                self._compiled_tables = (cpu, tuple(jax.device_put(x, cpu) for x in host))
+            return self._compiled_tables
+
+    def compiled_from_origin(self, o32, d32, bary: bool) -> Hits:
+        """`intersect_from_origin`'s Hits by the compiled first round (`_first_round`, blocks of
+        REFINE_BLOCK rays on JAX's CPU device): embree's proposals tested with NumPy's rounding,
+        float64 barycentrics; the rays it cannot settle (near edges, near pairs, rejected
+        proposals: a few in 10^4 on a typical frame) go through `closest` and `barycentrics`."""
+        n = len(o32)
+        pid, te = self._run(o32, d32, np.full(n, np.inf, F32), "INTERSECT")
+        cpu, tables = self._tables()
+        t, prim, hard = np.empty(n, F32), np.empty(n, np.int32), np.empty(n, bool)
+        b1, b2 = (np.zeros(n), np.zeros(n)) if bary else (None, None)
+        outs = (t, prim, hard, b1, b2)
+        with jax.default_device(cpu), jax.enable_x64(True):
+            consts = (np.float32(self.scale), np.int32(0), np.int64(0))
+            for a in range(0, n, REFINE_BLOCK):
+                b = min(n, a + REFINE_BLOCK)
+                pad = REFINE_BLOCK - (b - a)
+                rays = (np.pad(o32[a:b], ((0, pad), (0, 0))), np.pad(d32[a:b], ((0, pad), (0, 0))),
+                        np.pad(pid[a:b], (0, pad), constant_values=-1), np.pad(te[a:b], (0, pad)))
+                res = _first_round_jit(tables, *consts, *rays, bary=bary)
+                for dst, x in zip(outs, res):
+                    dst[a:b] = np.asarray(x)[: b - a]
+        idx = np.flatnonzero(hard)
+        if idx.size:
+            m = idx.size
+            o64, d64 = o32[idx].astype(np.float64), d32[idx].astype(np.float64)
+            th, ph = self.closest(o64, d64, np.zeros(m), np.full(m, np.inf), np.full(m, -1, np.int64), first=(pid[idx], te[idx]))
+            h = _hits(th, ph, *(self.barycentrics(o64, d64, ph) if bary else (None, None)))
+            t[idx], prim[idx] = h.t, h.prim
+            if bary:
+                b1[idx], b2[idx] = h.b1, h.b2
+        return Hits(t, prim, b1, b2)
+
     def barycentrics(self, o64, d64, prim):
         hit = prim != _NONE
         b1 = np.zeros(len(prim))
@@ -679,6 +788,8 @@ class _EmbreeBackend:
         chunked = self._on_workers(n, lambda a, b: self.intersect_from_origin(o32[a:b], d32[a:b], bary))
         if chunked is not None:
             return chunked
+        if n >= KERNEL_MIN_RAYS:
+            return self.compiled_from_origin(o32, d32, bary)
         t, p = self.closest_from_origin(o32, d32)
         b1 = b2 = None
         if bary:
