@@ -252,7 +252,7 @@ def test_structure_and_metadata():
     np.testing.assert_allclose(
         [float(x) for x in md["level_roughness"].split(",")], [0, 0.25, 0.5, 0.75, 1.0], atol=1e-9
     )
-    assert md["fis_samples"] == "64,64,64,64,64" and md["fis_lod_bias"] == "1" and "LD(R, r_m)" in md["quantity"]
+    assert md["fis_samples"] == "64,64,64,64,64" and md["fis_lod_bias"] == "0" and "LD(R, r_m)" in md["quantity"]
     # Progress in chunks of work (30 rows in chunks of 8: 4 reports from inside the program), the
     # last one (total, total); the result is the same as without progress.
     calls = []
