@@ -258,3 +258,35 @@ def test_renderer_plans_levels_with_the_lookup():
     p_old = jp.rendering.renderer.plan(scene.replace(environment=old))
     assert (p_old.mapping_levels, p_old.prefilter_levels) == (6, 6)
     assert specular.lookup_of(old.prefiltered)[2] == "roughness"
+
+
+# ----------------------------------------------------------------------------------------------
+# the default FIS chain at its texel centres
+# ----------------------------------------------------------------------------------------------
+
+
+def test_default_prefilter_of_a_linear_environment_at_texel_centres():
+    """The default chain (`prefilter`, FIS with exact bright texels, LOD bias 0) of a 64^2 linear
+    environment against the closed form a + b c(alpha_m) (R.d) at every level's texel centres (c by
+    quadrature here). Measured: relative error max 2.6e-3 / 4.8e-4 / 5.1e-4 / 9.4e-4 at levels 1..4
+    (32^2 .. 4^2); with the +1 bias of Filament (K = 4), 9.4e-3 / 2.2e-3 / 2.7e-3 / 4.7e-3 (the
+    blur of reading a pyramid level twice as coarse as each sample's solid angle)."""
+    S = 64
+    env = Cubemap([jnp.asarray((A + B * (texel_directions(S) @ DIR))[..., None], jnp.float32)])
+
+    def errors(**kw):
+        out = prefilter(env, **kw)
+        M = out.num_levels
+        r = level_roughness(M)
+        e = []
+        for m in range(1, M):
+            expect = A + B * c_oracle(r[m] ** 2) * (texel_directions(S >> m) @ DIR)
+            e.append(float(np.max(np.abs(np.asarray(out.levels[m], np.float64)[..., 0] - expect) / np.abs(expect))))
+        return np.array(e)
+
+    default = errors()
+    assert len(default) == 4
+    assert default[-1] <= 2e-3, default  # the coarsest level (4^2)
+    assert (default[1:] <= 2e-3).all() and default[0] <= 4e-3, default
+    blurred = errors(lod_bias=1.0)
+    assert (default < blurred).all(), (default, blurred)
