@@ -4,7 +4,8 @@ pinhole camera (1920x1080 by default) onto icospheres, embree against the JAX BV
 For each mesh and backend: the build time (host), then `intersect` run back to back `--repeats`
 times in the same process (min and median reported; the JAX backend's first call, which compiles,
 is reported apart). "embreex raw" is embreex's own `run` on the same rays, without the exact
-refinement that `TriangleAccel` adds (the host-side watertight test, ties, barycentrics).
+refinement that `TriangleAccel` adds (the watertight test, ties, barycentrics), on one thread and
+on every core (bands of rays on a thread pool, as `TriangleAccel` splits them).
 
     python examples/bench_visibility.py [--subdiv 6 8] [--repeats 3] [--width 1920 --height 1080]
         [--backends embree jax raw] [--shadow]
@@ -15,9 +16,11 @@ Subdivision 6 is 81,920 triangles, 7 is 327,680, 8 is 1,310,720.
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import statistics
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import numpy as np
@@ -100,6 +103,12 @@ def main():
                 build = time.perf_counter() - t
                 _, times = timed(lambda: scene.run(o, d, output=True), args.repeats)
                 rows.append((len(f), "embreex raw run (1 thread)", build, None, times, n))
+                # every core: one band of rays per thread at a time (embreex releases the GIL per call)
+                cuts = np.linspace(0, n, 4 * (os.cpu_count() or 1) + 1).astype(int)
+                with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+                    _, times = timed(lambda: list(pool.map(lambda ab: scene.run(o[ab[0]:ab[1]], d[ab[0]:ab[1]], output=True),
+                                                           itertools.pairwise(cuts))), args.repeats)
+                rows.append((len(f), f"embreex raw run ({os.cpu_count()} threads)", None, None, times, n))
                 continue
             t = time.perf_counter()
             acc = TriangleAccel.build(v, f, backend=backend)
@@ -113,6 +122,9 @@ def main():
             prim = np.asarray(h.prim)
             label = f"{backend} (TriangleAccel)" + (f", {acc._impl.threads} threads" if backend == "embree" else "")
             rows.append((len(f), label, build, first, times, n))
+            if backend == "embree":  # what render's primary cast asks for: t and prim only
+                _, times = timed(lambda: acc.intersect(o, d, barycentrics=False), args.repeats)
+                rows.append((len(f), "  the same, barycentrics=False", None, None, times, n))
             if backend == "embree":
                 t = time.perf_counter()
                 TriangleAccel.build(v, f, backend=backend, exact_ties=False)
