@@ -69,7 +69,7 @@ def bench_ibl(env, env_name: str, *, baseline_samples: int = 4096, texels_per_le
         f"{t_ours:.2f} s (compile {max(0.0, first - t_ours):.2f} s), mean {100 * e_ours['mean']:.2f} %, worst texel {100 * e_ours['max']:.2f} %",
     ]
     for n in sorted({256, baseline_samples}):
-        base, _t = time_calls(lambda: to_host(prefilter(env, samples=[n] * M, exact_texels=0)), rounds=1)
+        base, _t = time_calls(lambda: to_host(prefilter(env, samples=[n] * M, exact_texels=0, lod_bias=1.0)), rounds=1)
         _, t_base = _t.first, _t.best
         e_base = summarize(prefilter_error(env, base, texels_per_level=texels_per_level))
         lines += [
