@@ -688,6 +688,9 @@ def test_embree_compiled_first_round_equals_the_numpy_rounds(exact_ties, monkeyp
     reference = acc.intersect(o, d)
     monkeypatch.setattr(visibility, "KERNEL_MIN_RAYS", 1)
     monkeypatch.setattr(visibility, "REFINE_BLOCK", 4096)
+    monkeypatch.setattr(visibility, "COMPILED_FROM_QUERY", 1)
+    monkeypatch.setattr(visibility, "COMPILE_IN_BACKGROUND", False)
+    monkeypatch.setattr(visibility, "_COMPILED", {})
     calls = []
     closest = acc._impl.closest
     monkeypatch.setattr(acc._impl, "closest", lambda *a, **k: calls.append(len(a[0])) or closest(*a, **k))
@@ -701,3 +704,41 @@ def test_embree_compiled_first_round_equals_the_numpy_rounds(exact_ties, monkeyp
     assert lean.b1 is None
     np.testing.assert_array_equal(lean.prim, reference.prim)
     np.testing.assert_array_equal(lean.t, reference.t)
+
+
+@pytest.mark.skipif(not embree_available(), reason="embreex not installed")
+def test_embree_compiled_first_round_from_the_second_query_compiled_in_the_background(monkeypatch):
+    """The first query of an acceleration structure takes the NumPy rounds and compiles nothing;
+    the second starts the compile on a background thread and, until it is ready, takes the NumPy
+    rounds too; once it is, queries take the compiled round. Every answer is the same."""
+    import threading
+
+    from jaxpbr.rendering import visibility
+
+    monkeypatch.setattr(visibility, "_COMPILED", {})
+    monkeypatch.setattr(visibility, "REFINE_BLOCK", 1 << 14)
+    v, f = icosphere(3)
+    o, d = rays_at(v, 40000, seed=9, spread=1.5)
+    o, d = o.astype(np.float32), d.astype(np.float32)
+    acc = TriangleAccel.build(v, f, backend="embree")
+    used = []
+    compiled = acc._impl.compiled_from_origin
+    monkeypatch.setattr(acc._impl, "compiled_from_origin", lambda *a, **k: used.append(1) or compiled(*a, **k))
+    gate = threading.Event()
+    ready = visibility._compiled_ready
+
+    def held(key, compile_it):  # the background compile waits for the gate
+        return ready(key, lambda: (gate.wait(60), compile_it()))
+
+    monkeypatch.setattr(visibility, "_compiled_ready", held)
+    first = acc.intersect(o, d)
+    assert not used and not visibility._COMPILED  # first query: nothing compiled
+    second = acc.intersect(o, d)
+    assert not used and len(visibility._COMPILED) == 1  # compiling on the side
+    gate.set()
+    next(iter(visibility._COMPILED.values())).wait(120)
+    third = acc.intersect(o, d)
+    assert used
+    for a, b, c in zip(first, second, third):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(c))

@@ -445,6 +445,39 @@ NEAR_WIDEN = 1.0 + 2.0**-10
 DONE_SHARE = 0.5
 
 
+#: The compiled first round serves an acceleration structure from its this-many-th query of primary
+#: rays on: a process that asks once (`jaxpbr render`'s single frame) does not pay its compile (about
+#: 0.5 s on 2 cores) to save a fraction of that.
+COMPILED_FROM_QUERY = 2
+#: The program is compiled on a background thread; until it is ready, queries take the NumPy rounds
+#: (the same hits, bit for bit). False: compiled by the query that first needs it.
+COMPILE_IN_BACKGROUND = True
+_COMPILED: dict = {}  # (table rows, bary) -> threading.Event, set once the program is compiled
+_COMPILED_LOCK = threading.Lock()
+
+
+def _compiled_ready(key, compile_it) -> bool:
+    """Whether the first round's program for `key` is compiled in this process; the first ask
+    starts `compile_it()` (on a daemon thread with COMPILE_IN_BACKGROUND)."""
+    with _COMPILED_LOCK:
+        event = _COMPILED.get(key)
+        start = event is None
+        if start:
+            event = _COMPILED[key] = threading.Event()
+    if start:
+        def run():
+            try:
+                compile_it()
+            finally:  # (a failure shows again where the program is called)
+                event.set()
+
+        if COMPILE_IN_BACKGROUND:
+            threading.Thread(target=run, name="jaxpbr-first-round-compile", daemon=True).start()
+        else:
+            run()
+    return event.is_set()
+
+
 def _table_rows(n: int) -> int:
     """Rows of the compiled first round's triangle tables for n triangles: at least 4096, rounded up
     to an eighth of the largest power of two <= n (at most 12.5 % padding; eight compiled sizes
@@ -535,6 +568,7 @@ class _EmbreeBackend:
         # (rays hit, rays refined, rays going on) of the latest embree rounds, for tuning
         self.rounds_log = collections.deque(maxlen=64)
         self._compiled_tables = None  # the compiled first round's tables, made on first use
+        self._primary_queries = 0  # calls of intersect_from_origin (top level)
 
     # -- embree calls ------------------------------------------------------------------------------
     def _pool_get(self):
@@ -731,6 +765,25 @@ class _EmbreeBackend:
                 self._compiled_tables = (cpu, tuple(jax.device_put(x, cpu) for x in host))
             return self._compiled_tables
 
+    def _use_compiled(self, n: int, bary: bool) -> bool:
+        """Whether a query of n primary rays takes the compiled first round: enough rays, from the
+        COMPILED_FROM_QUERY-th query on, once the program is compiled (`_compiled_ready`)."""
+        if n < KERNEL_MIN_RAYS:
+            return False
+        with self._lock:
+            self._primary_queries += 1
+            if self._primary_queries < COMPILED_FROM_QUERY:
+                return False
+        cpu, tables = self._tables()
+
+        def compile_it():  # one call on a block of misses: traces, compiles (or loads) the program
+            with jax.default_device(cpu), jax.enable_x64(True):
+                o = np.zeros((REFINE_BLOCK, 3), F32)
+                rays = (o, o, np.full(REFINE_BLOCK, -1, np.int32), np.zeros(REFINE_BLOCK, F32))
+                jax.block_until_ready(_first_round_jit(tables, F32(self.scale), np.int32(0), np.int64(0), *rays, bary=bary))
+
+        return _compiled_ready((int(tables[0].shape[0]), REFINE_BLOCK, bool(bary)), compile_it)
+
     def compiled_from_origin(self, o32, d32, bary: bool) -> Hits:
         """`intersect_from_origin`'s Hits by the compiled first round (`_first_round`, blocks of
         REFINE_BLOCK rays on JAX's CPU device): embree's proposals tested with NumPy's rounding,
@@ -781,14 +834,17 @@ class _EmbreeBackend:
         b1, b2 = self.barycentrics(o64, d64, p) if bary else (None, None)
         return _hits(t, p, b1, b2)
 
-    def intersect_from_origin(self, o32, d32, bary: bool = True):
+    def intersect_from_origin(self, o32, d32, bary: bool = True, compiled: bool | None = None):
         """`intersect` of float32 rays from tnear = 0 with tfar = inf and no previous hit (the same
-        Hits), by `closest_from_origin`."""
+        Hits), by `compiled_from_origin` where `_use_compiled` says so (compiled: decided by the
+        caller, a chunk of a larger query), else by `closest_from_origin`."""
         n = len(o32)
-        chunked = self._on_workers(n, lambda a, b: self.intersect_from_origin(o32[a:b], d32[a:b], bary))
+        if compiled is None:
+            compiled = self._use_compiled(n, bary)
+        chunked = self._on_workers(n, lambda a, b: self.intersect_from_origin(o32[a:b], d32[a:b], bary, compiled))
         if chunked is not None:
             return chunked
-        if n >= KERNEL_MIN_RAYS:
+        if compiled:
             return self.compiled_from_origin(o32, d32, bary)
         t, p = self.closest_from_origin(o32, d32)
         b1 = b2 = None
