@@ -14,6 +14,7 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr.batch.jobs import parse_jobs
+from jaxpbr.errors import InputError
 from jaxpbr.batch.work import Worker
 from jaxpbr.cli import build_parser
 from jaxpbr.cli.render import _gltf_scene
@@ -126,3 +127,18 @@ def test_an_environment_keeps_the_rotation_and_intensity_not_given(asset):
     assert environment_from(env) is env
     lib = jp.load_gltf(asset, width=W, height=H, environment=env, environment_rotation=0.25)
     assert float(lib.environment.rotation) == 0.25 and float(lib.environment.intensity) == 3.0
+
+
+def test_a_loaded_cubemap_or_a_path_is_an_environment_and_anything_else_is_refused(asset, tmp_path):
+    """`jp.load_environment` returns a Cubemap; passed on to `jp.load_gltf` it is the scene's
+    radiance, as the same file's path (or a pathlib.Path) is. Another type is an InputError naming
+    what is accepted."""
+    hdr = tmp_path / "sky.hdr"
+    jp.image.write(hdr, np.broadcast_to(np.linspace(0.2, 2.0, 32, dtype=np.float32)[:, None, None], (32, 64, 3)).copy())
+    by_path = jp.load_gltf(asset, width=W, height=H, environment=str(hdr))
+    for env in (jp.load_environment(str(hdr)), hdr):
+        got = jp.load_gltf(asset, width=W, height=H, environment=env)
+        np.testing.assert_array_equal(np.asarray(got.environment.radiance.levels[0]),
+                                      np.asarray(by_path.environment.radiance.levels[0]))
+    with pytest.raises(InputError, match="environment must be None, an Environment, a Cubemap"):
+        jp.load_gltf(asset, width=W, height=H, environment=3.0)

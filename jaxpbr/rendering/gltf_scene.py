@@ -18,6 +18,7 @@ go to the `Mesh` (MASK cut-outs in visibility and shadows, BLEND layers composit
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -183,7 +184,8 @@ def lights_from_asset(asset: GltfAsset) -> list:
 
 def environment_from(spec, *, intensity: float | None = None, rotation: float | None = None):
     """The `Environment` a user names, as every entry point reads it (`load_gltf`, `jaxpbr render
-    --environment`, batch jobs): None (none), an `Environment` (as it is), "procedural:sky" (the
+    --environment`, batch jobs): None (none), an `Environment` (as it is), a `Cubemap` of radiance
+    (what `jaxpbr.load_environment` returns: its environment), "procedural:sky" (the
     demo's sky at `cubeio.PROCEDURAL_FACE_SIZE`, the baked set the package ships: a render
     precomputes nothing), or an environment file (`jaxpbr.load_environment`: a 2:1 .hdr/.exr
     panorama, or six face images), then turned by `rotation` (radians about +Y) and scaled by
@@ -192,14 +194,21 @@ def environment_from(spec, *, intensity: float | None = None, rotation: float | 
     from .demo import demo_environment
     from .scene import Environment
 
+    from ..ibl.cubemap import Cubemap
+
     if spec is None:
         return None
     if isinstance(spec, Environment):
         env = spec
+    elif isinstance(spec, Cubemap):
+        env = Environment(radiance=spec)
     elif isinstance(spec, str) and spec == "procedural:sky":
         env = demo_environment()
-    else:
+    elif isinstance(spec, (str, os.PathLike)) or (isinstance(spec, (list, tuple)) and all(isinstance(p, (str, os.PathLike)) for p in spec)):
         env = Environment(radiance=load_environment(spec))
+    else:
+        raise InputError(f"environment must be None, an Environment, a Cubemap (jaxpbr.load_environment), \"procedural:sky\" "
+                         f"or an environment file (a path, or six face paths), got {type(spec).__name__}")
     changes = {k: v for k, v in (("intensity", intensity), ("rotation", rotation)) if v is not None}
     return env.replace(**changes) if changes else env
 
