@@ -742,3 +742,53 @@ def test_embree_compiled_first_round_from_the_second_query_compiled_in_the_backg
     for a, b, c in zip(first, second, third):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
+
+
+def _segments_cross_triangles(p, q, tri):
+    """Float64 Moller-Trumbore: does segment p -> q (n, 3) cross triangle tri (n, 3, 3)?"""
+    d = q - p
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    h = np.cross(d, e2)
+    det = (e1 * h).sum(1)
+    with np.errstate(all="ignore"):
+        s = p - tri[:, 0]
+        u = (s * h).sum(1) / det
+        qq = np.cross(s, e1)
+        v = (d * qq).sum(1) / det
+        t = (e2 * qq).sum(1) / det
+        return (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+
+
+def test_near_pairs_find_every_crossing_pair():
+    """The build-time search for non-adjacent triangles within the tie tolerance (`_near_pairs`):
+    none on a closed sphere; with a second sphere pushed through it, every pair of crossing
+    triangles (an edge of one crosses the other: float64 brute force over all pairs) is found, and
+    nothing else than pairs of the two spheres whose boxes overlap."""
+    from jaxpbr.rendering import visibility
+
+    def pairs(v, f):
+        vv, ff = bvh_mod._as_mesh(v, f)
+        tri = vv[ff]
+        welded = visibility._weld(vv)[ff]
+        scale = float(np.abs(vv).max())
+        return visibility._near_pairs(tri.astype(np.float64), welded, visibility.TIE_TOL * 4.0 * scale)
+
+    v, f = icosphere(3)
+    assert len(pairs(v, f)) == 0
+    w, g = icosphere(2, radius=0.6, center=(0.7, 0.1, 0.05))
+    vv, ff = np.concatenate([v, w]), np.concatenate([f, g + len(v)])
+    got = {(int(a), int(b)) for a, b in pairs(vv, ff)}
+    tri = np.asarray(vv, np.float32).astype(np.float64)[ff]
+    ia, ib = np.meshgrid(np.arange(len(f)), np.arange(len(f), len(ff)), indexing="ij")
+    ia, ib = ia.ravel(), ib.ravel()
+    lo, hi = tri.min(1), tri.max(1)
+    boxes = ((lo[ia] <= hi[ib]) & (lo[ib] <= hi[ia])).all(1)
+    ia, ib = ia[boxes], ib[boxes]
+    crossing = np.zeros(len(ia), bool)
+    for k in range(3):
+        crossing |= _segments_cross_triangles(tri[ia, k], tri[ia, (k + 1) % 3], tri[ib])
+        crossing |= _segments_cross_triangles(tri[ib, k], tri[ib, (k + 1) % 3], tri[ia])
+    expect = {(int(a), int(b)) for a, b in zip(ia[crossing], ib[crossing])}
+    assert len(expect) > 20
+    assert expect <= got, sorted(expect - got)[:5]
+    assert got <= {(int(a), int(b)) for a, b in zip(ia, ib)}  # (two spheres' pairs, boxes overlapping)
