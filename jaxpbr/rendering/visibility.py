@@ -66,6 +66,7 @@ little short of the light (e.g. (1 - 1e-4) * distance).
 
 from __future__ import annotations
 
+import atexit
 import collections
 import itertools
 import os
@@ -571,10 +572,23 @@ def _compiled_ready(key, compile_it) -> bool:
                 event.set()
 
         if COMPILE_IN_BACKGROUND:
-            threading.Thread(target=run, name="jaxpbr-first-round-compile", daemon=True).start()
+            thread = threading.Thread(target=run, name="jaxpbr-first-round-compile", daemon=True)
+            thread.start()
+            _COMPILING.append(thread)
         else:
             run()
     return event.is_set()
+
+
+_COMPILING: list = []
+
+
+@atexit.register
+def _join_compiles() -> None:
+    """A process that ends while a background compile runs waits for it (a daemon thread stopped
+    inside XLA during the interpreter's finalization can crash it)."""
+    for thread in _COMPILING:
+        thread.join(timeout=120)
 
 
 def _table_rows(n: int) -> int:
