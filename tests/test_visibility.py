@@ -73,6 +73,16 @@ def soup(n=200, seed=3):
     return v, np.arange(3 * n).reshape(n, 3)
 
 
+def unit_grid(k):
+    """A k x k grid of unit squares in the plane z = 0, two triangles each: (vertices, triangles)."""
+    g = np.stack(np.meshgrid(np.arange(k + 1.0), np.arange(k + 1.0), indexing="ij"), -1).reshape(-1, 2)
+    v = np.concatenate([g, np.zeros((len(g), 1))], 1)
+    idx = np.arange((k + 1) ** 2).reshape(k + 1, k + 1)
+    f = np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:]], -1).reshape(-1, 3),
+                        np.stack([idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 3)])
+    return v, f
+
+
 MESHES = {"icosphere": icosphere(2), "soup": soup(), "cube": cube()}
 
 
@@ -342,11 +352,7 @@ def test_embree_float32_primary_rays_equal_the_general_path(n, monkeypatch):
     tfar and after_prim arrays), barycentrics included, on a grid of unit squares whose rays pass
     through shared edges and vertices (ties) and through the gaps beside it (misses)."""
     k = 24
-    g = np.stack(np.meshgrid(np.arange(k + 1.0), np.arange(k + 1.0), indexing="ij"), -1).reshape(-1, 2)
-    v = np.concatenate([g, np.zeros((len(g), 1))], 1)
-    idx = np.arange((k + 1) ** 2).reshape(k + 1, k + 1)
-    f = np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:]], -1).reshape(-1, 3),
-                        np.stack([idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 3)])
+    v, f = unit_grid(k)
     rng = np.random.default_rng(11)
     xy = rng.integers(-2, k + 2, (n, 2)) + rng.choice([0.0, 0.5, 1.0, 0.25], (n, 2))  # vertices, edges, centres
     o = np.concatenate([xy, rng.uniform(1.0, 3.0, (n, 1))], 1).astype(np.float32)
@@ -647,12 +653,7 @@ def _ties_mesh():
     """A unit-square grid (rays through shared edges and vertices), a coplanar copy of part of it
     (equal t, near pairs), a sheet crossing it at an angle, and a far, small icosphere (large |o|
     against small triangles): every reason the first round sends a ray on."""
-    k = 16
-    g = np.stack(np.meshgrid(np.arange(k + 1.0), np.arange(k + 1.0), indexing="ij"), -1).reshape(-1, 2)
-    v = np.concatenate([g, np.zeros((len(g), 1))], 1)
-    idx = np.arange((k + 1) ** 2).reshape(k + 1, k + 1)
-    f = np.concatenate([np.stack([idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:]], -1).reshape(-1, 3),
-                        np.stack([idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 3)])
+    v, f = unit_grid(16)
     copy = f[: len(f) // 4]
     sheet_v = np.array([[2.0, 2.0, -1.0], [9.0, 2.0, 1.0], [2.0, 9.0, -1.0]])
     sv, sf = icosphere(3, radius=0.05, center=(40.0, 40.0, -30.0))
