@@ -191,10 +191,9 @@ def environment_from(spec, *, intensity: float | None = None, rotation: float | 
     panorama, or six face images), then turned by `rotation` (radians about +Y) and scaled by
     `intensity` where given (None keeps the environment's own, 0 and 1 for a new one)."""
     from ..ibl.cubeio import load_environment
+    from ..ibl.cubemap import Cubemap
     from .demo import demo_environment
     from .scene import Environment
-
-    from ..ibl.cubemap import Cubemap
 
     if spec is None:
         return None

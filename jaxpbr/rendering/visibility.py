@@ -69,6 +69,7 @@ from __future__ import annotations
 import atexit
 import collections
 import itertools
+import operator
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -407,60 +408,37 @@ def _expand(counts):
     return owner, np.arange(owner.size) - first[owner]
 
 
-def _not_separated_in_plane(a, b, margin):
+def _not_separated_in_plane(a, b, margin, xp=np, mul=operator.mul):
     """Separating-axis test in a's plane with the six edge normals of the two projected
     triangles (only decisive for coplanar pairs): True unless some axis separates them by more
-    than `margin` (per pair; a negative margin asks for an overlap of at least -margin)."""
-    nrm = cross_rows(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])
-    drop = np.argmax(np.abs(nrm), 1)
-    keep = np.array([[1, 2], [0, 2], [0, 1]])[drop]  # (n, 2)
-    # projected vertices as (n, 3) arrays of u and of v
-    pa = np.take_along_axis(a, keep[:, None, :], 2)
-    pb = np.take_along_axis(b, keep[:, None, :], 2)
-    au, av, bu, bv = (np.ascontiguousarray(x) for x in (pa[..., 0], pa[..., 1], pb[..., 0], pb[..., 1]))
-    sep = np.zeros(len(a), bool)
+    than `margin` (per pair; a negative margin asks for an overlap of at least -margin). NumPy, or
+    jax.numpy with `bvh.opaque_mul` (`_separated_jit`: the same decisions, compiled)."""
+    e1, e2 = a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]
+    nrm = xp.stack([mul(e1[:, 1], e2[:, 2]) - mul(e1[:, 2], e2[:, 1]), mul(e1[:, 2], e2[:, 0]) - mul(e1[:, 0], e2[:, 2]),
+                    mul(e1[:, 0], e2[:, 1]) - mul(e1[:, 1], e2[:, 0])], 1)
+    drop = xp.argmax(xp.abs(nrm), 1)[:, None]  # keep axes (1, 2), (0, 2) or (0, 1)
+
+    def project(t):  # (n, 3) arrays of the vertices' u and v
+        return xp.where(drop == 0, t[..., 1], t[..., 0]), xp.where(drop == 2, t[..., 1], t[..., 2])
+
+    (au, av), (bu, bv) = project(a), project(b)
+    sep = xp.zeros(a.shape[0], bool)
     for pu, pv in ((au, av), (bu, bv)):
         for e in range(3):
             du, dv = pu[:, (e + 1) % 3] - pu[:, e], pv[:, (e + 1) % 3] - pv[:, e]
-            ln = np.sqrt(du * du + dv * dv)
-            ln = np.where(ln > 0, ln, 1)
+            ln = xp.sqrt(mul(du, du) + mul(dv, dv))
+            ln = xp.where(ln > 0, ln, 1.0)
             xu, xv = (-dv / ln)[:, None], (du / ln)[:, None]  # the edge's normal in the plane
-            qa = xu * au + xv * av
-            qb = xu * bu + xv * bv
+            qa = mul(xu, au) + mul(xv, av)
+            qb = mul(xu, bu) + mul(xv, bv)
             # (projecting along the dominant axis of a's normal shrinks distances by at most
             # 1/sqrt 3 in a direction; the margins are generous enough for a superset)
             sep |= (qa.min(1) > qb.max(1) + margin) | (qb.min(1) > qa.max(1) + margin)
     return ~sep
 
 
-def _separated_program(a, b, margin, zero):
-    """`_not_separated_in_plane` in jax.numpy with NumPy's rounding (`bvh.opaque_mul`, float64
-    under jax.enable_x64): the same decisions, compiled (its NumPy form spent about 2 us a pair)."""
-    mul = _bvh.opaque_mul(zero)
-    e1, e2 = a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]
-    nrm = jnp.stack([mul(e1[:, 1], e2[:, 2]) - mul(e1[:, 2], e2[:, 1]), mul(e1[:, 2], e2[:, 0]) - mul(e1[:, 0], e2[:, 2]),
-                     mul(e1[:, 0], e2[:, 1]) - mul(e1[:, 1], e2[:, 0])], 1)
-    drop = jnp.argmax(jnp.abs(nrm), 1)[:, None]  # keep axes (1, 2), (0, 2) or (0, 1)
-
-    def project(t):
-        return jnp.where(drop == 0, t[..., 1], t[..., 0]), jnp.where(drop == 2, t[..., 1], t[..., 2])
-
-    (au, av), (bu, bv) = project(a), project(b)
-    sep = jnp.zeros(a.shape[0], bool)
-    for pu, pv in ((au, av), (bu, bv)):
-        for e in range(3):
-            du, dv = pu[:, (e + 1) % 3] - pu[:, e], pv[:, (e + 1) % 3] - pv[:, e]
-            ln = jnp.sqrt(mul(du, du) + mul(dv, dv))
-            ln = jnp.where(ln > 0, ln, 1.0)
-            xu, xv = (-dv / ln)[:, None], (du / ln)[:, None]
-            qa = mul(xu, au) + mul(xv, av)
-            qb = mul(xu, bu) + mul(xv, bv)
-            sep |= (qa.min(1) > qb.max(1) + margin) | (qb.min(1) > qa.max(1) + margin)
-    return ~sep
-
-
-_separated_jit = jax.jit(_separated_program)
-#: Pairs at least this many take `_separated_program` (compiling it costs about 0.3 s).
+_separated_jit = jax.jit(lambda a, b, margin, zero: _not_separated_in_plane(a, b, margin, jnp, _bvh.opaque_mul(zero)))
+#: Pairs at least this many take `_separated_jit` (compiling it costs about 0.3 s).
 _SEPARATION_MIN_PAIRS = 1 << 15
 
 
