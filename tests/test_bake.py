@@ -258,17 +258,17 @@ def test_renders_share_the_process_worker_pool(monkeypatch):
     and renders start no pool of their own."""
     import threading
 
-    from jaxpbr.rendering import execute
+    from jaxpbr.rendering import assets, execute
 
     monkeypatch.setattr(renderer.EXECUTION, "staged", True)  # the maps overlap the stages on the staged path
     seen = []
-    real = execute._asset_irradiance
+    real = assets._asset_irradiance
 
     def spy(*a):
         seen.append(threading.current_thread().name)
         return real(*a)
 
-    monkeypatch.setattr(execute, "_asset_irradiance", spy)
+    monkeypatch.setattr(assets, "_asset_irradiance", spy)
     scene = _scene(0.4, _env())
     pool = execute.worker_pool()
     for _ in range(3):

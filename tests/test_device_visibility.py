@@ -10,10 +10,10 @@ import pytest
 
 import jaxpbr as jp
 from jaxpbr.rendering import execute, mesh, stages
-from jaxpbr.rendering.assets import _env_assets
+from jaxpbr.rendering.assets import ibl_assets
 from jaxpbr.rendering.demo import uv_sphere
 from jaxpbr.rendering.options import RenderOptions
-from jaxpbr.rendering.plan import plan
+from jaxpbr.rendering.plan import plan, split_environment
 from jaxpbr.rendering.scene import primary_rays
 
 
@@ -228,5 +228,5 @@ def test_the_ibl_visibility_rungs_trace_on_the_device_as_on_the_host(one_program
     p = plan(scene, options=opts)
     accel_scene = execute._with_device_accel(scene, one_program)
     assert isinstance(accel_scene, stages.AccelScene)
-    text = str(jax.make_jaxpr(stages._render_traced, static_argnums=(2, 3))(accel_scene, _env_assets(scene.environment, p, opts), p, opts))
+    text = str(jax.make_jaxpr(stages._render_traced, static_argnums=(2, 3))(accel_scene, ibl_assets(split_environment(scene.environment, opts), p, opts), p, opts))
     assert "callback" not in text

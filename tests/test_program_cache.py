@@ -333,13 +333,13 @@ def test_a_call_ahead_gives_the_results_shapes_and_the_real_call_runs_the_progra
 
 def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():
     """`assets.asset_shapes` (what the IBL stage is compiled for while the maps are computed) has
-    the tree, lookup metadata and leaf shapes of what `_env_assets` returns, for several options."""
+    the tree, lookup metadata and leaf shapes of what `ibl_assets` returns, for several options."""
     import jaxpbr as jp
     from jaxpbr.ibl.cubeio import load_environment
-    from jaxpbr.rendering.assets import _env_assets, asset_shapes
+    from jaxpbr.rendering.assets import asset_shapes, ibl_assets
     from jaxpbr.rendering.cache import AssetCache
     from jaxpbr.rendering.options import RenderOptions
-    from jaxpbr.rendering.plan import _env_split, plan
+    from jaxpbr.rendering.plan import plan, split_environment
 
     radiance = load_environment(["procedural:sky"], face_size=16)
     sphere = jp.Sphere(center=(0.0, 0.0, 0.0), radius=1.0, material=jp.Material(roughness=0.7))
@@ -351,9 +351,9 @@ def test_the_asset_shapes_known_before_the_bake_are_the_baked_assets():
         env = jp.Environment(radiance=radiance)
         scene = jp.Scene(camera=cam, objects=[sphere], environment=env)
         p = plan(scene, options=opts, cache=cache)
-        real = _env_assets(env, p, opts, cache)
-        lights = _env_split(env, opts, cache)[0] if p.env_lights else None
-        shapes = asset_shapes(env, p, opts, real[2], lights)
+        split = split_environment(env, opts, cache)
+        real = ibl_assets(split, p, opts, cache)
+        shapes = asset_shapes(split.env, p, opts, real[2], split.suns)
         assert jax.tree_util.tree_structure(shapes) == jax.tree_util.tree_structure(real), kw
         assert pc._canon_tree(jax.tree_util.tree_structure(shapes)) == pc._canon_tree(jax.tree_util.tree_structure(real)), kw
         got = [(tuple(x.shape), np.dtype(x.dtype)) for x in jax.tree_util.tree_leaves(shapes)]
@@ -423,7 +423,7 @@ def test_a_cold_staged_render_traces_and_compiles_each_stage_once_ahead(cache_di
                         or orig_finish(self, *a))
     looked = []
     orig_ahead = execute._compile_ahead
-    monkeypatch.setattr(execute, "_compile_ahead", lambda *a: looked.append(1) or orig_ahead(*a))
+    monkeypatch.setattr(execute, "_compile_ahead", lambda *a, **k: looked.append(1) or orig_ahead(*a, **k))
     threads, orig_compiler = [], pc._compiler
     monkeypatch.setattr(pc, "_compiler", lambda n=1: threads.append(n) or orig_compiler(n))
     out = np.asarray(jp.render(scene, shadows=True))

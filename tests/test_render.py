@@ -12,7 +12,8 @@ import reference as ref
 import jaxpbr as jp
 from jaxpbr.rendering import renderer as R
 from jaxpbr.rendering import stages as stages_
-from jaxpbr.rendering.assets import _env_assets as env_assets_
+from jaxpbr.rendering.assets import ibl_assets
+from jaxpbr.rendering.plan import split_environment
 from jaxpbr.rendering.demo import learnopengl_scene, sphere_grid
 from jaxpbr.rendering.scene import (
     intersect_plane,
@@ -342,7 +343,7 @@ def test_supersampling_is_the_mean_of_jittered_renders():
 def _primitives(scene, **options):
     opts = R.RenderOptions(**options)
     p = R.plan(scene, options=opts)
-    assets = env_assets_(scene.environment, p, opts) if p.ibl else None
+    assets = ibl_assets(split_environment(scene.environment, opts), p, opts) if p.ibl else None
     jaxpr = jax.make_jaxpr(lambda s, a: stages_._render_traced(s, a, p, opts))(scene, assets)
     text = str(jaxpr)
     return p, text
@@ -389,7 +390,7 @@ def test_plan_metals_only_skips_irradiance_and_rough_range_limits_mips(monkeypat
     img = np.asarray(jp.render(scene, options=ss))
     assert seen["levels"] == 3 and np.isfinite(img).all()
     # The truncated chain gives the same image as the full chain (lod <= 1.15 never reads beyond).
-    full = env_assets_(env, dataclasses.replace(p, prefilter_levels=5), ss)
+    full = ibl_assets(split_environment(env, ss), dataclasses.replace(p, prefilter_levels=5), ss)
     want = np.asarray(stages_._render_jit(scene, full, dataclasses.replace(p, prefilter_levels=5), ss))
     np.testing.assert_allclose(img, want, rtol=1e-6, atol=1e-7)
     # A dielectric brings the irradiance map back.

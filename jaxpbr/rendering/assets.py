@@ -25,28 +25,65 @@ from ..ibl.cubemap import Cubemap
 from ..shading import shipped_luts
 from .cache import AssetCache, cache_or_default, content_key
 from .options import RenderOptions, _lut_smith, _options
-from .plan import RenderPlan, _asset_bytes, _charlie_size, _env_split, prefilter_size
+from .plan import EnvironmentSplit, RenderPlan, _asset_bytes, _charlie_size, prefilter_size, split_environment
 from .scene import Environment
 
 
-def _env_assets(env: Environment, p: RenderPlan, opts: RenderOptions, cache: AssetCache | None = None):
-    """(irradiance | None, prefiltered, lut, disc lights | None) for the plan, in the render dtype.
+def ibl_assets(split: EnvironmentSplit, p: RenderPlan, opts: RenderOptions, cache: AssetCache | None = None, *, submit=None):
+    """The IBL assets the plan reads, (irradiance | None, prefiltered, LUT, suns | None, sheen |
+    None), in the render dtype, for the environment as `split_environment` split it.
 
     Maps the environment carries (`bake`, or loaded from disk) are used as they are. Missing ones
-    are computed: for a concrete environment through the content-addressed `cache` (default `ASSETS`; once
-    per environment content and parameters, concrete even under an outer jit / grad / vmap); for
-    a traced environment (differentiating wrt its texels) inside the trace, never cached."""
+    are computed: for a concrete environment through the content-addressed `cache` (default
+    `ASSETS`; once per environment content and parameters, concrete even under an outer jit / grad
+    / vmap); for a traced environment (differentiating wrt its texels) inside the trace, never
+    cached.
+
+    submit: a function that runs a job on a worker thread and returns its future. Given, the maps
+    of a concrete environment are computed (or loaded) on the workers and a `PendingAssets` is
+    returned at once: a staged render runs its geometry and direct-lighting stages meanwhile."""
     cache = cache_or_default(cache)
-    lights, env = _env_split(env, opts, cache) if p.env_lights else (None, env)
+    suns, env = split
     key = _env_key(env, p)
-    return (
-        _asset_irradiance(env, p, opts, key, cache), _asset_prefiltered(env, p, opts, key, cache),
-        _asset_lut(env, opts, cache), lights, _asset_sheen(env, p, opts, cache),
+    jobs = (
+        lambda: _asset_irradiance(env, p, opts, key, cache),
+        lambda: _asset_prefiltered(env, p, opts, key, cache),
+        lambda: _asset_sheen(env, p, opts, cache),
     )
+    if submit is None or not all(is_concrete(lv) for lv in env.radiance.levels):
+        irr, pre, sheen = (job() for job in jobs)
+        return irr, pre, _asset_lut(env, opts, cache), suns, sheen
+    futures = [submit(job) for job in jobs]
+    lut = _asset_lut(env, opts, cache)
+    return PendingAssets(suns, futures, lut, lambda: asset_shapes(env, p, opts, lut, suns))
+
+
+class PendingAssets:
+    """The IBL assets of a staged render while worker threads compute its maps: the suns
+    (`env_lights`) now, the `ibl_assets` tuple when called (waiting for the maps), its shapes
+    (`asset_shapes`) from `shapes()`; `cancel()` drops the jobs not started yet (a render that
+    failed or was interrupted does not wait for a map still being computed)."""
+
+    def __init__(self, env_lights, futures, lut, shapes):
+        self.env_lights = env_lights
+        self._futures = futures
+        self._lut = lut
+        self._shapes = shapes
+
+    def __call__(self):
+        irr, pre, sheen = (f.result() for f in self._futures)
+        return irr, pre, self._lut, self.env_lights, sheen
+
+    def shapes(self):
+        return self._shapes()
+
+    def cancel(self) -> None:
+        for f in self._futures:
+            f.cancel()
 
 
 def asset_shapes(env: Environment, p: RenderPlan, opts: RenderOptions, lut, env_lights):
-    """What `_env_assets` returns for the plan, as `jax.ShapeDtypeStruct` leaves in the same tree
+    """What `ibl_assets` returns for the plan, as `jax.ShapeDtypeStruct` leaves in the same tree
     (the maps' lookup metadata, which is part of a compiled program's identity, included),
     known before the maps are computed: a staged render compiles its IBL stage while the maps
     are still being computed (`_program_cache.ahead`). lut, env_lights: the LUT and suns (known
@@ -222,7 +259,8 @@ def bake(
                        normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels, mapping_levels=M, env_lights=0)
     _memory.require("baking the environment", _asset_bytes(environment, probe, opts, "bake"), where="bake")  # before any work
     cache = cache_or_default(cache)
-    lights = _env_split(environment, opts, cache)[0]
+    split = split_environment(environment, opts, cache)
+    lights = split.suns
     full = RenderPlan(
         direct=False, ibl=True, ibl_diffuse=True, env_background=environment.show_background, emissive=False,
         textured=(), normal_maps=False, max_roughness=1.0, prefilter_size=size, prefilter_levels=levels,
@@ -230,7 +268,7 @@ def bake(
     )
     if sheen:
         full = dataclasses.replace(full, extensions=("sheen",), charlie_size=_charlie_size(environment))
-    irr, pre, lut, lights, sheen_assets = _env_assets(environment, full, opts, cache)
+    irr, pre, lut, lights, sheen_assets = ibl_assets(split, full, opts, cache)
     table, charlie = sheen_assets if sheen_assets is not None else (environment.sheen_lut, environment.charlie)
     return environment.replace(
         irradiance=irr, prefiltered=pre, lut=lut, lut_smith=_lut_smith(opts), lights=lights, charlie=charlie,

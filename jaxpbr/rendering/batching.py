@@ -15,11 +15,11 @@ from .._numerics import is_concrete
 from .._pytree import Pytree, evolve, fields_of
 from .._validate import check_values, positive_int
 from ..shading.material import Material
-from .assets import _env_assets
+from .assets import ibl_assets
 from .cache import AssetCache, cache_or_default
 from .execute import EXECUTION, _staged, _supersampled, _with_device_accel
 from .options import RenderOptions, _options
-from .plan import plan
+from .plan import plan_for, split_environment
 from .scene import Scene, TexturedMaterial
 from .mesh import Mesh, _host_cast, transmits
 from .shadows import colored_shadows, host_mesh_hits
@@ -203,8 +203,9 @@ def render_batch(
     # Plan from the scene as the batch will see it (batched materials substituted, concrete).
     plan_scene = _substitute(base, {"materials": materials}, objects_idx) if materials is not None else base
     cache = cache_or_default(cache)
-    p_plan = plan(plan_scene, options=opts, cache=cache)
-    assets = _env_assets(base.environment, p_plan, opts, cache) if p_plan.ibl else None
+    split = split_environment(base.environment, opts, cache)
+    p_plan = plan_for(plan_scene, opts, suns=len(split.suns or ()))
+    assets = ibl_assets(split, p_plan, opts, cache) if p_plan.ibl else None
 
     if devices is None:
         devices = jax.local_devices()

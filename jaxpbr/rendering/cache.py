@@ -132,7 +132,7 @@ _LIGHT_FIELDS = ("direction", "color", "intensity", "angular_radius")
 
 def _encode(value) -> dict | None:
     """The arrays of a disk entry: a `Cubemap`, or the (lights | None, residual) pair of
-    `plan._env_split`'s extraction; None for anything else (kept in memory only)."""
+    `plan.split_environment`'s extraction; None for anything else (kept in memory only)."""
     if isinstance(value, Cubemap):
         arrays = {f"level{i}": np.asarray(lv) for i, lv in enumerate(value.levels)}
         arrays["num_levels"] = np.asarray(len(value.levels))

@@ -20,25 +20,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _program_cache
-from .._numerics import is_concrete, with_callers_context
+from .._numerics import with_callers_context
 from .._program_cache import release_programs
 from .._pytree import evolve, fields_of, unchecked
-from .assets import (
-    _asset_irradiance,
-    _asset_lut,
-    _asset_prefiltered,
-    _asset_sheen,
-    _env_assets,
-    _env_key,
-    asset_shapes,
-)
+from .assets import PendingAssets, ibl_assets
 from .cache import AssetCache, cache_or_default
 from .execution import EXECUTION, Execution
 from .options import RenderOptions, _options
-from .plan import RenderPlan, _env_split, check_memory, plan
+from .plan import RenderPlan, check_memory, plan_for, split_environment
 from .scene import Scene
 from .mesh import Mesh, device_accel
-from .stages import AccelScene, PendingAssets, _render_jit, _render_pass
+from .stages import AccelScene, _render_jit, _render_pass
 
 
 def render(
@@ -58,50 +50,42 @@ def render(
       process's default, `ASSETS`).
     Differentiable with respect to every array in the scene (materials, textures, lights, camera,
     environment texels).
+
+    The pipeline: the memory guard (before any work), the suns split out of the environment, the
+    plan, the IBL assets (computed on the worker pool while a staged render runs its first
+    stages), then the passes.
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"render expects a jaxpbr.Scene, got {type(scene).__name__}")
     opts = _options(options, overrides, "render")
     cache = cache_or_default(cache)
-    execution = EXECUTION
     check_memory(scene, options=opts)  # before any work (a huge size aborted inside XLA)
-    p = plan(scene, options=opts, cache=cache)
-    env = scene.environment
-    if not execution.is_staged():
-        out = _render_jit(_with_device_accel(scene, execution), _env_assets(env, p, opts, cache) if p.ibl else None, p, opts)
+    split = split_environment(scene.environment, opts, cache)
+    p = plan_for(scene, opts, suns=len(split.suns or ()))
+    execution = EXECUTION
+    staged = execution.is_staged()
+    submit = (lambda job: worker_pool().submit(with_callers_context(job))) if staged else None
+    assets = ibl_assets(split, p, opts, cache, submit=submit) if p.ibl else None
+    try:
+        if staged:
+            return _run_staged(scene, assets, p, opts, progress, execution)
+        out = _render_jit(_with_device_accel(scene, execution), assets, p, opts)
         if progress is not None:
             progress(1, 1)
         return out
-    if p.ibl and all(is_concrete(lv) for lv in env.radiance.levels):
-        # The prefiltered and irradiance maps of a concrete environment are computed (or loaded)
-        # on two worker threads while this one traces, compiles and runs the geometry and
-        # direct-lighting stages, which do not need them: on a cold start the compilations and
-        # runs overlap (XLA compiles and runs without holding the GIL).
-        env_lights, env = _env_split(env, opts, cache) if p.env_lights else (None, env)
-        key = _env_key(env, p)
-        pool = worker_pool()
-        futures = []
-        try:
-            pre = pool.submit(with_callers_context(lambda: _asset_prefiltered(env, p, opts, key, cache)))
-            futures.append(pre)
-            irr = pool.submit(with_callers_context(lambda: _asset_irradiance(env, p, opts, key, cache)))
-            futures.append(irr)
-            sheen = pool.submit(with_callers_context(lambda: _asset_sheen(env, p, opts, cache)))
-            futures.append(sheen)
-            lut = _asset_lut(env, opts, cache)
-            pending = PendingAssets(env_lights, lambda: (irr.result(), pre.result(), lut, env_lights, sheen.result()),
-                                    lambda: asset_shapes(env, p, opts, lut, env_lights))
-            one_pass = lambda sc, pb, off: _render_pass(sc, pending, pb, opts, off, staged=True)
-            _compile_ahead(scene, opts, p, one_pass, execution)
-            return _banded(scene, opts, p, one_pass, progress, execution)
-        finally:
-            # On success every map was used; on an error or an interrupt the precomputes not
-            # started yet are dropped, and one still running is not waited for.
-            for f in futures:
-                f.cancel()
-    assets = _env_assets(env, p, opts, cache) if p.ibl else None
+    finally:
+        # On success every map was used; on an error or an interrupt the precomputes not started
+        # yet are dropped, and one still running is not waited for.
+        if isinstance(assets, PendingAssets):
+            assets.cancel()
+
+
+def _run_staged(scene: Scene, assets, p: RenderPlan, opts: RenderOptions, progress, execution: Execution):
+    """The passes of a staged render (`_banded`), their stages compiled ahead on a cold start. With
+    `PendingAssets` the geometry and direct-lighting stages compile and run while the maps are
+    computed on the worker threads (XLA compiles and runs without holding the GIL)."""
     one_pass = lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True)
-    _compile_ahead(scene, opts, p, one_pass, execution)
+    _compile_ahead(scene, opts, p, one_pass, execution, computing=isinstance(assets, PendingAssets))
     return _banded(scene, opts, p, one_pass, progress, execution)
 
 
@@ -114,7 +98,7 @@ def _layout(scene: Scene, execution: Execution | None):
     return s, whole, (H if whole else max(1, band_pixels // W))
 
 
-def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, execution: Execution | None) -> None:
+def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, execution: Execution | None, *, computing: bool) -> None:
     """Start compiling every stage of the render's passes at once (`_program_cache.ahead`): the
     stages are traced here, one after another, and compiled on the compiler threads while the
     first ones run; without it each stage's compilation waits for the previous stage to compile
@@ -122,12 +106,13 @@ def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, e
     programs on, none recalled); a pass that cannot be looked ahead (a render under a
     transformation, BLEND layers, sheen maps still to compute) runs as usual. Two compiler threads
     where nothing else runs beside the compilations (no IBL map to compute, no ray engine to build),
-    else one (`_program_cache.MAX_COMPILERS`)."""
+    else one (`_program_cache.MAX_COMPILERS`). computing: the IBL maps are being computed on the
+    worker threads."""
     if _program_cache.directory() is None or _program_cache.was_recalled() or jax.default_backend() != "cpu":
         return
     env = scene.environment
     busy = scene.gbuffer is None and any(isinstance(ob, Mesh) for ob in scene.objects)
-    if p.ibl:
+    if p.ibl and computing:
         busy = busy or env.prefiltered is None or (p.ibl_diffuse and env.irradiance is None)
         busy = busy or ("sheen" in p.extensions and env.charlie is None)
     compilers = 1 if busy else _program_cache.MAX_COMPILERS

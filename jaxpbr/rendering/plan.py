@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -188,6 +189,12 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCach
     """The RenderPlan of `scene` (what `render` will trace and precompute); options and cache as for
     `render` (the suns split out of the environment are counted, and that extraction is cached)."""
     opts = _options(options, overrides, "plan")
+    return plan_for(scene, opts, suns=len(split_environment(scene.environment, opts, cache).suns or ()))
+
+
+def plan_for(scene: Scene, opts: RenderOptions, *, suns: int) -> RenderPlan:
+    """`plan` with the count of suns split out of the environment given (`split_environment`):
+    reads the scene's structure and the bounds of its concrete values, and computes nothing."""
     if scene.gbuffer is not None:
         mats = [scene.gbuffer.material]
     else:
@@ -215,8 +222,7 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCach
             # NumPy: this runs at trace time, possibly inside a jit.
             levels = specular.levels_for_roughness(r_max, M, mapping=opts.mapping)
         diffuse = opts.compensates or met_min < 1.0
-        env_lights = _env_split(env, opts, cache)[0]
-        n_env_lights = 0 if env_lights is None else len(env_lights)
+        n_env_lights = suns
         charlie_size = _charlie_size(env) if "sheen" in extensions else 0
     else:
         size, M, levels, diffuse, n_env_lights, charlie_size = 0, 0, 0, False, 0, 0
@@ -268,17 +274,24 @@ def _charlie_size(env: Environment) -> int:
     return min(sheen_prefilter.DEFAULT_CHARLIE_SIZE, env.radiance.face_size)
 
 
-def _env_split(env: Environment, opts: RenderOptions, cache: AssetCache | None = None):
-    """(tuple of disc `DirectionalLight`s | None, the environment whose maps the split sum reads).
+class EnvironmentSplit(NamedTuple):
+    """The environment as a render lights with it: the suns split out of it as disc lights (None:
+    none) and the environment whose maps the split sum reads (its residual after the split; None
+    for a scene without an environment)."""
 
-    The environment's own `lights` when it has them; else, for a concrete environment without
+    suns: tuple | None
+    env: Environment | None
+
+
+def split_environment(env: Environment | None, opts: RenderOptions, cache: AssetCache | None = None) -> EnvironmentSplit:
+    """The environment's own `lights` when it has them; else, for a concrete environment without
     given maps and `opts.extract_lights`, `extract.extract_lights` (cached per content in
-    `cache`, default `ASSETS`); else (None, env)."""
-    if env.lights is not None:
-        return env.lights, env
+    `cache`, default `ASSETS`); else no suns and the environment itself."""
+    if env is None or env.lights is not None:
+        return EnvironmentSplit(None if env is None else env.lights, env)
     given = env.irradiance is not None or env.prefiltered is not None
     if not opts.extract_lights or given or not all(is_concrete(lv) for lv in env.radiance.levels):
-        return None, env
+        return EnvironmentSplit(None, env)
     src = env.radiance
 
     def compute():
@@ -290,8 +303,8 @@ def _env_split(env: Environment, opts: RenderOptions, cache: AssetCache | None =
            extract.DEFAULT_MAX_LIGHTS, package_digest())
     lights, residual = cache_or_default(cache).get("extract", key, compute)
     if lights is None:
-        return None, env
-    return lights, env.replace(radiance=residual)
+        return EnvironmentSplit(None, env)
+    return EnvironmentSplit(lights, env.replace(radiance=residual))
 
 
 def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: str = "render", names: dict | None = None) -> None:
@@ -320,7 +333,7 @@ def check_memory(scene: Scene, *, options: RenderOptions | None = None, where: s
     env = scene.environment
     if env is not None:
         # (the plan without the light extraction, which is work; the maps' sizes are the same)
-        parts |= _asset_bytes(env, plan(scene, options=dataclasses.replace(opts, extract_lights=False)), opts, where)
+        parts |= _asset_bytes(env, plan_for(scene, opts, suns=0), opts, where)
     what = f"rendering {W}x{H}" + (f" with {len(textures)} texture(s)" if textures else "") + (" and the environment's IBL maps" if env is not None else "")
     _memory.require(what, parts, where=where, names=names)
 

@@ -31,6 +31,7 @@ from ..shading.material import Material
 from . import texture
 from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface, transmits
 from .options import RenderOptions, _options
+from .assets import PendingAssets
 from .plan import RenderPlan, plan
 from .scene import (
     Environment,
@@ -1190,27 +1191,6 @@ def _padded_cubes(assets, scene: Scene, p_plan: RenderPlan):
 #: A list that staged passes append their textured G-buffer to (None: not kept); set only by
 #: `aovs.render_with_aovs` around one render, on the caller's thread.
 GEOMETRY_SINK: contextvars.ContextVar[list | None] = contextvars.ContextVar("jaxpbr_geometry_sink", default=None)
-
-
-class PendingAssets:
-    """The environment's assets of a staged render while worker threads compute its maps: the
-    suns split out of it (`env_lights`) now, the (irradiance, prefiltered, LUT, suns, sheen) tuple
-    when called (waiting for the maps), and its shapes (`assets.asset_shapes`) from `shapes()`."""
-
-    def __init__(self, env_lights, resolve, shapes=None):
-        self.env_lights = env_lights
-        self._resolve = resolve
-        self._shapes = shapes
-
-    def __call__(self):
-        return self._resolve()
-
-    def shapes(self):
-        if self._shapes is None:
-            from .._program_cache import NotAhead
-
-            raise NotAhead("the maps' shapes are not known")
-        return self._shapes()
 
 
 def _stage_view(scene: Scene, *, radiance: bool = False) -> Scene:
