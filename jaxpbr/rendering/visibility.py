@@ -227,8 +227,10 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
     Candidates come from a hierarchical uniform grid: a triangle lives on the level whose cells
     (h0 2^level) are at least its size, and is paired with the triangles of its own level or finer
     that share a cell with it; a pair sharing several cells is kept in the cell of the low corner
-    of the intersection of their boxes only. The per-pair tests run as one jitted JAX kernel on
-    chunks of candidates (in NumPy they were the bulk of the build)."""
+    of the intersection of their cell ranges only, before any of its data is read: there, on every
+    axis, one of the two is in its own lowest cell (`_cell_entries`' masks are disjoint). The
+    per-pair tests run as one jitted JAX kernel on chunks of candidates (in NumPy they were the
+    bulk of the build)."""
     n = len(tri)
     if n < 2:
         return np.zeros((0, 2), np.int64)
@@ -238,7 +240,7 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
     perm = _morton_order(tri.mean(1))
     tri, welded = tri[perm], welded[perm]
     center = 0.5 * (tri.reshape(-1, 3).min(0) + tri.reshape(-1, 3).max(0))
-    tri = tri - center  # float32 below: centred coordinates keep its rounding well under tol
+    tri -= center  # (a copy: tri[perm]) float32 below: centred coordinates keep its rounding well under tol
     lo = tri.min(1) - tol
     hi = tri.max(1) + tol
     ext = (hi - lo).max(1)
@@ -251,53 +253,69 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
     # the unit normal, the plane offset, the vertices and the welded vertex ids (their bits)
     data = {"rows": np.concatenate([lo.astype(F32), hi.astype(F32), nrm.astype(F32), np.einsum("nk,nk->n", nrm, tri[:, 0]).astype(F32)[:, None],
                                     tri.reshape(-1, 9).astype(F32), np.ascontiguousarray(welded, np.int32).view(F32)], 1)}
-    data_dev = None
-    found = []
-    for lev in range(int(level.max()) + 1):
-        members = np.nonzero(level <= lev)[0]
-        own = level[members] == lev
-        if not own.any():
-            continue
-        h = h0 * 2.0**lev
-        ilo = np.floor(lo[members] / h).astype(np.int64)
-        ihi = np.floor(hi[members] / h).astype(np.int64)
-        key, tri_of, is_own, cell, cmin = _cell_entries(ilo, ihi, own)
-        run_end = np.r_[np.nonzero(np.diff(key))[0] + 1, key.size]
-        end_of = np.repeat(run_end, np.diff(np.r_[0, run_end]))
-        first = np.nonzero(is_own)[0]  # pair each own entry with the later entries of its cell
-        cnt = end_of[first] - first - 1
-        cum = np.cumsum(cnt)
-        start = 0
-        params = (F32(h), cmin.astype(F32), F32(tol))
-        while start < first.size:  # chunks of about `chunk` pairs
-            stop = int(np.searchsorted(cum, (cum[start - 1] if start else 0) + chunk, "right"))
-            stop = max(stop, start + 1)
-            src, off = _expand(cnt[start:stop])
-            a = first[start:stop][src]
-            b = a + 1 + off
-            i, j = members[tri_of[a]], members[tri_of[b]]
-            # (the in-plane test projects onto i's plane: i is the smaller of the caller's ids)
-            swap = perm[i] > perm[j]
-            i, j = np.where(swap, j, i), np.where(swap, i, j)
-            m = i.size
-            if m < _KERNEL_MIN_PAIRS:
-                keep, shared = _pair_tests(i, j, cell[a], data, params)
-            else:
-                if data_dev is None:
-                    data_dev = {k: jnp.asarray(v) for k, v in data.items()}
-                size = 1 << (m - 1).bit_length()  # padded: few compiled sizes
-                pad = size - m
-                ii = np.pad(i.astype(np.int32), (0, pad))
-                jj = np.pad(j.astype(np.int32), (0, pad))
-                ca = np.pad(cell[a], ((0, pad), (0, 0)), constant_values=-1)  # padding never matches
-                dev = (jnp.float32(params[0]), jnp.asarray(params[1]), jnp.float32(params[2]))
-                keep, shared = (np.asarray(x)[:m] for x in _pair_kernel(ii, jj, jnp.asarray(ca), data_dev, dev))
-            if keep.any():
-                i, j, shared = i[keep], j[keep], shared[keep]
-                sep = _not_separated(tri[i], tri[j], np.where(shared, -tol, 2 * tol))
-                if sep.any():
-                    found.append(np.sort(perm[np.stack([i[sep], j[sep]], 1)], 1))
-            start = stop
+    dev, found = [], []
+
+    def candidates():  # (i, j) per chunk of about `chunk` cell pairs, each pair once
+        for lev in range(int(level.max()) + 1):
+            members = np.nonzero(level <= lev)[0]
+            own = level[members] == lev
+            if not own.any():
+                continue
+            h = h0 * 2.0**lev
+            ilo = np.floor(lo[members] / h).astype(np.int64)
+            ihi = np.floor(hi[members] / h).astype(np.int64)
+            key, tri_of, is_own, above = _cell_entries(ilo, ihi, own)
+            run_end = np.r_[np.nonzero(np.diff(key))[0] + 1, key.size]
+            end_of = np.repeat(run_end, np.diff(np.r_[0, run_end]))
+            first = np.nonzero(is_own)[0]  # pair each own entry with the later entries of its cell
+            cnt = end_of[first] - first - 1
+            cum = np.cumsum(cnt)
+            start = 0
+            while start < first.size:
+                stop = int(np.searchsorted(cum, (cum[start - 1] if start else 0) + chunk, "right"))
+                stop = max(stop, start + 1)
+                src, off = _expand(cnt[start:stop])
+                a = first[start:stop][src]
+                b = a + 1 + off
+                low = (above[a] & above[b]) == 0  # this cell is the pair's low corner (once per pair)
+                a, b = a[low], b[low]
+                i, j = members[tri_of[a]], members[tri_of[b]]
+                # (the in-plane test projects onto i's plane: i is the smaller of the caller's ids)
+                swap = perm[i] > perm[j]
+                yield np.where(swap, j, i), np.where(swap, i, j)
+                start = stop
+
+    def test(i, j):  # the pair tests, then the in-plane test of the pairs they keep
+        m = i.size
+        if m < _KERNEL_MIN_PAIRS:
+            keep, shared = _pair_tests(i, j, data, F32(tol))
+        else:
+            if not dev:
+                dev.append({k: jnp.asarray(v) for k, v in data.items()})
+            size = 1 << (m - 1).bit_length()  # padded: few compiled sizes (pairs of row 0 with itself, cut off)
+            ii = np.pad(i.astype(np.int32), (0, size - m))
+            jj = np.pad(j.astype(np.int32), (0, size - m))
+            keep, shared = (np.asarray(x)[:m] for x in _pair_kernel(ii, jj, dev[0], jnp.float32(tol)))
+        if keep.any():
+            i, j, shared = i[keep], j[keep], shared[keep]
+            sep = _not_separated(tri[i], tri[j], np.where(shared, -tol, 2 * tol))
+            if sep.any():
+                found.append(np.sort(perm[np.stack([i[sep], j[sep]], 1)], 1))
+
+    # The candidates go to the tests in blocks of exactly `chunk` pairs (the last one padded to a
+    # power of two): the cell filter leaves chunks of any size, which padded one by one cost ~40 %.
+    pending, count = [], 0
+    for i, j in candidates():
+        pending.append((i, j))
+        count += i.size
+        if count >= chunk:
+            i, j = (np.concatenate(x) for x in zip(*pending))
+            full = count - count % chunk
+            for s0 in range(0, full, chunk):
+                test(i[s0:s0 + chunk], j[s0:s0 + chunk])
+            pending, count = [(i[full:], j[full:])], count - full
+    if count:
+        test(*(np.concatenate(x) for x in zip(*pending)))
     if not found:
         return np.zeros((0, 2), np.int64)
     return np.unique(np.concatenate(found), axis=0)
@@ -322,17 +340,18 @@ def _morton_order(points: np.ndarray) -> np.ndarray:
 
 def _cell_entries(ilo, ihi, own):
     """The (cell, triangle) entries of one grid level, sorted by cell and, within a cell, this
-    level's own triangles first: (key (N,) int64, tri_of (N,) int64, is_own (N,) bool, cell (N, 3)
-    int32, cmin (3,)) for triangles whose box spans cells ilo..ihi (m, 3) (at most 2 per axis: a
-    triangle's level is one whose cells are at least its size). key numbers the cells of the
-    level's bounding grid (x-major), cell is relative to its low corner cmin. Where the key, the own
-    flag and the triangle index fit in 63 bits, the entries are sorted as packed integers (no
-    argsort and gathers of the columns), else by argsort."""
+    level's own triangles first: (key (N,) int64, tri_of (N,) int64, is_own (N,) bool, above (N,)
+    uint8) for triangles whose box spans cells ilo..ihi (m, 3) (at most 2 per axis: a triangle's
+    level is one whose cells are at least its size). key numbers the cells of the level's bounding
+    grid (x-major); above has bit k set where the entry's cell is past the triangle's lowest cell
+    on axis k. Where the key, the own flag, the bits and the triangle index fit in 63 bits, the
+    entries are sorted as packed integers (no argsort and gathers of the columns), else by
+    argsort."""
     cmin = ilo.min(0)
     base = ilo - cmin
     dims = ihi.max(0) - cmin + 1
     two = ihi > ilo
-    tris, keys = [], []
+    tris, keys, bits = [], [], []
     for dx, dy, dz in itertools.product((0, 1), repeat=3):
         sel = np.ones(len(ilo), bool)
         for axis, dd in enumerate((dx, dy, dz)):
@@ -342,27 +361,26 @@ def _cell_entries(ilo, ihi, own):
         c = base[t]
         keys.append(((c[:, 0] + dx) * dims[1] + (c[:, 1] + dy)) * dims[2] + (c[:, 2] + dz))
         tris.append(t)
-    key, tri_of = np.concatenate(keys), np.concatenate(tris)
+        bits.append(np.full(t.size, dx | dy << 1 | dz << 2, np.int64))
+    key, tri_of, above = np.concatenate(keys), np.concatenate(tris), np.concatenate(bits)
     not_own = ~own[tri_of]
     tbits = max(1, int(len(ilo) - 1).bit_length())
     cells = float(dims[0]) * float(dims[1]) * float(dims[2])
-    if cells * 2.0 ** (tbits + 1) < 2.0**63:
-        packed = np.sort((((key << 1) | not_own) << tbits) | tri_of)
+    if cells * 2.0 ** (tbits + 4) < 2.0**63:
+        packed = np.sort((((((key << 1) | not_own) << 3) | above) << tbits) | tri_of)
         tri_of = packed & ((1 << tbits) - 1)
-        is_own = (packed >> tbits) & 1 == 0
-        key = packed >> (tbits + 1)
+        above = ((packed >> tbits) & 7).astype(np.uint8)
+        is_own = (packed >> (tbits + 3)) & 1 == 0
+        key = packed >> (tbits + 4)
     else:
         order = np.lexsort((not_own, key))
-        key, tri_of, is_own = key[order], tri_of[order], ~not_own[order]
-    plane = dims[1] * dims[2]
-    cell = np.stack([key // plane, (key // dims[2]) % dims[1], key % dims[2]], 1).astype(np.int32)
-    return key, tri_of, is_own, cell, cmin
+        key, tri_of, is_own, above = key[order], tri_of[order], ~not_own[order], above[order].astype(np.uint8)
+    return key, tri_of, is_own, above
 
 
-def _pair_tests(i, j, cell_a, data, params, xp=np):
+def _pair_tests(i, j, data, tol, xp=np):
     """The per-pair tests of `_near_pairs` in float32, for NumPy or (jitted, `_pair_kernel`)
     jax.numpy: (keep, shared)."""
-    h, cmin, tol = params
     tol = tol * 1.5  # a superset: generous against float32 rounding
     ri, rj = data["rows"][i], data["rows"][j]  # the rows of `_near_pairs`'s table
 
@@ -372,8 +390,6 @@ def _pair_tests(i, j, cell_a, data, params, xp=np):
 
     lo_i, lo_j, hi_i, hi_j = ri[:, 0:3], rj[:, 0:3], ri[:, 3:6], rj[:, 3:6]
     box = xp.all((lo_i <= hi_j) & (lo_j <= hi_i), axis=1)
-    corner = xp.floor(xp.maximum(lo_i, lo_j) / h) - cmin
-    box &= xp.all(corner.astype(np.int32) == cell_a, axis=1)
     wi, wj = welded(ri), welded(rj)
     shared = xp.any(wi[:, :, None] == wj[:, None, :], axis=(1, 2))
     ni, nj = ri[:, 6:9], rj[:, 6:9]
@@ -395,7 +411,7 @@ def _pair_tests(i, j, cell_a, data, params, xp=np):
     return keep, shared
 
 
-_pair_kernel = jax.jit(lambda i, j, cell_a, data, params: _pair_tests(i, j, cell_a, data, params, jnp))
+_pair_kernel = jax.jit(lambda i, j, data, tol: _pair_tests(i, j, data, tol, jnp))
 #: Candidate chunks at least this large go through the jitted kernel (compiling it costs ~0.5 s).
 _KERNEL_MIN_PAIRS = 1 << 18
 
