@@ -280,6 +280,34 @@ def test_renders_share_the_process_worker_pool(monkeypatch):
     assert len(seen) == 3 and set(seen) <= workers and len(workers) <= execute.WORKERS, (seen, workers)
 
 
+def test_pending_maps_are_dropped_when_the_lut_is_refused(monkeypatch):
+    """`ibl_assets` with a worker pool submits the maps' jobs first and reads the LUT meanwhile: a
+    LUT that fails (a refused one, an interrupt) cancels the jobs not started yet instead of leaving
+    them to run for nothing. Deterministic: the jobs are submitted to futures nobody runs."""
+    from concurrent.futures import Future
+
+    from jaxpbr.rendering import assets
+    from jaxpbr.rendering.plan import plan_for, split_environment
+
+    env = _env(face=8)
+    opts = renderer.RenderOptions()
+    split = split_environment(env, opts, renderer.AssetCache())
+    p = plan_for(_scene(0.5, env, size=8), opts, suns=len(split.suns or ()))
+    submitted = []
+
+    def submit(job):
+        submitted.append(Future())
+        return submitted[-1]
+
+    def refused(*a):
+        raise ValueError("refused")
+
+    monkeypatch.setattr(assets, "_asset_lut", refused)
+    with pytest.raises(ValueError, match="refused"):
+        assets.ibl_assets(split, p, opts, renderer.AssetCache(), submit=submit)
+    assert len(submitted) == 3 and all(f.cancelled() for f in submitted)
+
+
 @pytest.mark.parametrize("s", [1, 2])
 def test_a_large_render_runs_in_bands_equal_to_the_whole(monkeypatch, s):
     """Images above renderer.EXECUTION.band_pixels render in bands of rows (issue 13: memory grew with the

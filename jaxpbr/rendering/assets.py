@@ -54,7 +54,12 @@ def ibl_assets(split: EnvironmentSplit, p: RenderPlan, opts: RenderOptions, cach
         irr, pre, sheen = (job() for job in jobs)
         return irr, pre, _asset_lut(env, opts, cache), suns, sheen
     futures = [submit(job) for job in jobs]
-    lut = _asset_lut(env, opts, cache)
+    try:
+        lut = _asset_lut(env, opts, cache)  # (here, while the maps are computed)
+    except BaseException:
+        for f in futures:  # (a refused LUT: the maps not started yet are dropped)
+            f.cancel()
+        raise
     return PendingAssets(suns, futures, lut, lambda: asset_shapes(env, p, opts, lut, suns))
 
 
