@@ -29,9 +29,9 @@ from ..shading.layered import emission_soa
 from ..shading.lights import shade_direct
 from ..shading.material import Material
 from . import texture
+from .assets import PendingAssets
 from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface, transmits
 from .options import RenderOptions, _options
-from .assets import PendingAssets
 from .plan import RenderPlan, plan
 from .scene import (
     Environment,
