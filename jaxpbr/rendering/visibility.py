@@ -228,7 +228,7 @@ def _near_pairs(tri: np.ndarray, welded: np.ndarray, tol: float, chunk: int = 1 
     (h0 2^level) are at least its size, and is paired with the triangles of its own level or finer
     that share a cell with it; a pair sharing several cells is kept in the cell of the low corner
     of the intersection of their cell ranges only, before any of its data is read: there, on every
-    axis, one of the two is in its own lowest cell (`_cell_entries`' masks are disjoint). The
+    axis, one of the two is in its own lowest cell (their `_cell_entries` bits are disjoint). The
     per-pair tests run as one jitted JAX kernel on chunks of candidates (in NumPy they were the
     bulk of the build)."""
     n = len(tri)
