@@ -793,3 +793,73 @@ def test_near_pairs_find_every_crossing_pair():
     assert len(expect) > 20
     assert expect <= got, sorted(expect - got)[:5]
     assert got <= {(int(a), int(b)) for a, b in zip(ia, ib)}  # (two spheres' pairs, boxes overlapping)
+
+
+def _tie_pairs(v, f, **kw):
+    """`_near_pairs` of a mesh as `TriangleAccel.build` calls it (welded vertices, its tolerance)."""
+    from jaxpbr.rendering import visibility
+
+    vv, ff = bvh_mod._as_mesh(v, f)
+    scale = float(np.abs(vv).max())
+    return visibility._near_pairs(vv[ff].astype(np.float64), visibility._weld(vv)[ff], visibility.TIE_TOL * 4.0 * scale, **kw)
+
+
+def test_near_pairs_are_the_same_in_blocks_of_any_size_and_compiled(monkeypatch):
+    """`_near_pairs` hands its candidates to the pair tests in blocks of exactly `chunk` pairs
+    (carried over between grid cells and levels), in NumPy below `_KERNEL_MIN_PAIRS` and through the
+    compiled program above it, and the in-plane test likewise (`_not_separated`: NumPy, or compiled
+    blocks of `_SEPARATION_BLOCK` with the last one padded). Every split gives the same pairs, on a
+    mesh with all three kinds: two interpenetrating spheres, a shifted coplanar copy of a grid (in-plane
+    overlaps of vertex-sharing neighbours and of the copies) and a duplicated triangle."""
+    from jaxpbr.rendering import visibility
+
+    v1, f1 = icosphere(3)
+    v2, f2 = icosphere(2, radius=0.6, center=(0.7, 0.1, 0.05))
+    g, gf = unit_grid(10)
+    g = g * 0.2 + [-1.0, -1.0, 1.5]
+    parts = [(v1, f1), (v2, f2), (g, gf), (g + [0.05, 0.025, 0.0], gf), (g, gf[:1])]
+    v, f, off = [], [], 0
+    for pv, pf in parts:
+        v.append(pv)
+        f.append(pf + off)
+        off += len(pv)
+    v, f = np.concatenate(v), np.concatenate(f)
+    want = _tie_pairs(v, f)
+    assert len(want) > 300  # (crossing spheres, overlapping copies, the duplicate)
+    for chunk in (97, 5000):
+        np.testing.assert_array_equal(_tie_pairs(v, f, chunk=chunk), want)
+    monkeypatch.setattr(visibility, "_KERNEL_MIN_PAIRS", 256)
+    monkeypatch.setattr(visibility, "_SEPARATION_MIN_PAIRS", 16)
+    monkeypatch.setattr(visibility, "_SEPARATION_BLOCK", 128)
+    np.testing.assert_array_equal(_tie_pairs(v, f, chunk=3000), want)
+
+
+@pytest.mark.parametrize("far", [False, True], ids=["near", "far-apart"])
+def test_cell_entries_are_sorted_by_cell_with_own_triangles_first(far):
+    """`_cell_entries`: one entry per cell a box spans (up to 2 per axis), grouped by cell in the
+    cells' x-major order, the level's own triangles first within a cell, `above` naming the axes on
+    which the entry's cell is past the box's lowest cell. Also with one box 2^22 cells away on every
+    axis, where numbering the level's whole bounding grid overflows int64 (2^66 cells): the cells
+    are then numbered by rank (numbered densely, entries of different cells shared keys)."""
+    from jaxpbr.rendering import visibility
+
+    rng = np.random.default_rng(4)
+    n = 300
+    ilo = rng.integers(0, 64, (n, 3))
+    ihi = ilo + rng.integers(0, 2, (n, 3))
+    if far:  # (2^66 cells: a dense numbering wraps the box's cells in among the others)
+        ilo[0] = 1 << 22
+        ihi[0] = ilo[0] + 1
+    own = rng.random(n) < 0.5
+    key, tri_of, is_own, above = visibility._cell_entries(ilo, ihi, own)
+    assert len(key) == int(np.prod(ihi - ilo + 1, axis=1).sum())
+    cell = ilo[tri_of] + np.stack([above & 1, (above >> 1) & 1, (above >> 2) & 1], 1)
+    assert ((cell >= ilo[tri_of]) & (cell <= ihi[tri_of])).all()
+    assert len({(tuple(c), int(t)) for c, t in zip(cell.tolist(), tri_of)}) == len(key)  # each (cell, triangle) once
+    assert (np.diff(key) >= 0).all()
+    same = np.diff(key) == 0
+    assert np.array_equal(same, (np.diff(cell, axis=0) == 0).all(1))  # one key per cell, one cell per key
+    order = np.lexsort(cell.T[::-1])
+    assert np.array_equal(key[order], key)  # the keys follow the cells' x-major order
+    assert not (same & ~is_own[:-1] & is_own[1:]).any()  # (never a foreign entry before an own one)
+    assert np.array_equal(is_own, own[tri_of])

@@ -343,13 +343,16 @@ def _cell_entries(ilo, ihi, own):
     level's own triangles first: (key (N,) int64, tri_of (N,) int64, is_own (N,) bool, above (N,)
     uint8) for triangles whose box spans cells ilo..ihi (m, 3) (at most 2 per axis: a triangle's
     level is one whose cells are at least its size). key numbers the cells of the level's bounding
-    grid (x-major); above has bit k set where the entry's cell is past the triangle's lowest cell
-    on axis k. Where the key, the own flag, the bits and the triangle index fit in 63 bits, the
-    entries are sorted as packed integers (no argsort and gathers of the columns), else by
-    argsort."""
+    grid (x-major; where that numbering would overflow, as for small triangles far apart, the
+    cells' ranks in the same order); above has bit k set where the entry's cell is past the
+    triangle's lowest cell on axis k. Where the key, the own flag, the bits and the triangle index
+    fit in 63 bits, the entries are sorted as packed integers (no argsort and gathers of the
+    columns), else by argsort."""
     cmin = ilo.min(0)
     base = ilo - cmin
     dims = ihi.max(0) - cmin + 1
+    cells = float(dims[0]) * float(dims[1]) * float(dims[2])
+    ranked = cells >= 2.0**62
     two = ihi > ilo
     tris, keys, bits = [], [], []
     for dx, dy, dz in itertools.product((0, 1), repeat=3):
@@ -358,14 +361,19 @@ def _cell_entries(ilo, ihi, own):
             if dd:
                 sel &= two[:, axis]
         t = np.flatnonzero(sel)
-        c = base[t]
-        keys.append(((c[:, 0] + dx) * dims[1] + (c[:, 1] + dy)) * dims[2] + (c[:, 2] + dz))
+        c = base[t] + (dx, dy, dz)
+        keys.append(c if ranked else (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2])
         tris.append(t)
         bits.append(np.full(t.size, dx | dy << 1 | dz << 2, np.int64))
-    key, tri_of, above = np.concatenate(keys), np.concatenate(tris), np.concatenate(bits)
+    tri_of, above = np.concatenate(tris), np.concatenate(bits)
+    if ranked:
+        _, key = np.unique(np.concatenate(keys), axis=0, return_inverse=True)
+        key = key.reshape(-1).astype(np.int64)
+        cells = float(key.max() + 1)
+    else:
+        key = np.concatenate(keys)
     not_own = ~own[tri_of]
     tbits = max(1, int(len(ilo) - 1).bit_length())
-    cells = float(dims[0]) * float(dims[1]) * float(dims[2])
     if cells * 2.0 ** (tbits + 4) < 2.0**63:
         packed = np.sort((((((key << 1) | not_own) << 3) | above) << tbits) | tri_of)
         tri_of = packed & ((1 << tbits) - 1)
@@ -916,8 +924,10 @@ class _EmbreeBackend:
             for a in range(0, n, REFINE_BLOCK):
                 b = min(n, a + REFINE_BLOCK)
                 pad = REFINE_BLOCK - (b - a)
-                rays = (np.pad(o32[a:b], ((0, pad), (0, 0))), np.pad(d32[a:b], ((0, pad), (0, 0))),
-                        np.pad(pid[a:b], (0, pad), constant_values=-1), np.pad(te[a:b], (0, pad)))
+                rays = (o32[a:b], d32[a:b], pid[a:b], te[a:b])
+                if pad:  # (the last block; full ones go as they are, uncopied)
+                    rays = (np.pad(rays[0], ((0, pad), (0, 0))), np.pad(rays[1], ((0, pad), (0, 0))),
+                            np.pad(rays[2], (0, pad), constant_values=-1), np.pad(rays[3], (0, pad)))
                 res = _first_round_jit(tables, *consts, *rays, bary=bary)
                 for dst, x in zip(outs, res):
                     dst[a:b] = np.asarray(x)[: b - a]
