@@ -327,9 +327,10 @@ def fis_linear_errors(n, S=32, M=6):
 def test_fis_linear_environment():
     # FIS on the linear env: the error is the sum of the Hammersley-set error and the blur of the pyramid
     # texels the samples read (the b term shrinks). Measured at 256 samples (LOD bias 0): 0.31 % .. 0.83 % of
-    # |b| (largest at r = 1; with the +1 bias of K = 4 it was 0.8 % .. 3.2 %); asserted 5 %.
+    # |b| (largest at r = 1; with the +1 bias of K = 4 it was 0.8 % .. 3.2 %); asserted 1.5 %, which the
+    # +1 bias fails.
     errs = fis_linear_errors(256)
-    assert (errs <= 0.05 * LIN_B).all(), errs
+    assert (errs <= 0.015 * LIN_B).all(), errs
 
 
 @pytest.mark.slow
