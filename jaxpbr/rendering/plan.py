@@ -194,7 +194,8 @@ def plan(scene: Scene, *, options: RenderOptions | None = None, cache: AssetCach
 
 def plan_for(scene: Scene, opts: RenderOptions, *, suns: int) -> RenderPlan:
     """`plan` with the count of suns split out of the environment given (`split_environment`):
-    reads the scene's structure and the bounds of its concrete values, and computes nothing."""
+    reads the scene's structure and the bounds of its concrete values (remembered per array), and runs no
+    precompute."""
     if scene.gbuffer is not None:
         mats = [scene.gbuffer.material]
     else:
