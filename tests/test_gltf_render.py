@@ -58,8 +58,11 @@ def test_sphere_mesh_matches_the_analytic_sphere():
     P, N, UV, T = uv_sphere(96, 192)
     mat = jp.Material(base_color=(0.8, 0.8, 0.8), metallic=0.0, roughness=0.5)
     cam = _camera(64, 64, pos=(0.0, 0.5, 4.0))
-    a = np.asarray(jp.render(jp.Scene(camera=cam, objects=[Mesh(positions=P, triangles=T, normals=N, material=mat)], lights=[SUN])))
-    b = np.asarray(jp.render(jp.Scene(camera=cam, objects=[jp.Sphere(center=(0, 0, 0), radius=1.0, material=mat)], lights=[SUN])))
+    # Point samples (antialias=False): the coverage test compares which pixel centres each one hits.
+    a = np.asarray(jp.render(jp.Scene(camera=cam, objects=[Mesh(positions=P, triangles=T, normals=N, material=mat)], lights=[SUN]),
+                             antialias=False))
+    b = np.asarray(jp.render(jp.Scene(camera=cam, objects=[jp.Sphere(center=(0, 0, 0), radius=1.0, material=mat)], lights=[SUN]),
+                             antialias=False))
     hit_a, hit_b = a.sum(-1) > 0, b.sum(-1) > 0
     # Coverage differs only along the silhouette (the polygon lies inside the sphere).
     assert (hit_a & ~hit_b).sum() == 0

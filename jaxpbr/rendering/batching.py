@@ -24,8 +24,9 @@ from .scene import Scene, TexturedMaterial
 from .mesh import Mesh, _host_cast, transmits
 from .shadows import colored_shadows, host_mesh_hits
 from .stages import (_cast_inputs, _combine_jit, _culls_facing, _geometry, _ibl_directions, _ibl_segments, _ibl_visibility, _light_segments,
-                     _ratio_weights, _render_traced, _shade_direct, _shade_rest, _sun_segments, _sun_shadows, _texture, _transmitted,
-                     scene_host_arrays)
+                     _ratio_weights, _render_traced, _shade_direct, _shade_rest, _sun_segments, _sun_shadows, _surface_ids, _texture,
+                     _transmitted, scene_host_arrays)
+from .edges import NEIGHBOURS, antialias_pass
 
 #: Default pixels per chunk of `render_batch` (images x pixels x samples), bounding memory.
 BATCH_CHUNK_PIXELS = 1 << 21
@@ -390,6 +391,15 @@ def _rest_chunk(scene, bc, g, assets, direct, *, p_plan, opts, objects_idx):
     return jax.vmap(one)(bc, g, direct)
 
 
+@functools.partial(jax.jit, static_argnames=_CHUNK_STATIC + ("samples",))
+def _outline_chunk(scene, bc, g, c, off, nbr, *, p_plan, opts, objects_idx, samples):
+    def one(x, gx, cx):
+        return antialias_pass(_substitute(scene, x, objects_idx), opts.dtype, off[:2], cx, _surface_ids(gx), samples, nbr,
+                              blend=opts.antialias)
+
+    return jax.vmap(one)(bc, g, c)
+
+
 def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
     """`render_batch` on XLA:CPU: for each chunk of `chunk` images, the render's stages as
     separate programs, each vmapped over the chunk (one program over the whole chunk fuses and
@@ -422,9 +432,18 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
                 g = _ibl_vis_chunk(sc, bc, g, off, assets[1], **kw)
             if p_plan.transmission_depth and p_plan.ibl:
                 g = _transmit_chunk(sc, bc, g, off, assets, **kw)
-            return _rest_chunk(sc, bc, g, assets, direct, **kw)
+            c = _rest_chunk(sc, bc, g, assets, direct, **kw)
+            # The outlines of each image (`edges.antialias_pass`); the meshes' topology is the
+            # scene's (vertices welded by the scene's positions, not each image's).
+            return _outline_chunk(sc, bc, g, c, off, nbr, samples=samples, **kw)
 
         return run
+
+    samples = scene.camera.supersample
+    nbr = None
+    host = scene_host_arrays(scene, opts.dtype) if any(isinstance(ob, Mesh) for ob in scene.objects) else None
+    if host is not None:
+        nbr = jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"]))
 
     # The chunk is cut on the device by one program (its start is an argument).
     outs = [_supersampled(scene, opts, one_pass(_take_chunk(b, i, n=chunk))) for i in range(0, total, chunk)]

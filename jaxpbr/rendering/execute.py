@@ -30,7 +30,8 @@ from .options import RenderOptions, _options
 from .plan import RenderPlan, check_memory, plan_for, split_environment
 from .scene import Scene
 from .mesh import Mesh, device_accel
-from .stages import AccelScene, _render_jit, _render_pass
+from .edges import NEIGHBOURS
+from .stages import AccelScene, _render_jit, _render_pass, scene_host_arrays, staged_outlines
 
 
 def render(
@@ -84,7 +85,7 @@ def _run_staged(scene: Scene, assets, p: RenderPlan, opts: RenderOptions, progre
     """The passes of a staged render (`_banded`), their stages compiled ahead on a cold start. With
     `PendingAssets` the geometry and direct-lighting stages compile and run while the maps are
     computed on the worker threads (XLA compiles and runs without holding the GIL)."""
-    one_pass = lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True)
+    one_pass = lambda sc, pb, off: _render_pass(sc, assets, pb, opts, off, staged=True, with_surface=scene.gbuffer is None)
     _compile_ahead(scene, opts, p, one_pass, execution, computing=isinstance(assets, PendingAssets))
     return _banded(scene, opts, p, one_pass, progress, execution)
 
@@ -131,44 +132,53 @@ def _compile_ahead(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, e
 
 
 def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress=None, execution: Execution | None = None):
-    """`_supersampled` over the whole image, or band by band (rows of ~`execution.band_pixels`
-    pixels, one compiled program per stage for every band: the band's first row is an argument)
-    into one host buffer when the image is larger; a user G-buffer is rendered whole. progress: per
-    pass (bands x sub-pixel samples), the last once the image is ready."""
+    """The mean of the camera's s x s passes (one per sub-pixel offset, run from the host one after
+    another), each over the whole image or band by band (rows of ~`execution.band_pixels` pixels,
+    one compiled program per stage for every band: the band's first row is an argument) and then
+    joined, its outlines blended over the whole image (`stages.staged_outlines`); a user G-buffer
+    is rendered whole, once. one_pass(scene, plan, offset) -> (colour, surface ids) (ids None for a
+    G-buffer). progress: per pass (bands x sub-pixel samples), the last once the image is ready.
+
+    The offset is an argument, not a static value, and the passes get the scene with
+    supersample = 1 (a static field the stages do not read): one compiled program per stage
+    whatever s (before: one per offset, s^2 of them)."""
     H = scene.image_shape[0]
     s, whole, rows = _layout(scene, execution)
-    total = -(-H // rows) * s * s
-    if whole:
-        out = _supersampled(scene, opts, lambda sc, off: one_pass(sc, p, off), progress=_passes(progress, 0, total))
-    else:
-        # Bands stay on the device (and traceable: `render` under jit/grad on the CPU takes this
-        # path too) and are joined once; the last band's rows past the image are cut off.
-        pb = dataclasses.replace(p, band_rows=rows)
-        bands = [
-            _supersampled(scene, opts, lambda sc, off: one_pass(sc, pb, off), row0=y0, progress=_passes(progress, b * s * s, total))
-            for b, y0 in enumerate(range(0, H, rows))
-        ]
-        out = jnp.concatenate(bands)[:H]
+    starts = [None] if whole else list(range(0, H, rows))
+    total = len(starts) * s * s
+    pb = p if whole else dataclasses.replace(p, band_rows=rows)
+    sc = evolve(scene, camera=evolve(scene.camera, supersample=1)) if s > 1 else scene
+    dtype = jnp.dtype(opts.dtype)
+    acc, done = None, 0
+    for k in range(s * s):
+        off = ((k % s + 0.5) / s, (k // s + 0.5) / s)
+        parts = []
+        for y0 in starts:
+            parts.append(one_pass(sc, pb, jax.device_put(np.asarray(off + (() if y0 is None else (y0,)), dtype))))
+            done += 1
+            if progress is not None and done < total:
+                progress(done, total)
+        if scene.gbuffer is not None:  # (no outlines: the pass's colour alone)
+            c, surf = parts[0], None
+        elif whole:
+            c, surf = parts[0]
+        else:
+            # Bands stay on the device (and traceable: `render` under jit/grad on the CPU takes this
+            # path too) and are joined once; the last band's rows past the image are cut off.
+            c = jnp.concatenate([x[0] for x in parts])[:H]
+            surf = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs)[:H], *(x[1] for x in parts))
+        c = staged_outlines(sc, opts, jax.device_put(np.asarray(off, dtype)), c, surf, s)
+        acc = c if acc is None else acc + c
+    out = acc if s == 1 else acc / (s * s)
     if progress is not None:
         out = jax.block_until_ready(out)
         progress(total, total)
     return out
 
 
-def _passes(progress, offset: int, total: int):
-    """progress(done, total) of the whole render for one `_supersampled` call's passes (None: none)."""
-    if progress is None:
-        return None
-    return lambda k: progress(offset + k, total) if offset + k < total else None
-
-
 def _supersampled(scene: Scene, opts: RenderOptions, one_pass, row0: int | None = None, progress=None):
     """The mean of one_pass(scene, offset) over the camera's s x s sub-pixel offsets, run from the
-    host one after another (`render` and `render_batch` outside transformations).
-
-    The offset is an argument, not a static value, and the passes get the scene with
-    supersample = 1 (a static field the stages do not read): one compiled program per stage
-    whatever s (before: one per offset, s^2 of them). row0: the first row of a band (`_banded`),
+    host one after another (`render_batch` outside transformations). row0: the first row of a band,
     passed as the offset's third entry."""
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
     if s > 1:
@@ -193,7 +203,9 @@ def _with_device_accel(scene: Scene, execution: Execution) -> Scene:
     accel = device_accel([ob for ob in scene.objects if isinstance(ob, Mesh)])
     if accel is None:
         return scene
-    return unchecked(AccelScene, **{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel)
+    host = scene_host_arrays(scene, jnp.float32)
+    nbr = None if host is None else jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"]))
+    return unchecked(AccelScene, **{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel, neighbours=nbr)
 
 
 

@@ -499,18 +499,24 @@ def _device_accel(meshes):
 # ------------------------------------------------------------------------------------------
 
 
+def concat_geometry(meshes, dtype):
+    """(positions (V, 3), triangles (T, 3) int32) of the meshes concatenated, the triangles' indices
+    offset into the joined vertices (traced-friendly: offsets come from static shapes)."""
+    offs = np.cumsum([0] + [m.num_vertices for m in meshes])
+    positions = jnp.concatenate([jnp.asarray(m.positions, dtype) for m in meshes])
+    # Concatenated, then offset by one per-mesh broadcast: an add per mesh before the concatenation
+    # made XLA:CPU compile one kernel per mesh (0.54 s for the 49 meshes of the demo grid).
+    tri_offset = jnp.concatenate([jnp.full((m.num_triangles, 1), int(offs[k]), jnp.int32) for k, m in enumerate(meshes)])
+    return positions, jnp.concatenate([jnp.asarray(m.triangles, jnp.int32) for m in meshes]) + tri_offset
+
+
 def concat_meshes(meshes, dtype):
     """Every mesh's arrays concatenated (traced-friendly: offsets come from static shapes):
     dict with positions (V, 3), triangles (T, 3) int32, and the optional attributes filled with
     neutral values for meshes that lack them (None when no mesh has them), plus `flat` (T,) bool
     for triangles of meshes without normals and `tri_object` (T,) int32 (index into `meshes`)."""
     out = {}
-    offs = np.cumsum([0] + [m.num_vertices for m in meshes])
-    out["positions"] = jnp.concatenate([jnp.asarray(m.positions, dtype) for m in meshes])
-    # Concatenated, then offset by one per-mesh broadcast: an add per mesh before the concatenation
-    # made XLA:CPU compile one kernel per mesh (0.54 s for the 49 meshes of the demo grid).
-    tri_offset = jnp.concatenate([jnp.full((m.num_triangles, 1), int(offs[k]), jnp.int32) for k, m in enumerate(meshes)])
-    out["triangles"] = jnp.concatenate([jnp.asarray(m.triangles, jnp.int32) for m in meshes]) + tri_offset
+    out["positions"], out["triangles"] = concat_geometry(meshes, dtype)
     fills = {"normals": (0.0, 0.0, 1.0), "texcoords": (0.0, 0.0), "texcoords1": (0.0, 0.0), "tangents": (1.0, 0.0, 0.0, 1.0), "colors": (1.0, 1.0, 1.0, 1.0)}
     for name, fill in fills.items():
         if all(getattr(m, name) is None for m in meshes):

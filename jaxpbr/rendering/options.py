@@ -79,6 +79,13 @@ class RenderOptions:
         see what it guesses) and shadow the residual environment (the suns split out of it have
         shadow rays of their own).
     ibl_samples: rays per pixel of the "ao" and "ratio" rungs (deterministic per pixel).
+    antialias: blend each sample pass's outlines -- silhouettes, occlusion edges between objects,
+        a plane's horizon -- by where they cross between neighbouring samples (analytic
+        antialiasing, `jaxpbr.rendering.edges`; default True). This is also what differentiates
+        the image with respect to where the outlines are (vertex positions, object parameters, the
+        camera). False keeps each pass's point samples as they are (to compare with point-sampled
+        references); the gradient then still carries the outlines' motion (the blend's derivative,
+        without its value).
     """
 
     model: str = "gltf"
@@ -97,6 +104,7 @@ class RenderOptions:
     transmission_samples: int = 4
     ibl_visibility: str = "occlusion"
     ibl_samples: int = 4
+    antialias: bool = True
 
     @property
     def compensates(self) -> bool:

@@ -22,7 +22,7 @@ import numpy as np
 from .._api import keyword_only
 from .._numerics import cpu_cond, pack3, safe_normalize, safe_sqrt, small_sq, unpack3, vcross, vdot, vnormalize
 from .._program_cache import LOOP_EMITTERS, cached_jit, is_ahead, running_now
-from .._pytree import evolve, fields_of, subtree, unchecked
+from .._pytree import evolve, fields_of, leaf, subtree, unchecked
 from ..ibl.cubemap import padded
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..shading.layered import emission_soa
@@ -30,6 +30,7 @@ from ..shading.lights import shade_direct
 from ..shading.material import Material
 from . import texture
 from .assets import PendingAssets
+from .edges import NEIGHBOURS, antialias_pass
 from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface, transmits
 from .options import RenderOptions, _options
 from .plan import RenderPlan, plan
@@ -297,6 +298,7 @@ class AccelScene(Scene):
     in the program rather than through a host callback (`execute.Execution.device_visibility`)."""
 
     accel: Any = subtree(None)
+    neighbours: Any = leaf(None, rank=2)
 
 
 def _layer_kwargs(g, m: Material, dtype) -> dict:
@@ -884,7 +886,8 @@ def _texture(scene: Scene, k: int, opts: RenderOptions, g):
     return out
 
 
-def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool = False, with_hit: bool = False):
+def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool = False, with_hit: bool = False,
+                 with_surface: bool = False):
     """One sample per pixel at sub-pixel `offset`.
 
     staged=True runs the stages -- geometry, each textured object, direct lighting, IBL +
@@ -897,10 +900,21 @@ def _render_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, 
     if staged:
         p_plan = p_plan.for_stages()
     if p_plan.blend_layers > 1:
-        return _blended_pass(scene, assets, p_plan, opts, offset, staged, with_hit=with_hit)
+        return _blended_pass(scene, assets, p_plan, opts, offset, staged, with_hit=with_hit, with_surface=with_surface)
     g = staged_geometry(scene, p_plan, opts, offset) if staged else _geometry(scene, p_plan, opts, offset)
     c = _shade_pass(scene, assets, p_plan, opts, g, staged, rays=offset)
+    if with_surface:
+        return c, _surface_ids(g)
     return (c, g["hit"]) if with_hit else c
+
+
+def _surface_ids(g) -> dict:
+    """What `edges.antialias_pass` reads of a pass's G-buffer: hit, object index, distance, and the
+    meshes' triangle (with meshes)."""
+    out = {"hit": g["hit"], "idx": g["idx"], "t": g["t"]}
+    if "prim" in g:
+        out["prim"] = g["prim"]
+    return out
 
 
 def staged_geometry(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, *, light_shadows: bool = True):
@@ -1071,18 +1085,20 @@ def _traced(tree) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
-def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool, with_hit: bool = False):
+def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, staged: bool, with_hit: bool = False,
+                  with_surface: bool = False):
     """BLEND meshes: the nearest `blend_layers` surfaces of each pixel (cast once), each shaded as
     an image of its own by the same compiled stages, composited front to back with their alpha
     (C = sum_k a_k prod_{j<k} (1 - a_j) C_k; an opaque surface or the background ends the pixel)."""
     prims = _host_prims(scene, p_plan, opts, offset) if staged else _layer_prims(scene, p_plan, opts, offset)
-    out, keep, hit = None, None, None
+    out, keep, hit, surf = None, None, None, None
     for k in range(p_plan.blend_layers):
         if staged:
             g = _mesh_geometry(scene, p_plan, opts, offset, prims[..., k])
         else:
             g = _geometry(scene, p_plan, opts, offset, prims[..., k])
         hit = g["hit"] if hit is None else hit
+        surf = _surface_ids(g) if surf is None else surf  # (the outlines of the nearest layer)
         # The coverage as the texture stage leaves it: the geometry's alpha (factor x COLOR_0's A)
         # times the base colour texture's A. (The geometry's own alpha, read here before, left the
         # texture's A out: a BLEND surface whose alpha came from its texture was drawn opaque.)
@@ -1092,6 +1108,8 @@ def _blended_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions,
             a = jnp.ones_like(a)  # the last layer covers what is left
         out = a * c if out is None else out + keep * a * c
         keep = (1.0 - a) if keep is None else keep * (1.0 - a)
+    if with_surface:
+        return out, surf
     return (out, hit) if with_hit else out
 
 
@@ -1248,15 +1266,25 @@ _ibl_segments_jit = cached_jit(_ibl_segments, static_argnums=(1,))
 _ratio_weights_jit = cached_jit(_ratio_weights, static_argnums=(1, 2))
 
 
+def outlined_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions, offset, samples: int, staged: bool = False):
+    """One pass (`_render_pass`) with its silhouettes and occlusion edges blended
+    (`edges.antialias_pass`: the image's derivative with respect to where the edges are); a scene
+    given as a G-buffer has no outlines to blend."""
+    if scene.gbuffer is not None:
+        return _render_pass(scene, assets, p_plan, opts, offset, staged)
+    c, surf = _render_pass(scene, assets, p_plan, opts, offset, staged, with_surface=True)
+    return antialias_pass(scene, opts.dtype, offset, c, surf, samples, blend=opts.antialias)
+
+
 def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions):
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
     dtype = jnp.dtype(opts.dtype)
     if s == 1:
-        return _render_pass(scene, assets, p_plan, opts, jnp.asarray((0.5, 0.5), dtype))
+        return outlined_pass(scene, assets, p_plan, opts, jnp.asarray((0.5, 0.5), dtype), 1)
 
     def body(k, acc):
         off = jnp.stack([((k % s).astype(dtype) + 0.5) / s, ((k // s).astype(dtype) + 0.5) / s])
-        return acc + _render_pass(scene, assets, p_plan, opts, off)
+        return acc + outlined_pass(scene, assets, p_plan, opts, off, s)
 
     H, W = scene.image_shape
     acc = jax.lax.fori_loop(0, s * s, body, jnp.zeros((H, W, 3), dtype))
@@ -1264,6 +1292,28 @@ def _render_traced(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions
 
 
 _render_jit = jax.jit(_render_traced, static_argnums=(2, 3))
+
+
+def _antialias_stage(scene: Scene, dtype_name: str, offset, c, surf, samples: int, nbr, blend: bool):
+    return antialias_pass(scene, dtype_name, offset, c, surf, samples, nbr, blend=blend)
+
+
+_antialias_jit = cached_jit(_antialias_stage, static_argnums=(1, 5, 7))
+
+
+def staged_outlines(scene: Scene, opts: RenderOptions, offset, c, surf, samples: int):
+    """`edges.antialias_pass` of a staged pass (the whole image's, its bands joined) as a stored
+    program, the meshes' topology computed on the host once per content (`edges.NEIGHBOURS`) and
+    passed in (under jit / grad, where the meshes' arrays are traced, from a callback in the trace)."""
+    if surf is None:  # (a scene given as a G-buffer)
+        return c
+    nbr = None
+    if any(isinstance(ob, Mesh) for ob in scene.objects) and not _traced((c, surf, offset)):
+        arrays = scene_host_arrays(scene, opts.dtype)
+        if arrays is not None:
+            nbr = jax.device_put(NEIGHBOURS.get(arrays["positions"], arrays["triangles"]))
+    view = _stage_view(evolve(scene, camera=evolve(scene.camera, supersample=1)))
+    return _antialias_jit(view, jnp.dtype(opts.dtype).name, offset, c, surf, samples, nbr, opts.antialias)
 
 
 @keyword_only("options")

@@ -1,0 +1,456 @@
+"""Silhouettes and occlusion edges: analytic antialiasing of a pass, and with it the image's
+derivative with respect to where the edges are.
+
+A pass samples each pixel once (at the pass's sub-pixel offset), so a visibility edge is a step
+between two neighbouring samples and moving it changes nothing until it crosses a sample: the
+sampled image has no derivative with respect to the edge. Here every pair of neighbouring samples
+(horizontal and vertical) that sees two different surfaces is examined: if an edge of the nearer
+surface's outline -- a mesh triangle's edge whose neighbour across it faces the other way or does
+not exist, a sphere's contour, a plane's horizon -- crosses the segment between the two samples at
+a fraction `a` of it, the sample whose cell the edge enters takes the other one's colour in
+proportion to the part of its cell beyond the edge (Laine et al., "Modular Primitives for
+High-Performance Differentiable Rendering", SIGGRAPH Asia 2020, section 4: analytic antialiasing).
+`a` is computed from the edge's vertices (or the sphere's centre and radius, the plane's normal)
+and the camera in the trace, so gradients reach them through the blend.
+
+With s x s sub-pixel samples (`Camera.supersample`) each sample stands for a cell 1/s of a pixel
+wide, centred on it; an edge at distance `a` (pixels) from a sample inside that sample's cell
+(a < 1/(2s)) moves (1/(2s) - a) s of the cell to the other side. Averaged over the s^2 passes
+this is the coverage of the pixel's area by each side to first order (exact for a straight edge
+crossing a cell from side to side), and its derivative is the edge's motion times the colour
+step, integrated over the edge's length in the pixel: the gradient of the box-filtered image.
+
+Each edge is taken by the pairs across its major direction only -- horizontal pairs for edges
+steeper than 45 degrees, vertical ones for the others (as the paper does): a slanted edge crosses
+both kinds of pairs, and counted twice it would blend twice.
+
+The test whether a pair crosses a triangle's edge is the triangle's edge functions along the
+segment between the two samples' rays: with the camera's rays interpolated linearly on the image
+plane (the unnormalised perspective directions, or the orthographic origins), each edge function
+E_i = ((V_j - o) x (V_k - V_j)) . d is linear in the fraction, exact also for vertices behind the
+camera (Olano and Greer 1997), and the first edge whose function changes sign is where the
+segment leaves the triangle. A triangle's neighbours across its edges come from the mesh's
+topology with vertices welded by position (`edge_neighbours`), so UV and normal seams are not
+outlines.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+import threading
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._numerics import safe_div, safe_sqrt, vcross, vdot
+from .mesh import Mesh, concat_geometry
+from .scene import Plane, Sphere, camera_basis
+
+__all__ = ["antialias_pass", "camera_plane_rays", "edge_neighbours", "neighbours"]
+
+
+# ------------------------------------------------------------------------------------------
+# Topology
+# ------------------------------------------------------------------------------------------
+
+
+def edge_neighbours(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(T, 3) int32: for triangle t and edge i (the edge opposite vertex i, from vertex i+1 to i+2),
+    the other triangle that shares the edge, or -1 where the edge is on a boundary, is shared by
+    three or more triangles, or is degenerate (an outline in every case). Vertices are welded by
+    position first (to `WELD_TOLERANCE` of the extent), so the duplicated vertices of texture, normal and
+    material seams join their triangles; a corner shared by two coincident vertices on either side
+    of a grid line stays split (an outline there: blended where the colours agree anyway)."""
+    pos = np.asarray(positions, np.float64).reshape(-1, 3)
+    tri = np.asarray(triangles, np.int64).reshape(-1, 3)
+    T = tri.shape[0]
+    if T == 0:
+        return np.zeros((0, 3), np.int32)
+    # Welded on a grid of WELD_TOLERANCE times the mesh's extent: the two copies of a seam vertex
+    # are often computed apart (sin(2 pi) is not 0) and differ in their last bits.
+    lo_, hi_ = pos.min(0), pos.max(0)
+    cell = max(float(np.max(hi_ - lo_)), 1e-30) * WELD_TOLERANCE
+    bits = np.rint((pos - lo_) / cell).astype(np.int64)
+    order = np.lexsort((bits[:, 2], bits[:, 1], bits[:, 0]))
+    srt = bits[order]
+    new = np.ones(len(order), bool)
+    new[1:] = np.any(srt[1:] != srt[:-1], axis=1)
+    weld = np.empty(len(order), np.int64)
+    weld[order] = np.cumsum(new) - 1
+    w = weld[tri]
+    a = w[:, [1, 2, 0]].reshape(-1)
+    b = w[:, [2, 0, 1]].reshape(-1)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    n = int(weld.max()) + 1
+    key = lo * n + hi
+    # A triangle with two welded corners (a UV sphere's poles) has no area: no ray meets it, and
+    # its edges would make the real edges beside them look shared three times. Left out.
+    flat = np.repeat((w[:, 0] == w[:, 1]) | (w[:, 1] == w[:, 2]) | (w[:, 2] == w[:, 0]), 3)
+    key[flat] = -1 - np.arange(int(np.count_nonzero(flat)))  # unique keys: no neighbours
+    idx = np.argsort(key, kind="stable")
+    ks = key[idx]
+    start = np.ones(len(ks), bool)
+    start[1:] = ks[1:] != ks[:-1]
+    run = np.cumsum(start) - 1
+    counts = np.bincount(run)
+    pair = counts[run] == 2
+    first = start & pair  # the first of each run of exactly two
+    out = np.full(3 * T, -1, np.int64)
+    i0 = idx[first]
+    i1 = idx[np.flatnonzero(first) + 1]
+    out[i0] = i1 // 3
+    out[i1] = i0 // 3
+    return out.reshape(T, 3).astype(np.int32)
+
+
+#: Vertices closer than this fraction of the mesh's extent (on a grid) are one vertex for the
+#: topology (`edge_neighbours`); 2^-20: about a micrometre on a one-metre asset.
+WELD_TOLERANCE = 2.0 ** -20
+
+
+class _Neighbours:
+    """`edge_neighbours` by content digest (a small LRU: a million triangles take ~1 s)."""
+
+    def __init__(self, capacity: int = 4):
+        self.capacity = capacity
+        self.entries: OrderedDict[bytes, np.ndarray] = OrderedDict()
+        self.lock = threading.Lock()
+        self.computed = 0  # counted by tests
+
+    def get(self, positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+        from .mesh import _content_digest
+
+        positions = np.asarray(positions, np.float32)
+        triangles = np.asarray(triangles, np.int32)
+        h = hashlib.blake2b(digest_size=20)
+        h.update(_content_digest(positions))
+        h.update(_content_digest(triangles))
+        key = h.digest()
+        with self.lock:
+            if key in self.entries:
+                self.entries.move_to_end(key)
+                return self.entries[key]
+        out = edge_neighbours(positions, triangles)
+        out.setflags(write=False)
+        with self.lock:
+            self.computed += 1
+            self.entries[key] = out
+            while len(self.entries) > self.capacity:
+                self.entries.popitem(last=False)
+        return out
+
+
+NEIGHBOURS = _Neighbours()
+
+
+def neighbours(positions, triangles):
+    """`edge_neighbours` of the meshes' concatenated arrays: computed on the host (and kept per
+    content) when they are concrete, through a callback from inside a trace (the positions'
+    gradients stopped: the topology has none)."""
+    if not isinstance(positions, jax.core.Tracer) and not isinstance(triangles, jax.core.Tracer):
+        return jnp.asarray(NEIGHBOURS.get(np.asarray(positions, np.float32), np.asarray(triangles, np.int32)))
+    pos = jax.lax.stop_gradient(positions).astype(jnp.float32)
+    out = jax.ShapeDtypeStruct(triangles.shape, jnp.int32)
+    return jax.pure_callback(lambda p, t: NEIGHBOURS.get(np.asarray(p), np.asarray(t)), out, pos, triangles,
+                             vmap_method="sequential")
+
+
+# ------------------------------------------------------------------------------------------
+# The camera's rays on the image plane
+# ------------------------------------------------------------------------------------------
+
+
+def camera_plane_rays(cam, dtype, offset):
+    """(o, d, step_x, step_y): the rays of every sample of a pass at sub-pixel `offset` (+ the
+    camera's jitter), (H, W) Vec3s, with the directions *not* normalised (perspective: the point on
+    the image plane at distance 1, so that the rays between two samples are the linear blend of
+    theirs), and the change of (o, d) from one pixel to the next along x and along y, each a pair
+    of Vec3s (the origin's is zero in perspective, the direction's in orthographic). The same rays
+    as `scene.primary_rays` up to the directions' length."""
+    pos, fwd, right, up = camera_basis(cam, dtype)
+    W, H = cam.width, cam.height
+    ortho = cam.projection == "orthographic"
+    t = jnp.asarray(cam.ymag, dtype) if ortho else jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2)
+    jit = jnp.asarray(cam.jitter, dtype)
+    x = ((2.0 * (jnp.arange(W, dtype=dtype) + offset[0] + jit[0]) / W - 1.0) * t * (W / H))[None, :]
+    y = ((1.0 - 2.0 * (jnp.arange(H, dtype=dtype) + offset[1] + jit[1]) / H) * t)[:, None]
+    shape = (H, W)
+    sx = 2.0 * t / H  # one pixel on the image plane (square pixels: W/H of the width's tan per W pixels)
+    zero = (jnp.zeros((), dtype),) * 3
+    step_x = tuple(sx * right[i] for i in range(3))
+    step_y = tuple(-sx * up[i] for i in range(3))
+    if ortho:
+        o = tuple(jnp.broadcast_to(pos[i] + x * right[i] + y * up[i], shape) for i in range(3))
+        d = tuple(jnp.broadcast_to(fwd[i], shape) for i in range(3))
+        return o, d, (step_x, zero), (step_y, zero)
+    d = tuple(jnp.broadcast_to(fwd[i] + x * right[i] + y * up[i], shape) for i in range(3))
+    o = tuple(jnp.broadcast_to(pos[i], shape) for i in range(3))
+    return o, d, (zero, step_x), (zero, step_y)
+
+
+# ------------------------------------------------------------------------------------------
+# Where a surface's outline crosses the segment between two samples
+# ------------------------------------------------------------------------------------------
+
+
+def _lerp3(a, b, s):
+    return tuple(a[i] + s * (b[i] - a[i]) for i in range(3))
+
+
+def _sub(a, b):
+    return tuple(a[i] - b[i] for i in range(3))
+
+
+def _slope_ok(f, o, d, along, across):
+    """Whether the outline given by f(o, d) = 0 at the ray (o, d) runs closer to perpendicular to
+    the pairs' direction than to parallel: |df along| >= |df across| (one pixel step each; the
+    steps are (d origin, d direction) pairs). Evaluated without gradients (a choice)."""
+    o, d = jax.lax.stop_gradient((o, d))
+
+    def change(step):  # central difference: f's derivative along the step exactly (f is at most quadratic)
+        (do_, dd_) = step
+        fwd = f(tuple(o[i] + 0.5 * do_[i] for i in range(3)), tuple(d[i] + 0.5 * dd_[i] for i in range(3)))
+        bwd = f(tuple(o[i] - 0.5 * do_[i] for i in range(3)), tuple(d[i] - 0.5 * dd_[i] for i in range(3)))
+        return fwd - bwd
+
+    return jnp.abs(change(along)) >= jnp.abs(change(across))
+
+
+#: Most triangles the walk along a pair's segment crosses before it gives up (near a silhouette
+#: a fine mesh's triangles project to slivers, several between two samples).
+MAX_WALK = 8
+
+
+def _edge_values(P, tris, tri_id, oi, di, oo, do, d_face):
+    """Per edge i of the triangles `tri_id` (the edge opposite vertex i), its edge function
+    E_i = ((V_j - o) x (V_k - V_j)) . d at the segment's two ends, oriented so that it is positive
+    inside the triangle as the ray `d_face` sees it: ([e at inside ray] * 3, [e at outside ray] * 3).
+    Linear in the fraction along the segment (the rays' origins or directions are, not both)."""
+    v = [tuple(P[:, c][tris[:, k][tri_id]] for c in range(3)) for k in range(3)]
+    n = vcross(_sub(v[1], v[0]), _sub(v[2], v[0]))
+    sigma = jnp.where(jax.lax.stop_gradient(vdot(n, d_face)) >= 0, 1.0, -1.0).astype(di[0].dtype)
+    e_in, e_out, fns = [], [], []
+    for i in range(3):
+        j, k = (i + 1) % 3, (i + 2) % 3
+        ejk = _sub(v[k], v[j])
+
+        def f(o, d, j=j, ejk=ejk):
+            return sigma * vdot(vcross(_sub(v[j], o), ejk), d)
+
+        e_in.append(f(oi, di))
+        e_out.append(f(oo, do))
+        fns.append(f)
+    return e_in, e_out, fns, n
+
+
+def _exit(e_in, e_out, big):
+    """(edge, fraction) where the segment leaves the triangle: the first of its edges whose function
+    falls through zero along it (an edge whose function does not fall is never left)."""
+    taus = [jnp.where(e_out[i] < e_in[i], e_in[i] / jnp.where(e_out[i] < e_in[i], e_in[i] - e_out[i], 1.0), big) for i in range(3)]
+    t = jnp.stack(taus, -1)
+    return jnp.argmin(t, -1), jnp.min(t, -1)
+
+
+def _pick(values, i):
+    return jnp.where(i == 0, values[0], jnp.where(i == 1, values[1], values[2]))
+
+
+def _mesh_crossing(P, tris, nbr, prim, oi, di, oo, do, along, across):
+    """(fraction, valid) where the segment from the inside ray (oi, di), which hits triangle
+    `prim`, to the outside one (oo, do) leaves the surface through an outline: the walk goes from
+    triangle to neighbour across the edge the segment leaves by (without gradients: a discrete
+    search), until that edge is an outline -- no neighbour, or a neighbour facing the other way
+    along the ray there -- (found), the segment ends inside a triangle (none: the other sample's
+    surface is in front), or MAX_WALK triangles (none). The fraction is then the outline edge's
+    function's zero, differentiable in its vertices and the rays; valid also needs the edge to be
+    the pairs' to take (`_slope_ok`)."""
+    dtype = di[0].dtype
+    big = jnp.asarray(2.0, dtype)
+    Pn, rays = jax.lax.stop_gradient((P, (oi, di, oo, do)))
+    oi_n, di_n, oo_n, do_n = rays
+
+    def cond(state):
+        k, _, _, active, _, _ = state
+        return (k < MAX_WALK) & jnp.any(active)
+
+    def body(state):
+        k, cur, t_in, active, found, edge = state
+        d_face = _lerp3(di_n, do_n, t_in)
+        e_in, e_out, _, _ = _edge_values(Pn, tris, cur, oi_n, di_n, oo_n, do_n, d_face)
+        i, t_out = _exit(e_in, e_out, big)
+        leaves = active & (t_out <= 1.0)
+        other = _pick([nbr[cur, 0], nbr[cur, 1], nbr[cur, 2]], i)
+        m = jnp.maximum(other, 0)
+        w = [tuple(Pn[:, c][tris[:, kk][m]] for c in range(3)) for kk in range(3)]
+        n_other = vcross(_sub(w[1], w[0]), _sub(w[2], w[0]))
+        _, _, _, n_cur = _edge_values(Pn, tris, cur, oi_n, di_n, oo_n, do_n, d_face)
+        d_x = _lerp3(di_n, do_n, t_out)
+        same_side = (vdot(n_other, d_x) * vdot(n_cur, d_face)) > 0
+        outline = leaves & ((other < 0) | ~same_side)
+        found = found | outline
+        edge = jnp.where(outline, i.astype(jnp.int32), edge)
+        walk = leaves & ~outline
+        return (k + 1, jnp.where(walk, other, cur), jnp.where(walk, t_out, t_in), walk, found, edge)
+
+    shape = prim.shape
+    state = (jnp.int32(0), jnp.maximum(prim, 0), jnp.zeros(shape, dtype), prim >= 0, jnp.zeros(shape, bool),
+             jnp.zeros(shape, jnp.int32))
+    _, tri_id, t_in, _, found, edge = jax.lax.while_loop(cond, body, state)
+    # The outline edge's zero, with gradients.
+    d_face = jax.lax.stop_gradient(_lerp3(di, do, t_in))
+    e_in, e_out, fns, _ = _edge_values(P, tris, tri_id, oi, di, oo, do, d_face)
+    a, b = _pick(e_in, edge), _pick(e_out, edge)
+    ok = found & (jax.lax.stop_gradient(b) < jax.lax.stop_gradient(a))
+    tau = safe_div(a, a - b, ok, fill=big)
+    t_ng = jax.lax.stop_gradient(tau)
+    ox, dx = jax.lax.stop_gradient((_lerp3(oi, oo, t_ng), _lerp3(di, do, t_ng)))
+    steep = _pick([_slope_ok(f, ox, dx, along, across) for f in fns], edge)
+    return tau, ok & steep
+
+
+def _sphere_crossing(c, r, oi, di, oo, do, along, across):
+    """(fraction, valid): where the segment of rays leaves the sphere's contour. With the rays
+    linear in the fraction s, g(s) = |(c - o) x d|^2 - r^2 |d|^2 (the squared distance of the
+    line from the centre, times |d|^2, minus r^2 |d|^2) is a quadratic, negative where the line
+    meets the sphere; its root in (0, 1] with g(0) <= 0 < g(1) is 2 g0 / (-b - sqrt(b^2 - 4 a g0))
+    (no cancellation for either sign of a)."""
+    A = vcross(_sub(c, oi), di)
+    B = _sub(vcross(_sub(c, oo), do), A)
+    dd = _sub(do, di)
+    r2 = r * r
+    a = vdot(B, B) - r2 * vdot(dd, dd)
+    b = 2.0 * (vdot(A, B) - r2 * vdot(di, dd))
+    g0 = vdot(A, A) - r2 * vdot(di, di)
+    g1 = a + b + g0
+    valid = (jax.lax.stop_gradient(g0) <= 0) & (jax.lax.stop_gradient(g1) > 0)
+    den = -b - safe_sqrt(b * b - 4.0 * a * g0)
+    tau = safe_div(2.0 * g0, den, valid & (jax.lax.stop_gradient(den) < 0), fill=2.0)
+    valid = valid & (jax.lax.stop_gradient(tau) <= 1.0)
+
+    def f(o, d):
+        return vdot(vcross(_sub(c, o), d), vcross(_sub(c, o), d)) - r2 * vdot(d, d)
+
+    t_ng = jax.lax.stop_gradient(tau)
+    steep = _slope_ok(f, _lerp3(oi, oo, t_ng), _lerp3(di, do, t_ng), along, across)
+    return tau, valid & steep
+
+
+def _plane_crossing(pt, nrm, oi, di, oo, do, along, across):
+    """(fraction, valid): where the segment of rays stops meeting the plane in front of the camera
+    (its horizon, or in orthographic projection the line where the plane passes the rays'
+    origins). f = ((pt - o).n)(d.n) > 0 where the ray meets it at t > 0; linear in the fraction (o
+    or d varies, not both)."""
+
+    def f(o, d):
+        return vdot(_sub(pt, o), nrm) * vdot(d, nrm)
+
+    fi, fo = f(oi, di), f(oo, do)
+    valid = (jax.lax.stop_gradient(fi) >= 0) & (jax.lax.stop_gradient(fo) < 0)
+    fin = jnp.maximum(fi, 0.0)
+    tau = safe_div(fin, fin - fo, valid, fill=2.0)
+    t_ng = jax.lax.stop_gradient(tau)
+    steep = _slope_ok(f, _lerp3(oi, oo, t_ng), _lerp3(di, do, t_ng), along, across)
+    return tau, valid & steep
+
+
+# ------------------------------------------------------------------------------------------
+# The pass
+# ------------------------------------------------------------------------------------------
+
+
+def _cut(x, axis: int, first: bool):
+    """The first (or last) n - 1 entries of x along the image axis `axis` (0 rows, 1 columns)."""
+    n = x.shape[axis]
+    return jax.lax.slice_in_dim(x, 0 if first else 1, n - 1 if first else n, axis=axis)
+
+
+def _pad(x, axis: int, first: bool):
+    """x (n - 1 along `axis`) placed at the first (or last) n - 1 entries, zero elsewhere."""
+    pad = [(0, 0)] * x.ndim
+    pad[axis] = (0, 1) if first else (1, 0)
+    return jnp.pad(x, pad)
+
+
+def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, blend: bool = True):
+    """The pass's image `c` (H, W, C) with its outlines blended (module docstring).
+
+    scene: the scene of the pass (camera, objects; its meshes' positions are differentiated);
+    offset: the pass's sub-pixel offset (2,); surf: the pass's G-buffer ids: hit (H, W) bool, idx
+    (H, W) object index, t (H, W) distance along the unit ray, prim (H, W) triangle index into the
+    meshes' concatenation (-1 elsewhere; absent without meshes); samples: the camera's
+    `supersample` s (each sample's cell is 1/s of a pixel wide); nbr: `neighbours` of the meshes
+    (None: the scene's own, else computed here); blend=False: the image `c` itself, with the
+    blend's derivative (`RenderOptions.antialias`)."""
+    dtype = jnp.dtype(dtype)
+    objects = scene.objects
+    H, W = c.shape[:2]
+    if H * W < 2:
+        return c
+    o, d, step_x, step_y = camera_plane_rays(scene.camera, dtype, offset)
+    hit, idx, t = surf["hit"], surf["idx"], surf["t"]
+    K = len(objects)
+    kind = jnp.asarray([0 if isinstance(ob, Mesh) else 1 if isinstance(ob, Sphere) else 2 for ob in objects], jnp.int32)
+    has_sphere = any(isinstance(ob, Sphere) for ob in objects)
+    has_plane = any(isinstance(ob, Plane) for ob in objects)
+    has_mesh = any(isinstance(ob, Mesh) for ob in objects)
+    zeros3 = jnp.zeros((K, 3), dtype)
+    centers = jnp.stack([jnp.asarray(ob.center, dtype) if isinstance(ob, Sphere) else zeros3[0] for ob in objects])
+    radii = jnp.stack([jnp.asarray(ob.radius, dtype) if isinstance(ob, Sphere) else jnp.zeros((), dtype) for ob in objects])
+    points = jnp.stack([jnp.asarray(ob.point, dtype) if isinstance(ob, Plane) else zeros3[0] for ob in objects])
+    normals = jnp.stack([jnp.asarray(ob.normal, dtype) if isinstance(ob, Plane) else zeros3[0] for ob in objects])
+    prim = surf.get("prim") if has_mesh else None
+    if has_mesh:
+        P, tris = concat_geometry([ob for ob in objects if isinstance(ob, Mesh)], dtype)
+        if nbr is None:
+            nbr = getattr(scene, "neighbours", None)  # (`stages.AccelScene`: made with its BVH)
+        if nbr is None:
+            nbr = neighbours(P, tris)
+    h = 0.5 / samples
+    delta = jnp.zeros_like(c)
+    for axis in (1, 0):
+        along, across = (step_x, step_y) if axis == 1 else (step_y, step_x)
+        cut = lambda x, first, axis=axis: _cut(x, axis, first)  # noqa: E731
+        side = {}
+        for first in (True, False):  # the inside sample: the pair's first (p) or second (q)
+            ins = {"o": tuple(cut(x, first) for x in o), "d": tuple(cut(x, first) for x in d),
+                   "hit": cut(hit, first), "idx": cut(idx, first)}
+            out_o = tuple(cut(x, not first) for x in o)
+            out_d = tuple(cut(x, not first) for x in d)
+            k_in = jnp.where(ins["hit"], kind[ins["idx"]], -1)
+            tau = jnp.full(ins["hit"].shape, 2.0, dtype)
+            valid = jnp.zeros(ins["hit"].shape, bool)
+            if has_sphere:
+                cc = tuple(centers[:, i][ins["idx"]] for i in range(3))
+                ts, vs = _sphere_crossing(cc, radii[ins["idx"]], ins["o"], ins["d"], out_o, out_d, along, across)
+                sel = k_in == 1
+                tau, valid = jnp.where(sel, ts, tau), jnp.where(sel, vs, valid)
+            if has_plane:
+                pp = tuple(points[:, i][ins["idx"]] for i in range(3))
+                nn = tuple(normals[:, i][ins["idx"]] for i in range(3))
+                tp, vp = _plane_crossing(pp, nn, ins["o"], ins["d"], out_o, out_d, along, across)
+                sel = k_in == 2
+                tau, valid = jnp.where(sel, tp, tau), jnp.where(sel, vp, valid)
+            if has_mesh:
+                pr = jnp.where(k_in == 0, cut(prim, first), -1)
+                tm, vm = _mesh_crossing(P, tris, nbr, pr, ins["o"], ins["d"], out_o, out_d, along, across)
+                sel = pr >= 0
+                tau, valid = jnp.where(sel, tm, tau), jnp.where(sel, vm, valid)
+            side[first] = (tau, valid)
+        hp, hq = cut(hit, True), cut(hit, False)
+        differs = (hp != hq) | (hp & (cut(idx, True) != cut(idx, False)))
+        if prim is not None:
+            differs = differs | (hp & (cut(prim, True) != cut(prim, False)))
+        (ta, va), (tb, vb) = side[True], side[False]
+        va, vb = va & hp & differs, vb & hq & differs
+        near_p = cut(t, True) <= cut(t, False)
+        use_a = va & (~vb | near_p)
+        use_b = vb & ~use_a
+        a = jnp.where(use_a, ta, 1.0 - tb)  # the edge's distance from p, in pixels
+        use = use_a | use_b
+        w_p = jnp.where(use & (a < h), (h - a) / (2 * h), 0.0)[..., None]
+        w_q = jnp.where(use & (a > 1.0 - h), (a - (1.0 - h)) / (2 * h), 0.0)[..., None]
+        cp, cq = cut(c, True), cut(c, False)
+        delta = delta + _pad(w_p * (cq - cp), axis, True) + _pad(w_q * (cp - cq), axis, False)
+    return c + (delta if blend else delta - jax.lax.stop_gradient(delta))
