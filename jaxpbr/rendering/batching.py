@@ -433,6 +433,8 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
             if p_plan.transmission_depth and p_plan.ibl:
                 g = _transmit_chunk(sc, bc, g, off, assets, **kw)
             c = _rest_chunk(sc, bc, g, assets, direct, **kw)
+            if opts.antialias == "none":
+                return c
             # The outlines of each image (`edges.antialias_pass`); the meshes' topology is the
             # scene's (vertices welded by the scene's positions, not each image's).
             return _outline_chunk(sc, bc, g, c, off, nbr, samples=samples, **kw)

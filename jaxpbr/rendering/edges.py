@@ -257,6 +257,100 @@ def _pick(values, i):
     return jnp.where(i == 0, values[0], jnp.where(i == 1, values[1], values[2]))
 
 
+#: Candidates the walk takes at a time (`_walk`): the outlines' pairs are a few per cent of an
+#: image's, so the walk runs on them alone, in chunks of this many, not on every pixel.
+WALK_CHUNK = 1 << 14
+
+
+def _walk(P, rays, tris, nbr, prim):
+    """The walk of `_mesh_crossing` (no gradients): for each lane with prim >= 0, (triangle whose
+    edge is the outline, the fraction where the segment entered it, found, edge index), dense like
+    `prim`. Only the candidate lanes are walked: gathered in chunks of `WALK_CHUNK` (a while loop
+    over the chunks, a while loop of at most MAX_WALK steps in each), the results scattered back."""
+    shape = prim.shape
+    n = int(np.prod(shape))
+    dtype = rays[1][0].dtype
+    big = jnp.asarray(2.0, dtype)
+    flat = tuple(tuple(c.reshape(-1) for c in v) for v in rays)
+    pr = prim.reshape(-1)
+    count = jnp.sum(pr >= 0)
+    # The candidates first, in order (a stable sort of the mask: `jnp.nonzero`'s cumulative sum
+    # recomputed the mask's producers per element on XLA:CPU, 25x slower here).
+    order = jnp.argsort(pr < 0, stable=True).astype(jnp.int32)
+    C = min(n, WALK_CHUNK)
+
+    def steps(lane_prim, oi, di, oo, do):
+        def cond(state):
+            k, _, _, active, _, _ = state
+            return (k < MAX_WALK) & jnp.any(active)
+
+        def body(state):
+            k, cur, t_in, active, found, edge = state
+            d_face = _lerp3(di, do, t_in)
+            e_in, e_out, _, n_cur = _edge_values(P, tris, cur, oi, di, oo, do, d_face)
+            i, t_out = _exit(e_in, e_out, big)
+            leaves = active & (t_out <= 1.0)
+            other = _pick([nbr[cur, 0], nbr[cur, 1], nbr[cur, 2]], i)
+            m = jnp.maximum(other, 0)
+            w = [tuple(P[:, c][tris[:, kk][m]] for c in range(3)) for kk in range(3)]
+            n_other = vcross(_sub(w[1], w[0]), _sub(w[2], w[0]))
+            d_x = _lerp3(di, do, t_out)
+            same_side = (vdot(n_other, d_x) * vdot(n_cur, d_face)) > 0
+            outline = leaves & ((other < 0) | ~same_side)
+            found = found | outline
+            edge = jnp.where(outline, i.astype(jnp.int32), edge)
+            walk = leaves & ~outline
+            return (k + 1, jnp.where(walk, other, cur), jnp.where(walk, t_out, t_in), walk, found, edge)
+
+        m = lane_prim.shape
+        state = (jnp.int32(0), jnp.maximum(lane_prim, 0), jnp.zeros(m, dtype), lane_prim >= 0, jnp.zeros(m, bool),
+                 jnp.zeros(m, jnp.int32))
+        _, cur, t_in, _, found, edge = jax.lax.while_loop(cond, body, state)
+        return cur, t_in, found, edge
+
+    def chunk(state):
+        start, outs = state
+        s0 = jnp.minimum(start, n - C)  # (the last chunk overlaps the one before: its lanes are walked again alike)
+        lanes = jax.lax.dynamic_slice(order, (s0,), (C,))
+        live = (s0 + jnp.arange(C)) < count
+        sub = tuple(tuple(c[lanes] for c in v) for v in flat)
+        res = steps(jnp.where(live, pr[lanes], -1), *sub)
+        dest = jnp.where(live, lanes, n)  # (dropped: past the end)
+        outs = tuple(o.at[dest].set(r, mode="drop") for o, r in zip(outs, res, strict=True))
+        return start + C, outs
+
+    outs = (jnp.zeros(n, jnp.int32), jnp.zeros(n, dtype), jnp.zeros(n, bool), jnp.zeros(n, jnp.int32))
+    _, outs = jax.lax.while_loop(lambda st: st[0] < count, chunk, (jnp.int32(0), outs))
+    return tuple(o.reshape(shape) for o in outs)
+
+
+def _joined(P, tris, nbr, pp, pq, dp, dq, two_sided: bool):
+    """Pairs whose two samples see triangles of one sheet: neighbours across an edge (welded
+    topology) or sharing a vertex, facing the same way (always, without double-sided meshes: only
+    front faces are seen). No outline runs between them (bar a fold exactly at the shared vertex),
+    so they are not walked -- on a fine mesh most neighbouring samples see different triangles."""
+    both = (pp >= 0) & (pq >= 0)
+    a, b = jnp.maximum(pp, 0), jnp.maximum(pq, 0)
+    ta, tb = tris[a], tris[b]
+    share = jnp.zeros(pp.shape, bool)
+    for i in range(3):
+        for j in range(3):
+            share = share | (ta[..., i] == tb[..., j])
+    nb = nbr[a]
+    share = share | (nb[..., 0] == pq) | (nb[..., 1] == pq) | (nb[..., 2] == pq)
+    joined = both & share
+    if two_sided:
+        P = jax.lax.stop_gradient(P)
+        dp, dq = jax.lax.stop_gradient((dp, dq))
+
+        def facing(t, d):
+            v = [tuple(P[:, c][tris[:, k][t]] for c in range(3)) for k in range(3)]
+            return vdot(vcross(_sub(v[1], v[0]), _sub(v[2], v[0])), d) >= 0
+
+        joined = joined & (facing(a, dp) == facing(b, dq))
+    return joined
+
+
 def _mesh_crossing(P, tris, nbr, prim, oi, di, oo, do, along, across):
     """(fraction, valid) where the segment from the inside ray (oi, di), which hits triangle
     `prim`, to the outside one (oo, do) leaves the surface through an outline: the walk goes from
@@ -268,36 +362,7 @@ def _mesh_crossing(P, tris, nbr, prim, oi, di, oo, do, along, across):
     the pairs' to take (`_slope_ok`)."""
     dtype = di[0].dtype
     big = jnp.asarray(2.0, dtype)
-    Pn, rays = jax.lax.stop_gradient((P, (oi, di, oo, do)))
-    oi_n, di_n, oo_n, do_n = rays
-
-    def cond(state):
-        k, _, _, active, _, _ = state
-        return (k < MAX_WALK) & jnp.any(active)
-
-    def body(state):
-        k, cur, t_in, active, found, edge = state
-        d_face = _lerp3(di_n, do_n, t_in)
-        e_in, e_out, _, _ = _edge_values(Pn, tris, cur, oi_n, di_n, oo_n, do_n, d_face)
-        i, t_out = _exit(e_in, e_out, big)
-        leaves = active & (t_out <= 1.0)
-        other = _pick([nbr[cur, 0], nbr[cur, 1], nbr[cur, 2]], i)
-        m = jnp.maximum(other, 0)
-        w = [tuple(Pn[:, c][tris[:, kk][m]] for c in range(3)) for kk in range(3)]
-        n_other = vcross(_sub(w[1], w[0]), _sub(w[2], w[0]))
-        _, _, _, n_cur = _edge_values(Pn, tris, cur, oi_n, di_n, oo_n, do_n, d_face)
-        d_x = _lerp3(di_n, do_n, t_out)
-        same_side = (vdot(n_other, d_x) * vdot(n_cur, d_face)) > 0
-        outline = leaves & ((other < 0) | ~same_side)
-        found = found | outline
-        edge = jnp.where(outline, i.astype(jnp.int32), edge)
-        walk = leaves & ~outline
-        return (k + 1, jnp.where(walk, other, cur), jnp.where(walk, t_out, t_in), walk, found, edge)
-
-    shape = prim.shape
-    state = (jnp.int32(0), jnp.maximum(prim, 0), jnp.zeros(shape, dtype), prim >= 0, jnp.zeros(shape, bool),
-             jnp.zeros(shape, jnp.int32))
-    _, tri_id, t_in, _, found, edge = jax.lax.while_loop(cond, body, state)
+    tri_id, t_in, found, edge = _walk(*jax.lax.stop_gradient((P, (oi, di, oo, do))), tris, nbr, prim)
     # The outline edge's zero, with gradients.
     d_face = jax.lax.stop_gradient(_lerp3(di, do, t_in))
     e_in, e_out, fns, _ = _edge_values(P, tris, tri_id, oi, di, oo, do, d_face)
@@ -360,6 +425,43 @@ def _plane_crossing(pt, nrm, oi, di, oo, do, along, across):
 # ------------------------------------------------------------------------------------------
 
 
+def _on_candidates(fn, lanes: dict, cand, dtype):
+    """fn(lanes) -> (fraction, valid) evaluated on the lanes where `cand` (dense (R, C) arrays in,
+    dense out: fraction 2 and valid False elsewhere). The candidates -- pairs whose samples see
+    different surfaces, a few per cent of an image -- are gathered into `capacity` lanes first
+    (XLA:CPU otherwise evaluates the whole edge maths on every pair, and recomputes parts of it in
+    each consumer: 0.6 s of a 0.8 s render at 512^2); more candidates than that take the dense
+    path (a conditional: both are compiled, one runs). Gradients pass through the gather and the
+    scatter."""
+    shape = cand.shape
+    n = int(np.prod(shape))
+    flat = jax.tree_util.tree_map(lambda x: x.reshape(-1), lanes)
+    cand = cand.reshape(-1)
+    capacity = min(n, max(1024, n // CANDIDATE_FRACTION))
+
+    def dense(_):
+        tau, valid = fn(flat)
+        return tau, valid & cand
+
+    def compact(_):
+        (order,) = jnp.nonzero(cand, size=capacity, fill_value=0)
+        live = jnp.arange(capacity) < jnp.sum(cand)
+        tau, valid = fn(jax.tree_util.tree_map(lambda x: x[order], flat))
+        dest = jnp.where(live, order, n)  # (dropped: past the end)
+        return (jnp.full(n, 2.0, dtype).at[dest].set(tau, mode="drop"),
+                jnp.zeros(n, bool).at[dest].set(valid & live, mode="drop"))
+
+    if capacity == n:
+        tau, valid = dense(None)
+    else:
+        tau, valid = jax.lax.cond(jnp.sum(cand) <= capacity, compact, dense, None)
+    return tau.reshape(shape), valid.reshape(shape)
+
+
+#: `_on_candidates` gathers up to 1/CANDIDATE_FRACTION of an image's pairs (at least 1024).
+CANDIDATE_FRACTION = 16
+
+
 def _cut(x, axis: int, first: bool):
     """The first (or last) n - 1 entries of x along the image axis `axis` (0 rows, 1 columns)."""
     n = x.shape[axis]
@@ -403,6 +505,7 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
     prim = surf.get("prim") if has_mesh else None
     if has_mesh:
         P, tris = concat_geometry([ob for ob in objects if isinstance(ob, Mesh)], dtype)
+        two_sided = any(ob.double_sided for ob in objects if isinstance(ob, Mesh))
         if nbr is None:
             nbr = getattr(scene, "neighbours", None)  # (`stages.AccelScene`: made with its BVH)
         if nbr is None:
@@ -412,36 +515,44 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
     for axis in (1, 0):
         along, across = (step_x, step_y) if axis == 1 else (step_y, step_x)
         cut = lambda x, first, axis=axis: _cut(x, axis, first)  # noqa: E731
-        side = {}
-        for first in (True, False):  # the inside sample: the pair's first (p) or second (q)
-            ins = {"o": tuple(cut(x, first) for x in o), "d": tuple(cut(x, first) for x in d),
-                   "hit": cut(hit, first), "idx": cut(idx, first)}
-            out_o = tuple(cut(x, not first) for x in o)
-            out_d = tuple(cut(x, not first) for x in d)
-            k_in = jnp.where(ins["hit"], kind[ins["idx"]], -1)
-            tau = jnp.full(ins["hit"].shape, 2.0, dtype)
-            valid = jnp.zeros(ins["hit"].shape, bool)
-            if has_sphere:
-                cc = tuple(centers[:, i][ins["idx"]] for i in range(3))
-                ts, vs = _sphere_crossing(cc, radii[ins["idx"]], ins["o"], ins["d"], out_o, out_d, along, across)
-                sel = k_in == 1
-                tau, valid = jnp.where(sel, ts, tau), jnp.where(sel, vs, valid)
-            if has_plane:
-                pp = tuple(points[:, i][ins["idx"]] for i in range(3))
-                nn = tuple(normals[:, i][ins["idx"]] for i in range(3))
-                tp, vp = _plane_crossing(pp, nn, ins["o"], ins["d"], out_o, out_d, along, across)
-                sel = k_in == 2
-                tau, valid = jnp.where(sel, tp, tau), jnp.where(sel, vp, valid)
-            if has_mesh:
-                pr = jnp.where(k_in == 0, cut(prim, first), -1)
-                tm, vm = _mesh_crossing(P, tris, nbr, pr, ins["o"], ins["d"], out_o, out_d, along, across)
-                sel = pr >= 0
-                tau, valid = jnp.where(sel, tm, tau), jnp.where(sel, vm, valid)
-            side[first] = (tau, valid)
+        cut_d = lambda first, cut=cut: tuple(cut(x, first) for x in d)  # noqa: E731
         hp, hq = cut(hit, True), cut(hit, False)
         differs = (hp != hq) | (hp & (cut(idx, True) != cut(idx, False)))
         if prim is not None:
-            differs = differs | (hp & (cut(prim, True) != cut(prim, False)))
+            pp, pq = cut(prim, True), cut(prim, False)
+            differs = (differs | (hp & (pp != pq))) & ~_joined(P, tris, nbr, pp, pq, cut_d(True), cut_d(False), two_sided)
+        side = {}
+        for first in (True, False):  # the inside sample: the pair's first (p) or second (q)
+            h_in, i_in = cut(hit, first), cut(idx, first)
+            lanes = {"oi": tuple(cut(x, first) for x in o), "di": tuple(cut(x, first) for x in d),
+                     "oo": tuple(cut(x, not first) for x in o), "do": tuple(cut(x, not first) for x in d),
+                     "idx": i_in, "kind": jnp.where(h_in, kind[i_in], -1)}
+            if has_mesh:
+                lanes["prim"] = cut(prim, first)
+
+            def crossing(ln, along=along, across=across):
+                """(fraction, valid) for lanes of pairs (1-D arrays), by the inside surface's kind."""
+                tau = jnp.full(ln["idx"].shape, 2.0, dtype)
+                valid = jnp.zeros(ln["idx"].shape, bool)
+                if has_sphere:
+                    cc = tuple(centers[:, i][ln["idx"]] for i in range(3))
+                    ts, vs = _sphere_crossing(cc, radii[ln["idx"]], ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
+                    sel = ln["kind"] == 1
+                    tau, valid = jnp.where(sel, ts, tau), jnp.where(sel, vs, valid)
+                if has_plane:
+                    pt = tuple(points[:, i][ln["idx"]] for i in range(3))
+                    nn = tuple(normals[:, i][ln["idx"]] for i in range(3))
+                    tp, vp = _plane_crossing(pt, nn, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
+                    sel = ln["kind"] == 2
+                    tau, valid = jnp.where(sel, tp, tau), jnp.where(sel, vp, valid)
+                if has_mesh:
+                    pr = jnp.where(ln["kind"] == 0, ln["prim"], -1)
+                    tm, vm = _mesh_crossing(P, tris, nbr, pr, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
+                    sel = pr >= 0
+                    tau, valid = jnp.where(sel, tm, tau), jnp.where(sel, vm, valid)
+                return tau, valid
+
+            side[first] = _on_candidates(crossing, lanes, differs & h_in, dtype)
         (ta, va), (tb, vb) = side[True], side[False]
         va, vb = va & hp & differs, vb & hq & differs
         near_p = cut(t, True) <= cut(t, False)

@@ -85,7 +85,8 @@ class RenderOptions:
         the image with respect to where the outlines are (vertex positions, object parameters, the
         camera). False keeps each pass's point samples as they are (to compare with point-sampled
         references); the gradient then still carries the outlines' motion (the blend's derivative,
-        without its value).
+        without its value). "none": neither the blend nor its derivative -- the point samples and the
+        interior-only gradient, the control against which what the outlines add is measured.
     """
 
     model: str = "gltf"
@@ -104,7 +105,7 @@ class RenderOptions:
     transmission_samples: int = 4
     ibl_visibility: str = "occlusion"
     ibl_samples: int = 4
-    antialias: bool = True
+    antialias: bool | str = True
 
     @property
     def compensates(self) -> bool:
@@ -130,6 +131,8 @@ class RenderOptions:
             positive_int(name, getattr(self, name))
         positive_int("transmission_depth", self.transmission_depth, minimum=0)
         positive_int("ibl_samples", self.ibl_samples)
+        if self.antialias not in (True, False, "none") or not isinstance(self.antialias, (bool, str)):
+            raise ValueError(f"antialias must be True, False or 'none', got {self.antialias!r}")
         if self.ibl_visibility not in IBL_VISIBILITY:
             raise ValueError(f"ibl_visibility must be one of {', '.join(map(repr, IBL_VISIBILITY))}, got {self.ibl_visibility!r}")
         if self.ibl_samples > MAX_IBL_SAMPLES:

@@ -1270,7 +1270,7 @@ def outlined_pass(scene: Scene, assets, p_plan: RenderPlan, opts: RenderOptions,
     """One pass (`_render_pass`) with its silhouettes and occlusion edges blended
     (`edges.antialias_pass`: the image's derivative with respect to where the edges are); a scene
     given as a G-buffer has no outlines to blend."""
-    if scene.gbuffer is not None:
+    if scene.gbuffer is not None or opts.antialias == "none":
         return _render_pass(scene, assets, p_plan, opts, offset, staged)
     c, surf = _render_pass(scene, assets, p_plan, opts, offset, staged, with_surface=True)
     return antialias_pass(scene, opts.dtype, offset, c, surf, samples, blend=opts.antialias)
@@ -1305,7 +1305,7 @@ def staged_outlines(scene: Scene, opts: RenderOptions, offset, c, surf, samples:
     """`edges.antialias_pass` of a staged pass (the whole image's, its bands joined) as a stored
     program, the meshes' topology computed on the host once per content (`edges.NEIGHBOURS`) and
     passed in (under jit / grad, where the meshes' arrays are traced, from a callback in the trace)."""
-    if surf is None:  # (a scene given as a G-buffer)
+    if surf is None or opts.antialias == "none":  # (a scene given as a G-buffer; the control without outlines)
         return c
     nbr = None
     if any(isinstance(ob, Mesh) for ob in scene.objects) and not _traced((c, surf, offset)):
