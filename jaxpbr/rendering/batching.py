@@ -393,11 +393,14 @@ def _rest_chunk(scene, bc, g, assets, direct, *, p_plan, opts, objects_idx):
 
 @functools.partial(jax.jit, static_argnames=_CHUNK_STATIC + ("samples",))
 def _outline_chunk(scene, bc, g, c, off, nbr, *, p_plan, opts, objects_idx, samples):
-    def one(x, gx, cx):
+    def one(args):
+        x, gx, cx = args
         return antialias_pass(_substitute(scene, x, objects_idx), opts.dtype, off[:2], cx, _surface_ids(gx), samples, nbr,
                               blend=opts.antialias)
 
-    return jax.vmap(one)(bc, g, c)
+    # One image after another (lax.map, not vmap): the edge stage's chunks past an image's
+    # candidates are skipped by a conditional, which a batched predicate would turn into both branches.
+    return jax.lax.map(one, (bc, g, c))
 
 
 def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):

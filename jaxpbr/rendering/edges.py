@@ -257,71 +257,40 @@ def _pick(values, i):
     return jnp.where(i == 0, values[0], jnp.where(i == 1, values[1], values[2]))
 
 
-#: Candidates the walk takes at a time (`_walk`): the outlines' pairs are a few per cent of an
-#: image's, so the walk runs on them alone, in chunks of this many, not on every pixel.
-WALK_CHUNK = 1 << 14
-
-
 def _walk(P, rays, tris, nbr, prim):
-    """The walk of `_mesh_crossing` (no gradients): for each lane with prim >= 0, (triangle whose
-    edge is the outline, the fraction where the segment entered it, found, edge index), dense like
-    `prim`. Only the candidate lanes are walked: gathered in chunks of `WALK_CHUNK` (a while loop
-    over the chunks, a while loop of at most MAX_WALK steps in each), the results scattered back."""
-    shape = prim.shape
-    n = int(np.prod(shape))
-    dtype = rays[1][0].dtype
+    """The walk of `_mesh_crossing` (no gradients), for lanes (1-D) with prim >= 0: (triangle whose
+    edge is the outline, the fraction where the segment entered it, found, edge index); at most
+    MAX_WALK steps (a while loop that ends when no lane walks on)."""
+    oi, di, oo, do = rays
+    dtype = di[0].dtype
     big = jnp.asarray(2.0, dtype)
-    flat = tuple(tuple(c.reshape(-1) for c in v) for v in rays)
-    pr = prim.reshape(-1)
-    count = jnp.sum(pr >= 0)
-    # The candidates first, in order (a stable sort of the mask: `jnp.nonzero`'s cumulative sum
-    # recomputed the mask's producers per element on XLA:CPU, 25x slower here).
-    order = jnp.argsort(pr < 0, stable=True).astype(jnp.int32)
-    C = min(n, WALK_CHUNK)
 
-    def steps(lane_prim, oi, di, oo, do):
-        def cond(state):
-            k, _, _, active, _, _ = state
-            return (k < MAX_WALK) & jnp.any(active)
+    def cond(state):
+        k, _, _, active, _, _ = state
+        return (k < MAX_WALK) & jnp.any(active)
 
-        def body(state):
-            k, cur, t_in, active, found, edge = state
-            d_face = _lerp3(di, do, t_in)
-            e_in, e_out, _, n_cur = _edge_values(P, tris, cur, oi, di, oo, do, d_face)
-            i, t_out = _exit(e_in, e_out, big)
-            leaves = active & (t_out <= 1.0)
-            other = _pick([nbr[cur, 0], nbr[cur, 1], nbr[cur, 2]], i)
-            m = jnp.maximum(other, 0)
-            w = [tuple(P[:, c][tris[:, kk][m]] for c in range(3)) for kk in range(3)]
-            n_other = vcross(_sub(w[1], w[0]), _sub(w[2], w[0]))
-            d_x = _lerp3(di, do, t_out)
-            same_side = (vdot(n_other, d_x) * vdot(n_cur, d_face)) > 0
-            outline = leaves & ((other < 0) | ~same_side)
-            found = found | outline
-            edge = jnp.where(outline, i.astype(jnp.int32), edge)
-            walk = leaves & ~outline
-            return (k + 1, jnp.where(walk, other, cur), jnp.where(walk, t_out, t_in), walk, found, edge)
+    def body(state):
+        k, cur, t_in, active, found, edge = state
+        d_face = _lerp3(di, do, t_in)
+        e_in, e_out, _, n_cur = _edge_values(P, tris, cur, oi, di, oo, do, d_face)
+        i, t_out = _exit(e_in, e_out, big)
+        leaves = active & (t_out <= 1.0)
+        other = _pick([nbr[cur, 0], nbr[cur, 1], nbr[cur, 2]], i)
+        m = jnp.maximum(other, 0)
+        w = [tuple(P[:, c][tris[:, kk][m]] for c in range(3)) for kk in range(3)]
+        n_other = vcross(_sub(w[1], w[0]), _sub(w[2], w[0]))
+        d_x = _lerp3(di, do, t_out)
+        same_side = (vdot(n_other, d_x) * vdot(n_cur, d_face)) > 0
+        outline = leaves & ((other < 0) | ~same_side)
+        found = found | outline
+        edge = jnp.where(outline, i.astype(jnp.int32), edge)
+        walk = leaves & ~outline
+        return (k + 1, jnp.where(walk, other, cur), jnp.where(walk, t_out, t_in), walk, found, edge)
 
-        m = lane_prim.shape
-        state = (jnp.int32(0), jnp.maximum(lane_prim, 0), jnp.zeros(m, dtype), lane_prim >= 0, jnp.zeros(m, bool),
-                 jnp.zeros(m, jnp.int32))
-        _, cur, t_in, _, found, edge = jax.lax.while_loop(cond, body, state)
-        return cur, t_in, found, edge
-
-    def chunk(state):
-        start, outs = state
-        s0 = jnp.minimum(start, n - C)  # (the last chunk overlaps the one before: its lanes are walked again alike)
-        lanes = jax.lax.dynamic_slice(order, (s0,), (C,))
-        live = (s0 + jnp.arange(C)) < count
-        sub = tuple(tuple(c[lanes] for c in v) for v in flat)
-        res = steps(jnp.where(live, pr[lanes], -1), *sub)
-        dest = jnp.where(live, lanes, n)  # (dropped: past the end)
-        outs = tuple(o.at[dest].set(r, mode="drop") for o, r in zip(outs, res, strict=True))
-        return start + C, outs
-
-    outs = (jnp.zeros(n, jnp.int32), jnp.zeros(n, dtype), jnp.zeros(n, bool), jnp.zeros(n, jnp.int32))
-    _, outs = jax.lax.while_loop(lambda st: st[0] < count, chunk, (jnp.int32(0), outs))
-    return tuple(o.reshape(shape) for o in outs)
+    m = prim.shape
+    state = (jnp.int32(0), jnp.maximum(prim, 0), jnp.zeros(m, dtype), prim >= 0, jnp.zeros(m, bool), jnp.zeros(m, jnp.int32))
+    _, cur, t_in, _, found, edge = jax.lax.while_loop(cond, body, state)
+    return cur, t_in, found, edge
 
 
 def _joined(P, tris, nbr, pp, pq, dp, dq, two_sided: bool):
@@ -425,41 +394,43 @@ def _plane_crossing(pt, nrm, oi, di, oo, do, along, across):
 # ------------------------------------------------------------------------------------------
 
 
-def _on_candidates(fn, lanes: dict, cand, dtype):
-    """fn(lanes) -> (fraction, valid) evaluated on the lanes where `cand` (dense (R, C) arrays in,
-    dense out: fraction 2 and valid False elsewhere). The candidates -- pairs whose samples see
-    different surfaces, a few per cent of an image -- are gathered into `capacity` lanes first
-    (XLA:CPU otherwise evaluates the whole edge maths on every pair, and recomputes parts of it in
-    each consumer: 0.6 s of a 0.8 s render at 512^2); more candidates than that take the dense
-    path (a conditional: both are compiled, one runs). Gradients pass through the gather and the
-    scatter."""
-    shape = cand.shape
-    n = int(np.prod(shape))
-    flat = jax.tree_util.tree_map(lambda x: x.reshape(-1), lanes)
-    cand = cand.reshape(-1)
-    capacity = min(n, max(1024, n // CANDIDATE_FRACTION))
+def _on_candidates(fn, lanes: dict, cand):
+    """fn(lanes) -> (fraction, valid) on the lanes (1-D arrays) where `cand`; fraction 2 and valid
+    False elsewhere. The candidates -- pairs whose samples see different surfaces, a few per cent
+    of an image's -- are listed first (`jnp.nonzero`) and fn runs on them in chunks of CHUNK lanes:
+    a scan over the chunks with a fixed count (differentiable), whose chunks past the candidates
+    skip fn (a conditional). One copy of fn in the program (its compilation is the edge stage's
+    main cost), and its work in proportion to the candidates: over every pair, XLA:CPU took 0.6 s
+    of a 0.8 s render at 512^2. Gradients pass through the gathers and the scatter."""
+    n = cand.shape[0]
+    C = min(n, CHUNK)
+    chunks = -(-n // C)
+    count = jnp.sum(cand)
+    (order,) = jnp.nonzero(cand, size=chunks * C, fill_value=0)
+    dtype = lanes["di"][0].dtype
 
-    def dense(_):
-        tau, valid = fn(flat)
-        return tau, valid & cand
+    def run(k):
+        start = k * C
+        ids = jax.lax.dynamic_slice(order, (start,), (C,))
+        live = (start + jnp.arange(C)) < count
 
-    def compact(_):
-        (order,) = jnp.nonzero(cand, size=capacity, fill_value=0)
-        live = jnp.arange(capacity) < jnp.sum(cand)
-        tau, valid = fn(jax.tree_util.tree_map(lambda x: x[order], flat))
-        dest = jnp.where(live, order, n)  # (dropped: past the end)
-        return (jnp.full(n, 2.0, dtype).at[dest].set(tau, mode="drop"),
-                jnp.zeros(n, bool).at[dest].set(valid & live, mode="drop"))
+        def compute(_):
+            tau, valid = fn(jax.tree_util.tree_map(lambda x: x[ids], lanes))
+            return tau, valid & live
 
-    if capacity == n:
-        tau, valid = dense(None)
-    else:
-        tau, valid = jax.lax.cond(jnp.sum(cand) <= capacity, compact, dense, None)
-    return tau.reshape(shape), valid.reshape(shape)
+        def skip(_):
+            return jnp.full(C, 2.0, dtype), jnp.zeros(C, bool)
+
+        return jax.lax.cond(start < count, compute, skip, None)
+
+    tau, valid = jax.lax.map(run, jnp.arange(chunks))
+    dest = jnp.where(jnp.arange(chunks * C) < count, order, n)  # (dropped: past the end)
+    return (jnp.full(n, 2.0, dtype).at[dest].set(tau.reshape(-1), mode="drop"),
+            jnp.zeros(n, bool).at[dest].set(valid.reshape(-1), mode="drop"))
 
 
-#: `_on_candidates` gathers up to 1/CANDIDATE_FRACTION of an image's pairs (at least 1024).
-CANDIDATE_FRACTION = 16
+#: Lanes of `_on_candidates`' chunks.
+CHUNK = 1 << 14
 
 
 def _cut(x, axis: int, first: bool):
@@ -511,9 +482,37 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
         if nbr is None:
             nbr = neighbours(P, tris)
     h = 0.5 / samples
-    delta = jnp.zeros_like(c)
+
+    def crossing(ln):
+        """(fraction, valid) for lanes of pairs (1-D arrays), by the inside surface's kind; the
+        pairs' direction per lane (`horizontal`) picks the steps of the slope test."""
+        hz = ln["horizontal"]
+        pick = lambda a, b: tuple(tuple(jnp.where(hz, a[k][i], b[k][i]) for i in range(3)) for k in range(2))  # noqa: E731
+        along, across = pick(step_x, step_y), pick(step_y, step_x)
+        tau = jnp.full(ln["idx"].shape, 2.0, dtype)
+        valid = jnp.zeros(ln["idx"].shape, bool)
+        if has_sphere:
+            cc = tuple(centers[:, i][ln["idx"]] for i in range(3))
+            ts, vs = _sphere_crossing(cc, radii[ln["idx"]], ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
+            sel = ln["kind"] == 1
+            tau, valid = jnp.where(sel, ts, tau), jnp.where(sel, vs, valid)
+        if has_plane:
+            pt = tuple(points[:, i][ln["idx"]] for i in range(3))
+            nn = tuple(normals[:, i][ln["idx"]] for i in range(3))
+            tp, vp = _plane_crossing(pt, nn, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
+            sel = ln["kind"] == 2
+            tau, valid = jnp.where(sel, tp, tau), jnp.where(sel, vp, valid)
+        if has_mesh:
+            pr = jnp.where(ln["kind"] == 0, ln["prim"], -1)
+            tm, vm = _mesh_crossing(P, tris, nbr, pr, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
+            sel = pr >= 0
+            tau, valid = jnp.where(sel, tm, tau), jnp.where(sel, vm, valid)
+        return tau, valid
+
+    # Every pair of both directions, with either sample inside, as one list of lanes (one copy of
+    # the edge maths in the program).
+    parts, pairs = [], {}
     for axis in (1, 0):
-        along, across = (step_x, step_y) if axis == 1 else (step_y, step_x)
         cut = lambda x, first, axis=axis: _cut(x, axis, first)  # noqa: E731
         cut_d = lambda first, cut=cut: tuple(cut(x, first) for x in d)  # noqa: E731
         hp, hq = cut(hit, True), cut(hit, False)
@@ -521,47 +520,36 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
         if prim is not None:
             pp, pq = cut(prim, True), cut(prim, False)
             differs = (differs | (hp & (pp != pq))) & ~_joined(P, tris, nbr, pp, pq, cut_d(True), cut_d(False), two_sided)
-        side = {}
+        pairs[axis] = (hp, hq, differs)
         for first in (True, False):  # the inside sample: the pair's first (p) or second (q)
             h_in, i_in = cut(hit, first), cut(idx, first)
             lanes = {"oi": tuple(cut(x, first) for x in o), "di": tuple(cut(x, first) for x in d),
                      "oo": tuple(cut(x, not first) for x in o), "do": tuple(cut(x, not first) for x in d),
-                     "idx": i_in, "kind": jnp.where(h_in, kind[i_in], -1)}
+                     "idx": i_in, "kind": jnp.where(h_in, kind[i_in], -1),
+                     "horizontal": jnp.full(h_in.shape, axis == 1), "cand": differs & h_in}
             if has_mesh:
                 lanes["prim"] = cut(prim, first)
-
-            def crossing(ln, along=along, across=across):
-                """(fraction, valid) for lanes of pairs (1-D arrays), by the inside surface's kind."""
-                tau = jnp.full(ln["idx"].shape, 2.0, dtype)
-                valid = jnp.zeros(ln["idx"].shape, bool)
-                if has_sphere:
-                    cc = tuple(centers[:, i][ln["idx"]] for i in range(3))
-                    ts, vs = _sphere_crossing(cc, radii[ln["idx"]], ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
-                    sel = ln["kind"] == 1
-                    tau, valid = jnp.where(sel, ts, tau), jnp.where(sel, vs, valid)
-                if has_plane:
-                    pt = tuple(points[:, i][ln["idx"]] for i in range(3))
-                    nn = tuple(normals[:, i][ln["idx"]] for i in range(3))
-                    tp, vp = _plane_crossing(pt, nn, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
-                    sel = ln["kind"] == 2
-                    tau, valid = jnp.where(sel, tp, tau), jnp.where(sel, vp, valid)
-                if has_mesh:
-                    pr = jnp.where(ln["kind"] == 0, ln["prim"], -1)
-                    tm, vm = _mesh_crossing(P, tris, nbr, pr, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
-                    sel = pr >= 0
-                    tau, valid = jnp.where(sel, tm, tau), jnp.where(sel, vm, valid)
-                return tau, valid
-
-            side[first] = _on_candidates(crossing, lanes, differs & h_in, dtype)
-        (ta, va), (tb, vb) = side[True], side[False]
+            parts.append(jax.tree_util.tree_map(lambda x: x.reshape(-1), lanes))
+    sizes = [p["idx"].shape[0] for p in parts]
+    lanes = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
+    tau_all, valid_all = _on_candidates(crossing, {k: v for k, v in lanes.items() if k != "cand"}, lanes["cand"])
+    bounds = np.cumsum([0] + sizes)
+    delta = jnp.zeros_like(c)
+    for n_axis, axis in enumerate((1, 0)):
+        hp, hq, differs = pairs[axis]
+        k0, k1 = 2 * n_axis, 2 * n_axis + 1
+        ta = tau_all[bounds[k0]:bounds[k0 + 1]].reshape(hp.shape)
+        va = valid_all[bounds[k0]:bounds[k0 + 1]].reshape(hp.shape)
+        tb = tau_all[bounds[k1]:bounds[k1 + 1]].reshape(hp.shape)
+        vb = valid_all[bounds[k1]:bounds[k1 + 1]].reshape(hp.shape)
         va, vb = va & hp & differs, vb & hq & differs
-        near_p = cut(t, True) <= cut(t, False)
+        near_p = _cut(t, axis, True) <= _cut(t, axis, False)
         use_a = va & (~vb | near_p)
         use_b = vb & ~use_a
         a = jnp.where(use_a, ta, 1.0 - tb)  # the edge's distance from p, in pixels
         use = use_a | use_b
         w_p = jnp.where(use & (a < h), (h - a) / (2 * h), 0.0)[..., None]
         w_q = jnp.where(use & (a > 1.0 - h), (a - (1.0 - h)) / (2 * h), 0.0)[..., None]
-        cp, cq = cut(c, True), cut(c, False)
+        cp, cq = _cut(c, axis, True), _cut(c, axis, False)
         delta = delta + _pad(w_p * (cq - cp), axis, True) + _pad(w_q * (cp - cq), axis, False)
     return c + (delta if blend else delta - jax.lax.stop_gradient(delta))
