@@ -176,22 +176,18 @@ def _banded(scene: Scene, opts: RenderOptions, p: RenderPlan, one_pass, progress
     return out
 
 
-def _supersampled(scene: Scene, opts: RenderOptions, one_pass, row0: int | None = None, progress=None):
+def _supersampled(scene: Scene, opts: RenderOptions, one_pass):
     """The mean of one_pass(scene, offset) over the camera's s x s sub-pixel offsets, run from the
-    host one after another (`render_batch` outside transformations). row0: the first row of a band,
-    passed as the offset's third entry."""
+    host one after another (`render_batch` outside transformations; `render` runs `_banded`)."""
     s = 1 if scene.gbuffer is not None else scene.camera.supersample
     if s > 1:
         scene = evolve(scene, camera=evolve(scene.camera, supersample=1))
     dtype = jnp.dtype(opts.dtype)
     acc = None
     for k in range(s * s):
-        off = ((k % s + 0.5) / s, (k // s + 0.5) / s) + (() if row0 is None else (row0,))
-        off = jax.device_put(np.asarray(off, dtype))
+        off = jax.device_put(np.asarray(((k % s + 0.5) / s, (k // s + 0.5) / s), dtype))
         one = one_pass(scene, off)
         acc = one if acc is None else acc + one
-        if progress is not None:
-            progress(k + 1)
     return acc if s == 1 else acc / (s * s)
 
 
