@@ -242,8 +242,9 @@ def stiff_analytic(x):
             jp.Plane(point=jnp.array([0.0, 0.0, 0.0]) + x, normal=(0.0, 1.0, 0.0), material=RED)]
 
 
-@pytest.mark.parametrize("dtype", ["float32", pytest.param("float64", marks=pytest.mark.slow)])
-@pytest.mark.parametrize("objects", [stiff_meshes, pytest.param(stiff_analytic, marks=pytest.mark.slow)], ids=["meshes", "analytic"])
+@pytest.mark.slow  # ~35 s each: the gradient of a staged render compiled for each scene and dtype
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("objects", [stiff_meshes, stiff_analytic], ids=["meshes", "analytic"])
 def test_edge_gradients_stay_finite_on_stiff_cases(objects, dtype):
     """Finite values and gradients (a translation of every vertex and analytic object, and the
     camera's yaw) where the edge maths is at its limits."""

@@ -218,7 +218,9 @@ def uniform_sky():
 def render(path, **options):
     cam = jp.Camera(**CAM, width=W, height=H)
     scene = jp.load_gltf(path, camera=cam, width=W, height=H, environment=uniform_sky())
-    opts = dict(extract_lights=False, shadows=False, multiscatter=False)
+    # antialias=False: the references sample the pixel centres (the outlines' blend would mix the
+    # sphere's silhouette pixels with the quad behind).
+    opts = dict(extract_lights=False, shadows=False, multiscatter=False, antialias=False)
     opts.update(options)
     return np.asarray(jp.render(scene, **opts), np.float64)[..., 0]
 
@@ -230,7 +232,7 @@ def smooth_asset(tmp_path_factory):
 
 def test_smooth_glass_shows_the_checkered_quad_behind_it(smooth_asset):
     ref, on, edge = reference(0.0)
-    img = render(smooth_asset, antialias=False)  # (the reference samples the pixel centres)
+    img = render(smooth_asset)
     # pixels whose ray through the sphere lands well inside a texel, away from the silhouette
     # (where one float32 hit decides between the sphere and the quad)
     keep = on & (edge > 0.05)
@@ -269,7 +271,7 @@ def test_a_volume_sphere_refracts_the_quad_through_its_chord(smooth_asset):
     glass = jp.Material(base_color=(1.0, 1.0, 1.0), metallic=0.0, roughness=0.0, transmission=1.0, thickness=1.0, ior=ior)
     scene = jp.Scene(camera=cam, objects=(jp.Sphere(center=(0.0, 0.0, 0.0), radius=R, material=glass), quad),
                      environment=uniform_sky())
-    img = np.asarray(jp.render(scene, extract_lights=False, shadows=False, multiscatter=False), np.float64)[..., 0]
+    img = np.asarray(jp.render(scene, extract_lights=False, shadows=False, multiscatter=False, antialias=False), np.float64)[..., 0]
 
     d = camera_rays().reshape(-1, 3)
     o = np.broadcast_to(np.asarray(CAM["position"], np.float64), d.shape)
@@ -355,7 +357,7 @@ def test_smooth_glass_under_an_orthographic_camera(smooth_asset):
     ymag = 1.5
     cam = jp.Camera(position=(0.0, 0.0, 5.0), target=(0.0, 0.0, 0.0), projection="orthographic", ymag=ymag, width=W, height=H)
     scene = jp.load_gltf(smooth_asset, camera=cam, width=W, height=H, environment=uniform_sky())
-    img = np.asarray(jp.render(scene, extract_lights=False, shadows=False, multiscatter=False), np.float64)[..., 0]
+    img = np.asarray(jp.render(scene, extract_lights=False, shadows=False, multiscatter=False, antialias=False), np.float64)[..., 0]
     x = (2 * (np.arange(W) + 0.5) / W - 1) * ymag * W / H
     y = (1 - 2 * (np.arange(H) + 0.5) / H) * ymag
     o = np.stack(np.broadcast_arrays(x[None, :], y[:, None], np.full((H, W), 5.0)), -1).reshape(-1, 3)
