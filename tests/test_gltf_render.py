@@ -273,8 +273,9 @@ def test_directional_shadow_matches_the_closed_form(analytic):
     light_dir = (-0.5, -1.0, -0.3)
     light = jp.DirectionalLight(direction=light_dir, intensity=3.0)
     scene, cam = _shadow_scene(analytic, light)
-    lit = np.asarray(jp.render(scene, shadows=False))
-    img = np.asarray(jp.render(scene, shadows=True))
+    # (antialias=False: the oracle is the closed form at the pixel centres)
+    lit = np.asarray(jp.render(scene, shadows=False, antialias=False))
+    img = np.asarray(jp.render(scene, shadows=True, antialias=False))
     ground, shadowed, edge = _ground_shadow_oracle(cam, light_dir)
     clear = ground & (edge > 0.04)  # a few pixels' footprint away from the shadow's edge
     assert (clear & shadowed).sum() > 20 and (clear & ~shadowed).sum() > 500
@@ -471,10 +472,11 @@ def test_blend_composites_layers_front_to_back():
     red = jp.Material(base_color=(0.9, 0.2, 0.1), metallic=0.0, roughness=0.5)
     w1 = lambda **k: _wall(0.8, size=2.0, material=red, **k)  # noqa: E731
     w2 = lambda **k: _wall(0.2, size=3.0, material=_GREEN, **k)  # noqa: E731
-    c1 = _draw(w1(), _BACK, shadows=False)
-    c2 = _draw(w2(), _BACK, shadows=False)
-    cb = _draw(_BACK, shadows=False)
-    got = _draw(w1(alpha_mode="BLEND", alpha=a1), w2(alpha_mode="BLEND", alpha=a2), _BACK, shadows=False)
+    # (antialias=False: the composite is checked per pixel centre, its layers' outlines not blended)
+    c1 = _draw(w1(), _BACK, shadows=False, antialias=False)
+    c2 = _draw(w2(), _BACK, shadows=False, antialias=False)
+    cb = _draw(_BACK, shadows=False, antialias=False)
+    got = _draw(w1(alpha_mode="BLEND", alpha=a1), w2(alpha_mode="BLEND", alpha=a2), _BACK, shadows=False, antialias=False)
     # Pixels covered by both walls (the inner one spans the centre), by the outer one only, by none.
     both = (c1 != cb).any(-1) & (c2 != cb).any(-1)
     only2 = ~(c1 != cb).any(-1) & (c2 != cb).any(-1)
@@ -522,7 +524,7 @@ def _floor_render(*occluders, analytic=False, **kw):
                        triangles=np.array([[0, 1, 2], [0, 2, 3]], np.int32), normals=np.tile(np.float32([0, 1, 0]), (4, 1)),
                        material=_FLOOR_MAT))
     scene = jp.Scene(camera=cam, objects=[floor, *occluders], lights=[jp.PointLight(tuple(_LAMP), intensity=_LAMP_CD)])
-    img = np.asarray(jp.render(scene, **kw))
+    img = np.asarray(jp.render(scene, antialias=False, **kw))  # (the oracles are the pixel centres')
     f = target - cam_pos
     f /= np.linalg.norm(f)
     r = np.cross(f, [0, 1, 0])
