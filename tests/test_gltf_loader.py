@@ -660,8 +660,9 @@ def test_used_extensions_ignored_with_one_warning(tmp_path):
     assert asset.primitives[0].flat_normals
 
 
-def test_skins_morphs_animations_warned(tmp_path):
-    """One warning per ignored feature; the base shape in the bind pose is loaded."""
+def test_skin_morph_and_animation_posed(tmp_path):
+    """A mesh with a morph target, an identity skin and a weights animation: the rest pose is the
+    mesh's default weights, a time poses it (keys clamped at both ends), nothing is warned."""
     b = _minimal()
     b.doc["meshes"][0]["primitives"][0]["targets"] = [{"POSITION": b.accessor(np.float32([[0, 0, 1]] * 3), FLOAT, "VEC3", minmax=True)}]
     b.doc["meshes"][0]["weights"] = [0.0]
@@ -676,13 +677,17 @@ def test_skins_morphs_animations_warned(tmp_path):
                          "samplers": [{"input": times, "output": b.accessor(np.float32([0, 1]), FLOAT, "SCALAR")}]})
     path = b.write(tmp_path / "anim.gltf")
     assert_valid(path)
-    with pytest.warns(UserWarning) as record:
-        asset = read_gltf(path)
-    msgs = [str(w.message) for w in record]
-    assert len([m for m in msgs if "morph targets" in m]) == 1 and "mesh 0" in asset.warnings[-1] + " ".join(msgs)
-    assert len([m for m in msgs if "animations" in m]) == 1
-    assert len([m for m in msgs if "skins" in m]) == 1 and any("node 0" in m for m in msgs if "skins" in m)
-    np.testing.assert_array_equal(asset.primitives[0].positions, [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rest = read_gltf(path)
+        assert rest.time is None and len(rest.animations) == 1 and rest.animations[0].duration == 1.0
+        np.testing.assert_array_equal(rest.primitives[0].positions, tri)
+        assert rest.primitives[0].deform is not None and rest.primitives[0].deform.skin == 0
+        for t, w in ((-1.0, 0.0), (0.25, 0.25), (1.0, 1.0), (7.0, 1.0)):
+            posed = read_gltf(path, time=t)
+            assert posed.time == t and posed.animation == 0
+            np.testing.assert_allclose(posed.primitives[0].positions, tri + [0, 0, w], atol=1e-7)
 
 
 def _bad(tmp_path, name="bad.gltf"):

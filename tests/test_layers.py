@@ -1,5 +1,5 @@
 """The package's rooms only point down (docs/architecture.md): foundations (the modules at the top of
-`jaxpbr/`) <- `io` <- `shading` <- `ibl` <- `rendering` <- `reference` <- `batch` <- `cli`. No import cycle anywhere, no room
+`jaxpbr/`) <- `geometry` <- `io` <- `shading` <- `ibl` <- `rendering` <- `reference` <- `batch` <- `cli`. No import cycle anywhere, no room
 imports a room above it, no private name crosses from one room into another, and the library never
 imports its tools (`jaxpbr.cli`). The import graph is read from the source with `ast`,
 function-local imports included, so an import hidden inside a function still counts."""
@@ -143,7 +143,7 @@ def test_kernels_are_leaves(module):
 
 
 #: The rooms from the bottom up; a module of a room imports only its own room and the rooms below.
-ROOMS = ("jaxpbr", "jaxpbr.io", "jaxpbr.shading", "jaxpbr.ibl", "jaxpbr.rendering", "jaxpbr.reference", "jaxpbr.batch", "jaxpbr.cli")
+ROOMS = ("jaxpbr", "jaxpbr.geometry", "jaxpbr.io", "jaxpbr.shading", "jaxpbr.ibl", "jaxpbr.rendering", "jaxpbr.reference", "jaxpbr.batch", "jaxpbr.cli")
 #: Modules at the top of the package that sit above the rooms: the public namespace and entry points.
 TOP = {"jaxpbr", "jaxpbr.__main__"}
 

@@ -77,7 +77,15 @@ def _primitive(loader, m, mesh, p, prim):
     if "POSITION" not in attrs or mode not in (4, 5, 6):
         return None
     shapes = {name: _accessor_shape(gltf, i) for name, i in attrs.items()
-              if name in ("POSITION", "NORMAL", "TANGENT", "TEXCOORD_0", "TEXCOORD_1", "COLOR_0")}
+              if name in ("POSITION", "NORMAL", "TANGENT", "TEXCOORD_0", "TEXCOORD_1", "COLOR_0")
+              or name.startswith(("JOINTS_", "WEIGHTS_"))}
+    # Morph targets: their deltas follow the vertices (unwelded with them) and are kept in float64
+    # object space with the posing data (`GltfDeform`).
+    targets = get(prim, "targets", []) or []
+    for k, tgt in enumerate(targets if isinstance(targets, list) else []):
+        for name, i in (tgt.items() if isinstance(tgt, dict) else ()):
+            if name in ("POSITION", "NORMAL", "TANGENT"):
+                shapes[f"target {k} {name}"] = _accessor_shape(gltf, i)
     if shapes.get("POSITION") is None:
         return None
     v = shapes["POSITION"][0]
@@ -102,14 +110,22 @@ def _primitive(loader, m, mesh, p, prim):
     extra = sum(c[1] for name, c in shapes.items() if c is not None and name not in ("POSITION", "NORMAL", "TANGENT"))
     per_vertex = 3 + 3 + (4 if tangents else 0)  # positions, normals, tangents: per instance
     values = max(v, v_out) * (per_vertex + extra) + 3 * tris + n_idx
+    deform = bool(targets) or any(name.startswith("JOINTS_") for name in shapes)
+    if deform:
+        # posed primitives keep their object-space float64 data per instance (`GltfDeform`): twice
+        # the float32 unit per value
+        extra_posed = 2 * (per_vertex + sum(c[1] for name, c in shapes.items() if c is not None and
+                                            name.startswith(("target ", "JOINTS_", "WEIGHTS_"))))
     kind = "tangents" if generate else "flat" if flat else "welded"
     work = 4.0 * values * _WORK_FACTOR[kind]
-    per_instance = 4.0 * (v_out * per_vertex + 3 * tris) + _PER_INSTANCE
+    per_instance = 4.0 * (v_out * (per_vertex + (extra_posed if deform else 0)) + 3 * tris) + _PER_INSTANCE
     named = [f"POSITION {pointer('accessors', attrs['POSITION'])} count {v}"]
     if get(prim, "indices") is not None:
         named.append(f"indices {pointer('accessors', get(prim, 'indices'))} count {n_idx}")
     views = set()
-    for i in [*attrs.values(), get(prim, "indices")]:
+    target_accessors = [i for tgt in (targets if isinstance(targets, list) else []) if isinstance(tgt, dict)
+                        for i in tgt.values()]
+    for i in [*attrs.values(), get(prim, "indices"), *target_accessors]:
         if isinstance(i, int) and 0 <= i < len(gltf.accessors or []):
             a = gltf.accessors[i]
             views.add(get(a, "bufferView"))
@@ -160,6 +176,27 @@ def asset_parts(loader, visits, ray_engine: str | None = None) -> tuple[dict, di
         accel = _memory.mesh_bytes(scene_vertices, scene_triangles, ray_engine)["triangles"]
         for key, t in instanced.items():
             parts[key] += accel * t / scene_triangles
+    # Animations and skins: key times and values, inverse bind matrices, decoded as float64.
+    for a, anim in enumerate(gltf.animations or []):
+        total = 0.0
+        for smp in get(anim, "samplers", []) or []:
+            for i in (get(smp, "input"), get(smp, "output")):
+                sh = _accessor_shape(gltf, i)
+                if sh is not None:
+                    total += 12.0 * sh[0] * sh[1]  # (float32 decoded, float64 kept)
+                    acc = gltf.accessors[i]
+                    views.add(get(acc, "bufferView"))
+        if total:
+            key = loc(f"animation {a}", pointer("animations", a))
+            parts[key] = total
+            names[key] = f"the key counts of {pointer('animations', a)}'s samplers"
+    for k, sk in enumerate(gltf.skins or []):
+        sh = _accessor_shape(gltf, get(sk, "inverseBindMatrices"))
+        if sh is not None:
+            key = loc(f"skin {k}", pointer("skins", k))
+            parts[key] = 12.0 * sh[0] * sh[1]
+            names[key] = f"the inverse bind matrices of {pointer('skins', k)}"
+            views.add(get(gltf.accessors[get(sk, 'inverseBindMatrices')], "bufferView"))
     if not loader.lazy_images:
         for i in loader.used_images():
             shape, size = image_source(gltf, loader.buffers, i)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import json
 import math
@@ -27,6 +28,8 @@ from ._binary import (
     pointer,
     primitive_attributes,
 )
+from ...geometry.pose import morph, skin, skin_matrices
+from ._animation import AnimationReader, choose_animation, node_weights, nodes_at
 from ._budget import check_asset_memory
 from ._draco import DracoGeometry, decode_primitive, draco_extension
 from ._geometry import (
@@ -40,7 +43,7 @@ from ._geometry import (
 from ._images import make_images
 from ._materials import MATERIAL_EXTENSIONS, MaterialReader
 from ._schema import check_schema
-from ._types import GltfAsset, GltfCamera, GltfLight, GltfMaterial, GltfPrimitive
+from ._types import GltfAsset, GltfCamera, GltfDeform, GltfLight, GltfMaterial, GltfPrimitive
 
 __all__ = ["SUPPORTED_EXTENSIONS", "read_gltf"]
 
@@ -75,6 +78,9 @@ class _Shape:
     color: np.ndarray | None
     flat_normals: bool
     generated_tangents: bool
+    targets: dict  # morph-target deltas {'POSITION'|'NORMAL'|'TANGENT': (K, V, 3) float64}
+    joints: np.ndarray | None = None  # (V, 4n) int64 (JOINTS_0..n-1)
+    weights: np.ndarray | None = None  # (V, 4n) float64 (WEIGHTS_0..n-1), rows summing to 1
 
 
 def _json_error(e: ValueError) -> str:
@@ -206,8 +212,11 @@ class _Visit:
 
 
 class _Loader:
-    def __init__(self, path: Path, scene: int | None, lazy_images: bool, roots=(), ray_engine=None):
+    def __init__(self, path: Path, scene: int | None, lazy_images: bool, roots=(), ray_engine=None, time=None,
+                 animation=None):
         self.path = path
+        self.time = time
+        self.animation_arg = animation
         self.ray_engine = ray_engine
         self.roots = asset_roots(path, roots)
         self.scene_arg = scene
@@ -242,11 +251,10 @@ class _Loader:
         # One memory check of everything the load will decode, before any buffer is read.
         self.context = ""
         check_asset_memory(self, visits, self.ray_engine)
+        self._pose(visits)
         self._place_meshes(visits)
         for v in visits:
             self._visit(v)
-        if gltf.animations:
-            self._ignore("animations", f"{len(gltf.animations)} animation(s) (the static pose is loaded)")
         self.context = "/images"
         images = make_images(gltf, self.buffers, self.path)
         if not self.lazy_images:
@@ -275,6 +283,11 @@ class _Loader:
             bounds=bounds,
             extensions_used=tuple(self.gltf.extensionsUsed or ()),
             warnings=tuple(self.notes),
+            animations=self.animations,
+            skins=dict(self.anim._skins),
+            nodes=self.nodes,
+            time=None if self.playing is None else float(self.time_at),
+            animation=None if self.playing is None else self.playing.index,
         )
 
     def used_images(self) -> list[int]:
@@ -328,6 +341,7 @@ class _Loader:
         disjoint trees, each node one parent at most), with no per-node copy of its ancestry."""
         nodes = self.gltf.nodes or []
         parent = self._parents(nodes)
+        self.parent = parent
         no_scene = roots_at == "/nodes"
         # (the schema check has made the roots existing, distinct node indices)
         for k, r in enumerate(roots):
@@ -414,8 +428,56 @@ class _Loader:
         light = (get(node, "extensions", {}) or {}).get("KHR_lights_punctual")
         if light is not None and get(light, "light") is not None:
             self._light(v, get(light, "light"))
-        if get(node, "skin") is not None:
-            self._ignore("skins", f"node {v.index} (its mesh is loaded in the bind pose, with the node's transform)")
+        if get(node, "skin") is not None and get(node, "mesh") is None:
+            self.notes.append(f"{loc(v.where, v.at + '/skin')}: a skin without a mesh is ignored")
+
+    # -- animation and skins -------------------------------------------------------------------
+    def node_has_matrix(self, node: int) -> bool:
+        return get((self.gltf.nodes or [])[node], "matrix") is not None
+
+    def _target_count(self, node: int) -> int:
+        """The morph targets of a node's mesh (every primitive of a mesh has the same number)."""
+        m = get((self.gltf.nodes or [])[node], "mesh")
+        if not isinstance(m, int) or not 0 <= m < len(self.gltf.meshes or []):
+            return 0
+        prims = get(self.gltf.meshes[m], "primitives", []) or []
+        return max((len(get(p, "targets", []) or []) for p in prims), default=0)
+
+    def _pose(self, visits: list[_Visit]) -> None:
+        """Read the nodes, skins and animations; with a time (or an animation) asked for, move the
+        visited nodes' world matrices to the pose at that time. Sets self.worlds (every node's world
+        matrix at the pose, for the skins' joints), self.morph_weights ({node: weights} animated)
+        and self.moving (the nodes whose world matrix the animations change)."""
+        self.context = ""
+        self.anim = AnimationReader(self)
+        self.nodes = self.anim.nodes(self.parent)
+        self.animations = self.anim.animations(self._target_count)
+        self.playing = None
+        self.time_at = None
+        self.morph_weights: dict = {}
+        if self.time is not None or self.animation_arg is not None:
+            t = 0.0 if self.time is None else self.time
+            if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) or not math.isfinite(float(t)):
+                fail(self.path, f"time={t!r:.40}", "is not a finite number of seconds", "pass the time in seconds, e.g. time=1.5")
+            self.playing = choose_animation(self.path, self.animations, self.animation_arg)
+            self.time_at = float(t)
+        worlds, _, weights = nodes_at(self.nodes, self.playing, self.time_at or 0.0)
+        if not np.isfinite(worlds).all():
+            bad = int(np.argmax(~np.isfinite(worlds).reshape(len(worlds), -1).all(axis=1)))
+            fail(self.path, loc(f"node {bad}", pointer("nodes", bad)), "its world transform at the time asked for "
+                 "is not finite (the product of its ancestors' animated transforms overflows)", _FIX)
+        self.worlds = worlds
+        self.morph_weights = {k: np.asarray(w, np.float64) for k, w in weights.items()}
+        if self.playing is not None:
+            for v in visits:
+                v.world = worlds[v.index]
+        # the nodes some animation moves: their animated ancestors' descendants included
+        animated = {c.node for a in self.animations for c in a.channels if c.path != "weights"}
+        moving = np.zeros(len(self.gltf.nodes or []), bool)
+        for lvl in self.nodes.levels:
+            for i in lvl:
+                moving[i] = i in animated or (self.parent[i] >= 0 and moving[self.parent[i]])
+        self.moving = moving
 
     # -- meshes ------------------------------------------------------------------------------------
     def mesh_of(self, v: _Visit):
@@ -428,30 +490,42 @@ class _Loader:
 
     def _place_meshes(self, visits: list[_Visit]) -> None:
         """Every (node, instance, mesh primitive) of the scene as a `GltfPrimitive` in traversal
-        order, appended to self.primitives. All instances of a mesh primitive (the nodes using
-        the mesh and their EXT_mesh_gpu_instancing instances) are transformed by one batched
-        NumPy product, and each `GltfPrimitive` holds views of the results and shares the
-        primitive's triangles and texture coordinates: an instance costs its float32 world-space
-        positions, normals and tangents and one small object."""
-        uses: dict[int, list] = {}  # mesh -> the (n, 4, 4) world matrices of its instances, in order
-        entries = []  # traversal order: (visit, mesh, first row of its instances, count, instanced?)
-        filled: dict[int, int] = {}  # mesh -> instances so far
+        order, appended to self.primitives. All instances of a mesh primitive that are not
+        deformed (the nodes using the mesh and their EXT_mesh_gpu_instancing instances) are
+        transformed by one batched NumPy product, and each `GltfPrimitive` holds views of the
+        results and shares the primitive's triangles and texture coordinates: an instance costs its
+        float32 world-space positions, normals and tangents and one small object. A node whose
+        mesh is skinned or has non-zero morph weights is posed on its own (`_posed`); primitives
+        that animations, skins or morph targets can move carry their object-space data
+        (`GltfPrimitive.deform`, shared arrays)."""
+        uses: dict[int, list] = {}  # mesh -> the (n, 4, 4) world matrices of its static instances, in order
+        entries = []  # traversal order: (visit, mesh, first row, count, instanced?, instance matrices, deformation)
+        filled: dict[int, int] = {}  # mesh -> static instances so far
         for v in visits:
             if get(v.node, "mesh") is None:
                 continue
             self.context = v
-            m, _ = self.mesh_of(v)
+            m, mesh = self.mesh_of(v)
             inst = (get(v.node, "extensions", {}) or {}).get("EXT_mesh_gpu_instancing")
-            worlds = v.world[None] if inst is None else v.world @ self._instance_matrices(inst, v)
+            local = np.eye(4)[None] if inst is None else self._instance_matrices(inst, v)
+            sk = get(v.node, "skin")
+            ntargets = self._target_count(v.index)
+            w = node_weights(self.gltf, v.index, m, ntargets, self.morph_weights) if ntargets else None
+            deformed = sk is not None or (w is not None and np.any(w != 0))
+            if deformed:
+                entries.append((v, m, -1, local.shape[0], inst is not None, local, (sk, w)))
+                continue
+            worlds = v.world @ local
             rows = uses.setdefault(m, [])
-            entries.append((v, m, filled.get(m, 0), worlds.shape[0], inst is not None))
+            entries.append((v, m, filled.get(m, 0), worlds.shape[0], inst is not None, local, (sk, w)))
             filled[m] = filled.get(m, 0) + worlds.shape[0]
             rows.append(worlds)
-        placed: dict[tuple[int, int], tuple] = {}  # (mesh, primitive) -> its instances, batched
-        for m, rows in uses.items():
+        shapes: dict[tuple[int, int], tuple] = {}  # (mesh, primitive) -> (material, shape, windings)
+        for v, m, *_ in entries:
             mesh = self.gltf.meshes[m]
-            worlds = np.concatenate(rows) if len(rows) > 1 else rows[0]
             for p, prim in enumerate(get(mesh, "primitives", []) or []):
+                if (m, p) in shapes:
+                    continue
                 self.context = pointer("meshes", m, "primitives", p)
                 material_index = self._material_index(prim, m, p)
                 shape = self._shape(m, mesh, p, prim, self.materials[material_index])
@@ -459,16 +533,36 @@ class _Loader:
                     ccw = np.ascontiguousarray(shape.tris, np.int32)
                     cw = np.ascontiguousarray(ccw[:, [0, 2, 1]])
                     ccw.flags.writeable = cw.flags.writeable = False
-                    placed[m, p] = (material_index, shape, (ccw, cw), *self._transform(shape, worlds))
+                    shapes[m, p] = (material_index, shape, (ccw, cw))
+                else:
+                    shapes[m, p] = None
+        placed: dict[tuple[int, int], tuple] = {}  # (mesh, primitive) -> its static instances, batched
+        for m, rows in uses.items():
+            worlds = np.concatenate(rows) if len(rows) > 1 else rows[0]
+            for p in range(len(get(self.gltf.meshes[m], "primitives", []) or [])):
+                if shapes.get((m, p)) is not None:
+                    placed[m, p] = self._transform(shapes[m, p][1], worlds)
         self.context = ""
-        for v, m, first, count, instanced in entries:
+        for v, m, first, count, instanced, local, (sk, w) in entries:
             mesh = self.gltf.meshes[m]
             name = get(mesh, "name")
             mesh_name = name if isinstance(name, str) and name else f"mesh{m}"
-            prims = [(p, placed[m, p]) for p in range(len(get(mesh, "primitives", []) or [])) if (m, p) in placed]
-            for k in range(count):
-                row = first + k
-                for p, (material_index, shape, windings, pos, nrm, tan, mirrored, worlds) in prims:
+            prims = [(p, shapes[m, p]) for p in range(len(get(mesh, "primitives", []) or [])) if shapes.get((m, p)) is not None]
+            posable = sk is not None or w is not None or bool(self.moving[v.index])
+            for p, (material_index, shape, windings) in prims:
+                if first < 0:
+                    self.context = v
+                    pos, nrm, tan, mirrored, worlds = self._posed(v, m, p, shape, local, sk, w)
+                    rows = range(count)
+                else:
+                    pos, nrm, tan, mirrored, worlds = placed[m, p]
+                    rows = range(first, first + count)
+                for k, row in enumerate(rows):
+                    deform = None
+                    if posable:
+                        deform = GltfDeform(positions=shape.positions, normals=shape.normals, tangents=shape.tangents,
+                                            targets=shape.targets, skin=sk, joints=shape.joints if sk is not None else None,
+                                            weights=shape.weights if sk is not None else None, instance=local[k])
                     self.primitives.append(GltfPrimitive(
                         positions=pos[row], normals=nrm[row], indices=windings[int(mirrored[row])],
                         material=material_index, node=v.index, mesh=m, primitive=p,
@@ -476,8 +570,42 @@ class _Loader:
                         instance=k if instanced else None, world_matrix=worlds[row],
                         tangents=None if tan is None else tan[row],
                         texcoord_0=shape.texcoords.get(0), texcoord_1=shape.texcoords.get(1), color_0=shape.color,
-                        flat_normals=shape.flat_normals, generated_tangents=shape.generated_tangents,
+                        flat_normals=shape.flat_normals, generated_tangents=shape.generated_tangents, deform=deform,
                     ))
+
+    def _posed(self, v: _Visit, m: int, p: int, shape: _Shape, local: np.ndarray, sk, w):
+        """`_transform`'s outputs for a node whose mesh primitive is morphed (weights w) and/or
+        skinned (skin index sk) at the loaded pose: morph targets first, then the skin (whose
+        joints place the mesh: the node's own transform is not applied), then the instances."""
+        pos, nrm, tan = shape.positions, shape.normals, shape.tangents
+        if w is not None and shape.targets:
+            pos = morph(pos, shape.targets.get("POSITION"), w)
+            if shape.flat_normals:
+                # (flat normals again, of the morphed triangles: each corner its triangle's normal)
+                nrm = np.array(nrm, copy=True)
+                nrm[shape.tris.ravel()] = np.repeat(face_normals(pos, shape.tris), 3, axis=0)
+            elif "NORMAL" in shape.targets:
+                nrm = normalize_rows(morph(nrm, shape.targets["NORMAL"], w))
+            if tan is not None and "TANGENT" in shape.targets:
+                tan = np.concatenate([normalize_rows(morph(tan[:, :3], shape.targets["TANGENT"], w)), tan[:, 3:]], axis=1)
+        if sk is not None:
+            skin_ = self.anim.skin(sk)
+            where = f"{v.where} skin {sk}"
+            if shape.joints is None:
+                fail(self.path, loc(where, v.at + "/skin"), f"is skinned but mesh {m} primitive {p} has no JOINTS_0 "
+                     "and WEIGHTS_0 attributes", _FIX)
+            used = np.where(shape.weights > 0, shape.joints, 0)
+            if used.size and used.max() >= skin_.joints.size:
+                first = int(np.argmax((used >= skin_.joints.size).any(axis=1)))
+                fail(self.path, loc(where, pointer("meshes", m, "primitives", p, "attributes")),
+                     f"a vertex names joint {int(used.max())} but the skin has {skin_.joints.size} joints (the first such "
+                     f"vertex: {first})", _FIX)
+            mats = skin_matrices(self.worlds, skin_.joints, skin_.inverse_bind)
+            pos, nrm, tan = skin(pos, mats, used, shape.weights, nrm, tan)
+            worlds = local
+        else:
+            worlds = v.world @ local
+        return self._transform(dataclasses.replace(shape, positions=pos, normals=nrm, tangents=tan), worlds)
 
     @staticmethod
     def _transform(shape: "_Shape", worlds: np.ndarray):
@@ -576,8 +704,6 @@ class _Loader:
                  "(TRIANGLES, TRIANGLE_STRIP, TRIANGLE_FAN)",
                  "remove the point/line primitives from the asset (or convert them to triangle geometry) and re-export")
         attrs = primitive_attributes(prim)
-        if get(prim, "targets"):
-            self._ignore("morph targets", f"mesh {m} (the base shape is loaded, without morph weights)")
         if "POSITION" not in attrs:
             self.notes.append(f"{loc(where, at)} has no POSITION attribute and is skipped (as the spec says)")
             return None
@@ -653,6 +779,8 @@ class _Loader:
                  "(TRIANGLES needs a non-zero multiple of 3, strips and fans at least 3)", _FIX)
         tris = triangle_list(idx, mode)
         arrays = {"positions": positions}
+        arrays.update(self._targets(prim, where, at, n))
+        arrays.update(self._skin_attributes(attrs, where, at, n, draco))
         if tangents is not None:
             arrays["tangents"] = np.asarray(tangents, np.float64)
         for s, uv in texcoords.items():
@@ -676,7 +804,17 @@ class _Loader:
                 keys = list(arrays)
                 welded, tris = weld([arrays[k] for k in keys], tris)
                 arrays = dict(zip(keys, welded))
+        targets = {}
+        for name in ("POSITION", "NORMAL", "TANGENT"):
+            keys = sorted((k for k in arrays if k.startswith("target ") and k.endswith(" " + name)),
+                          key=lambda k: int(k.split()[1]))
+            if keys and not (flat and name != "POSITION"):  # (flat normals are made from the posed positions)
+                targets[name] = np.stack([arrays[k] for k in keys])
+                targets[name].flags.writeable = False
         return _Shape(
+            targets=targets,
+            joints=arrays.get("joints"),
+            weights=arrays.get("weights"),
             positions=arrays["positions"],
             normals=arrays["normals"],
             tris=tris,
@@ -686,6 +824,59 @@ class _Loader:
             flat_normals=flat,
             generated_tangents=generated,
         )
+
+    def _targets(self, prim, where, at, n) -> dict:
+        """The primitive's morph targets as {'target k NAME': (V, 3) float64 deltas}."""
+        out = {}
+        targets = get(prim, "targets", []) or []
+        for k, tgt in enumerate(targets):
+            for name, i in tgt.items():
+                if name not in ("POSITION", "NORMAL", "TANGENT"):
+                    continue  # (TEXCOORD_n and COLOR_n targets: not animated)
+                d = self.buffers.accessor(i, f"{where} target {k} {name}", f"{at}/targets/{k}/{name}",
+                                          allowed_types=("VEC3",), allowed_components=(5126, 5120, 5122), finite=True)
+                if d.dtype.kind != "f":
+                    fail(self.path, loc(f"{where} target {k} {name}", f"{at}/targets/{k}/{name}"),
+                         "is an integer accessor without normalized: true", _FIX)
+                if d.shape[0] != n:
+                    fail(self.path, loc(f"{where} target {k} {name}", f"{at}/targets/{k}/{name}"),
+                         f"has {d.shape[0]} elements but POSITION has {n}", _FIX)
+                out[f"target {k} {name}"] = np.asarray(d, np.float64)
+        return out
+
+    def _skin_attributes(self, attrs, where, at, n, draco) -> dict:
+        """{'joints': (V, 4s) int64, 'weights': (V, 4s) float64} from JOINTS_0..s-1 and
+        WEIGHTS_0..s-1 (weights normalised to sum 1; a vertex without weight follows its first
+        joint), or {} without them."""
+        sets = 0
+        while f"JOINTS_{sets}" in attrs and f"WEIGHTS_{sets}" in attrs:
+            sets += 1
+        if sets == 0:
+            return {}
+        joints, weights = [], []
+        for k in range(sets):
+            j = self._attribute(attrs, f"JOINTS_{k}", where, at, ("VEC4",), (5121, 5123), draco)
+            w = self._attribute(attrs, f"WEIGHTS_{k}", where, at, ("VEC4",), (5126, 5121, 5123), draco)
+            if w.dtype.kind != "f":
+                fail(self.path, loc(f"{where} WEIGHTS_{k}", f"{at}/attributes/WEIGHTS_{k}"),
+                     "is an integer accessor without normalized: true", _FIX)
+            for name, arr in ((f"JOINTS_{k}", j), (f"WEIGHTS_{k}", w)):
+                if arr.shape[0] != n:
+                    fail(self.path, loc(f"{where} {name}", f"{at}/attributes/{name}"),
+                         f"has {arr.shape[0]} elements but POSITION has {n}", _FIX)
+            joints.append(np.asarray(j, np.int64))
+            weights.append(np.asarray(w, np.float64))
+        j = np.concatenate(joints, axis=1)
+        w = np.concatenate(weights, axis=1)
+        if (w < 0).any():
+            first = int(np.argmax((w < 0).any(axis=1)))
+            fail(self.path, loc(f"{where} WEIGHTS_n", f"{at}/attributes"), f"has negative skin weights (the first at "
+                 f"vertex {first})", _FIX)
+        total = w.sum(axis=1, keepdims=True)
+        empty = total[:, 0] <= 0
+        w = np.where(total > 0, w / np.where(total > 0, total, 1.0), 0.0)
+        w[empty, 0] = 1.0
+        return {"joints": j, "weights": w}
 
     def _generate_tangents(self, arrays, tris, material, where, unwelded):
         """MikkTSpace tangents (object space) into arrays['tangents'], unwelding arrays first.
@@ -790,7 +981,7 @@ class _Loader:
 
 
 def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, roots=(),
-              ray_engine: str | None = None) -> GltfAsset:
+              ray_engine: str | None = None, time: float | None = None, animation=None) -> GltfAsset:
     """Load a glTF 2.0 asset (.gltf with external or data: URIs, or .glb) flattened to world space.
 
     Args:
@@ -806,6 +997,11 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, root
         ray_engine: "embree" or "jax" when the asset is loaded to be rendered: the memory check
             made before any buffer is read then also counts that engine's acceleration structure
             over every instanced triangle (`jaxpbr.load_gltf` and `jaxpbr render` pass it).
+        time: seconds into `animation`: the nodes' transforms and morph weights at that time
+            (glTF 2.0 §3.11: keys clamped at both ends; STEP, LINEAR with quaternion slerp,
+            CUBICSPLINE). None with animation None: the rest pose. Skins and morph weights apply
+            in every pose (the rest pose uses the nodes' and meshes' `weights`).
+        animation: which animation (an index or a name; default the first when a time is given).
 
     Returns:
         `GltfAsset`: one `GltfPrimitive` per (node, mesh primitive) of the scene, in world space
@@ -819,13 +1015,13 @@ def read_gltf(path, *, scene: int | None = None, lazy_images: bool = False, root
         named in one error). Nothing is returned half-loaded.
 
     Warns (one `UserWarning` per kind, listed in `GltfAsset.warnings`): extensionsUsed that are
-    ignored; skins, morph targets and animations (the static pose/base shape is loaded); texture
+    ignored; animation channels of properties not animated (KHR_animation_pointer); texture
     slots without a decodable image; tangents that cannot be generated.
     """
     path = Path(path)
     if ray_engine not in (None, "embree", "jax"):
         raise ValueError(f"ray_engine must be None, 'embree' or 'jax', got {ray_engine!r}")
-    loader = _Loader(path, scene, lazy_images, roots, ray_engine)
+    loader = _Loader(path, scene, lazy_images, roots, ray_engine, time, animation)
     # The load makes a few objects per node and per instance and keeps them all: Python's cyclic
     # collector would walk them again and again (a million instances: 68 s with it, ... without).
     collecting = gc.isenabled()

@@ -747,6 +747,20 @@ _SKIN = _Kind({"inverseBindMatrices": _ref("accessors"), "skeleton": _ref("nodes
 
 _SCENE = _Kind({"nodes": _IntArray(_ref("nodes"))})
 
+_ANIMATION_CHANNEL = _Kind({
+    "sampler": _Int(lo=0),  # (an index into the animation's own samplers: checked by the reader)
+    "target": _Obj(_Kind({"node": _ref("nodes"), "path": _Str()}, ("path",), named=False)),
+}, ("sampler", "target"), named=False)
+
+_ANIMATION_SAMPLER = _Kind({
+    "input": _ref("accessors"),
+    "output": _ref("accessors"),
+    "interpolation": _Str(("LINEAR", "STEP", "CUBICSPLINE")),
+}, ("input", "output"), named=False)
+
+_ANIMATION = _Kind({"channels": _ObjArray(_ANIMATION_CHANNEL, lo=1), "samplers": _ObjArray(_ANIMATION_SAMPLER, lo=1)},
+                   ("channels", "samplers"))
+
 _LIGHT = _Kind({
     "type": _Str(("directional", "point", "spot")),
     "color": _nums(3, _UNIT),
@@ -762,7 +776,7 @@ _ASSET = _Kind({"version": _Str(), "minVersion": _Str(), "generator": _Str(), "c
 #: The top-level arrays of objects, each with its kind (the index references count their lengths).
 _ARRAYS = {
     "accessors": _ACCESSOR,
-    "animations": _Kind({}),  # (not read: the objects' types only)
+    "animations": _ANIMATION,
     "buffers": _BUFFER,
     "bufferViews": _BUFFER_VIEW,
     "cameras": _CAMERA,

@@ -10,7 +10,12 @@ import numpy as np
 
 __all__ = [
     "TEXTURE_CHANNELS",
+    "GltfAnimation",
     "GltfAsset",
+    "GltfChannel",
+    "GltfDeform",
+    "GltfNodes",
+    "GltfSkin",
     "GltfCamera",
     "GltfImage",
     "GltfLight",
@@ -182,6 +187,89 @@ class GltfImage:
         return f"GltfImage({self.index}, {self.name!r}, {self.mime_type}, {self.source}, {shape})"
 
 
+@dataclass(frozen=True, eq=False)
+class GltfChannel:
+    """One animated property of a node: `path` ('translation', 'rotation', 'scale' or 'weights'),
+    its sampler's `interpolation` ('LINEAR', 'STEP', 'CUBICSPLINE'), key `times` (K,) float64
+    strictly increasing (seconds) and `values`: (K, C) float64, or (K, 3, C) for CUBICSPLINE
+    (in-tangent, value, out-tangent); C is 3, 4 (quaternion x y z w) or the mesh's morph targets."""
+
+    node: int
+    path: str
+    interpolation: str
+    times: np.ndarray
+    values: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class GltfAnimation:
+    """An animation of the file: its index, name ('' when absent) and channels. Its time runs from
+    0 to `duration` (the last key time of its channels)."""
+
+    index: int
+    name: str
+    channels: tuple[GltfChannel, ...]
+
+    @property
+    def duration(self) -> float:
+        return max((float(c.times[-1]) for c in self.channels), default=0.0)
+
+    @property
+    def nodes(self) -> frozenset:
+        """The nodes whose transform or morph weights it animates."""
+        return frozenset(c.node for c in self.channels)
+
+
+@dataclass(frozen=True, eq=False)
+class GltfSkin:
+    """A skin: its `joints` (J,) node indices and `inverse_bind` (J, 4, 4) float64 matrices
+    (identities when the file gives none)."""
+
+    index: int
+    name: str
+    joints: np.ndarray
+    inverse_bind: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class GltfNodes:
+    """Every node of the file (not only the loaded scene's): `parents` (N,) (-1 for a root), the rest
+    transform as `translation` (N, 3), `rotation` (N, 4) x y z w, `scale` (N, 3) and as `matrix`
+    (N, 4, 4) (a node given by its matrix: that matrix, `has_matrix`), and `levels`: the nodes
+    grouped by depth (`jaxpbr.geometry.pose.hierarchy_levels`)."""
+
+    parents: np.ndarray
+    translation: np.ndarray
+    rotation: np.ndarray
+    scale: np.ndarray
+    matrix: np.ndarray
+    has_matrix: np.ndarray
+    levels: tuple
+
+
+@dataclass(frozen=True, eq=False)
+class GltfDeform:
+    """What poses a primitive whose placement changes with its nodes (animated, skinned or morphed),
+    in object space with the primitive's vertex order (`GltfPrimitive.positions` is this posed at
+    the time loaded):
+
+    positions, normals: (V, 3) float64; tangents: (V, 4) float64 or None.
+    targets: morph-target deltas {'POSITION'|'NORMAL'|'TANGENT': (K, V, 3) float64} ({} without).
+    skin: the node's skin index or None; joints, weights: (V, n) int64 indices into the skin's
+        joints and float64 weights (rows summing to 1), n = 4 x the JOINTS_n/WEIGHTS_n sets.
+    instance: (4, 4) float64, the EXT_mesh_gpu_instancing transform inside the node (identity
+        without instancing)."""
+
+    positions: np.ndarray
+    normals: np.ndarray
+    tangents: np.ndarray | None
+    targets: dict
+    skin: int | None
+    joints: np.ndarray | None
+    weights: np.ndarray | None
+    instance: np.ndarray
+
+
 @dataclass(eq=False, slots=True)
 class GltfPrimitive:
     """One mesh primitive instanced by one node, in world space, as a triangle list.
@@ -205,6 +293,8 @@ class GltfPrimitive:
         name: 'mesh name/primitive index' (+ '#instance').
         world_matrix: (4, 4) float64 node-to-world matrix.
         flat_normals: the normals were generated (flat); generated_tangents: the tangents were.
+        deform: `GltfDeform` for a primitive that animations, skins or morph targets move (what
+            `jaxpbr.rendering.animated` poses it from), else None.
     """
 
     positions: np.ndarray
@@ -223,6 +313,7 @@ class GltfPrimitive:
     flat_normals: bool = False
     generated_tangents: bool = False
     instance: int | None = None
+    deform: GltfDeform | None = None
 
     @property
     def num_vertices(self) -> int:
@@ -321,6 +412,10 @@ class GltfAsset:
         bounds: (2, 3) float64 world AABB [min, max] of all positions, None without geometry.
         extensions_used: the file's extensionsUsed.
         warnings: the messages `read_gltf` warned (ignored extensions and features).
+        animations: every `GltfAnimation` of the file; skins: the `GltfSkin`s the scene's meshes
+            use (by index); nodes: `GltfNodes`, every node's parent and rest transform.
+        time, animation: the time (seconds) and the index of the animation the primitives are
+            posed at (None, None: the rest pose, skins and default morph weights applied).
     """
 
     path: Path
@@ -335,6 +430,11 @@ class GltfAsset:
     bounds: np.ndarray | None
     extensions_used: tuple[str, ...] = ()
     warnings: tuple[str, ...] = ()
+    animations: tuple = ()
+    skins: dict = field(default_factory=dict)
+    nodes: GltfNodes | None = None
+    time: float | None = None
+    animation: int | None = None
 
     def summary(self) -> dict[str, Any]:
         """Counts: primitives, triangles, vertices, materials, images, textured slots, lights, cameras."""
