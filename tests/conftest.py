@@ -174,8 +174,9 @@ def pytest_sessionstart(session):
         return
     # (where the tests look for them: the checkout's node_modules, or the JAXPBR_* variables)
     from gltf_writer import gltf_transform_missing, validator_missing
+    from three_oracle import three_missing
 
-    missing = [why for why in (validator_missing(), gltf_transform_missing()) if why]
+    missing = [why for why in (validator_missing(), gltf_transform_missing(), three_missing()) if why]
     mikk = Path(os.environ.get("JAXPBR_MIKKTSPACE_JS", Path(__file__).resolve().parent.parent / "node_modules" / "mikktspace"))
     if not (mikk / "package.json").is_file():
         missing.append(f"the npm package mikktspace ({mikk}; npm install --no-save mikktspace)")

@@ -22,7 +22,10 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = [
+    "deform",
+    "face_normals",
     "hierarchy_levels",
+    "place",
     "morph",
     "normal_matrices",
     "quaternion_matrices",
@@ -141,4 +144,45 @@ def skin(positions, joint_mats, joints, weights, normals=None, tangents=None, xp
         if tangents is not None:
             xyz = _normalize(_einsum(xp, "vab,vb->va", a, tangents[:, :3]), xp)
             tan = xp.concatenate([xyz, tangents[:, 3:] * xp.where(det < 0, -1.0, 1.0)[:, None]], axis=-1)
+    return pos, nrm, tan
+
+
+def face_normals(positions, tris, xp=np):
+    """(T, 3) unit normals of counter-clockwise triangles (zero for degenerate ones)."""
+    a, b, c = positions[tris[:, 0]], positions[tris[:, 1]], positions[tris[:, 2]]
+    return _normalize(xp.cross(b - a, c - a), xp)
+
+
+def deform(positions, normals, tangents, *, tris=None, flat_normals=False, targets=None, weights=None,
+           joint_mats=None, joints=None, joint_weights=None, xp=np):
+    """A mesh primitive's vertices morphed (targets {'POSITION'|'NORMAL'|'TANGENT': (K, V, 3)} by
+    weights (K,)) then skinned (joint_mats (J, 4, 4), joints and joint_weights (V, n)):
+    (positions, normals, tangents or None). Flat normals (the file had none) are made again from
+    the morphed triangles (tris (T, 3), counter-clockwise); the others take the NORMAL deltas."""
+    pos, nrm, tan = positions, normals, tangents
+    if targets and weights is not None:
+        pos = morph(pos, targets.get("POSITION"), weights, xp)
+        if flat_normals:
+            fn = xp.repeat(face_normals(pos, tris, xp), 3, axis=0)
+            nrm = nrm.at[tris.ravel()].set(fn) if xp is not np else _set(nrm, tris.ravel(), fn)
+        elif "NORMAL" in targets:
+            nrm = _normalize(morph(nrm, targets["NORMAL"], weights, xp), xp)
+        if tan is not None and "TANGENT" in targets:
+            tan = xp.concatenate([_normalize(morph(tan[:, :3], targets["TANGENT"], weights, xp), xp), tan[:, 3:]], axis=-1)
+    if joint_mats is not None:
+        pos, nrm, tan = skin(pos, joint_mats, joints, joint_weights, nrm, tan, xp)
+    return pos, nrm, tan
+
+
+def place(matrix, positions, normals, tangents, xp=np):
+    """Vertices through one affine matrix (4, 4): positions, normals (cofactor, renormalised),
+    tangents (xyz through the matrix, w times the sign of its determinant)."""
+    a = matrix[:3, :3]
+    pos = _einsum(xp, "ab,vb->va", a, positions) + matrix[:3, 3]
+    nm, det = normal_matrices(a, xp)
+    nrm = _normalize(_einsum(xp, "ab,vb->va", nm, normals), xp)
+    tan = None
+    if tangents is not None:
+        xyz = _normalize(_einsum(xp, "ab,vb->va", a, tangents[:, :3]), xp)
+        tan = xp.concatenate([xyz, tangents[:, 3:] * xp.where(det < 0, -1.0, 1.0)], axis=-1)
     return pos, nrm, tan

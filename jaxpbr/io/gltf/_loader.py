@@ -28,7 +28,7 @@ from ._binary import (
     pointer,
     primitive_attributes,
 )
-from ...geometry.pose import morph, skin, skin_matrices
+from ...geometry.pose import deform, skin_matrices
 from ._animation import AnimationReader, choose_animation, node_weights, nodes_at
 from ._budget import check_asset_memory
 from ._draco import DracoGeometry, decode_primitive, draco_extension
@@ -549,6 +549,7 @@ class _Loader:
             mesh_name = name if isinstance(name, str) and name else f"mesh{m}"
             prims = [(p, shapes[m, p]) for p in range(len(get(mesh, "primitives", []) or [])) if shapes.get((m, p)) is not None]
             posable = sk is not None or w is not None or bool(self.moving[v.index])
+            rest_w = None if w is None else node_weights(self.gltf, v.index, m, w.shape[0], {})
             for p, (material_index, shape, windings) in prims:
                 if first < 0:
                     self.context = v
@@ -562,7 +563,8 @@ class _Loader:
                     if posable:
                         deform = GltfDeform(positions=shape.positions, normals=shape.normals, tangents=shape.tangents,
                                             targets=shape.targets, skin=sk, joints=shape.joints if sk is not None else None,
-                                            weights=shape.weights if sk is not None else None, instance=local[k])
+                                            weights=shape.weights if sk is not None else None, instance=local[k],
+                                            tris=shape.tris, morph_weights=rest_w)
                     self.primitives.append(GltfPrimitive(
                         positions=pos[row], normals=nrm[row], indices=windings[int(mirrored[row])],
                         material=material_index, node=v.index, mesh=m, primitive=p,
@@ -577,17 +579,6 @@ class _Loader:
         """`_transform`'s outputs for a node whose mesh primitive is morphed (weights w) and/or
         skinned (skin index sk) at the loaded pose: morph targets first, then the skin (whose
         joints place the mesh: the node's own transform is not applied), then the instances."""
-        pos, nrm, tan = shape.positions, shape.normals, shape.tangents
-        if w is not None and shape.targets:
-            pos = morph(pos, shape.targets.get("POSITION"), w)
-            if shape.flat_normals:
-                # (flat normals again, of the morphed triangles: each corner its triangle's normal)
-                nrm = np.array(nrm, copy=True)
-                nrm[shape.tris.ravel()] = np.repeat(face_normals(pos, shape.tris), 3, axis=0)
-            elif "NORMAL" in shape.targets:
-                nrm = normalize_rows(morph(nrm, shape.targets["NORMAL"], w))
-            if tan is not None and "TANGENT" in shape.targets:
-                tan = np.concatenate([normalize_rows(morph(tan[:, :3], shape.targets["TANGENT"], w)), tan[:, 3:]], axis=1)
         if sk is not None:
             skin_ = self.anim.skin(sk)
             where = f"{v.where} skin {sk}"
@@ -601,10 +592,12 @@ class _Loader:
                      f"a vertex names joint {int(used.max())} but the skin has {skin_.joints.size} joints (the first such "
                      f"vertex: {first})", _FIX)
             mats = skin_matrices(self.worlds, skin_.joints, skin_.inverse_bind)
-            pos, nrm, tan = skin(pos, mats, used, shape.weights, nrm, tan)
             worlds = local
         else:
+            mats = used = None
             worlds = v.world @ local
+        pos, nrm, tan = deform(shape.positions, shape.normals, shape.tangents, tris=shape.tris, flat_normals=shape.flat_normals,
+                               targets=shape.targets, weights=w, joint_mats=mats, joints=used, joint_weights=shape.weights)
         return self._transform(dataclasses.replace(shape, positions=pos, normals=nrm, tangents=tan), worlds)
 
     @staticmethod

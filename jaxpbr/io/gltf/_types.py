@@ -258,7 +258,11 @@ class GltfDeform:
     skin: the node's skin index or None; joints, weights: (V, n) int64 indices into the skin's
         joints and float64 weights (rows summing to 1), n = 4 x the JOINTS_n/WEIGHTS_n sets.
     instance: (4, 4) float64, the EXT_mesh_gpu_instancing transform inside the node (identity
-        without instancing)."""
+        without instancing).
+    tris: (T, 3) int64 counter-clockwise triangles in object space (flat normals are made again
+        from the morphed triangles).
+    morph_weights: (K,) float64 the weights when no animation sets them (the node's, else the
+        mesh's, else zeros), or None without morph targets."""
 
     positions: np.ndarray
     normals: np.ndarray
@@ -268,6 +272,8 @@ class GltfDeform:
     joints: np.ndarray | None
     weights: np.ndarray | None
     instance: np.ndarray
+    tris: np.ndarray
+    morph_weights: np.ndarray | None
 
 
 @dataclass(eq=False, slots=True)
