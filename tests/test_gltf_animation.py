@@ -19,7 +19,7 @@ from gltf_animated import FIXTURES
 from jaxpbr.errors import InputError
 from jaxpbr.geometry.animation import sample, slerp
 from jaxpbr.io.gltf import read_gltf
-from jaxpbr.io.gltf._animation import pose_primitives, posed_asset
+from jaxpbr.io.gltf import pose_primitives, posed_asset
 
 ATOL = 2e-6
 

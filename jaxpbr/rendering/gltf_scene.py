@@ -33,7 +33,7 @@ from .mesh import Mesh
 from .scene import Camera, Scene, TexturedMaterial, TextureSlot
 from .texture import Texture
 
-__all__ = ["GltfScene", "load_gltf", "frame_bounds", "scene_from_asset"]
+__all__ = ["GltfScene", "load_gltf", "frame_bounds", "material_groups", "scene_from_asset"]
 
 #: glTF texture role -> TexturedMaterial field (and the channels it reads are the glTF ones).
 _TEXTURE_FIELDS = {
@@ -63,6 +63,9 @@ class GltfScene:
     scene: Scene
     asset: GltfAsset
     notes: tuple[str, ...] = field(default=())
+    #: for each of scene.objects made from the asset's primitives, their indices in
+    #: `asset.primitives` in the order the mesh concatenates them (what `posed_scene` re-poses)
+    layout: tuple[tuple[int, ...], ...] = field(default=())
 
 
 def frame_bounds(lo, hi, *, fov_y_deg: float = 45.0, aspect: float = 16 / 9, direction=(0.45, 0.35, 1.0)) -> Camera:
@@ -137,13 +140,19 @@ def _read_only(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def material_groups(asset: GltfAsset) -> dict[int, list[int]]:
+    """{material: the indices of its primitives}, materials in order of first use: one Mesh each."""
+    by_mat: dict[int, list[int]] = {}
+    for k, p in enumerate(asset.primitives):
+        by_mat.setdefault(p.material, []).append(k)
+    return by_mat
+
+
 def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
-    """One Mesh per material of the asset's primitives (world space)."""
-    by_mat: dict[int, list] = {}
-    for p in asset.primitives:
-        by_mat.setdefault(p.material, []).append(p)
+    """One Mesh per material of the asset's primitives (world space), in `material_groups` order."""
     meshes = []
-    for mi, prims in by_mat.items():
+    for mi, idx in material_groups(asset).items():
+        prims = [asset.primitives[k] for k in idx]
         gm = asset.materials[mi]
         offs = np.cumsum([0] + [p.num_vertices for p in prims])
         tris = _read_only(np.concatenate([np.asarray(p.indices, np.int32) + int(offs[k]) for k, p in enumerate(prims)]))
@@ -278,7 +287,7 @@ def scene_from_asset(
     notes = tuple(sorted(notes))
     if notes:
         warnings.warn(f"{Path(asset.path).name}: " + "; ".join(notes), UserWarning, stacklevel=3)
-    return GltfScene(scene=scene, asset=asset, notes=notes)
+    return GltfScene(scene=scene, asset=asset, notes=notes, layout=tuple(tuple(v) for v in material_groups(asset).values()))
 
 
 def load_gltf(
@@ -299,6 +308,8 @@ def load_gltf(
     asset_lights: bool = True,
     background=(0.0, 0.0, 0.0),
     roots=(),
+    time: float | None = None,
+    animation=None,
 ) -> Scene:
     """A glTF 2.0 asset (.gltf or .glb) as a `Scene` that `jaxpbr.render` draws. The command line
     (`jaxpbr render ASSET`) and batch jobs build their scenes with the same rules (`scene_from_asset`).
@@ -317,13 +328,17 @@ def load_gltf(
         leaves those out).
     roots: folders besides the asset's own that its buffer and image URIs may name (by default
         an asset reads only regular files inside its own folder; docs/gltf.md, "Untrusted assets").
+    time, animation: the asset posed at `time` seconds of `animation` (an index or a name; default
+        the first): node transforms, skins and morph weights, its cameras and lights with them
+        (glTF 2.0 §3.11). Without them, the rest pose (skins and default morph weights applied).
+        `posed_scene` poses a loaded scene again inside JAX (differentiable, vmappable).
     The asset itself (materials, images, counts) is `jaxpbr.io.gltf.read_gltf(path)`;
     `scene_from_asset` builds the scene from one already read and also returns what the scene
     does not reproduce (`GltfScene.notes`, also warned).
     """
     from .plan import mesh_engine
 
-    asset = read_gltf(path, scene=scene, roots=roots, ray_engine=mesh_engine())
+    asset = read_gltf(path, scene=scene, roots=roots, ray_engine=mesh_engine(), time=time, animation=animation)
     return scene_from_asset(
         asset, camera=camera, width=width, height=height, camera_position=camera_position, camera_target=camera_target,
         fov_y_deg=fov_y_deg, supersample=supersample, environment=environment, environment_intensity=environment_intensity,

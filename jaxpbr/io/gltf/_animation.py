@@ -295,6 +295,7 @@ def posed_asset(asset, time=None, animation=None):
         if isinstance(time, bool) or not isinstance(time, (int, float, np.integer, np.floating)) or not np.isfinite(time):
             fail(asset.path, f"time={time!r:.40}", "is not a finite number of seconds", "pass the time in seconds, e.g. time=1.5")
     posed = pose_primitives(asset, None if playing is None else float(time), playing)
+    worlds = nodes_at(asset.nodes, playing, 0.0 if playing is None else float(time))[0]
     prims = list(asset.primitives)
     for k, (pos, nrm, tan) in posed.items():
         p = prims[k]
@@ -304,8 +305,16 @@ def posed_asset(asset, time=None, animation=None):
         for a in arrs:
             if a is not None:
                 a.flags.writeable = False
-        prims[k] = dataclasses.replace(p, positions=arrs[0], normals=arrs[1], tangents=arrs[2] if p.tangents is not None else None)
+        prims[k] = dataclasses.replace(p, positions=arrs[0], normals=arrs[1], tangents=arrs[2] if p.tangents is not None else None,
+                                       world_matrix=worlds[p.node] @ p.deform.instance)
+    # cameras and lights on animated nodes move with them
+    cameras = [dataclasses.replace(c, world_matrix=worlds[c.node].copy()) for c in asset.cameras]
+    lights = []
+    for lt in asset.lights:
+        w = worlds[lt.node]
+        d = w[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        lights.append(dataclasses.replace(lt, position=w[:3, 3].copy(), direction=d / max(float(np.linalg.norm(d)), 1e-300)))
     lo = np.min([p.positions.min(axis=0) for p in prims if p.num_vertices], axis=0) if prims else None
     hi = np.max([p.positions.max(axis=0) for p in prims if p.num_vertices], axis=0) if prims else None
-    return dataclasses.replace(asset, primitives=prims, bounds=None if lo is None else np.stack([lo, hi]).astype(np.float64),
+    return dataclasses.replace(asset, primitives=prims, cameras=cameras, lights=lights, bounds=None if lo is None else np.stack([lo, hi]).astype(np.float64),
                                time=None if playing is None else float(time), animation=None if playing is None else playing.index)
