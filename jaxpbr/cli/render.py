@@ -13,6 +13,7 @@ import numpy as np
 
 from .. import _program_cache, color
 from ..conventions import CONVENTIONS, luminance
+from ..errors import InputError
 from ..io import image
 from ..io.atomic import OutputSet
 from ..rendering.demo import demo_scene
@@ -102,8 +103,44 @@ def add_command(sub) -> None:
     g.add_argument("--asset-root", action="append", default=None, metavar="DIR",
                    help="glTF: a folder besides the asset's own whose files its buffer and image URIs may name; repeat for "
                         "more (default: an asset reads only regular files inside its own folder; docs/gltf.md, 'Untrusted assets')")
+    g.add_argument("--time", type=_time_arg, default=None, metavar="SECONDS",
+                   help="glTF: pose the asset at this time of an animation (node transforms, skins, morph weights; keys "
+                        "clamped at both ends) (default: the rest pose)")
+    g.add_argument("--animation", default=None, metavar="NAME|INDEX",
+                   help="glTF: the animation --time and --frames play (default: the first)")
+    g.add_argument("--frames", type=_frames_arg, default=None, metavar="START:END:STEP",
+                   help="glTF: render a sequence at times START, START+STEP, ... up to END (seconds), one file per frame: "
+                        "-o must hold a frame-number pattern such as frame_%%04d.png")
     r.add_argument("--no-lights", action="store_true", help="demo only: leave out the point lights")
     r.set_defaults(func=cmd_render)
+
+
+#: The most frames one --frames run renders (each is a whole render).
+MAX_FRAMES = 100_000
+
+
+def _time_arg(text: str) -> float:
+    try:
+        t = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not math.isfinite(t):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number of seconds")
+    return t
+
+
+def _frames_arg(text: str) -> tuple[float, ...]:
+    """START:END:STEP -> the times START + k STEP <= END (END included to a millionth of STEP)."""
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"{text!r} is not START:END:STEP (seconds), e.g. 0:2:0.04")
+    start, end, step = (_time_arg(p) for p in parts)
+    if step <= 0 or end < start:
+        raise argparse.ArgumentTypeError(f"{text!r}: STEP must be > 0 and END >= START")
+    n = int((end - start) / step + 1e-6) + 1
+    if n > MAX_FRAMES:
+        raise argparse.ArgumentTypeError(f"{text!r} makes {n} frames; at most {MAX_FRAMES} (use a larger STEP)")
+    return tuple(start + k * step for k in range(n))
 
 
 #: What to lower, named as the command line (demo) or the scene file spells it.
@@ -157,22 +194,42 @@ def _gltf_scene(args):
     from ..rendering.gltf_scene import scene_from_asset
     from ..rendering.plan import mesh_engine
 
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        asset = read_gltf(args.scene, roots=args.asset_root or (), ray_engine=mesh_engine())
-    for w in caught:
-        print(f"jaxpbr: warning: {w.message}")
+    from ..io.gltf import posed_asset
+
+    loaded = getattr(args, "_loaded", None)
+    if loaded is None:  # (read once: the frames of --frames re-pose it)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            rest = read_gltf(args.scene, roots=args.asset_root or (), ray_engine=mesh_engine())
+        for w in caught:
+            print(f"jaxpbr: warning: {w.message}")
+        loaded = args._loaded = {"rest": rest, "camera": None}
+    rest = loaded["rest"]
+    posing = args.time is not None or args.animation is not None
+    animation = args.animation
+    if isinstance(animation, str) and animation.isdigit():
+        animation = int(animation)
+    try:
+        asset = posed_asset(rest, 0.0 if args.time is None else args.time, animation) if posing else rest
+    except InputError as e:
+        raise CLIError(str(e).replace("time=", "--time ").replace("animation=", "--animation ")) from None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         gs = scene_from_asset(
-            asset, width=args.width or 1280, height=args.height or 720, camera_position=args.camera_position,
+            asset, camera=loaded["camera"], width=args.width or 1280, height=args.height or 720, camera_position=args.camera_position,
             camera_target=args.camera_target, fov_y_deg=args.fov_y, supersample=args.supersample or 1,
             environment=args.environment, environment_intensity=args.environment_intensity,
         )
-    for note in gs.notes:
-        print(f"jaxpbr: note: {note}")
+    if args.frames is not None and not asset.cameras:
+        loaded["camera"] = gs.scene.camera  # (a framing of the first frame's bounds, kept for the sequence)
+    if getattr(args, "_frame", 0) == 0:
+        for w in caught:
+            print(f"jaxpbr: warning: {w.message}")
+        for note in gs.notes:
+            print(f"jaxpbr: note: {note}")
     s = asset.summary()
-    return gs.scene, f"glTF {Path(args.scene).name}: {s['triangles']} triangles, {s['materials']} materials"
+    when = "" if not posing else f", animation {asset.animation} ({rest.animations[asset.animation].name or 'unnamed'}) at {asset.time:g} s"
+    return gs.scene, f"glTF {Path(args.scene).name}: {s['triangles']} triangles, {s['materials']} materials{when}"
 
 
 def _aov_names(text: str | None) -> tuple[str, ...]:
@@ -191,10 +248,31 @@ def cmd_render(args) -> int:
     args.aov = _aov_names(args.aov)
     if args.aov:
         args.hdr = True
-    out = Path(args.output)
+    gltf = args.scene is not None and Path(args.scene).suffix.lower() in (".gltf", ".glb")
+    used = [f for f, v in (("--time", args.time), ("--animation", args.animation), ("--frames", args.frames)) if v is not None]
+    if used and not gltf:
+        raise CLIError(f"{', '.join(used)} apply to glTF assets (.gltf, .glb)")
+    if args.frames is None:
+        out = Path(args.output)
+        with OutputSet() as outs:
+            _check_output_path(outs, out, args.hdr)
+            return _render_to(args, out, outs)
+    if args.time is not None:
+        raise CLIError("--time and --frames exclude each other (--frames START:END:STEP sets the times)")
+    try:
+        outs_named = [Path(args.output % k) for k in range(len(args.frames))]
+    except (TypeError, ValueError):
+        raise CLIError(f"--frames writes one file per frame: --output needs one frame-number pattern such as frame_%04d.png, "
+                       f"got {args.output!r}") from None
+    if len(set(outs_named)) != len(outs_named):
+        raise CLIError(f"--output {args.output!r} names the same file for several frames; use a pattern such as frame_%04d.png")
     with OutputSet() as outs:
-        _check_output_path(outs, out, args.hdr)
-        return _render_to(args, out, outs)
+        for out in outs_named:
+            _check_output_path(outs, out, args.hdr)
+        for k, (t, out) in enumerate(zip(args.frames, outs_named)):
+            args.time, args._frame = t, k
+            _render_to(args, out, outs)
+    return 0
 
 
 def _render_to(args, out: Path, outs: OutputSet) -> int:
