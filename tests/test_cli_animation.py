@@ -67,3 +67,41 @@ def test_misuse_is_one_line_and_writes_nothing(asset, tmp_path, capsys, argv, me
 def test_time_applies_to_gltf_only(tmp_path, capsys):
     assert main(["render", "--time", "1", "-o", str(tmp_path / "d.png"), "--width", "8", "--height", "8"]) == 2
     assert "apply to glTF assets" in capsys.readouterr().err
+
+
+def test_motion_vectors_of_a_rigid_motion(asset):
+    """The motion AOV against an independent oracle: the fixture's tetrahedron moves rigidly with its
+    node, so a surface point P at t is W(t + dt) W(t)^-1 P at t + dt (W the node's closed-form world
+    matrix, `tests/gltf_animated.py`); both points projected by the camera, whose projection is
+    first checked to put each pixel's surface point at that pixel's centre."""
+    from jaxpbr.rendering.aovs import _project, aovs
+
+    path = asset
+    (path.parent / "again").mkdir(exist_ok=True)
+    _, closed = trs_animation(path.parent / "again")  # (the closed forms)
+    t, dt = 1.1, 0.02
+    kw = dict(camera_position=(3, 2, 6), camera_target=(0, 0.5, 1), width=40, height=30)
+    now, later = jp.load_gltf(path, time=t, **kw), jp.load_gltf(path, time=t + dt, **kw)
+    v = aovs(now, ["motion", "position", "mask"], next_scene=later)
+    hit = v["mask"] > 0
+    assert hit.sum() > 20
+    P = v["position"][hit].astype(np.float64)
+    ij = np.argwhere(hit)
+    np.testing.assert_allclose(_project(now.camera, P), ij[:, ::-1] + 0.5, atol=2e-3)  # (the projection)
+    W0, W1 = closed.world_matrices(t, 0)[1], closed.world_matrices(t + dt, 0)[1]
+    M = W1 @ np.linalg.inv(W0)
+    P1 = P @ M[:3, :3].T + M[:3, 3]
+    want = _project(later.camera, P1) - _project(now.camera, P)
+    assert np.abs(want).max() > 0.2  # (it moves by a fraction of a pixel or more)
+    np.testing.assert_allclose(v["motion"][hit], want, atol=2e-3)
+    assert (v["motion"][~hit] == 0).all()
+    # a static scene under a static camera: exactly 0
+    assert (aovs(now, ["motion"], next_scene=now)["motion"] == 0).all()
+
+
+def test_motion_aov_in_the_exr(asset, tmp_path):
+    out = tmp_path / "m.png"
+    assert main(["render", str(asset), "--time", "1.0", "--motion-dt", "0.05", "--aov", "motion", "-o", str(out), *CAM]) == 0
+    img, meta = jp.image.read_with_metadata(tmp_path / "m.exr", channels=("motion.X", "motion.Y"))
+    assert img.shape == (30, 40, 2) and np.abs(img).max() > 0.1
+    assert "motion vectors to t + 0.05 s" in str(meta.get("jaxpbr:scene"))

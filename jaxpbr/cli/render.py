@@ -108,6 +108,9 @@ def add_command(sub) -> None:
                         "clamped at both ends) (default: the rest pose)")
     g.add_argument("--animation", default=None, metavar="NAME|INDEX",
                    help="glTF: the animation --time and --frames play (default: the first)")
+    g.add_argument("--motion-dt", type=_time_arg, default=None, metavar="SECONDS",
+                   help="glTF: --aov motion's time step: the motion vectors carry each pixel's surface point from t to "
+                        "t + SECONDS (default: the --frames STEP, else 1/60 s)")
     g.add_argument("--frames", type=_frames_arg, default=None, metavar="START:END:STEP",
                    help="glTF: render a sequence at times START, START+STEP, ... up to END (seconds), one file per frame: "
                         "-o must hold a frame-number pattern such as frame_%%04d.png")
@@ -220,7 +223,7 @@ def _gltf_scene(args):
             camera_target=args.camera_target, fov_y_deg=args.fov_y, supersample=args.supersample or 1,
             environment=args.environment, environment_intensity=args.environment_intensity,
         )
-    if args.frames is not None and not asset.cameras:
+    if (args.frames is not None or "motion" in args.aov) and not asset.cameras:
         loaded["camera"] = gs.scene.camera  # (a framing of the first frame's bounds, kept for the sequence)
     if getattr(args, "_frame", 0) == 0:
         for w in caught:
@@ -237,7 +240,8 @@ def _aov_names(text: str | None) -> tuple[str, ...]:
 
     if text is None:
         return ()
-    names = tuple(AOVS) if text.strip() == "all" else tuple(n.strip() for n in text.split(",") if n.strip())
+    names = tuple(a for a in AOVS if a != "motion") if text.strip() == "all" else \
+        tuple(n.strip() for n in text.split(",") if n.strip())
     bad = [n for n in names if n not in AOVS]
     if bad or not names:
         raise CLIError(f"--aov: unknown AOV(s) {bad or [text]}; choose from {', '.join(AOVS)} or 'all'")
@@ -249,7 +253,10 @@ def cmd_render(args) -> int:
     if args.aov:
         args.hdr = True
     gltf = args.scene is not None and Path(args.scene).suffix.lower() in (".gltf", ".glb")
-    used = [f for f, v in (("--time", args.time), ("--animation", args.animation), ("--frames", args.frames)) if v is not None]
+    used = [f for f, v in (("--time", args.time), ("--animation", args.animation), ("--frames", args.frames),
+                           ("--motion-dt", args.motion_dt)) if v is not None]
+    if "motion" in args.aov and args.time is None and args.frames is None:
+        raise CLIError("--aov motion needs the asset's motion: give --time (with --motion-dt) or --frames")
     if used and not gltf:
         raise CLIError(f"{', '.join(used)} apply to glTF assets (.gltf, .glb)")
     if args.frames is None:
@@ -373,7 +380,18 @@ def _render_to(args, out: Path, outs: OutputSet) -> int:
         elif args.aov:  # one geometry pass for the image and its AOVs where it can be shared
             from ..rendering.aovs import render_with_aovs
 
-            hdr_device, aov_values = render_with_aovs(scene, args.aov, options=opts, progress=progress)
+            next_scene = None
+            if "motion" in args.aov:
+                dt = args.motion_dt if args.motion_dt is not None else (
+                    args.frames[1] - args.frames[0] if args.frames is not None and len(args.frames) > 1 else 1 / 60)
+                now, frame = args.time, getattr(args, "_frame", 0)
+                args.time, args._frame = now + dt, -1  # (quiet: its notes were printed with this frame's)
+                try:
+                    next_scene = _gltf_scene(args)[0]
+                finally:
+                    args.time, args._frame = now, frame
+                description += f"; motion vectors to t + {dt:g} s"
+            hdr_device, aov_values = render_with_aovs(scene, args.aov, options=opts, progress=progress, next_scene=next_scene)
         else:
             hdr_device = render(scene, options=opts, progress=progress)
     display = np.asarray(color.display(hdr_device, ev, tonemap=tonemap, encoding=encoding))
