@@ -206,7 +206,10 @@ def _gltf_scene(args):
             rest = read_gltf(args.scene, roots=args.asset_root or (), ray_engine=mesh_engine())
         for w in caught:
             print(f"jaxpbr: warning: {w.message}")
-        loaded = args._loaded = {"rest": rest, "camera": None}
+        from ..rendering.gltf_scene import environment_from
+
+        loaded = args._loaded = {"rest": rest, "camera": None, "materials": {},
+                                 "environment": environment_from(args.environment, intensity=args.environment_intensity)}
     rest = loaded["rest"]
     posing = args.time is not None or args.animation is not None
     animation = args.animation
@@ -221,7 +224,7 @@ def _gltf_scene(args):
         gs = scene_from_asset(
             asset, camera=loaded["camera"], width=args.width or 1280, height=args.height or 720, camera_position=args.camera_position,
             camera_target=args.camera_target, fov_y_deg=args.fov_y, supersample=args.supersample or 1,
-            environment=args.environment, environment_intensity=args.environment_intensity,
+            environment=loaded["environment"], material_cache=loaded["materials"],
         )
     if (args.frames is not None or "motion" in args.aov) and not asset.cameras:
         loaded["camera"] = gs.scene.camera  # (a framing of the first frame's bounds, kept for the sequence)

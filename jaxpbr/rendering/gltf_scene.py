@@ -148,8 +148,10 @@ def material_groups(asset: GltfAsset) -> dict[int, list[int]]:
     return by_mat
 
 
-def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
-    """One Mesh per material of the asset's primitives (world space), in `material_groups` order."""
+def meshes_from_asset(asset: GltfAsset, notes: set, material_cache: dict | None = None) -> list[Mesh]:
+    """One Mesh per material of the asset's primitives (world space), in `material_groups` order.
+    material_cache: {material index: jaxpbr material} kept by the caller across poses of one asset
+    (its textures' mip pyramids are made once)."""
     meshes = []
     for mi, idx in material_groups(asset).items():
         prims = [asset.primitives[k] for k in idx]
@@ -164,7 +166,7 @@ def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
             texcoords1=_concat(prims, "texcoord_1", 2, (0.0, 0.0)),
             tangents=_concat(prims, "tangents", 4, (1.0, 0.0, 0.0, 1.0)),
             colors=_concat(prims, "color_0", 4, (1.0, 1.0, 1.0, 1.0)),
-            material=material_from_gltf(asset, gm, notes),
+            material=_material(asset, mi, gm, notes, material_cache),
             double_sided=gm.double_sided,
             alpha_mode=gm.alpha_mode,
             alpha_cutoff=gm.alpha_cutoff,
@@ -172,6 +174,14 @@ def meshes_from_asset(asset: GltfAsset, notes: set) -> list[Mesh]:
             unlit=gm.unlit,
         ))
     return meshes
+
+
+def _material(asset, mi, gm, notes, cache):
+    if cache is None:
+        return material_from_gltf(asset, gm, notes)
+    if mi not in cache:
+        cache[mi] = material_from_gltf(asset, gm, notes)
+    return cache[mi]
 
 
 def lights_from_asset(asset: GltfAsset) -> list:
@@ -272,12 +282,14 @@ def scene_from_asset(
     lights=(),
     asset_lights: bool = True,
     background=(0.0, 0.0, 0.0),
+    material_cache: dict | None = None,
 ) -> GltfScene:
-    """The `GltfScene` of a loaded asset; see `load_gltf`."""
+    """The `GltfScene` of a loaded asset; see `load_gltf`. material_cache: a dict kept across calls
+    for poses of one asset (`jaxpbr.io.gltf.posed_asset`): its materials and textures are made once."""
     if not asset.primitives:
         raise InputError(f"glTF file {str(asset.path)!r} has no triangle geometry in the scene loaded; pick another scene (scene=N)")
     notes: set[str] = set()
-    meshes = meshes_from_asset(asset, notes)
+    meshes = meshes_from_asset(asset, notes, material_cache)
     if camera is None:
         camera = _asset_camera(asset, width, height, notes, position=camera_position, target=camera_target,
                                fov_y_deg=fov_y_deg, supersample=supersample)
