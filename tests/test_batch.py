@@ -102,6 +102,9 @@ BAD_ROWS = [
     ('{"name": "a", "output": {"aovs": ["depth"]}}', "add 'exr' to output.formats"),
     ('{"name": "a", "output": {"formats": ["exr"], "aovs": ["colour"]}}', "output.aovs: expected a list from"),
     ('{"name": "a", "output": {"tonemap": "filmic"}}', "output.tonemap: 'filmic' is not one of"),
+    ('{"name": "a", "output": {"formats": ["exr"], "aovs": ["motion"]}}', "'motion' needs the next frame's scene"),
+    ('{"name": "a", "time": 1.0}', "time/animation: apply to glTF assets"),
+    ('{"name": "a", "time": "soon"}', "time: expected a finite number"),
     ('{"name": "a", "output": {"bits": 12}}', "output.bits: expected 8 or 16"),
     ('{"kind": "bake", "name": "b"}', "environment: missing"),
     ('{"kind": "bake", "name": "b", "environment": "procedural:sky", "container": "zip"}', "container: 'zip' is not one of"),
@@ -332,3 +335,26 @@ def test_ray_job_whose_worker_always_dies_is_failed_with_the_cause(tmp_path, ray
     status = {r["name"]: (r["status"], r.get("attempts")) for r in s["jobs"]}
     assert status == {"img/0": ("done", 1), "img/1": ("done", 1), "doomed": ("failed", 2)}
     assert "worker died on each of 2 attempts" in s["jobs"][2]["error"]
+
+
+def test_glTF_rows_at_times(tmp_path):
+    """Rows with `time` (and `animation`) render the asset posed there: each output is the render of
+    `jaxpbr.load_gltf(path, time=t)` (same camera rules), and the times give different images."""
+    from gltf_animated import trs_animation
+
+    path, _ = trs_animation(tmp_path)
+    cam = {"position": [3, 2, 6], "target": [0, 0.5, 1]}
+    rows = [{"name": f"t{k}", "scene": path.name, "width": 24, "height": 16, "camera": cam, "time": t,
+             "animation": "trs", "environment": "procedural:sky", "output": {"formats": ["exr"]}}
+            for k, t in enumerate((0.5, 1.25))]
+    out = tmp_path / "out"
+    s = run_batch(load_jobs(_job_file(tmp_path, rows)), out)
+    assert s["counts"]["done"] == 2
+    imgs = []
+    for k, t in enumerate((0.5, 1.25)):
+        img = jp.image.read(out / f"t{k}.exr")[..., :3]
+        scene = jp.load_gltf(path, time=t, animation="trs", width=24, height=16, camera_position=(3, 2, 6),
+                             camera_target=(0, 0.5, 1), environment="procedural:sky")
+        np.testing.assert_allclose(img, np.asarray(jp.render(scene)), rtol=1e-5, atol=1e-6)
+        imgs.append(img)
+    assert np.abs(imgs[0] - imgs[1]).max() > 0.05

@@ -59,7 +59,7 @@ from .store import _LEFTOVER, STATE_DIR, SUMMARY
 __all__ = ["BakeJob", "JobFileError", "RenderJob", "load_jobs", "parse_jobs"]
 
 RENDER_FIELDS = ("kind", "name", "scene", "width", "height", "supersample", "camera", "environment",
-                 "environment_intensity", "environment_rotation", "material", "options", "output")
+                 "environment_intensity", "environment_rotation", "material", "options", "output", "time", "animation")
 CAMERA_FIELDS = ("position", "target", "up", "fov_y", "ymag")
 OUTPUT_FIELDS = ("formats", "aovs", "exposure", "tonemap", "encoding", "bits")
 FORMATS = ("png", "exr")
@@ -118,6 +118,8 @@ class RenderJob:
     aovs: tuple[str, ...]
     display: dict
     key: str
+    time: float | None = None  # a glTF asset posed at this time of `animation` (docs/gltf.md)
+    animation: int | str | None = None
 
     kind = "render"
 
@@ -303,6 +305,14 @@ def _parse_row(obj: dict, row: int, base: Path, bad: list, stamps: dict):
         elif not (isinstance(scene, Path) and scene.suffix == ".toml"):
             bad.append("environment_intensity/environment_rotation: the job has no environment; add 'environment' or drop them")
     material = _material(obj.get("material"), bad)
+    t = _number(obj, "time", bad)
+    anim = obj.get("animation")
+    if anim is not None and (isinstance(anim, bool) or not isinstance(anim, (int, str)) or (isinstance(anim, int) and anim < 0)):
+        bad.append(f"animation: expected an animation's index (>= 0) or name, got {anim!r}")
+        anim = None
+    gltf = isinstance(scene, Path) and scene.suffix.lower() in (".gltf", ".glb")
+    if (t is not None or anim is not None) and not gltf:
+        bad.append("time/animation: apply to glTF assets (.gltf, .glb) only")
     options = _options(obj.get("options", {}), bad, _file_render(scene))
     formats, aovs, display = _output(obj.get("output", {}), bad)
     if bad or name is None:
@@ -313,7 +323,7 @@ def _parse_row(obj: dict, row: int, base: Path, bad: list, stamps: dict):
     return RenderJob(row=row, name=name, scene=scene, width=width, height=height, supersample=supersample,
                      camera=camera, environment=environment, environment_intensity=intensity,
                      environment_rotation=rotation, material=material, options=options, formats=formats,
-                     aovs=aovs, display=display, key=key)
+                     aovs=aovs, display=display, key=key, time=t, animation=anim)
 
 
 def _parse_bake(obj: dict, row: int, name, base: Path, bad: list, stamps: dict):
@@ -558,8 +568,13 @@ def _output(out, bad):
         bad.append(f"output.formats: expected a list of distinct formats from {', '.join(FORMATS)}, got {formats!r}")
         formats = ["png"]
     aovs = out.get("aovs", [])
-    if not isinstance(aovs, list) or any(a not in AOVS for a in aovs):
-        bad.append(f"output.aovs: expected a list from {', '.join(AOVS)}, got {aovs!r}")
+    still = [a for a in AOVS if a != "motion"]  # (motion vectors need the next frame: `jaxpbr render --frames`)
+    if isinstance(aovs, list) and "motion" in aovs:
+        bad.append("output.aovs: 'motion' needs the next frame's scene; render sequences with motion vectors with "
+                   "jaxpbr render ASSET --frames START:END:STEP --aov motion")
+        aovs = []
+    elif not isinstance(aovs, list) or any(a not in still for a in aovs):
+        bad.append(f"output.aovs: expected a list from {', '.join(still)}, got {aovs!r}")
         aovs = []
     if aovs and "exr" not in formats:
         bad.append("output.aovs: AOVs are EXR layers; add 'exr' to output.formats")

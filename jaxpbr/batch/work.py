@@ -154,8 +154,10 @@ class Worker:
         # ASSET --camera-position ...` does): they are part of what is loaded.
         c = job.camera or {}
         view = tuple((k, tuple(np.ravel(c[k]).tolist())) for k in ("position", "target", "fov_y") if k in c) if _is_gltf(job.scene) else ()
+        pose = (job.time, job.animation)
         base, file_options, file_display = self._scenes.get_or(
-            (repr(job.scene), W, H, own_env, view), lambda: self._load_scene(job.scene, W, H, environment=own_env, view=dict(view)))
+            (repr(job.scene), W, H, own_env, view, pose),
+            lambda: self._load_scene(job.scene, W, H, environment=own_env, view=dict(view), pose=pose))
         cam = base.camera
         if cam is not None:
             changes = {}
@@ -193,7 +195,7 @@ class Worker:
             base = base.replace(objects=[_with_material(o, job.material) for o in base.objects])
         return base, file_options, file_display
 
-    def _load_scene(self, source, W, H, *, environment: bool = True, view=None):
+    def _load_scene(self, source, W, H, *, environment: bool = True, view=None, pose=(None, None)):
         if source == "demo":
             return demo_scene(W or 1280, H or 720, environment=environment), {}, {}
         if isinstance(source, tuple):  # ("factory", "module:function", args-json, folder)
@@ -236,7 +238,7 @@ class Worker:
         view = view or {}
         fov = view.get("fov_y")
         return load_gltf(path, width=W or 1280, height=H or 720, camera_position=view.get("position"), camera_target=view.get("target"),
-                         fov_y_deg=None if fov is None else float(fov[0])), {}, {}
+                         fov_y_deg=None if fov is None else float(fov[0]), time=pose[0], animation=pose[1]), {}, {}
 
     # -- bake jobs ----------------------------------------------------------------------------
 
