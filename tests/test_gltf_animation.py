@@ -119,7 +119,7 @@ def test_jax_pose_matches_numpy_and_differentiates(fixtures):
         np.testing.assert_allclose(np.asarray(batch[i]), expected(t), atol=1e-5)
     # d positions / d t inside a key interval against central differences of the closed form
     t0, h = 0.625, 1e-4
-    jac = np.asarray(jax.jacfwd(positions)(jnp.float32(t0)))
+    jac = np.asarray(jax.jit(jax.jacfwd(positions))(jnp.float32(t0)))
     fd = (expected(t0 + h) - expected(t0 - h)) / (2 * h)
     assert np.isfinite(jac).all() and np.abs(fd).max() > 0.1
     np.testing.assert_allclose(jac, fd, atol=2e-3 * np.abs(fd).max())
@@ -128,11 +128,16 @@ def test_jax_pose_matches_numpy_and_differentiates(fixtures):
 def test_rotation_gradient_finite_at_equal_keys():
     """slerp of equal (and opposite: the same rotation) quaternions: finite values and gradients."""
     q = jnp.asarray([0.0, 0.0, math.sin(0.3), math.cos(0.3)])
+
+    @jax.jit
+    def grads(q1):
+        g = jax.grad(lambda s: jnp.sum(slerp(q, q1, s, jnp) * jnp.arange(4.0)))(0.3)
+        gq = jax.grad(lambda a: jnp.sum(slerp(a, q1, 0.3, jnp)))(q)
+        return g, gq
+
     for q1 in (q, -q, q + 1e-8):
-        g = jax.grad(lambda s, q1=q1: jnp.sum(slerp(q, q1, s, jnp) * jnp.arange(4.0)))(0.3)
-        assert np.isfinite(g)
-        gq = jax.grad(lambda a, q1=q1: jnp.sum(slerp(a, q1, 0.3, jnp)))(q)
-        assert np.isfinite(np.asarray(gq)).all()
+        g, gq = grads(q1)
+        assert np.isfinite(float(g)) and np.isfinite(np.asarray(gq)).all()
 
 
 def test_sampler_closed_forms():
@@ -257,3 +262,68 @@ def test_huge_declared_animation_refused_before_reading(tmp_path):
     path = b.write(tmp_path / "huge.gltf")
     with pytest.raises(MemoryLimitError, match=r"/animations/0"):
         read_gltf(path)
+
+
+# ---------------------------------------------------------------------------------------------
+# Gradients of the pose: joint rotations, morph weights, key values (against central differences
+# of the same pose in float64 NumPy: the derivative of the function, not of its float32 rounding)
+# ---------------------------------------------------------------------------------------------
+def _jac_vs_fd(f_jax, f_np, x0, h=1e-4, rtol=2e-3):
+    J = np.asarray(jax.jit(jax.jacfwd(f_jax))(jnp.asarray(x0, jnp.float32)))
+    x0 = np.asarray(x0, np.float64)
+    flat = x0.ravel()
+    for i in range(flat.size):
+        e = np.zeros_like(flat)
+        e[i] = h
+        fd = (f_np((flat + e).reshape(x0.shape)) - f_np((flat - e).reshape(x0.shape))) / (2 * h)
+        got = J.reshape(J.shape[: J.ndim - x0.ndim] + (-1,))[..., i]
+        scale = max(np.abs(fd).max(), 1e-3)
+        np.testing.assert_allclose(got, fd, atol=rtol * scale, err_msg=f"parameter {i}")
+
+
+def _stack(posed):
+    return [posed[k][0] for k in sorted(posed)]
+
+
+def test_gradient_joint_rotations(fixtures):
+    """d(skinned vertices)/d(the joints' rest rotations), through the hierarchy and the skin."""
+    path, _ = fixtures["skinned"]
+    asset = read_gltf(path)
+    joints = np.asarray(asset.skins[0].joints)
+    n = asset.nodes
+
+    def rest(q, xp):
+        r = xp.asarray(n.rotation)
+        r = r.at[joints].set(q) if xp is jnp else np.concatenate([r[: joints[0]], q, r[joints[-1] + 1:]])
+        return (xp.asarray(n.translation), r, xp.asarray(n.scale))
+
+    assert np.all(np.diff(joints) == 1)
+    f_jax = lambda q: jnp.concatenate(_stack(pose_primitives(asset, xp=jnp, rest=rest(q, jnp))))  # noqa: E731
+    f_np = lambda q: np.concatenate(_stack(pose_primitives(asset, rest=rest(q, np))))  # noqa: E731
+    _jac_vs_fd(f_jax, f_np, n.rotation[joints])
+
+
+def test_gradient_morph_weights_and_key_values(fixtures):
+    """d(vertices)/d(morph weights) (the targets' deltas) and d(vertices)/d(an animation's key values)."""
+    import dataclasses
+
+    path, _ = fixtures["morph_and_skin"]
+    asset = read_gltf(path)
+    node = next(p.node for p in asset.primitives if p.deform is not None and p.deform.targets)
+    K = next(p.deform.targets["POSITION"].shape[0] for p in asset.primitives if p.node == node)
+    f_jax = lambda w: jnp.concatenate(_stack(pose_primitives(asset, 0.7, 0, xp=jnp, morph_weights={node: w})))  # noqa: E731
+    f_np = lambda w: np.concatenate(_stack(pose_primitives(asset, 0.7, 0, morph_weights={node: w})))  # noqa: E731
+    _jac_vs_fd(f_jax, f_np, np.full(K, 0.3))
+    anim = asset.animations[0]
+    k = next(i for i, c in enumerate(anim.channels) if c.path == "rotation")
+    ch = anim.channels[k]
+
+    def with_values(v):
+        chans = list(anim.channels)
+        chans[k] = dataclasses.replace(ch, values=v)
+        return dataclasses.replace(anim, channels=tuple(chans))
+
+    t = float(0.5 * (ch.times[0] + ch.times[-1])) if ch.interpolation != "STEP" else float(ch.times[0])
+    f_jax = lambda v: jnp.concatenate(_stack(pose_primitives(asset, t, with_values(v), xp=jnp)))  # noqa: E731
+    f_np = lambda v: np.concatenate(_stack(pose_primitives(asset, t, with_values(v))))  # noqa: E731
+    _jac_vs_fd(f_jax, f_np, ch.values)
