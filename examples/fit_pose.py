@@ -9,7 +9,7 @@ parameters, skinning traced), renders every view (`jaxpbr.render_batch`, outline
 differentiated: the silhouettes move the joints) and differentiates an image loss (the squared
 difference of log(1 + radiance), summed over the images and their 2x, 4x and 8x box-filtered copies).
 
-    python examples/fit_pose.py [--views 6] [--size 48] [--steps 80] [--out fit_pose_out]
+    python examples/fit_pose.py [--views 6] [--size 64] [--steps 150] [--out fit_pose_out]
 
 Prints the loss and the joints' angle error (degrees, the angle of R_fit^T R_hidden) per step,
 the time per step against a forward render of the views, and writes the targets, the start and
@@ -39,7 +39,7 @@ from gltf_writer import Builder  # noqa: E402
 FLOAT, UBYTE = 5126, 5121
 JOINT_Y = (0.0, 1.0, 2.0)  # the joints along +Y (the tube runs from y = 0 to 3)
 #: The hidden pose: each joint's rotation as axis-angle (radians), bends about x and z.
-HIDDEN = np.array([[0.0, 0.0, 0.35], [0.45, 0.0, -0.2], [-0.3, 0.0, 0.5]])
+HIDDEN = np.array([[0.0, 0.0, 0.25], [0.3, 0.0, -0.15], [-0.2, 0.0, 0.35]])
 
 
 def tube(rings: int = 24, sides: int = 16, radius: float = 0.22, height: float = 3.0):
@@ -115,7 +115,7 @@ def angle_errors(fit, hidden) -> np.ndarray:
 
 def cameras(views: int, size: int):
     ang = np.linspace(0.0, 2 * np.pi, views, endpoint=False) + 0.3
-    pos = np.stack([4.2 * np.sin(ang), 1.8 + 0.8 * np.cos(2 * ang), 4.2 * np.cos(ang)], -1)
+    pos = np.stack([5.0 * np.sin(ang), 1.8 + 0.8 * np.cos(2 * ang), 5.0 * np.cos(ang)], -1)
     tgt = np.tile([0.0, 1.4, 0.0], (views, 1))
     return jp.Camera(position=pos.astype(np.float32), target=tgt.astype(np.float32), width=size, height=size, fov_y_deg=40.0)
 
@@ -124,7 +124,7 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--size", type=int, default=64)
-    ap.add_argument("--steps", type=int, default=80)
+    ap.add_argument("--steps", type=int, default=150)
     ap.add_argument("--lr", type=float, default=0.01)
     ap.add_argument("--print-every", type=int, default=10)
     ap.add_argument("--out", default="fit_pose_out")

@@ -60,8 +60,8 @@ def test_fit_pose_recovers_joint_rotations(tmp_path):
     spec = importlib.util.spec_from_file_location("fit_pose", Path(__file__).resolve().parent.parent / "examples" / "fit_pose.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    res = mod.main(["--views", "4", "--size", "32", "--steps", "40", "--print-every", "39", "--out", str(tmp_path)])
+    res = mod.main(["--views", "6", "--size", "48", "--steps", "70", "--print-every", "69", "--out", str(tmp_path)])
     start, final = res["history"][0][2], res["final_errors"]
-    assert final[:2].max() < 0.5 * start[:2].min(), (start, final)
+    assert final.max() < 0.5 * start.max(), (start, final)
     assert res["history"][-1][1] < 0.7 * res["history"][0][1]
     assert (tmp_path / "fit_pose.png").is_file()
