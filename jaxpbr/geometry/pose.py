@@ -133,8 +133,8 @@ def skin(positions, joint_mats, joints, weights, normals=None, tangents=None, xp
     """Linear blend skinning: (positions (V, 3), normals (V, 3) or None, tangents (V, 4) or None).
 
     joint_mats: (J, 4, 4) from `skin_matrices`; joints: (V, n) indices into them; weights: (V, n)."""
-    m = _einsum(xp, "vi,viab->vab", weights, joint_mats[joints])  # (V, 4, 4)
-    a = m[:, :3, :3]
+    m = _einsum(xp, "vi,viab->vab", weights, joint_mats[:, :3, :][joints])  # (V, 3, 4): the affine rows only
+    a = m[:, :, :3]
     pos = _einsum(xp, "vab,vb->va", a, positions) + m[:, :3, 3]
     nrm = tan = None
     if normals is not None or tangents is not None:
