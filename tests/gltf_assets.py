@@ -43,9 +43,8 @@ from gltf_writer import (
     USHORT,
     Builder,
     png_bytes,
+    print_validation,
     uv_sphere,
-    validate,
-    validator_missing,
 )
 
 # glTF sampler enums
@@ -575,22 +574,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description="Write jaxpbr's named glTF test assets and validate them.")
     ap.add_argument("--out", required=True, help="folder to write the assets into")
     args = ap.parse_args(argv)
-    paths = write_all(Path(args.out))
-    why = validator_missing()
-    if why:
-        for p in paths.values():
-            print(f"{p}  {p.stat().st_size} bytes  (not validated: {why})")
-        return 0
-    report = validate(*paths.values())
-    bad = 0
-    for p in paths.values():
-        r = report[str(p)]
-        bad += r["numErrors"]
-        print(f"{p}  {p.stat().st_size} bytes  errors {r['numErrors']}  warnings {r['numWarnings']}  "
-              f"infos {r['numInfos']}  hints {r['numHints']}")
-        for line in r["errors"] + r["warnings"]:
-            print(f"    {line}")
-    return 1 if bad else 0
+    return print_validation(list(write_all(Path(args.out)).values()))
 
 
 if __name__ == "__main__":

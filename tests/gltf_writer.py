@@ -337,3 +337,23 @@ def uv_sphere(n_lat: int = 24, n_lon: int = 48, radius: float = 1.0):
             if i != n_lat - 1:
                 idx.append((b, c, d))
     return (radius * n).astype(np.float32), n.astype(np.float32), uv.astype(np.float32), np.asarray(idx, np.int32)
+
+
+def print_validation(paths) -> int:
+    """Validate `paths` and print one line per file (and its errors and warnings): the exit status
+    of the fixture scripts' `main` (1 when a file has errors; 0 without the validator)."""
+    why = validator_missing()
+    if why:
+        for p in paths:
+            print(f"{p}  {p.stat().st_size} bytes  (not validated: {why})")
+        return 0
+    report = validate(*paths)
+    bad = 0
+    for p in paths:
+        r = report[str(p)]
+        bad += r["numErrors"]
+        print(f"{p}  {p.stat().st_size} bytes  errors {r['numErrors']}  warnings {r['numWarnings']}  "
+              f"infos {r['numInfos']}  hints {r['numHints']}")
+        for line in r["errors"] + r["warnings"]:
+            print(f"    {line}")
+    return 1 if bad else 0

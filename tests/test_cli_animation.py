@@ -50,7 +50,7 @@ def test_time_poses_one_image(asset, tmp_path):
     (["--frames", "0:1:0", "-o", "{tmp}/x_%d.png"], "STEP must be > 0"),
     (["--time", "1", "--frames", "0:1:0.5", "-o", "{tmp}/x_%d.png"], "exclude each other"),
     (["--time", "1", "--animation", "nope", "-o", "{tmp}/x.png"], "names no animation of the file"),
-    (["--time", "nan", "-o", "{tmp}/x.png"], "not a finite number"),
+    (["--time", "nan", "-o", "{tmp}/x.png"], "expected a finite number"),
 ])
 def test_misuse_is_one_line_and_writes_nothing(asset, tmp_path, capsys, argv, message):
     argv = ["render", str(asset), *[a.format(tmp=tmp_path) for a in argv], *CAM]

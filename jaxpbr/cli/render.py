@@ -122,14 +122,8 @@ def add_command(sub) -> None:
 MAX_FRAMES = 100_000
 
 
-def _time_arg(text: str) -> float:
-    try:
-        t = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not math.isfinite(t):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number of seconds")
-    return t
+#: --time and --motion-dt: seconds, finite, in float32's range.
+_time_arg = float32_arg(unit="seconds")
 
 
 def _frames_arg(text: str) -> tuple[float, ...]:
