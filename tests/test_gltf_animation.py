@@ -327,3 +327,30 @@ def test_gradient_morph_weights_and_key_values(fixtures):
     f_jax = lambda v: jnp.concatenate(_stack(pose_primitives(asset, t, with_values(v), xp=jnp)))  # noqa: E731
     f_np = lambda v: np.concatenate(_stack(pose_primitives(asset, t, with_values(v))))  # noqa: E731
     _jac_vs_fd(f_jax, f_np, ch.values)
+
+
+def test_morphed_without_animations_or_skins(tmp_path):
+    """A file with morph targets and no animations or skins takes the loader's static path (no pass
+    over the nodes): the rest pose holds the node's and mesh's weights, and `pose_primitives`
+    re-poses it with other weights (the morph's own derivative checked above)."""
+    import dataclasses
+
+    from gltf_animated import morph_animation, write_scene
+
+    _, scene = morph_animation(tmp_path)
+    still = dataclasses.replace(scene, animations=[])
+    path = write_scene(still, tmp_path / "still.glb", mode="glb")
+    asset = read_gltf(path)
+    assert asset.nodes is None and asset.animations == ()
+    got, want = _by_key(asset), _want(still, None)
+    for k in want:
+        np.testing.assert_allclose(got[k], want[k], atol=ATOL)
+    assert posed_asset(asset) is asset
+    node = next(p.node for p in asset.primitives if p.deform is not None)
+    K = next(p.deform.targets["POSITION"].shape[0] for p in asset.primitives if p.node == node)
+    posed = pose_primitives(asset, morph_weights={node: np.zeros(K)})
+    k = next(i for i, p in enumerate(asset.primitives) if p.node == node)
+    base = asset.primitives[k].deform.positions @ asset.primitives[k].world_matrix[:3, :3].T + asset.primitives[k].world_matrix[:3, 3]
+    np.testing.assert_allclose(posed[k][0], base, atol=1e-12)
+    with pytest.raises(InputError, match="has no animations"):
+        read_gltf(path, time=1.0)

@@ -255,7 +255,10 @@ def pose_primitives(asset, time=None, animation=None, *, xp=np, rest=None, morph
     playing = None
     if time is not None or animation is not None:
         playing = animation if isinstance(animation, GltfAnimation) else choose_animation(asset.path, asset.animations, animation)
-    worlds, _, weights = nodes_at(asset.nodes, playing, 0.0 if time is None else time, xp, rest)
+    if asset.nodes is None:  # (no animations nor skins: the nodes stay where they were loaded)
+        worlds, weights = None, {}
+    else:
+        worlds, _, weights = nodes_at(asset.nodes, playing, 0.0 if time is None else time, xp, rest)
     weights.update(morph_weights or {})
     mats: dict = {}
     out = {}
@@ -270,6 +273,9 @@ def pose_primitives(asset, time=None, animation=None, *, xp=np, rest=None, morph
                 mats[d.skin] = skin_matrices(worlds, sk.joints, xp.asarray(sk.inverse_bind), xp)
             jm = mats[d.skin]
             m = xp.asarray(d.instance)
+        elif worlds is None:
+            jm = None
+            m = xp.asarray(p.world_matrix)
         else:
             jm = None
             m = worlds[p.node] @ xp.asarray(d.instance) if xp is np else \
@@ -295,6 +301,8 @@ def posed_asset(asset, time=None, animation=None):
         if isinstance(time, bool) or not isinstance(time, (int, float, np.integer, np.floating)) or not np.isfinite(time):
             fail(asset.path, f"time={time!r:.40}", "is not a finite number of seconds", "pass the time in seconds, e.g. time=1.5")
     posed = pose_primitives(asset, None if playing is None else float(time), playing)
+    if asset.nodes is None:
+        return asset  # (nothing moves it)
     worlds = nodes_at(asset.nodes, playing, 0.0 if playing is None else float(time))[0]
     prims = list(asset.primitives)
     for k, (pos, nrm, tan) in posed.items():

@@ -450,11 +450,20 @@ class _Loader:
         and self.moving (the nodes whose world matrix the animations change)."""
         self.context = ""
         self.anim = AnimationReader(self)
-        self.nodes = self.anim.nodes(self.parent)
-        self.animations = self.anim.animations(self._target_count)
         self.playing = None
         self.time_at = None
         self.morph_weights: dict = {}
+        n_nodes = len(self.gltf.nodes or [])
+        if not self.gltf.animations and not self.gltf.skins:
+            # nothing moves the nodes (a static asset; morph weights come from the JSON): no pass
+            # over every node (an asset of a million nodes loads as before)
+            self.nodes, self.animations, self.worlds = None, (), None
+            self.moving = np.zeros(n_nodes, bool)
+            if self.time is not None or self.animation_arg is not None:
+                choose_animation(self.path, (), self.animation_arg)
+            return
+        self.nodes = self.anim.nodes(self.parent)
+        self.animations = self.anim.animations(self._target_count)
         if self.time is not None or self.animation_arg is not None:
             t = 0.0 if self.time is None else self.time
             if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) or not math.isfinite(float(t)):
@@ -473,7 +482,7 @@ class _Loader:
                 v.world = worlds[v.index]
         # the nodes some animation moves: their animated ancestors' descendants included
         animated = {c.node for a in self.animations for c in a.channels if c.path != "weights"}
-        moving = np.zeros(len(self.gltf.nodes or []), bool)
+        moving = np.zeros(n_nodes, bool)
         for lvl in self.nodes.levels:
             for i in lvl:
                 moving[i] = i in animated or (self.parent[i] >= 0 and moving[self.parent[i]])
