@@ -220,7 +220,7 @@ def _gltf_scene(args):
             camera_target=args.camera_target, fov_y_deg=args.fov_y, supersample=args.supersample or 1,
             environment=loaded["environment"], material_cache=loaded["materials"],
         )
-    if (args.frames is not None or "motion" in args.aov) and not asset.cameras:
+    if (getattr(args, "frames", None) is not None or "motion" in (getattr(args, "aov", None) or ())) and not asset.cameras:
         loaded["camera"] = gs.scene.camera  # (a framing of the first frame's bounds, kept for the sequence)
     if getattr(args, "_frame", 0) == 0:
         for w in caught:
