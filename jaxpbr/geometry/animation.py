@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .pose import unit_rows
+
 __all__ = ["INTERPOLATIONS", "PATHS", "normalize_quaternion", "sample", "slerp"]
 
 #: The samplers' interpolation modes (glTF 2.0 §3.11, `animation.sampler.interpolation`).
@@ -40,9 +42,7 @@ _SLERP_LINEAR = 1e-7
 
 def normalize_quaternion(q, xp=np):
     """q / |q| along the last axis (a zero quaternion stays zero, with a finite gradient)."""
-    n2 = xp.sum(q * q, axis=-1, keepdims=True)
-    ok = n2 > 0
-    return xp.where(ok, q / xp.sqrt(xp.where(ok, n2, 1.0)), 0.0)
+    return unit_rows(q, xp)
 
 
 def slerp(q0, q1, s, xp=np):

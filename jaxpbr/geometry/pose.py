@@ -32,6 +32,7 @@ __all__ = [
     "skin",
     "skin_matrices",
     "trs_matrices",
+    "unit_rows",
     "world_matrices",
 ]
 
@@ -47,9 +48,7 @@ def _einsum(xp, spec, *ops):
 def quaternion_matrices(q, xp=np):
     """(..., 3, 3) rotations of quaternions (..., 4) = (x, y, z, w), normalised first (a zero
     quaternion gives the identity's scale 0: the zero matrix plus nothing; callers pass unit ones)."""
-    n2 = xp.sum(q * q, axis=-1, keepdims=True)
-    ok = n2 > 0
-    q = xp.where(ok, q / xp.sqrt(xp.where(ok, n2, 1.0)), 0.0)
+    q = unit_rows(q, xp)
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     rows = [
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
@@ -123,7 +122,8 @@ def normal_matrices(m, xp=np):
     return cof * xp.where(det < 0, -1.0, 1.0)[..., None, None], det
 
 
-def _normalize(v, xp):
+def unit_rows(v, xp=np):
+    """v / |v| along the last axis; zero rows stay zero, with a finite gradient (double where)."""
     n2 = xp.sum(v * v, axis=-1, keepdims=True)
     ok = n2 > 0
     return xp.where(ok, v / xp.sqrt(xp.where(ok, n2, 1.0)), 0.0)
@@ -140,9 +140,9 @@ def skin(positions, joint_mats, joints, weights, normals=None, tangents=None, xp
     if normals is not None or tangents is not None:
         nm, det = normal_matrices(a, xp)
         if normals is not None:
-            nrm = _normalize(_einsum(xp, "vab,vb->va", nm, normals), xp)
+            nrm = unit_rows(_einsum(xp, "vab,vb->va", nm, normals), xp)
         if tangents is not None:
-            xyz = _normalize(_einsum(xp, "vab,vb->va", a, tangents[:, :3]), xp)
+            xyz = unit_rows(_einsum(xp, "vab,vb->va", a, tangents[:, :3]), xp)
             tan = xp.concatenate([xyz, tangents[:, 3:] * xp.where(det < 0, -1.0, 1.0)[:, None]], axis=-1)
     return pos, nrm, tan
 
@@ -150,7 +150,7 @@ def skin(positions, joint_mats, joints, weights, normals=None, tangents=None, xp
 def face_normals(positions, tris, xp=np):
     """(T, 3) unit normals of counter-clockwise triangles (zero for degenerate ones)."""
     a, b, c = positions[tris[:, 0]], positions[tris[:, 1]], positions[tris[:, 2]]
-    return _normalize(xp.cross(b - a, c - a), xp)
+    return unit_rows(xp.cross(b - a, c - a), xp)
 
 
 def deform(positions, normals, tangents, *, tris=None, flat_normals=False, targets=None, weights=None,
@@ -166,9 +166,9 @@ def deform(positions, normals, tangents, *, tris=None, flat_normals=False, targe
             fn = xp.repeat(face_normals(pos, tris, xp), 3, axis=0)
             nrm = nrm.at[tris.ravel()].set(fn) if xp is not np else _set(nrm, tris.ravel(), fn)
         elif "NORMAL" in targets:
-            nrm = _normalize(morph(nrm, targets["NORMAL"], weights, xp), xp)
+            nrm = unit_rows(morph(nrm, targets["NORMAL"], weights, xp), xp)
         if tan is not None and "TANGENT" in targets:
-            tan = xp.concatenate([_normalize(morph(tan[:, :3], targets["TANGENT"], weights, xp), xp), tan[:, 3:]], axis=-1)
+            tan = xp.concatenate([unit_rows(morph(tan[:, :3], targets["TANGENT"], weights, xp), xp), tan[:, 3:]], axis=-1)
     if joint_mats is not None:
         pos, nrm, tan = skin(pos, joint_mats, joints, joint_weights, nrm, tan, xp)
     return pos, nrm, tan
@@ -180,9 +180,9 @@ def place(matrix, positions, normals, tangents, xp=np):
     a = matrix[:3, :3]
     pos = _einsum(xp, "ab,vb->va", a, positions) + matrix[:3, 3]
     nm, det = normal_matrices(a, xp)
-    nrm = _normalize(_einsum(xp, "ab,vb->va", nm, normals), xp)
+    nrm = unit_rows(_einsum(xp, "ab,vb->va", nm, normals), xp)
     tan = None
     if tangents is not None:
-        xyz = _normalize(_einsum(xp, "ab,vb->va", a, tangents[:, :3]), xp)
+        xyz = unit_rows(_einsum(xp, "ab,vb->va", a, tangents[:, :3]), xp)
         tan = xp.concatenate([xyz, tangents[:, 3:] * xp.where(det < 0, -1.0, 1.0)], axis=-1)
     return pos, nrm, tan

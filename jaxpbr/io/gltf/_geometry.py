@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..._numerics import cross_rows
+from ...geometry.pose import face_normals as pose_face_normals
 
 __all__ = [
     "MODE_NAMES",
@@ -82,10 +82,8 @@ def normalize_rows(v: np.ndarray) -> np.ndarray:
 
 
 def face_normals(positions: np.ndarray, tris: np.ndarray) -> np.ndarray:
-    """(T, 3) unit normals of counter-clockwise triangles (zero for degenerate ones)."""
-    p = np.asarray(positions, np.float64)
-    a, b, c = p[tris[:, 0]], p[tris[:, 1]], p[tris[:, 2]]
-    return normalize_rows(cross_rows(b - a, c - a))
+    """(T, 3) unit normals of counter-clockwise triangles (zero for degenerate ones), float64."""
+    return pose_face_normals(np.asarray(positions, np.float64), tris)
 
 
 def weld(arrays: list[np.ndarray], tris: np.ndarray):
