@@ -146,8 +146,7 @@ class AnimationReader:
         if times.size > 1 and not np.all(np.diff(times) > 0):
             first = int(np.argmax(~(np.diff(times) > 0)))
             fail(self.path, loc(f"{where} input", at + "/input"),
-                 f"key times are not strictly increasing (keys {first} and {first + 1}: {times[first]:.9g}, "
-                 f"{times[first + 1]:.9g})", _FIX)
+                 f"key times are not strictly increasing (keys {first} and {first + 1})", _FIX)
         types, comps = _OUTPUT[path]
         raw = self.buffers.accessor(get(smp, "output"), f"{where} output", at + "/output", allowed_types=types,
                                     allowed_components=comps, finite=True)

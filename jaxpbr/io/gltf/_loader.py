@@ -598,7 +598,7 @@ class _Loader:
             if used.size and used.max() >= skin_.joints.size:
                 first = int(np.argmax((used >= skin_.joints.size).any(axis=1)))
                 fail(self.path, loc(where, pointer("meshes", m, "primitives", p, "attributes")),
-                     f"a vertex names joint {int(used.max())} but the skin has {skin_.joints.size} joints (the first such "
+                     f"a vertex names a joint past the skin's {skin_.joints.size} joints (the first such "
                      f"vertex: {first})", _FIX)
             mats = skin_matrices(self.worlds, skin_.joints, skin_.inverse_bind)
             worlds = local
