@@ -266,7 +266,7 @@ def _chunk_geometry(scene, bc, off, kw):
     if _host_traced(scene, kw, bc):
         x = _cast_chunk(scene, bc, off, **kw)
         a = scene_host_arrays(scene, opts.dtype)
-        prim = _host_cast(a["positions"], a["triangles"], a["cull_back"], np.asarray(x["o"]), np.asarray(x["d"]), a["alpha"])
+        prim = _host_cast(a["positions"], a["triangles"], a["cull_back"], np.asarray(x["o"]), np.asarray(x["d"]), a["alpha"], parts=a["parts"])
         g = _mesh_geometry_chunk(scene, bc, off, jax.device_put(prim), **kw)
         if p_plan.shadows and p_plan.direct:
             g = {**g, "vis": _host_shadows(scene, opts, _light_segments_chunk(scene, bc, g, **kw), g["hit"])}

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import itertools
 import threading
 import weakref
 from collections import OrderedDict
@@ -169,6 +170,14 @@ class Mesh(Pytree):
         return int(np.shape(self.positions)[0])
 
 
+def mesh_parts(meshes) -> tuple:
+    """The (vertex, triangle) offsets of each mesh in the concatenation (`concat_meshes`) and the
+    totals, ((0, 0), ..., (V, T)): static (from the shapes), for the ray engine's `ACCELS.get`."""
+    v = np.cumsum([0] + [m.num_vertices for m in meshes])
+    t = np.cumsum([0] + [m.num_triangles for m in meshes])
+    return tuple((int(a), int(b)) for a, b in zip(v, t, strict=True))
+
+
 def mesh_bounds(meshes) -> tuple[np.ndarray, np.ndarray]:
     """(lower, upper) corners of the world-space box around the meshes' vertices (host)."""
     pts = np.concatenate([np.asarray(m.positions, np.float64).reshape(-1, 3) for m in meshes])
@@ -190,6 +199,8 @@ class _Accels:
         self.lock = threading.Lock()
         self.building: dict[bytes, threading.Event] = {}  # content being built by another thread
         self.builds = 0  # counted by tests: one build per mesh content
+        self.built_triangles = 0  # triangles of those builds
+        self.seen: set = set()  # the part digests of the latest call with parts (`get`)
         self.directory: Path | None = None  # `use_directory`
 
     def use_directory(self, directory) -> None:
@@ -240,18 +251,71 @@ class _Accels:
         except OSError:  # a full or read-only cache only costs the next process a build
             pass
 
-    def get(self, vertices: np.ndarray, triangles: np.ndarray, backend: str, *, exact_ties: bool = False):
+    def get(self, vertices: np.ndarray, triangles: np.ndarray, backend: str, *, exact_ties: bool = False, parts=None):
         """The structure of this content; `exact_ties` (the embree engine's build-time search for
         nearly coincident triangles, 5x its build time at 1.3 M triangles) only where the order of
-        coincident surfaces matters: alpha-blended and cut-out layers walked by continuation."""
+        coincident surfaces matters: alpha-blended and cut-out layers walked by continuation.
+
+        parts: the meshes the arrays concatenate (`mesh_parts`: K + 1 (vertex, triangle) offsets),
+        or None. With parts, a mesh whose content is the same as in the previous call is static:
+        the static meshes share one structure, kept from call to call, and the meshes that moved
+        are built on their own (a `GroupedAccel` of the two). An animated character beside a static
+        set rebuilds the character only."""
+        tag = f"{backend}/{exact_ties}".encode()
+        if parts is None or len(parts) < 3:
+            return self._get(self._digest(tag, vertices, triangles), lambda: (vertices, triangles), backend, exact_ties)
+        parts = np.asarray(parts, np.int64)
+        keys = [self._digest(tag + b"/part", vertices[v0:v1], triangles[t0:t1])
+                for (v0, t0), (v1, t1) in itertools.pairwise(parts)]
+        whole = hashlib.blake2b(b"".join([tag, np.int64(vertices.shape + triangles.shape).tobytes()] + keys), digest_size=20).digest()
+        with self.lock:
+            known = whole in self.entries or whole in self.building
+            seen, self.seen = self.seen, set(keys)
+        moved = [k for k, key in enumerate(keys) if key not in seen]
+        n_moved = sum(int(parts[k + 1, 1] - parts[k, 1]) for k in moved)
+        if known or not 0 < n_moved < len(triangles):  # nothing to split: one structure
+            return self._get(whole, lambda: (vertices, triangles), backend, exact_ties)
+        from .visibility import GroupedAccel
+
+        def group(which):
+            v = np.concatenate([vertices[parts[k, 0]:parts[k + 1, 0]] for k in which])
+            shift = np.cumsum([0] + [parts[k + 1, 0] - parts[k, 0] for k in which])[:-1] - parts[which, 0]
+            t = np.concatenate([triangles[parts[k, 1]:parts[k + 1, 1]] + np.int32(s) for k, s in zip(which, shift, strict=True)])
+            ids = np.concatenate([np.arange(parts[k, 1], parts[k + 1, 1]) for k in which])
+            return v, t, ids
+
+        still = [k for k in range(len(keys)) if k not in set(moved)]
+        static_key = hashlib.blake2b(b"".join([tag, b"/static"] + [keys[k] for k in still]), digest_size=20).digest()
+        s_ids = np.concatenate([np.arange(parts[k, 1], parts[k + 1, 1]) for k in still])
+        static = self._get(static_key, lambda: group(still)[:2], backend, exact_ties)
+
+        def build():
+            v, t, m_ids = group(moved)
+            return GroupedAccel([(static, s_ids), (self._build(v, t, backend, exact_ties), m_ids)], len(triangles))
+
+        return self._get(whole, None, backend, exact_ties, build=build)
+
+    @staticmethod
+    def _digest(tag: bytes, vertices: np.ndarray, triangles: np.ndarray) -> bytes:
         h = hashlib.blake2b(digest_size=20)
-        h.update(f"{backend}/{exact_ties}".encode())
+        h.update(tag)
         h.update(np.int64(vertices.shape + triangles.shape).tobytes())
         # Each array's content digest is remembered per array object: the shadow rays of several
         # lights query one mesh with the same arrays (1 M triangles: 18 MB hashed once, not per light).
         h.update(_content_digest(vertices))
         h.update(_content_digest(triangles))
-        digest = h.digest()
+        return h.digest()
+
+    def _build(self, vertices, triangles, backend, exact_ties):
+        from .visibility import TriangleAccel
+
+        with self.lock:
+            self.builds += 1
+            self.built_triangles += int(triangles.shape[0])
+        return TriangleAccel.build(vertices, triangles, backend=backend, **({"exact_ties": exact_ties} if backend == "embree" else {}))
+
+    def _get(self, digest: bytes, arrays, backend: str, exact_ties: bool, build=None):
+        """The entry `digest`, built from `arrays()` (or by `build()`) when it is not kept."""
         while True:  # one build per content: a second caller waits for the first one's build
             with self.lock:
                 if digest in self.entries:
@@ -262,16 +326,17 @@ class _Accels:
                     self.building[digest] = threading.Event()
                     break
             pending.wait()  # then found in the entries (or built here if that build failed)
-        from .visibility import TriangleAccel
-
         try:
-            accel = self._load(digest, int(triangles.shape[0])) if backend == "jax" else None
-            if accel is None:
-                accel = TriangleAccel.build(vertices, triangles, backend=backend, **({"exact_ties": exact_ties} if backend == "embree" else {}))
-                if backend == "jax":
-                    self._store(digest, accel)
+            if build is not None:
+                accel = build()
+            else:
+                vertices, triangles = arrays()
+                accel = self._load(digest, int(triangles.shape[0])) if backend == "jax" else None
+                if accel is None:
+                    accel = self._build(vertices, triangles, backend, exact_ties)
+                    if backend == "jax":
+                        self._store(digest, accel)
             with self.lock:
-                self.builds += 1
                 self.entries[digest] = accel
                 while len(self.entries) > self.capacity:
                     self.entries.popitem(last=False)
@@ -300,15 +365,16 @@ def _content_digest(x: np.ndarray) -> bytes:
 MAX_CULLED_HITS = 16
 
 
-def _host_cast(vertices, triangles, cull_back, o, d, alpha=None, layers: int = 1):
+def _host_cast(vertices, triangles, cull_back, o, d, alpha=None, layers: int = 1, parts=None):
     """The primitives (int32, -1 = miss) each ray o + t d sees on the host, nearest first, (..., layers)
     (or (...) for one layer): front faces, and back faces of double-sided meshes; a ray continues
     through the back of a single-sided triangle and through MASK cut-outs (alpha < cutoff), and past
     BLEND surfaces to the next layer (`TriangleAccel.intersect` continuation: the next hit after
-    (t, prim) in the engine's order)."""
+    (t, prim) in the engine's order). parts: the meshes' offsets (`mesh_parts`), so that static
+    meshes keep their structure while moved ones are rebuilt (`ACCELS.get`)."""
     vertices = np.ascontiguousarray(vertices, np.float32)
     triangles = np.ascontiguousarray(triangles, np.int32)
-    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax", exact_ties=alpha is not None)
+    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax", exact_ties=alpha is not None, parts=parts)
     cull_back = np.asarray(cull_back, bool)
     shape = np.shape(o)[:-1]
     o = np.asarray(o, np.float32).reshape(-1, 3)
@@ -396,7 +462,7 @@ def cast(arrays, o, d, *, layers: int = 1):
     alpha = jax.lax.stop_gradient(arrays["alpha"]) if arrays["alpha"] is not None else None
     out = jax.ShapeDtypeStruct(o.shape[:-1] + ((layers,) if layers > 1 else ()), jnp.int32)
     return jax.pure_callback(
-        functools.partial(_host_cast, layers=layers), out, verts, arrays["triangles"], arrays["cull_back"], o, d, alpha,
+        functools.partial(_host_cast, layers=layers, parts=arrays.get("parts")), out, verts, arrays["triangles"], arrays["cull_back"], o, d, alpha,
         vmap_method="sequential",
     )
 
@@ -537,6 +603,7 @@ def concat_meshes(meshes, dtype):
     out["cull_back"] = per_tri([not m.double_sided for m in meshes], jnp.bool_)
     out["alpha"] = _alpha_arrays(meshes, out, dtype) if any(m.alpha_mode != "OPAQUE" for m in meshes) else None
     out["transmit"] = _transmit_arrays(meshes, out, dtype) if any(transmits(m.material) for m in meshes) else None
+    out["parts"] = mesh_parts(meshes)  # (static: Python numbers)
     return out
 
 

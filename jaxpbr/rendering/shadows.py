@@ -23,6 +23,8 @@ light and channel (`shade_direct` takes either form); without transmissive objec
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -45,7 +47,7 @@ from .visibility import offset_ray_origin
 
 __all__ = ["colored_shadows", "host_mesh_hits", "shadow_combine", "shadow_segments", "shadow_visibility"]
 
-def _host_occluded(vertices, triangles, o, d, tfar, alpha=None, transmit=None):
+def _host_occluded(vertices, triangles, o, d, tfar, alpha=None, transmit=None, parts=None):
     """Without `transmit`: (...,) bool, the segment meets an opaque point. With it: (..., 3) the
     fraction of the light left after every crossing of the segment (0 where an opaque point
     blocks it; transmissive crossings multiply it by `host_transmittance`)."""
@@ -53,7 +55,7 @@ def _host_occluded(vertices, triangles, o, d, tfar, alpha=None, transmit=None):
     triangles = np.ascontiguousarray(triangles, np.int32)
     walk = alpha is not None or transmit is not None
     # The primary rays' structure (exact ties where cut-outs and blended layers need them).
-    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax", exact_ties=alpha is not None)
+    accel = ACCELS.get(vertices, triangles, "embree" if _embree() else "jax", exact_ties=alpha is not None, parts=parts)
     shape = np.shape(o)[:-1]
     o = np.asarray(o, np.float32).reshape(-1, 3)
     # A direction (3,) shared by every ray (a sun) is one per ray in the walk below.
@@ -126,7 +128,7 @@ def _mesh_occluded(arrays, o, d, tfar):
         out = jax.ShapeDtypeStruct(o.shape[:-1], jnp.bool_)
     else:
         out = jax.ShapeDtypeStruct(o.shape[:-1] + (3,), jnp.float32)
-    return jax.pure_callback(_host_occluded, out, verts, arrays["triangles"], o, d, tfar, alpha, transmit,
+    return jax.pure_callback(functools.partial(_host_occluded, parts=arrays.get("parts")), out, verts, arrays["triangles"], o, d, tfar, alpha, transmit,
                              vmap_method="sequential")
 
 
@@ -279,7 +281,7 @@ def host_mesh_hits(arrays, parts, mask=None) -> list:
         o, d, tfar = pieces[0]
     else:
         o, d, tfar = (np.concatenate([pc[i] for pc in pieces]) for i in range(3))
-    hit = _host_occluded(verts, tris, o, d, tfar, alpha, transmit) if len(tfar) else np.zeros((0,) + (() if transmit is None else (3,)))
+    hit = _host_occluded(verts, tris, o, d, tfar, alpha, transmit, parts=arrays.get("parts")) if len(tfar) else np.zeros((0,) + (() if transmit is None else (3,)))
     out, start = [], 0
     for shape, rows, n in spans:
         h = hit[start:start + n]

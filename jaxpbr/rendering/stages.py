@@ -31,7 +31,7 @@ from ..shading.material import Material
 from . import texture
 from .assets import PendingAssets
 from .edges import NEIGHBOURS, antialias_pass
-from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_surface, transmits
+from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_parts, mesh_surface, transmits
 from .options import RenderOptions, _options
 from .plan import RenderPlan, plan
 from .scene import (
@@ -1017,6 +1017,7 @@ def scene_host_arrays(scene: Scene, dtype):
         out = _host_arrays_opaque(meshes)
     else:
         out = jax.tree_util.tree_map(np.asarray, _host_arrays_jit(meshes, name))
+    out["parts"] = mesh_parts(meshes)
     if kept is not None:
         _HOST_ARRAYS[:] = [(key, kept, out)]  # the latest scene only: the arrays are large
     return out
@@ -1145,7 +1146,7 @@ def _host_prims(scene: Scene, p_plan: RenderPlan, opts: RenderOptions, offset, l
     if arrays is None:  # (a render under jit / grad: the cast goes through the callback in the trace)
         return _layer_prims(scene, p_plan, opts, offset, layers)
     prim = _host_cast(arrays["positions"], arrays["triangles"], arrays["cull_back"],
-                      np.asarray(x["o"]), np.asarray(x["d"]), arrays["alpha"], layers=layers)
+                      np.asarray(x["o"]), np.asarray(x["d"]), arrays["alpha"], layers=layers, parts=arrays["parts"])
     return jax.device_put(prim)
 
 

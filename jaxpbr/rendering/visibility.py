@@ -96,6 +96,7 @@ from .bvh import (
 __all__ = [
     "BVH",
     "Hits",
+    "GroupedAccel",
     "TriangleAccel",
     "build_bvh",
     "embree_available",
@@ -812,6 +813,14 @@ class _EmbreeBackend:
                 own, cand = self._adjacent(after[e])
                 consider(e[own], cand)
             s[cont] += rd.tol_t[cont]
+        # A hit at exactly tnear counts (with no previous hit); from an origin moved to tnear,
+        # embree can put it a rounding behind: start its search the tie zone earlier (the hits
+        # before tnear it then proposes fail `valid` and are refined past).
+        back = np.nonzero((after < 0) & (tnear > 0) & np.isfinite(tnear))[0]
+        if back.size:
+            s = s.copy() if s is tnear else s
+            rd.ensure(back)
+            s[back] = np.maximum(s[back] - rd.tol_t[back], 0.0)
         active = None  # all rays
         for _ in range(max_rounds):
             sa = s if active is None else s[active]
@@ -1237,3 +1246,102 @@ class TriangleAccel:
         args = {"origins": (origins, (3,), dt), "directions": (directions, (3,), dt)}
         args.update(tnear=(tnear, (), jnp.float32), tfar=(tfar, (), jnp.float32))
         return self._jax_call(first_k_hits_jax, shape, args, k=k)
+
+
+class GroupedAccel:
+    """Visibility queries against a mesh split into groups of triangles, each with its own
+    `TriangleAccel` (a two-level structure whose top level is the list of groups): the same answers
+    as one `TriangleAccel` over the whole mesh, in the same (t, id) order with the whole mesh's
+    triangle ids, continuation included. What a scene of static and moving meshes needs: the static
+    group keeps its structure while the moving one is rebuilt (`mesh.ACCELS.get(parts=...)`).
+
+    groups: [(accel, ids)], ids (n_g,) increasing: the whole mesh's id of each of the group's
+    triangles (the group's rows). A ray queries every group; a group it misses costs a box test."""
+
+    def __init__(self, groups, num_triangles: int):
+        self.groups = [(a, np.asarray(ids, np.int64)) for a, ids in groups]
+        for a, ids in self.groups:
+            if ids.shape != (a.num_triangles,) or np.any(np.diff(ids) <= 0):
+                raise InputError("GroupedAccel: a group's ids must be increasing, one per triangle of its structure")
+        self.backend = self.groups[0][0].backend
+        self.num_triangles = int(num_triangles)
+
+    def _group_hits(self, accel, ids, o, d, tn, tf, after, barycentrics):
+        """The group's first hit after (tn, after) in the whole mesh's order: (t, global id or -1, b1, b2)."""
+        local = np.searchsorted(ids, after, side="right") - 1  # the group's last triangle at or before `after`
+        own = (local >= 0) & (ids[np.maximum(local, 0)] == after)
+        h = accel.intersect(o, d, tn, tf, np.where(own, local, -1), barycentrics=barycentrics)
+        t, p = np.array(h.t, F32), np.array(h.prim, np.int64)  # (copies: rows are redone below)
+        b1 = None if h.b1 is None else np.array(h.b1)
+        b2 = None if h.b2 is None else np.array(h.b2)
+        # A group without `after` answered from tnear on: hits exactly at tnear ordered before
+        # `after` (coplanar copies across groups) come before it, so go on past them.
+        redo = np.nonzero(~own & (p >= 0) & (t == tn) & (ids[np.maximum(p, 0)] < after))[0]
+        while redo.size:
+            h = accel.intersect(o[redo], d[redo], tn[redo], tf[redo], p[redo], barycentrics=barycentrics)
+            t[redo], p[redo] = np.asarray(h.t, F32), np.asarray(h.prim, np.int64)
+            if b1 is not None:
+                b1[redo], b2[redo] = np.asarray(h.b1), np.asarray(h.b2)
+            q = p[redo]
+            redo = redo[(q >= 0) & (t[redo] == tn[redo]) & (ids[np.maximum(q, 0)] < after[redo])]
+        return t, np.where(p >= 0, ids[np.maximum(p, 0)], -1), b1, b2
+
+    def intersect(self, origins, directions, tnear=0.0, tfar=np.inf, after_prim=-1, *, barycentrics: bool = True) -> Hits:
+        """`TriangleAccel.intersect` over the groups: the least (t, id) of the groups' answers."""
+        _check_after(after_prim, self.num_triangles)
+        plain = _is_scalar(after_prim, -1)
+        if plain:  # each group's own first hit (its fast path for float32 rays from tnear = 0)
+            shape = TriangleAccel._shape(origins, directions)
+        else:
+            shape, o, d, tn, tf, af = _host_rays(origins, directions, tnear, tfar, after_prim)
+            tn, tf = tn.astype(F32), tf.astype(F32)
+        n = int(np.prod(shape, dtype=np.int64))
+        best_t = np.full(n, np.inf, F32)
+        best_p = np.full(n, -1, np.int64)
+        best_b = [None, None]
+        for accel, ids in self.groups:
+            if plain:
+                h = accel.intersect(origins, directions, tnear, tfar, -1, barycentrics=barycentrics)
+                t = np.asarray(h.t, F32).reshape(n)
+                p = np.asarray(h.prim, np.int64).reshape(n)
+                p = np.where(p >= 0, ids[np.maximum(p, 0)], -1)
+                b = [None if x is None else np.asarray(x).reshape(n) for x in (h.b1, h.b2)]
+            else:
+                t, p, *b = self._group_hits(accel, ids, o, d, tn, tf, af, barycentrics)
+            first = best_b[0] is None and b[0] is not None
+            if first:
+                best_b = [np.zeros(n, b[0].dtype), np.zeros(n, b[1].dtype)]
+            better = (p >= 0) & ((best_p < 0) | (t < best_t) | ((t == best_t) & (p < best_p)))
+            best_t = np.where(better, t, best_t)
+            best_p = np.where(better, p, best_p)
+            if b[0] is not None:
+                for k in range(2):
+                    best_b[k] = np.where(better, b[k], best_b[k])
+        out = [best_t, best_p.astype(np.int32)] + best_b
+        return Hits(*(None if x is None else x.reshape(shape) for x in out))
+
+    def occluded(self, origins, directions, tnear=0.0, tfar=np.inf):
+        """`TriangleAccel.occluded` over the groups: some group is hit in [tnear, tfar]."""
+        out = None
+        for accel, _ in self.groups:
+            occ = np.asarray(accel.occluded(origins, directions, tnear, tfar), bool)
+            out = occ if out is None else out | occ
+        return out
+
+    def first_k_hits(self, origins, directions, k: int, tnear=0.0, tfar=np.inf) -> Hits:
+        """`TriangleAccel.first_k_hits`: k continuations of `intersect`."""
+        k = int(k)
+        shape, o, d, tn, tf, _ = _host_rays(origins, directions, tnear, tfar, -1)
+        n = len(o)
+        out = [np.full((n, k), np.inf, F32), np.full((n, k), -1, np.int32), np.zeros((n, k)), np.zeros((n, k))]
+        live = np.arange(n)
+        t_prev, p_prev = tn.astype(F32), np.full(n, -1, np.int64)
+        for i in range(k):
+            if live.size == 0:
+                break
+            h = self.intersect(o[live], d[live], t_prev[live], tf[live], p_prev[live])
+            for j, x in enumerate(h):
+                out[j][live, i] = x
+            t_prev[live], p_prev[live] = h.t, h.prim
+            live = live[np.asarray(h.prim) >= 0]
+        return Hits(*(x.reshape(shape + (k,)) for x in out))
