@@ -47,11 +47,16 @@ def _rays(rng, v, tri, n=3000):
     return o, d
 
 
+def _build(v, tri, backend):
+    # (the jax backend's BVHs padded to one size: one compiled traversal per query kind)
+    return TriangleAccel.build(v, tri, backend=backend, **({"min_triangles": 1024} if backend == "jax" else {}))
+
+
 def _grouped(v, tri, groups, backend):
     out = []
     for which in groups:
         ids = np.concatenate([np.arange(PARTS[k][1], PARTS[k + 1][1]) for k in which])
-        out.append((TriangleAccel.build(v, tri[ids], backend=backend), ids))
+        out.append((_build(v, tri[ids], backend), ids))
     return GroupedAccel(out, len(tri))
 
 
@@ -63,7 +68,7 @@ def test_grouped_structure_answers_as_one_structure(backend, dtype):
     rng = np.random.default_rng(1)
     v, tri = _soup(rng, PARTS)
     o, d = (x.astype(dtype) for x in _rays(rng, v, tri))
-    whole = TriangleAccel.build(v, tri, backend=backend)
+    whole = _build(v, tri, backend)
     grouped = _grouped(v, tri, [[0, 2], [1]], backend)
     a, b = whole.first_k_hits(o, d, 12), grouped.first_k_hits(o, d, 12)
     prim_a = np.asarray(a.prim)
@@ -161,3 +166,66 @@ def test_renders_of_a_moving_mesh_beside_a_static_one_rebuild_the_moving_mesh():
     assert accels.built_triangles - before == len(T) + len(small_t)
     assert np.isfinite(img).all() and img.std() > 0
     np.testing.assert_array_equal(img, fresh)
+
+
+def test_grouped_bvhs_traced_in_the_program_answer_as_one_bvh():
+    """`intersect_groups` (the in-program traversal of the groups' BVHs): the first 12 hits along
+    each ray, by continuation, equal one BVH's over the whole mesh (ids and t)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxpbr.rendering.visibility import intersect_bvh, intersect_groups
+
+    rng = np.random.default_rng(3)
+    v, tri = _soup(rng, PARTS)
+    o, d = (jnp.asarray(x, jnp.float32) for x in _rays(rng, v, tri, n=1024))
+    whole = _build(v, tri, "jax").bvh
+    groups = _grouped(v, tri, [[0, 2], [1]], "jax").device_groups()
+
+    @jax.jit
+    def step(groups, whole, ta, pa, tb, pb):  # the next hit after (t, prim) of each ray
+        ha = intersect_bvh(whole, o, d, ta, jnp.inf, pa, lanes=256)
+        hb = intersect_groups(groups, o, d, tb, jnp.inf, pb, lanes=256)
+        return ha.t, ha.prim, hb.t, hb.prim
+
+    n = o.shape[0]
+    state = (jnp.zeros(n, jnp.float32), jnp.full(n, -1, jnp.int32)) * 2
+    for _ in range(12):
+        state = step(groups, whole, *state)
+        ta, pa, tb, pb = (np.asarray(x) for x in state)
+        np.testing.assert_array_equal(pa, pb)
+        np.testing.assert_array_equal(ta, tb)
+    assert (pa >= 0).any()
+
+
+def test_device_visibility_of_moving_frames_uses_the_groups(monkeypatch):
+    """Opaque meshes traced in the program (`Execution.device_visibility`, forced on the CPU):
+    frames of a moving mesh beside a static one carry the groups' BVHs after the first frame, and
+    render what the host engine renders."""
+    from jaxpbr.rendering import execute
+
+    saved = (execute.EXECUTION.staged, execute.EXECUTION.device_visibility)
+    mat = jp.Material(base_color=(0.7, 0.6, 0.5), metallic=0.0, roughness=0.5)
+    cam = jp.Camera(position=(0.3, 1.5, 5.0), target=(0.0, 0.5, 0.0), fov_y_deg=45.0, width=32, height=24)
+    P, N, _, T = uv_sphere(16, 24)
+    ground = Mesh(positions=P * np.float32([3.0, 0.2, 3.0]), triangles=T, normals=N, material=mat)
+    small_p, small_n, _, small_t = uv_sphere(6, 8)
+    light = jp.PointLight((0.5, 3.0, 1.0), intensity=30.0)
+
+    def frame(k):
+        ball = Mesh(positions=small_p * 0.4 + np.float32([0.2 * k, 0.9, 0.0]), triangles=small_t, normals=small_n, material=mat)
+        return jp.Scene(camera=cam, objects=[ground, ball], lights=[light])
+
+    try:
+        execute.EXECUTION.staged = False
+        kinds = []
+        for k in range(3):
+            execute.EXECUTION.device_visibility = True
+            kinds.append(type(mesh_mod.device_accel([ground, frame(k).objects[1]])).__name__)
+            dev = np.asarray(jp.render(frame(k), shadows=True))
+            execute.EXECUTION.device_visibility = False
+            host = np.asarray(jp.render(frame(k), shadows=True))
+            np.testing.assert_allclose(dev, host, rtol=1e-5, atol=1e-6)
+    finally:
+        execute.EXECUTION.staged, execute.EXECUTION.device_visibility = saved
+    assert kinds[0] == "BVH" and kinds[2] == "tuple"

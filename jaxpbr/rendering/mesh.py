@@ -265,7 +265,7 @@ class _Accels:
         if parts is None or len(parts) < 3:
             return self._get(self._digest(tag, vertices, triangles), lambda: (vertices, triangles), backend, exact_ties)
         parts = np.asarray(parts, np.int64)
-        keys = [self._digest(tag + b"/part", vertices[v0:v1], triangles[t0:t1])
+        keys = [self._digest(b"part", vertices[v0:v1], triangles[t0:t1])  # (content only: `seen` is any engine's)
                 for (v0, t0), (v1, t1) in itertools.pairwise(parts)]
         whole = hashlib.blake2b(b"".join([tag, np.int64(vertices.shape + triangles.shape).tobytes()] + keys), digest_size=20).digest()
         with self.lock:
@@ -477,9 +477,11 @@ def _device_cast(arrays, o, d):
     (`arrays["bvh"]`, built on the host from the same float32 triangles) traced on the device, with
     the same continuation through the back faces of single-sided meshes (the next hit after
     (t, prim), at most MAX_CULLED_HITS times): no host round trip."""
-    from .bvh import intersect_bvh
+    from .bvh import BVH, intersect_bvh
+    from .visibility import intersect_groups
 
     bvh = arrays["bvh"]
+    trace = intersect_bvh if isinstance(bvh, BVH) else intersect_groups
     shape = o.shape[:-1]
     o = o.reshape(-1, 3)
     d = jnp.broadcast_to(d, shape + (3,)).reshape(-1, 3)
@@ -493,7 +495,7 @@ def _device_cast(arrays, o, d):
 
     def body(state):
         k, prim, tnear, after, todo = state
-        h = intersect_bvh(bvh, o, d, tnear=tnear, tfar=jnp.where(todo, jnp.inf, -jnp.inf), after_prim=after, lanes=lanes)
+        h = trace(bvh, o, d, tnear=tnear, tfar=jnp.where(todo, jnp.inf, -jnp.inf), after_prim=after, lanes=lanes)
         p = h.prim
         hit = todo & (p >= 0)
         q = jnp.maximum(p, 0)
@@ -512,11 +514,18 @@ def _device_cast(arrays, o, d):
 def device_occluded(arrays, o, d, tfar):
     """`_host_occluded` for opaque meshes in the program (`arrays["bvh"]`): whether the segment
     o + t d, 0 <= t <= tfar, meets a triangle (either face)."""
-    from .bvh import occluded_bvh
+    from .bvh import BVH, occluded_bvh
 
     shape = jnp.broadcast_shapes(o.shape, d.shape)[:-1]
     n = int(np.prod(shape, dtype=np.int64))
-    return occluded_bvh(arrays["bvh"], o, d, 0.0, tfar, lanes=max(1, min(DEVICE_LANES, n)))
+    lanes = max(1, min(DEVICE_LANES, n))
+    bvh = arrays["bvh"]
+    if isinstance(bvh, BVH):
+        return occluded_bvh(bvh, o, d, 0.0, tfar, lanes=lanes)
+    out = occluded_bvh(bvh[0][0], o, d, 0.0, tfar, lanes=lanes)
+    for group, _ in bvh[1:]:  # (a ray the first group blocks ends the others' traversal at once)
+        out = out | occluded_bvh(group, o, d, 0.0, jnp.where(out, -jnp.inf, tfar), lanes=lanes)
+    return out
 
 
 def device_accel(meshes):
@@ -553,11 +562,16 @@ _DEVICE_ACCELS: dict = {}
 
 
 def _device_accel(meshes):
+    """One BVH, or where some meshes moved since the previous call (`ACCELS.get(parts=)`) the
+    groups ((BVH, the whole mesh's triangle ids of its rows (n,) int32 on the device), ...)."""
     offs = np.cumsum([0] + [m.num_vertices for m in meshes])
     verts = np.ascontiguousarray(np.concatenate([np.asarray(m.positions, np.float32) for m in meshes]))
     tris = np.ascontiguousarray(np.concatenate(
         [np.asarray(m.triangles, np.int64) + offs[k] for k, m in enumerate(meshes)]).astype(np.int32))
-    return ACCELS.get(verts, tris, "jax").bvh
+    accel = ACCELS.get(verts, tris, "jax", parts=mesh_parts(meshes))
+    if not hasattr(accel, "groups"):
+        return accel.bvh
+    return accel.device_groups()
 
 
 # ------------------------------------------------------------------------------------------

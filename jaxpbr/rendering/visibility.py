@@ -1266,6 +1266,15 @@ class GroupedAccel:
         self.backend = self.groups[0][0].backend
         self.num_triangles = int(num_triangles)
 
+    def device_groups(self):
+        """((BVH, ids (n,) int32), ...) on JAX's default device for `intersect_groups` (jax
+        backend; made once per structure)."""
+        if self.backend != "jax":
+            raise AttributeError("only the jax backend has BVHs")
+        if getattr(self, "_device", None) is None:
+            self._device = tuple((a.bvh, jnp.asarray(ids, jnp.int32)) for a, ids in self.groups)
+        return self._device
+
     def _group_hits(self, accel, ids, o, d, tn, tf, after, barycentrics):
         """The group's first hit after (tn, after) in the whole mesh's order: (t, global id or -1, b1, b2)."""
         local = np.searchsorted(ids, after, side="right") - 1  # the group's last triangle at or before `after`
@@ -1345,3 +1354,35 @@ class GroupedAccel:
             t_prev[live], p_prev[live] = h.t, h.prim
             live = live[np.asarray(h.prim) >= 0]
         return Hits(*(x.reshape(shape + (k,)) for x in out))
+
+
+def intersect_groups(groups, origins, directions, tnear=0.0, tfar=np.inf, after_prim=-1, *, lanes: int = _bvh.DEFAULT_LANES) -> Hits:
+    """`intersect_bvh` over groups of one mesh ((BVH, ids), ... as `GroupedAccel.device_groups`),
+    traceable: the least (t, id) of the groups' hits with the whole mesh's ids, continuation after
+    (tnear, after_prim) included (`GroupedAccel.intersect`). Rays (N, 3), per-ray arrays (N,)."""
+    n = origins.shape[0]
+    tnear = jnp.broadcast_to(jnp.asarray(tnear, jnp.float32), (n,))
+    tfar = jnp.broadcast_to(jnp.asarray(tfar, jnp.float32), (n,))
+    after = jnp.broadcast_to(jnp.asarray(after_prim, jnp.int32), (n,))
+    best = None
+    for bvh, ids in groups:
+        local = jnp.searchsorted(ids, after, side="right").astype(jnp.int32) - 1
+        own = (local >= 0) & (ids[jnp.maximum(local, 0)] == after)
+        h = intersect_bvh(bvh, origins, directions, tnear, tfar, jnp.where(own, local, -1), lanes=lanes)
+
+        def early(h):  # a hit exactly at tnear ordered before `after`, in a group without it
+            return ~own & (h.prim >= 0) & (h.t == tnear) & (ids[jnp.maximum(h.prim, 0)] < after)
+
+        def again(h, bvh=bvh, early=early):
+            redo = early(h)
+            h2 = intersect_bvh(bvh, origins, directions, tnear, jnp.where(redo, tfar, -jnp.inf), jnp.where(redo, h.prim, -1), lanes=lanes)
+            return Hits(*(jnp.where(redo, b, a) for a, b in zip(h, h2, strict=True)))
+
+        h = jax.lax.while_loop(lambda h, early=early: jnp.any(early(h)), again, h)
+        h = h._replace(prim=jnp.where(h.prim >= 0, ids[jnp.maximum(h.prim, 0)], -1))
+        if best is None:
+            best = h
+            continue
+        better = (h.prim >= 0) & ((best.prim < 0) | (h.t < best.t) | ((h.t == best.t) & (h.prim < best.prim)))
+        best = Hits(*(jnp.where(better, b, a) for a, b in zip(best, h, strict=True)))
+    return best
