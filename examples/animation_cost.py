@@ -12,6 +12,11 @@ and a rendered sequence of a rigged asset against rendering the same asset stati
    pose rendered FRAMES times (its acceleration structure built once and kept): the per-frame
    time of each, their ratio, and the part of an animated frame spent posing, building the scene
    and building the acceleration structure (the Embree build of the posed triangles, timed apart).
+3. The same asset standing on a static set (a bumpy ground of SET triangles, default 1 M, one
+   mesh made once): the per-frame acceleration-structure work when only the moving meshes are
+   rebuilt and the set keeps its structure (`ACCELS.get(parts=)`, what `render` does) against
+   rebuilding the whole scene (`ACCELS.split = False`), both timed on the same posed frames, and
+   the rendered sequence both ways.
 Without ASSET, the sequence uses a rigged strip written in code (tests/gltf_animated.py's
 `skinned`: the fixed costs of a frame).
 """
@@ -125,6 +130,75 @@ def sequence(path: Path, frames: int, width: int, height: int, environment) -> d
             "accel_ms": statistics.median(accel) * 1e3}
 
 
+def ground(lo, hi, triangles: int, material) -> jp.Mesh:
+    """A bumpy square ground of about `triangles` triangles under the box (lo, hi), 4 times its size."""
+    n = max(2, int(round((triangles / 2) ** 0.5)))
+    c, size = (lo + hi) / 2, 2.0 * float(np.max(hi - lo))
+    u = np.linspace(-size, size, n + 1)
+    x, z = np.meshgrid(u + c[0], u + c[2], indexing="ij")
+    y = lo[1] - 0.01 * size + 0.02 * size * np.sin(7 * x / size) * np.cos(5 * z / size)
+    pos = np.stack([x, y, z], -1).reshape(-1, 3).astype(np.float32)
+    k = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    a, b, c2, d = k, k + 1, k + n + 1, k + n + 2
+    tri = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c2], -1).reshape(-1, 3)]).astype(np.int32)
+    return jp.Mesh(positions=pos, triangles=tri, material=material)
+
+
+def on_a_set(path: Path, frames: int, width: int, height: int, environment, set_triangles: int) -> dict:
+    from jaxpbr.rendering.mesh import ACCELS, mesh_parts
+    from jaxpbr.rendering.stages import scene_host_arrays
+
+    rest = read_gltf(path, ray_engine=mesh_engine())
+    times = np.linspace(0.0, rest.animations[0].duration, frames)
+    env = environment_from(environment)
+    cache: dict = {}
+    gs = scene_from_asset(rest, width=width, height=height, environment=env, material_cache=cache)
+    lo, hi = rest.bounds
+    floor = ground(np.asarray(lo), np.asarray(hi), set_triangles, jp.Material(base_color=(0.5, 0.5, 0.5), roughness=0.7))
+    camera = gs.scene.camera
+
+    def scene_at(t):
+        sc = scene_from_asset(posed_asset(rest, float(t), 0), camera=camera, environment=env, material_cache=cache).scene
+        return sc.replace(objects=tuple(sc.objects) + (floor,))
+
+    scenes = [scene_at(t) for t in times]  # posed and made beforehand: the timings below are the render's
+    jp.render(scenes[0]).block_until_ready()  # (compiles; the IBL maps)
+    engine = mesh_engine()
+    rows = {}
+    for split in (True, False):
+        ACCELS.split = split
+        ACCELS.entries.clear()
+        ACCELS.seen = set()
+        ts, built = [], ACCELS.built_triangles
+        for sc in scenes:
+            t0 = time.perf_counter()
+            np.asarray(jp.render(sc))
+            ts.append(time.perf_counter() - t0)
+        rows[split] = (statistics.median(ts[2:]), (ACCELS.built_triangles - built) / frames)
+    ACCELS.split = True
+    # the structure alone, per posed frame: split and whole, alternately on the same arrays
+    acc = {True: [], False: []}
+    for sc in scenes[1:]:
+        host = scene_host_arrays(sc, "float32")
+        for split in (True, False):
+            ACCELS.split = split
+            t0 = time.perf_counter()
+            ACCELS.get(host["positions"], host["triangles"], engine, parts=mesh_parts(
+                [ob for ob in sc.objects if isinstance(ob, jp.Mesh)]))
+            acc[split].append(time.perf_counter() - t0)
+    ACCELS.split = True
+    n_set, n_all = floor.num_triangles, floor.num_triangles + rest.summary()["triangles"]
+    a_split, a_whole = statistics.median(acc[True][1:]), statistics.median(acc[False])
+    print(f"{path.name} on a set of {n_set} triangles ({n_all} in all), {frames} frames at {width}x{height}:")
+    print(f"  structure per frame: moved meshes only {a_split * 1e3:.1f} ms, whole scene {a_whole * 1e3:.1f} ms "
+          f"({a_whole / a_split:.1f}x)")
+    print(f"  render per frame (median of frames 3..): moved meshes only {rows[True][0] * 1e3:.1f} ms "
+          f"({rows[True][1]:.0f} triangles built per frame), whole scene {rows[False][0] * 1e3:.1f} ms "
+          f"({rows[False][1]:.0f}): {rows[False][0] / rows[True][0]:.2f}x")
+    return {"set_triangles": n_set, "accel_split_ms": a_split * 1e3, "accel_whole_ms": a_whole * 1e3,
+            "render_split_ms": rows[True][0] * 1e3, "render_whole_ms": rows[False][0] * 1e3}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("asset", nargs="?", type=Path, default=None)
@@ -133,6 +207,7 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=360)
     ap.add_argument("--vertices", type=int, default=1_000_000)
     ap.add_argument("--environment", default="procedural:sky")
+    ap.add_argument("--set", type=int, default=1_000_000, dest="set_triangles", help="triangles of the static set (0: none)")
     args = ap.parse_args(argv)
     skinning(args.vertices)
     path = args.asset
@@ -144,6 +219,8 @@ def main(argv=None) -> int:
 
         path = skinned(Path(tempfile.mkdtemp()))[0]
     sequence(path, args.frames, args.width, args.height, args.environment)
+    if args.set_triangles:
+        on_a_set(path, args.frames, args.width, args.height, args.environment, args.set_triangles)
     return 0
 
 

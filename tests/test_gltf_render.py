@@ -929,13 +929,15 @@ def test_a_staged_mesh_render_makes_the_ray_engine_s_arrays_once_per_scene(monke
     monkeypatch.setattr(stages, "_host_arrays_jit", lambda *a: made.append(1) or real_make(*a))
     monkeypatch.setattr(stages, "_host_arrays_opaque", lambda *a: made.append(1) or real_opaque(*a))
     monkeypatch.setattr(mesh_mod, "_content_digest", lambda x: hashed.append(id(x)) or real_digest(x))
+    real_range = mesh_mod._range_digest  # (each mesh's range of them: `mesh.part_keys`)
+    monkeypatch.setattr(mesh_mod, "_range_digest", lambda x, a, b: hashed.append(id(x)) or real_range(x, a, b))
     stages._HOST_ARRAYS.clear()
     first = np.asarray(jp.render(scene, shadows=True))
     assert len(made) == 1
     digests = len(hashed)
     again = np.asarray(jp.render(scene, shadows=True))
     # The engine is asked with the same two array objects (positions, triangles) for every cast of
-    # both frames, so their digests are remembered (`_numerics.remember_per_array`).
+    # both frames, so their digests (and their meshes' ranges') are remembered (`_numerics.remember_per_array`).
     assert len(made) == 1 and len(hashed) == 2 * digests and len(set(hashed)) == 2
     np.testing.assert_array_equal(first, again)
     meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
@@ -1056,7 +1058,7 @@ def test_shadow_rays_of_points_facing_away_from_a_light_are_not_traced(monkeypat
     assert R.plan(scene).shadows and R.plan(scene).env_lights == 1 and R.plan(scene).extensions == ("specular",)
     traced = []
     real_occluded = shadows._host_occluded
-    monkeypatch.setattr(shadows, "_host_occluded", lambda v, t, o, *a: traced.append(len(o)) or real_occluded(v, t, o, *a))
+    monkeypatch.setattr(shadows, "_host_occluded", lambda v, t, o, *a, **k: traced.append(len(o)) or real_occluded(v, t, o, *a, **k))
     culled = np.asarray(jp.render(scene))
     few = traced[:]
     real_hits = stages.host_mesh_hits

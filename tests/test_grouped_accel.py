@@ -229,3 +229,32 @@ def test_device_visibility_of_moving_frames_uses_the_groups(monkeypatch):
     finally:
         execute.EXECUTION.staged, execute.EXECUTION.device_visibility = saved
     assert kinds[0] == "BVH" and kinds[2] == "tuple"
+
+
+def test_edge_topology_of_several_meshes_is_kept_per_mesh():
+    """The antialiasing's neighbour table (`edges.NEIGHBOURS`) of several meshes: made from each
+    mesh's own table and the open edges where two meshes meet, it equals the table of the whole
+    (a sphere cut into two meshes with their own copies of the vertices, beside a third mesh);
+    when one mesh moves, only its table is computed again."""
+    from jaxpbr.rendering.edges import _Neighbours, edge_neighbours
+
+    P, _, _, T = uv_sphere(12, 16)
+    P, T = P.astype(np.float32), T.astype(np.int32)
+    half = len(T) // 2
+    q, _, _, u = uv_sphere(5, 7)
+
+    def scene(shift):
+        v = np.concatenate([P, P, q.astype(np.float32) * 0.3 + np.float32([shift, 2.0, 0.0])])
+        tri = np.concatenate([T[:half], T[half:] + len(P), u.astype(np.int32) + 2 * len(P)])
+        parts = ((0, 0), (len(P), half), (2 * len(P), len(T)), (len(v), len(tri)))
+        return v, tri, parts
+
+    table = _Neighbours()
+    v, tri, parts = scene(0.0)
+    want = edge_neighbours(v, tri)
+    assert (want[:half] >= half).any()  # the cut: edges joined across the two meshes
+    np.testing.assert_array_equal(table.get(v, tri, parts), want)
+    assert table.computed == 4  # three meshes and their assembly
+    v, tri, parts = scene(0.5)
+    np.testing.assert_array_equal(table.get(v, tri, parts), edge_neighbours(v, tri))
+    assert table.computed == 6  # the moved mesh and the assembly

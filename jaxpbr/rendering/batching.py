@@ -448,7 +448,7 @@ def _render_batch_staged(scene, assets, b, p_plan, opts, objects_idx, chunk):
     nbr = None
     host = scene_host_arrays(scene, opts.dtype) if any(isinstance(ob, Mesh) for ob in scene.objects) else None
     if host is not None:
-        nbr = jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"]))
+        nbr = jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"], host["parts"]))
 
     # The chunk is cut on the device by one program (its start is an argument).
     outs = [_supersampled(scene, opts, one_pass(_take_chunk(b, i, n=chunk))) for i in range(0, total, chunk)]

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import hashlib
 from collections import OrderedDict
+import itertools
 import threading
 
 import jax
@@ -45,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numerics import safe_div, safe_sqrt, vcross, vdot
-from .mesh import Mesh, concat_geometry
+from .mesh import Mesh, concat_geometry, mesh_parts
 from .scene import Plane, Sphere, camera_basis
 
 __all__ = ["antialias_pass", "camera_plane_rays", "edge_neighbours", "neighbours"]
@@ -56,18 +57,20 @@ __all__ = ["antialias_pass", "camera_plane_rays", "edge_neighbours", "neighbours
 # ------------------------------------------------------------------------------------------
 
 
-def edge_neighbours(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def edge_neighbours(positions: np.ndarray, triangles: np.ndarray, *, open_edges: bool = False):
     """(T, 3) int32: for triangle t and edge i (the edge opposite vertex i, from vertex i+1 to i+2),
     the other triangle that shares the edge, or -1 where the edge is on a boundary, is shared by
     three or more triangles, or is degenerate (an outline in every case). Vertices are welded by
     position first (to `WELD_TOLERANCE` of the extent), so the duplicated vertices of texture, normal and
     material seams join their triangles; a corner shared by two coincident vertices on either side
-    of a grid line stays split (an outline there: blended where the colours agree anyway)."""
+    of a grid line stays split (an outline there: blended where the colours agree anyway).
+    open_edges=True: also (T, 3) bool, the edges no other triangle shares (not degenerate), which
+    another mesh's may join (`parts_neighbours`)."""
     pos = np.asarray(positions, np.float64).reshape(-1, 3)
     tri = np.asarray(triangles, np.int64).reshape(-1, 3)
     T = tri.shape[0]
     if T == 0:
-        return np.zeros((0, 3), np.int32)
+        return (np.zeros((0, 3), np.int32), np.zeros((0, 3), bool)) if open_edges else np.zeros((0, 3), np.int32)
     # Welded on a grid of WELD_TOLERANCE times the mesh's extent: the two copies of a seam vertex
     # are often computed apart (sin(2 pi) is not 0) and differ in their last bits.
     lo_, hi_ = pos.min(0), pos.max(0)
@@ -102,7 +105,46 @@ def edge_neighbours(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     i1 = idx[np.flatnonzero(first) + 1]
     out[i0] = i1 // 3
     out[i1] = i0 // 3
-    return out.reshape(T, 3).astype(np.int32)
+    if not open_edges:
+        return out.reshape(T, 3).astype(np.int32)
+    single = np.zeros(3 * T, bool)
+    single[idx] = (counts[run] == 1) & (ks >= 0)
+    return out.reshape(T, 3).astype(np.int32), single.reshape(T, 3)
+
+
+def parts_neighbours(positions: np.ndarray, parts, tables) -> np.ndarray:
+    """The (T, 3) neighbour table of meshes concatenated (`mesh.mesh_parts` offsets `parts`) from
+    each mesh's own (`tables`: (table, open edges) of `edge_neighbours(open_edges=True)` in the
+    mesh's ids): the meshes' tables, and an open edge of one mesh joined to an open edge of
+    another where their ends weld (on the grid of the whole extent) and no third open edge does."""
+    pos = np.asarray(positions, np.float64).reshape(-1, 3)
+    T = int(parts[-1][1])
+    out = np.full((T, 3), -1, np.int32)
+    ends, where = [], []
+    for (v0, t0), (_, t1), (table, single), tri in tables:
+        out[t0:t1] = np.where(table >= 0, table + np.int32(t0), -1)
+        r, i = np.nonzero(single)
+        if r.size:
+            ends.append(np.stack([tri[r, (i + 1) % 3], tri[r, (i + 2) % 3]], 1) + v0)
+            where.append(np.stack([r + t0, i, np.full(r.size, t0)], 1))
+    if len(ends) < 2:
+        return out
+    ends, where = np.concatenate(ends), np.concatenate(where)
+    lo_, hi_ = pos.min(0), pos.max(0)
+    cell = max(float(np.max(hi_ - lo_)), 1e-30) * WELD_TOLERANCE
+    bits = np.rint((pos[ends.reshape(-1)] - lo_) / cell).astype(np.int64)
+    _, weld = np.unique(bits, axis=0, return_inverse=True)
+    weld = weld.reshape(-1, 2)
+    _, key, counts = np.unique(np.sort(weld, 1), axis=0, return_inverse=True, return_counts=True)
+    key = key.reshape(-1)
+    two = np.flatnonzero(counts[key] == 2)
+    two = two[np.argsort(key[two], kind="stable")]
+    a, b = two[0::2], two[1::2]
+    across = where[a, 2] != where[b, 2]  # (two open edges of one mesh stay open)
+    a, b = a[across], b[across]
+    out[where[a, 0], where[a, 1]] = where[b, 0]
+    out[where[b, 0], where[b, 1]] = where[a, 0]
+    return out
 
 
 #: Vertices closer than this fraction of the mesh's extent (on a grid) are one vertex for the
@@ -111,49 +153,86 @@ WELD_TOLERANCE = 2.0 ** -20
 
 
 class _Neighbours:
-    """`edge_neighbours` by content digest (a small LRU: a million triangles take ~1 s)."""
+    """`edge_neighbours` by content digest: whole scenes' tables in a small LRU (`capacity`), and
+    with parts each mesh's own table in another, bounded by its triangles (`mesh_triangles`; a
+    million triangles take ~0.4 s)."""
 
-    def __init__(self, capacity: int = 4):
+    def __init__(self, capacity: int = 4, mesh_triangles: int = 1 << 23):
         self.capacity = capacity
+        self.mesh_triangles = mesh_triangles
         self.entries: OrderedDict[bytes, np.ndarray] = OrderedDict()
+        self.meshes: OrderedDict[bytes, tuple] = OrderedDict()
         self.lock = threading.Lock()
-        self.computed = 0  # counted by tests
+        self.computed = 0  # counted by tests: tables computed (whole scenes or single meshes)
 
-    def get(self, positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-        from .mesh import _content_digest
-
+    def get(self, positions: np.ndarray, triangles: np.ndarray, parts=None) -> np.ndarray:
+        """The table of the arrays; with `parts` (`mesh.mesh_parts`: several meshes) made from
+        each mesh's own table, kept per mesh (`parts_neighbours`): a moving mesh beside a static
+        set recomputes its own only."""
         positions = np.asarray(positions, np.float32)
         triangles = np.asarray(triangles, np.int32)
-        h = hashlib.blake2b(digest_size=20)
+        if parts is None or len(parts) < 3:
+            key = self._key(b"whole", positions, triangles)
+            return self._kept(self.entries, key, lambda: edge_neighbours(positions, triangles), 0)
+        from .mesh import part_keys
+
+        keys = part_keys(positions, triangles, parts)
+        tables = [((v0, t0), (v1, t1), k, positions[v0:v1], triangles[t0:t1])
+                  for ((v0, t0), (v1, t1)), k in zip(itertools.pairwise(parts), keys, strict=True)]
+        key = hashlib.blake2b(b"".join([b"parts"] + keys), digest_size=20).digest()
+
+        def assemble():
+            own = [(a, b, self._kept(self.meshes, k, lambda p=p, t=t, v0=a[0]: edge_neighbours(p, t - np.int32(v0), open_edges=True),
+                                     b[1] - a[1]), t - np.int32(a[0])) for a, b, k, p, t in tables]
+            return parts_neighbours(positions, parts, own)
+
+        return self._kept(self.entries, key, assemble, 0)
+
+    @staticmethod
+    def _key(tag: bytes, positions, triangles) -> bytes:
+        from .mesh import _content_digest
+
+        h = hashlib.blake2b(tag, digest_size=20)
+        h.update(np.int64(positions.shape + triangles.shape).tobytes())
         h.update(_content_digest(positions))
         h.update(_content_digest(triangles))
-        key = h.digest()
+        return h.digest()
+
+    def _kept(self, store: OrderedDict, key: bytes, compute, size: int):
+        """store[key], computed by `compute()` when not kept; the mesh store drops its oldest
+        tables beyond `mesh_triangles` (size: this one's triangles), the whole one beyond `capacity`."""
         with self.lock:
-            if key in self.entries:
-                self.entries.move_to_end(key)
-                return self.entries[key]
-        out = edge_neighbours(positions, triangles)
-        out.setflags(write=False)
+            if key in store:
+                store.move_to_end(key)
+                return store[key][0]
+        out = compute()
+        for a in out if isinstance(out, tuple) else (out,):
+            a.setflags(write=False)
         with self.lock:
             self.computed += 1
-            self.entries[key] = out
-            while len(self.entries) > self.capacity:
-                self.entries.popitem(last=False)
+            store[key] = (out, size)
+            if store is self.meshes:
+                total = sum(n for _, n in store.values())
+                while total > self.mesh_triangles and len(store) > 1:
+                    total -= store.popitem(last=False)[1][1]
+            else:
+                while len(store) > self.capacity:
+                    store.popitem(last=False)
         return out
 
 
 NEIGHBOURS = _Neighbours()
 
 
-def neighbours(positions, triangles):
+def neighbours(positions, triangles, parts=None):
     """`edge_neighbours` of the meshes' concatenated arrays: computed on the host (and kept per
     content) when they are concrete, through a callback from inside a trace (the positions'
     gradients stopped: the topology has none)."""
     if not isinstance(positions, jax.core.Tracer) and not isinstance(triangles, jax.core.Tracer):
-        return jnp.asarray(NEIGHBOURS.get(np.asarray(positions, np.float32), np.asarray(triangles, np.int32)))
+        return jnp.asarray(NEIGHBOURS.get(np.asarray(positions, np.float32), np.asarray(triangles, np.int32), parts))
     pos = jax.lax.stop_gradient(positions).astype(jnp.float32)
     out = jax.ShapeDtypeStruct(triangles.shape, jnp.int32)
-    return jax.pure_callback(lambda p, t: NEIGHBOURS.get(np.asarray(p), np.asarray(t)), out, pos, triangles,
+    return jax.pure_callback(lambda p, t: NEIGHBOURS.get(np.asarray(p), np.asarray(t), parts), out, pos, triangles,
                              vmap_method="sequential")
 
 
@@ -480,7 +559,7 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
         if nbr is None:
             nbr = getattr(scene, "neighbours", None)  # (`stages.AccelScene`: made with its BVH)
         if nbr is None:
-            nbr = neighbours(P, tris)
+            nbr = neighbours(P, tris, mesh_parts([ob for ob in objects if isinstance(ob, Mesh)]))
     h = 0.5 / samples
 
     def crossing(ln):

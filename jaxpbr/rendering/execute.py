@@ -200,7 +200,7 @@ def _with_device_accel(scene: Scene, execution: Execution) -> Scene:
     if accel is None:
         return scene
     host = scene_host_arrays(scene, jnp.float32)
-    nbr = None if host is None else jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"]))
+    nbr = None if host is None else jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"], host["parts"]))
     return unchecked(AccelScene, **{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel, neighbours=nbr)
 
 

@@ -201,6 +201,7 @@ class _Accels:
         self.builds = 0  # counted by tests: one build per mesh content
         self.built_triangles = 0  # triangles of those builds
         self.seen: set = set()  # the part digests of the latest call with parts (`get`)
+        self.split = True  # False: one structure per content, parts or not (a benchmark's baseline)
         self.directory: Path | None = None  # `use_directory`
 
     def use_directory(self, directory) -> None:
@@ -262,11 +263,10 @@ class _Accels:
         are built on their own (a `GroupedAccel` of the two). An animated character beside a static
         set rebuilds the character only."""
         tag = f"{backend}/{exact_ties}".encode()
-        if parts is None or len(parts) < 3:
+        if parts is None or len(parts) < 3 or not self.split:
             return self._get(self._digest(tag, vertices, triangles), lambda: (vertices, triangles), backend, exact_ties)
+        keys = part_keys(vertices, triangles, parts)  # (content only: `seen` is any engine's)
         parts = np.asarray(parts, np.int64)
-        keys = [self._digest(b"part", vertices[v0:v1], triangles[t0:t1])  # (content only: `seen` is any engine's)
-                for (v0, t0), (v1, t1) in itertools.pairwise(parts)]
         whole = hashlib.blake2b(b"".join([tag, np.int64(vertices.shape + triangles.shape).tobytes()] + keys), digest_size=20).digest()
         with self.lock:
             known = whole in self.entries or whole in self.building
@@ -349,6 +349,30 @@ class _Accels:
 ACCELS = _Accels()
 
 _DIGESTS: dict = {}  # (id(array), tag) -> (weakref, blake2b digest of its dtype, shape and bytes)
+
+
+def part_keys(vertices: np.ndarray, triangles: np.ndarray, parts) -> list:
+    """A content digest of each mesh of the concatenated arrays (`mesh_parts` offsets), remembered
+    per array object and range (`remember_per_array`): the same arrays asked again (each light's
+    shadow rays, a second frame of the same scene) are not hashed again."""
+    out = []
+    for (v0, t0), (v1, t1) in itertools.pairwise(parts):
+        h = hashlib.blake2b(b"part", digest_size=20)
+        h.update(np.int64((v1 - v0, t1 - t0)).tobytes())
+        h.update(_range_digest(vertices, v0, v1))
+        h.update(_range_digest(triangles, t0, t1))
+        out.append(h.digest())
+    return out
+
+
+def _range_digest(x: np.ndarray, start: int, stop: int) -> bytes:
+    def digest():
+        h = hashlib.blake2b(digest_size=20)
+        h.update(f"{x.dtype.str}{x.shape[1:]}".encode())
+        h.update(np.ascontiguousarray(x[start:stop]).tobytes())
+        return h.digest()
+
+    return remember_per_array(_DIGESTS, x, f"blake2b[{start}:{stop}]", digest)
 
 
 def _content_digest(x: np.ndarray) -> bytes:

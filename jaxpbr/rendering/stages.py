@@ -1312,7 +1312,7 @@ def staged_outlines(scene: Scene, opts: RenderOptions, offset, c, surf, samples:
     if any(isinstance(ob, Mesh) for ob in scene.objects) and not _traced((c, surf, offset)):
         arrays = scene_host_arrays(scene, opts.dtype)
         if arrays is not None:
-            nbr = jax.device_put(NEIGHBOURS.get(arrays["positions"], arrays["triangles"]))
+            nbr = jax.device_put(NEIGHBOURS.get(arrays["positions"], arrays["triangles"], arrays["parts"]))
     view = _stage_view(evolve(scene, camera=evolve(scene.camera, supersample=1)))
     return _antialias_jit(view, jnp.dtype(opts.dtype).name, offset, c, surf, samples, nbr, opts.antialias)
 
