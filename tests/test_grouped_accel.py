@@ -66,7 +66,7 @@ def test_grouped_structure_answers_as_one_structure(backend, dtype):
     triangle ids and bit-identical t as one structure over the whole mesh."""
     rng = np.random.default_rng(1)
     v, tri = _soup(rng, PARTS)
-    o, d = (x.astype(dtype) for x in _rays(rng, v, tri))
+    o, d = (x.astype(dtype) for x in _rays(rng, v, tri, n=1000))  # (one ray bucket of the jax traversal)
     whole = _build(v, tri, backend)
     grouped = _grouped(v, tri, [[0, 2], [1]], backend)
     a, b = whole.first_k_hits(o, d, 12), grouped.first_k_hits(o, d, 12)

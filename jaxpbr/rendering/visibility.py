@@ -1145,16 +1145,25 @@ class TriangleAccel:
         traced concurrently from Python threads: XLA runs this loop on about one core per call
         (measured on 2 cores: 2 concurrent calls 2-3x faster than one call on twice the rays)."""
         n = int(np.prod(shape, dtype=np.int64))
+        # Host rays (NumPy arrays, numbers) are cast, cut and padded in NumPy and the results come
+        # back as NumPy: an eager jnp slice, pad or cast compiles a small program per ray count
+        # (a walk through layers asks with a different count each round: 0.1-0.2 s each).
+        host = not any(isinstance(a, jax.Array) for a, _, _ in arrays.values())
+        xp = np if host else jnp
         flat = {}
         for name, (a, tail, dt) in arrays.items():
-            flat[name] = (jnp.broadcast_to(jnp.asarray(a).astype(dt), shape + tail).reshape((n,) + tail), tail)
+            flat[name] = (xp.broadcast_to(xp.asarray(a).astype(dt), shape + tail).reshape((n,) + tail), tail)
         parts = self.threads if (self._on_cpu and n >= 2 * _bvh.DEFAULT_LANES) else 1
+
+        def cut(x, k):
+            return np.asarray(x)[:k] if host else x[:k]
 
         def run(lo, hi):
             m = pad_rays(hi - lo)
-            args = {k: jnp.pad(a[lo:hi], [(0, m - (hi - lo))] + [(0, 0)] * len(t)) for k, (a, t) in flat.items()}
+            args = {k: xp.pad(a[lo:hi], [(0, m - (hi - lo))] + [(0, 0)] * len(t)) for k, (a, t) in flat.items()}
             out = fn(self._impl, **args, lanes=min(self.lanes, m), **kw)
-            return jax.block_until_ready(jax.tree.map(lambda x: x[: hi - lo], out)) if parts > 1 else jax.tree.map(lambda x: x[: hi - lo], out)
+            out = jax.tree.map(lambda x: cut(x, hi - lo), out)
+            return jax.block_until_ready(out) if parts > 1 and not host else out
 
         if parts == 1:
             out = run(0, n)
@@ -1162,7 +1171,7 @@ class TriangleAccel:
             cuts = np.linspace(0, n, parts + 1).astype(int)
             with ThreadPoolExecutor(parts) as pool:
                 outs = list(pool.map(lambda ab: run(*ab), itertools.pairwise(cuts)))
-            out = jax.tree.map(lambda *xs: jnp.concatenate(xs), *outs)
+            out = jax.tree.map(lambda *xs: xp.concatenate(xs), *outs)
         return jax.tree.map(lambda x: x.reshape(shape + x.shape[1:]), out)
 
     @staticmethod
