@@ -36,7 +36,7 @@ from .shading.lights import (
 from .shading.lut import compute_brdf_lut, lut_lookup, lut_reference
 from .shading.material import Material
 from .rendering.baked import read_baked
-from .rendering.animated import posed_scene
+from .rendering.animated import posed_geometry, posed_scene
 from .rendering.gltf_scene import load_gltf
 from .rendering.scene_file import load_scene, loads_scene
 from .rendering.mesh import Mesh
@@ -68,6 +68,7 @@ __all__ = [
     "TextureSlot",
     "load_environment",
     "load_gltf",
+    "posed_geometry",
     "posed_scene",
     "load_scene",
     "loads_scene",

@@ -13,6 +13,7 @@ animation (a mirroring scale keyed in), and the asset's cameras and lights (`loa
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -21,7 +22,7 @@ from ..errors import InputError
 from ..io.gltf import pose_primitives
 from .gltf_scene import GltfScene
 
-__all__ = ["posed_scene"]
+__all__ = ["posed_geometry", "posed_scene"]
 
 _FILL = {"normals": (0.0, 0.0, 1.0), "tangents": (1.0, 0.0, 0.0, 1.0)}
 
@@ -63,3 +64,26 @@ def posed_scene(gltf_scene: GltfScene, time, *, animation=None, rest=None, morph
             changes[field_] = jnp.concatenate(parts) if len(parts) > 1 else parts[0]
         objects[k] = evolve(mesh, **changes)
     return evolve(gltf_scene.scene, objects=tuple(objects))
+
+
+def posed_geometry(gltf_scene: GltfScene, times, *, animation=None) -> dict:
+    """The moving meshes of `posed_scene` at each of `times` (B,): {object index: {"positions":
+    (B, V, 3), and "normals" / "tangents" where the mesh has them}}, the `geometry` of
+    `render_batch` (`render_batch(gltf_scene, times=...)` calls this). Meshes no animation moves
+    are left out (they keep their arrays and their acceleration structure for the whole batch).
+    Traceable (one `jax.vmap` of `posed_scene` over the times)."""
+    times = jnp.asarray(times)
+    if times.ndim != 1 or times.shape[0] == 0:
+        raise InputError(f"times must be a non-empty 1-D array (B,), got shape {times.shape}")
+    base = gltf_scene.scene.objects
+    first = posed_scene(gltf_scene, times[0], animation=animation).objects
+    moving = [k for k, (a, b) in enumerate(zip(base, first, strict=True)) if a is not b]
+    if not moving:
+        raise InputError("posed_geometry: no mesh of the scene moves in this animation (nothing to batch over times)")
+
+    def one(t):
+        objs = posed_scene(gltf_scene, t, animation=animation).objects
+        return {str(k): {name: getattr(objs[k], name) for name in ("positions", "normals", "tangents")
+                         if getattr(objs[k], name) is not None} for k in moving}
+
+    return jax.vmap(one)(times)

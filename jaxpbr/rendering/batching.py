@@ -95,7 +95,41 @@ def _substitute(scene: Scene, b: dict, objects_idx) -> Scene:
         changes["lights"] = tuple(b["lights"])
     if "env" in b:
         changes["environment"] = evolve(scene.environment, **b["env"])
+    if "geometry" in b:
+        objs = list(changes.get("objects", scene.objects))
+        for k, fields in b["geometry"].items():
+            objs[int(k)] = evolve(objs[int(k)], **fields)
+        changes["objects"] = tuple(objs)
     return evolve(scene, **changes)
+
+
+_GEOMETRY_FIELDS = {"positions": 3, "normals": 3, "tangents": 4}
+
+
+def _batched_geometry(scene: Scene, geometry) -> tuple[int, dict]:
+    """(B, {object index (str): {field: (B, V, n) array}}) of `render_batch(geometry=)`, checked
+    against the scene's meshes."""
+    if not isinstance(geometry, dict) or not geometry:
+        raise ValueError("geometry must be a non-empty dict {object index: {'positions': (B, V, 3), ...}}")
+    out, sizes = {}, set()
+    for k, fields in geometry.items():
+        k = int(k)
+        if not 0 <= k < len(scene.objects) or not isinstance(scene.objects[k], Mesh):
+            raise ValueError(f"geometry: object {k} is not a mesh of the scene")
+        mesh = scene.objects[k]
+        if not isinstance(fields, dict) or not fields or set(fields) - set(_GEOMETRY_FIELDS):
+            raise ValueError(f"geometry[{k}] must be a dict of {sorted(_GEOMETRY_FIELDS)}, got {fields!r:.80}")
+        for name, x in fields.items():
+            want = (mesh.num_vertices, _GEOMETRY_FIELDS[name])
+            if np.ndim(x) != 3 or tuple(np.shape(x)[1:]) != want:
+                raise ValueError(f"geometry[{k}][{name!r}] has shape {np.shape(x)}; expected (B, {want[0]}, {want[1]})")
+            if getattr(mesh, name) is None:
+                raise ValueError(f"geometry[{k}][{name!r}]: the scene's mesh has no {name} to replace")
+            sizes.add(int(np.shape(x)[0]))
+        out[str(k)] = {name: jnp.asarray(x, jnp.asarray(getattr(mesh, name)).dtype) for name, x in fields.items()}
+    if len(sizes) != 1:
+        raise ValueError(f"geometry: every array must have the same leading batch axis, got {sorted(sizes)}")
+    return sizes.pop(), out
 
 
 @functools.partial(jax.jit, static_argnums=(3, 4, 5, 6, 7))
@@ -126,6 +160,9 @@ def render_batch(
     devices=None,
     options: RenderOptions | None = None,
     cache: AssetCache | None = None,
+    geometry=None,
+    times=None,
+    animation=None,
     **overrides,
 ) -> jax.Array:
     """Render B variants of `scene` in one jitted, vmapped call -> (B, H, W, 3).
@@ -136,6 +173,13 @@ def render_batch(
       cameras: a Camera whose array fields are (B, ...) (same width/height/supersample).
       lights: a list of lights whose fields are (B, ...); replaces the scene's lights.
       env_rotation, env_intensity: (B,) environment rotations about +Y (radians) / intensities.
+      geometry: {object index: {"positions": (B, V, 3), "normals": (B, V, 3), "tangents": (B, V, 4)}}
+        (any of the three): meshes whose vertices differ per image (same triangles). Each image's
+        rays are cast against its own meshes; meshes not listed keep their structure for the
+        whole batch (`mesh.ACCELS`: only the listed meshes are built per image).
+      times (with `scene` a `GltfScene` of an animated asset; `animation` as for `posed_scene`):
+        (B,) times, each image the asset posed at its time (the geometry of the moving meshes,
+        `animated.posed_geometry`). Cameras and lights stay the scene's.
     chunk: images rendered together per step (`lax.map` batch size), bounding memory; default
       keeps about 2M pixel samples per step.
     devices: None (all local devices), a list of devices, or 1: the batch is sharded over them
@@ -151,6 +195,20 @@ def render_batch(
     from jax.sharding import Mesh
 
     opts = _options(options, overrides, "render_batch")
+    from .gltf_scene import GltfScene
+
+    if times is not None:
+        if not isinstance(scene, GltfScene):
+            raise ValueError("render_batch(times=) takes the GltfScene of `load_gltf` / `scene_from_asset` as its scene")
+        if geometry is not None:
+            raise ValueError("render_batch: give times or geometry, not both")
+        from .animated import posed_geometry
+
+        geometry = posed_geometry(scene, times, animation=animation)
+    elif animation is not None:
+        raise ValueError("render_batch: animation needs times")
+    if isinstance(scene, GltfScene):
+        scene = scene.scene
     b: dict[str, Any] = {}
     sizes: list = []
     if materials is not None:
@@ -190,8 +248,11 @@ def render_batch(
         if scene.environment is None:
             raise ValueError("env_rotation/env_intensity need a scene with an environment")
         b["env"] = env_b
+    if geometry is not None:
+        n, b["geometry"] = _batched_geometry(scene, geometry)
+        sizes.append((n, None))
     if not b:
-        raise ValueError("render_batch needs at least one batched input (materials, cameras, lights, env_rotation, env_intensity)")
+        raise ValueError("render_batch needs at least one batched input (materials, cameras, lights, env_rotation, env_intensity, geometry, times)")
     if len({n for n, _ in sizes}) != 1:
         raise ValueError(f"render_batch inputs must share the same leading batch axis, got sizes {sorted({n for n, _ in sizes})}")
     B = sizes[0][0]
@@ -231,8 +292,10 @@ def render_batch(
     leaves = jax.tree_util.tree_leaves((base, b))
     if mesh is None and _staged() and all(is_concrete(x) for x in leaves):
         return _render_batch_staged(base, assets, b, p_plan, opts, objects_idx, chunk)[:B]
-    # Off the CPU, opaque meshes are traced in the program (the BVH is shared by every image).
-    out = _batch_jit(_with_device_accel(base, EXECUTION), assets, b, p_plan, opts, objects_idx, chunk, mesh)
+    # Off the CPU, opaque meshes are traced in the program (the BVH is shared by every image;
+    # not with per-image geometry, whose rays go to the host engine image by image).
+    traced = base if "geometry" in b else _with_device_accel(base, EXECUTION)
+    out = _batch_jit(traced, assets, b, p_plan, opts, objects_idx, chunk, mesh)
     return out[:B]
 
 
@@ -319,8 +382,8 @@ def _host_traced(scene, kw, bc) -> bool:
     that decide what the rays see (cut-outs, blending, transmission's coloured shadows): the host
     engine reads the scene's own."""
     meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
-    if scene.gbuffer is not None or kw["p_plan"].blend_layers != 1 or not meshes:
-        return False
+    if scene.gbuffer is not None or kw["p_plan"].blend_layers != 1 or not meshes or "geometry" in bc:
+        return False  # (per-image geometry: each image's rays cast against its own meshes, in the chunk's programs)
     if "materials" not in bc:
         return True
     # (transmission is static: batched materials can add it to or remove it from any object, which
