@@ -12,7 +12,6 @@ import pytest
 import jaxpbr as jp
 from gltf_animated import skinned
 from jaxpbr.io.gltf import read_gltf
-from jaxpbr.rendering import mesh as mesh_mod
 from jaxpbr.rendering.gltf_scene import scene_from_asset
 from jaxpbr.rendering.mesh import Mesh
 
