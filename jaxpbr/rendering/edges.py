@@ -242,9 +242,10 @@ def neighbours(positions, triangles, parts=None):
 
 
 def camera_plane_rays(cam, dtype, offset):
-    """(o, d, step_x, step_y): the rays of every sample of a pass at sub-pixel `offset` (+ the
-    camera's jitter), (H, W) Vec3s, with the directions *not* normalised (perspective: the point on
-    the image plane at distance 1, so that the rays between two samples are the linear blend of
+    """(rays, step_x, step_y): `rays(col, row)` -> (o, d), the rays of the samples of a pass at
+    sub-pixel `offset` (+ the camera's jitter) at pixel columns and rows (arrays, broadcast
+    together; Vec3s of their shape), with the directions *not* normalised (perspective: the point
+    on the image plane at distance 1, so that the rays between two samples are the linear blend of
     theirs), and the change of (o, d) from one pixel to the next along x and along y, each a pair
     of Vec3s (the origin's is zero in perspective, the direction's in orthographic). The same rays
     as `scene.primary_rays` up to the directions' length."""
@@ -253,20 +254,22 @@ def camera_plane_rays(cam, dtype, offset):
     ortho = cam.projection == "orthographic"
     t = jnp.asarray(cam.ymag, dtype) if ortho else jnp.tan(jnp.deg2rad(jnp.asarray(cam.fov_y_deg, dtype)) / 2)
     jit = jnp.asarray(cam.jitter, dtype)
-    x = ((2.0 * (jnp.arange(W, dtype=dtype) + offset[0] + jit[0]) / W - 1.0) * t * (W / H))[None, :]
-    y = ((1.0 - 2.0 * (jnp.arange(H, dtype=dtype) + offset[1] + jit[1]) / H) * t)[:, None]
-    shape = (H, W)
     sx = 2.0 * t / H  # one pixel on the image plane (square pixels: W/H of the width's tan per W pixels)
     zero = (jnp.zeros((), dtype),) * 3
     step_x = tuple(sx * right[i] for i in range(3))
     step_y = tuple(-sx * up[i] for i in range(3))
+
+    def rays(col, row):
+        x = (2.0 * (col.astype(dtype) + offset[0] + jit[0]) / W - 1.0) * t * (W / H)
+        y = (1.0 - 2.0 * (row.astype(dtype) + offset[1] + jit[1]) / H) * t
+        shape = jnp.broadcast_shapes(x.shape, y.shape)
+        if ortho:
+            return (tuple(pos[i] + x * right[i] + y * up[i] for i in range(3)), tuple(jnp.broadcast_to(fwd[i], shape) for i in range(3)))
+        return tuple(jnp.broadcast_to(pos[i], shape) for i in range(3)), tuple(fwd[i] + x * right[i] + y * up[i] for i in range(3))
+
     if ortho:
-        o = tuple(jnp.broadcast_to(pos[i] + x * right[i] + y * up[i], shape) for i in range(3))
-        d = tuple(jnp.broadcast_to(fwd[i], shape) for i in range(3))
-        return o, d, (step_x, zero), (step_y, zero)
-    d = tuple(jnp.broadcast_to(fwd[i] + x * right[i] + y * up[i], shape) for i in range(3))
-    o = tuple(jnp.broadcast_to(pos[i], shape) for i in range(3))
-    return o, d, (zero, step_x), (zero, step_y)
+        return rays, (step_x, zero), (step_y, zero)
+    return rays, (zero, step_x), (zero, step_y)
 
 
 # ------------------------------------------------------------------------------------------
@@ -305,23 +308,19 @@ MAX_WALK = 8
 def _edge_values(P, tris, tri_id, oi, di, oo, do, d_face):
     """Per edge i of the triangles `tri_id` (the edge opposite vertex i), its edge function
     E_i = ((V_j - o) x (V_k - V_j)) . d at the segment's two ends, oriented so that it is positive
-    inside the triangle as the ray `d_face` sees it: ([e at inside ray] * 3, [e at outside ray] * 3).
-    Linear in the fraction along the segment (the rays' origins or directions are, not both)."""
+    inside the triangle as the ray `d_face` sees it: ([e at inside ray] * 3, [e at outside ray] * 3,
+    the triangles' normals). Linear in the fraction along the segment (the rays' origins or
+    directions are, not both)."""
     v = [tuple(P[:, c][tris[:, k][tri_id]] for c in range(3)) for k in range(3)]
     n = vcross(_sub(v[1], v[0]), _sub(v[2], v[0]))
-    sigma = jnp.where(jax.lax.stop_gradient(vdot(n, d_face)) >= 0, 1.0, -1.0).astype(di[0].dtype)
-    e_in, e_out, fns = [], [], []
+    sigma = jnp.where(vdot(n, d_face) >= 0, 1.0, -1.0).astype(di[0].dtype)
+    e_in, e_out = [], []
     for i in range(3):
         j, k = (i + 1) % 3, (i + 2) % 3
         ejk = _sub(v[k], v[j])
-
-        def f(o, d, j=j, ejk=ejk):
-            return sigma * vdot(vcross(_sub(v[j], o), ejk), d)
-
-        e_in.append(f(oi, di))
-        e_out.append(f(oo, do))
-        fns.append(f)
-    return e_in, e_out, fns, n
+        e_in.append(sigma * vdot(vcross(_sub(v[j], oi), ejk), di))
+        e_out.append(sigma * vdot(vcross(_sub(v[j], oo), ejk), do))
+    return e_in, e_out, n
 
 
 def _exit(e_in, e_out, big):
@@ -337,7 +336,7 @@ def _pick(values, i):
 
 
 def _walk(P, rays, tris, nbr, prim):
-    """The walk of `_mesh_crossing` (no gradients), for lanes (1-D) with prim >= 0: (triangle whose
+    """The walk of `_mesh_outline` (no gradients), for lanes (1-D) with prim >= 0: (triangle whose
     edge is the outline, the fraction where the segment entered it, found, edge index); at most
     MAX_WALK steps (a while loop that ends when no lane walks on)."""
     oi, di, oo, do = rays
@@ -351,7 +350,7 @@ def _walk(P, rays, tris, nbr, prim):
     def body(state):
         k, cur, t_in, active, found, edge = state
         d_face = _lerp3(di, do, t_in)
-        e_in, e_out, _, n_cur = _edge_values(P, tris, cur, oi, di, oo, do, d_face)
+        e_in, e_out, n_cur = _edge_values(P, tris, cur, oi, di, oo, do, d_face)
         i, t_out = _exit(e_in, e_out, big)
         leaves = active & (t_out <= 1.0)
         other = _pick([nbr[cur, 0], nbr[cur, 1], nbr[cur, 2]], i)
@@ -399,36 +398,48 @@ def _joined(P, tris, nbr, pp, pq, dp, dq, two_sided: bool):
     return joined
 
 
-def _mesh_crossing(P, tris, nbr, prim, oi, di, oo, do, along, across):
-    """(fraction, valid) where the segment from the inside ray (oi, di), which hits triangle
-    `prim`, to the outside one (oo, do) leaves the surface through an outline: the walk goes from
-    triangle to neighbour across the edge the segment leaves by (without gradients: a discrete
-    search), until that edge is an outline -- no neighbour, or a neighbour facing the other way
-    along the ray there -- (found), the segment ends inside a triangle (none: the other sample's
-    surface is in front), or MAX_WALK triangles (none). The fraction is then the outline edge's
-    function's zero, differentiable in its vertices and the rays; valid also needs the edge to be
-    the pairs' to take (`_slope_ok`)."""
-    dtype = di[0].dtype
-    big = jnp.asarray(2.0, dtype)
-    tri_id, t_in, found, edge = _walk(*jax.lax.stop_gradient((P, (oi, di, oo, do))), tris, nbr, prim)
-    # The outline edge's zero, with gradients.
-    d_face = jax.lax.stop_gradient(_lerp3(di, do, t_in))
-    e_in, e_out, fns, _ = _edge_values(P, tris, tri_id, oi, di, oo, do, d_face)
-    a, b = _pick(e_in, edge), _pick(e_out, edge)
-    ok = found & (jax.lax.stop_gradient(b) < jax.lax.stop_gradient(a))
-    tau = safe_div(a, a - b, ok, fill=big)
-    t_ng = jax.lax.stop_gradient(tau)
-    ox, dx = jax.lax.stop_gradient((_lerp3(oi, oo, t_ng), _lerp3(di, do, t_ng)))
-    steep = _pick([_slope_ok(f, ox, dx, along, across) for f in fns], edge)
-    return tau, ok & steep
+def _edge_fraction(vj, vk, sigma, oi, di, oo, do, ok):
+    """The oriented edge function E = sigma ((V_j - o) x (V_k - V_j)) . d of the edge from V_j to
+    V_k at the segment's two ends, and its zero along the segment a / (a - b) where `ok` (fill 2):
+    (fraction, E as a function of a ray)."""
+    ejk = _sub(vk, vj)
+
+    def f(o, d):
+        return sigma * vdot(vcross(_sub(vj, o), ejk), d)
+
+    a, b = f(oi, di), f(oo, do)
+    return safe_div(a, a - b, ok & (jax.lax.stop_gradient(b) < jax.lax.stop_gradient(a)), fill=2.0), f
 
 
-def _sphere_crossing(c, r, oi, di, oo, do, along, across):
-    """(fraction, valid): where the segment of rays leaves the sphere's contour. With the rays
-    linear in the fraction s, g(s) = |(c - o) x d|^2 - r^2 |d|^2 (the squared distance of the
-    line from the centre, times |d|^2, minus r^2 |d|^2) is a quadratic, negative where the line
-    meets the sphere; its root in (0, 1] with g(0) <= 0 < g(1) is 2 g0 / (-b - sqrt(b^2 - 4 a g0))
-    (no cancellation for either sign of a)."""
+def _mesh_outline(P, tris, nbr, prim, oi, di, oo, do, along, across):
+    """(valid, j, k, sigma) of the segment from the inside ray (oi, di), which hits triangle `prim`,
+    to the outside one (oo, do), where it leaves the surface through an outline (no gradients: a
+    discrete search). The walk goes from triangle to neighbour across the edge the segment leaves
+    by, until that edge is an outline -- no neighbour, or a neighbour facing the other way along
+    the ray there -- (found), the segment ends inside a triangle (none: the other sample's surface
+    is in front), or MAX_WALK triangles (none). The outline edge runs from vertex j to vertex k,
+    its function oriented by sigma (`_edge_fraction`); valid also needs the edge to be the pairs'
+    to take (`_slope_ok`). Only the picked edge's function is evaluated here."""
+    tri_id, t_in, found, edge = _walk(P, (oi, di, oo, do), tris, nbr, prim)
+    corners = tris[tri_id]
+    v = [tuple(P[:, c][corners[:, kk]] for c in range(3)) for kk in range(3)]
+    n = vcross(_sub(v[1], v[0]), _sub(v[2], v[0]))
+    sigma = jnp.where(vdot(n, _lerp3(di, do, t_in)) >= 0, 1.0, -1.0).astype(di[0].dtype)
+    j = _pick([corners[:, 1], corners[:, 2], corners[:, 0]], edge)
+    k = _pick([corners[:, 2], corners[:, 0], corners[:, 1]], edge)
+    vj, vk = (tuple(P[:, c][j] for c in range(3)), tuple(P[:, c][k] for c in range(3)))
+    tau, f = _edge_fraction(vj, vk, sigma, oi, di, oo, do, found)
+    ok = found & (tau <= 1.0)
+    steep = _slope_ok(f, _lerp3(oi, oo, tau), _lerp3(di, do, tau), along, across)
+    return ok & steep, j, k, sigma
+
+
+def _sphere_fraction(c, r, oi, di, oo, do):
+    """(fraction, valid): where the segment of rays leaves the sphere's contour, and the contour
+    as a function of a ray. With the rays linear in the fraction s, g(s) = |(c - o) x d|^2 -
+    r^2 |d|^2 (the squared distance of the line from the centre, times |d|^2, minus r^2 |d|^2) is
+    a quadratic, negative where the line meets the sphere; its root in (0, 1] with
+    g(0) <= 0 < g(1) is 2 g0 / (-b - sqrt(b^2 - 4 a g0)) (no cancellation for either sign of a)."""
     A = vcross(_sub(c, oi), di)
     B = _sub(vcross(_sub(c, oo), do), A)
     dd = _sub(do, di)
@@ -440,19 +451,16 @@ def _sphere_crossing(c, r, oi, di, oo, do, along, across):
     valid = (jax.lax.stop_gradient(g0) <= 0) & (jax.lax.stop_gradient(g1) > 0)
     den = -b - safe_sqrt(b * b - 4.0 * a * g0)
     tau = safe_div(2.0 * g0, den, valid & (jax.lax.stop_gradient(den) < 0), fill=2.0)
-    valid = valid & (jax.lax.stop_gradient(tau) <= 1.0)
 
     def f(o, d):
         return vdot(vcross(_sub(c, o), d), vcross(_sub(c, o), d)) - r2 * vdot(d, d)
 
-    t_ng = jax.lax.stop_gradient(tau)
-    steep = _slope_ok(f, _lerp3(oi, oo, t_ng), _lerp3(di, do, t_ng), along, across)
-    return tau, valid & steep
+    return tau, valid & (jax.lax.stop_gradient(tau) <= 1.0), f
 
 
-def _plane_crossing(pt, nrm, oi, di, oo, do, along, across):
-    """(fraction, valid): where the segment of rays stops meeting the plane in front of the camera
-    (its horizon, or in orthographic projection the line where the plane passes the rays'
+def _plane_fraction(pt, nrm, oi, di, oo, do):
+    """(fraction, valid, f): where the segment of rays stops meeting the plane in front of the
+    camera (its horizon, or in orthographic projection the line where the plane passes the rays'
     origins). f = ((pt - o).n)(d.n) > 0 where the ray meets it at t > 0; linear in the fraction (o
     or d varies, not both)."""
 
@@ -462,10 +470,11 @@ def _plane_crossing(pt, nrm, oi, di, oo, do, along, across):
     fi, fo = f(oi, di), f(oo, do)
     valid = (jax.lax.stop_gradient(fi) >= 0) & (jax.lax.stop_gradient(fo) < 0)
     fin = jnp.maximum(fi, 0.0)
-    tau = safe_div(fin, fin - fo, valid, fill=2.0)
-    t_ng = jax.lax.stop_gradient(tau)
-    steep = _slope_ok(f, _lerp3(oi, oo, t_ng), _lerp3(di, do, t_ng), along, across)
-    return tau, valid & steep
+    return safe_div(fin, fin - fo, valid, fill=2.0), valid, f
+
+
+def _steep(fraction, f, oi, di, oo, do, along, across):
+    return _slope_ok(f, _lerp3(oi, oo, fraction), _lerp3(di, do, fraction), along, across)
 
 
 # ------------------------------------------------------------------------------------------
@@ -473,43 +482,65 @@ def _plane_crossing(pt, nrm, oi, di, oo, do, along, across):
 # ------------------------------------------------------------------------------------------
 
 
-def _on_candidates(fn, lanes: dict, cand):
-    """fn(lanes) -> (fraction, valid) on the lanes (1-D arrays) where `cand`; fraction 2 and valid
-    False elsewhere. The candidates -- pairs whose samples see different surfaces, a few per cent
-    of an image's -- are listed first (`jnp.nonzero`) and fn runs on them in chunks of CHUNK lanes:
-    a scan over the chunks with a fixed count (differentiable), whose chunks past the candidates
-    skip fn (a conditional). One copy of fn in the program (its compilation is the edge stage's
-    main cost), and its work in proportion to the candidates: over every pair, XLA:CPU took 0.6 s
-    of a 0.8 s render at 512^2. Gradients pass through the gathers and the scatter."""
-    n = cand.shape[0]
-    C = min(n, CHUNK)
-    chunks = -(-n // C)
-    count = jnp.sum(cand)
-    (order,) = jnp.nonzero(cand, size=chunks * C, fill_value=0)
-    dtype = lanes["di"][0].dtype
+def _search(fn, order, count, fills: tuple):
+    """fn(ids) -> a tuple of arrays (C,) for the lanes `ids` (C,) of each chunk of SEARCH_CHUNK
+    entries of the candidate list `order` whose first `count` entries are live, as arrays laid out
+    like `order`, `fills` past `count`. A while loop over the live chunks only: not differentiable
+    (fn is the discrete search), its work in proportion to the candidates."""
+    m = order.shape[0]
+    C = min(m, SEARCH_CHUNK)
+    n = -(-m // C) * C
+    order = jnp.pad(order, (0, n - m))
+    outs = tuple(jnp.full(n, jnp.asarray(f)) for f in fills)
 
-    def run(k):
-        start = k * C
-        ids = jax.lax.dynamic_slice(order, (start,), (C,))
-        live = (start + jnp.arange(C)) < count
+    def body(state):
+        k, outs = state
+        ids = jax.lax.dynamic_slice(order, (k * C,), (C,))
+        live = (k * C + jnp.arange(C)) < count
+        new = fn(ids)
+        new = tuple(jnp.where(live, y.astype(o.dtype), jnp.asarray(f, o.dtype)) for y, o, f in zip(new, outs, fills, strict=True))
+        return k + 1, tuple(jax.lax.dynamic_update_slice(o, y, (k * C,)) for o, y in zip(outs, new, strict=True))
+
+    _, outs = jax.lax.while_loop(lambda st: st[0] * C < count, body, (jnp.int32(0), outs))
+    return tuple(o[:m] for o in outs)
+
+
+def _chunked(fn, order, count, xs, fills: tuple):
+    """fn(ids, x) -> a tuple of arrays (C,) for the lanes `ids` (C,) of each chunk of CHUNK entries of
+    the candidate list `order` (its first `count` entries live) and that chunk of `xs` (arrays laid
+    out like `order`), as arrays laid out like `order`; `fills` at the entries past `count`. A scan
+    over the chunks with a fixed count (differentiable), whose chunks past the candidates skip fn
+    (a conditional): one copy of fn in the program and its work in proportion to the candidates.
+    fn is computed again in the backward pass rather than its intermediates kept (a scan keeps
+    them for every chunk, the candidates' or not)."""
+    C = min(order.shape[0], CHUNK)
+    n = -(-order.shape[0] // C) * C
+    pad = lambda a: jnp.pad(a, [(0, n - a.shape[0])] + [(0, 0)] * (a.ndim - 1))  # noqa: E731
+    fills = tuple(jnp.asarray(x) for x in fills)
+
+    def run(args):
+        k, ids, x = args
+        live = (k * C + jnp.arange(C)) < count
 
         def compute(_):
-            tau, valid = fn(jax.tree_util.tree_map(lambda x: x[ids], lanes))
-            return tau, valid & live
+            out = fn(ids, x)
+            return tuple(jnp.where(live, y.astype(f.dtype), f) for y, f in zip(out, fills, strict=True))
 
         def skip(_):
-            return jnp.full(C, 2.0, dtype), jnp.zeros(C, bool)
+            return tuple(jnp.full(C, f) for f in fills)
 
-        return jax.lax.cond(start < count, compute, skip, None)
+        return jax.lax.cond(k * C < count, compute, skip, None)
 
-    tau, valid = jax.lax.map(run, jnp.arange(chunks))
-    dest = jnp.where(jnp.arange(chunks * C) < count, order, n)  # (dropped: past the end)
-    return (jnp.full(n, 2.0, dtype).at[dest].set(tau.reshape(-1), mode="drop"),
-            jnp.zeros(n, bool).at[dest].set(valid.reshape(-1), mode="drop"))
+    split = lambda a: pad(a).reshape((n // C, C) + a.shape[1:])  # noqa: E731
+    outs = jax.lax.map(jax.checkpoint(run), (jnp.arange(n // C), split(order), jax.tree_util.tree_map(split, xs)))
+    return tuple(y.reshape(-1)[:order.shape[0]] for y in outs)
 
 
-#: Lanes of `_on_candidates`' chunks.
-CHUNK = 1 << 14
+#: Lanes of `_search`'s chunks (the walk: small, so that little is done past the candidates).
+SEARCH_CHUNK = 1 << 12
+#: Lanes of `_chunked`'s chunks (the differentiated fractions: large, so that the backward pass's
+#: scan over them, which adds up the vertices' cotangents once per chunk, has few steps).
+CHUNK = 1 << 16
 
 
 def _cut(x, axis: int, first: bool):
@@ -534,13 +565,21 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
     meshes' concatenation (-1 elsewhere; absent without meshes); samples: the camera's
     `supersample` s (each sample's cell is 1/s of a pixel wide); nbr: `neighbours` of the meshes
     (None: the scene's own, else computed here); blend=False: the image `c` itself, with the
-    blend's derivative (`RenderOptions.antialias`)."""
+    blend's derivative (`RenderOptions.antialias`).
+
+    The pairs: every two neighbouring samples, horizontal (H, W - 1) then vertical (H - 1, W), each
+    twice -- with its first sample inside (p) and with its second (q) -- as one list of lanes (one
+    copy of the edge maths in the program). A lane is its index in that list: its pixels, rays
+    and surfaces are computed from the index where it is examined, so nothing per lane but the
+    candidates' list is laid out in memory. Two passes over the candidates: the search (no
+    gradients, nothing of it kept for the backward pass), then where the outlines found cross
+    (differentiated, computed again in the backward pass)."""
     dtype = jnp.dtype(dtype)
     objects = scene.objects
     H, W = c.shape[:2]
     if H * W < 2:
         return c
-    o, d, step_x, step_y = camera_plane_rays(scene.camera, dtype, offset)
+    rays_at, step_x, step_y = camera_plane_rays(scene.camera, dtype, offset)
     hit, idx, t = surf["hit"], surf["idx"], surf["t"]
     K = len(objects)
     kind = jnp.asarray([0 if isinstance(ob, Mesh) else 1 if isinstance(ob, Sphere) else 2 for ob in objects], jnp.int32)
@@ -562,66 +601,122 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
             nbr = neighbours(P, tris, mesh_parts([ob for ob in objects if isinstance(ob, Mesh)]))
     h = 0.5 / samples
 
-    def crossing(ln):
-        """(fraction, valid) for lanes of pairs (1-D arrays), by the inside surface's kind; the
-        pairs' direction per lane (`horizontal`) picks the steps of the slope test."""
-        hz = ln["horizontal"]
-        pick = lambda a, b: tuple(tuple(jnp.where(hz, a[k][i], b[k][i]) for i in range(3)) for k in range(2))  # noqa: E731
-        along, across = pick(step_x, step_y), pick(step_y, step_x)
-        tau = jnp.full(ln["idx"].shape, 2.0, dtype)
-        valid = jnp.zeros(ln["idx"].shape, bool)
-        if has_sphere:
-            cc = tuple(centers[:, i][ln["idx"]] for i in range(3))
-            ts, vs = _sphere_crossing(cc, radii[ln["idx"]], ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
-            sel = ln["kind"] == 1
-            tau, valid = jnp.where(sel, ts, tau), jnp.where(sel, vs, valid)
-        if has_plane:
-            pt = tuple(points[:, i][ln["idx"]] for i in range(3))
-            nn = tuple(normals[:, i][ln["idx"]] for i in range(3))
-            tp, vp = _plane_crossing(pt, nn, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
-            sel = ln["kind"] == 2
-            tau, valid = jnp.where(sel, tp, tau), jnp.where(sel, vp, valid)
-        if has_mesh:
-            pr = jnp.where(ln["kind"] == 0, ln["prim"], -1)
-            tm, vm = _mesh_crossing(P, tris, nbr, pr, ln["oi"], ln["di"], ln["oo"], ln["do"], along, across)
-            sel = pr >= 0
-            tau, valid = jnp.where(sel, tm, tau), jnp.where(sel, vm, valid)
-        return tau, valid
+    # The lanes: per part (horizontal pairs with p inside, with q inside, vertical ones likewise)
+    # the pairs' grid (rows, columns) and where the part starts in the list.
+    grids = [(H, W - 1)] * 2 + [(H - 1, W)] * 2
+    bounds = np.cumsum([0] + [r * w for r, w in grids])
+    flat = {"hit": hit.reshape(-1), "idx": idx.reshape(-1)}
+    if has_mesh:
+        flat["prim"] = prim.reshape(-1)
 
-    # Every pair of both directions, with either sample inside, as one list of lanes (one copy of
-    # the edge maths in the program).
-    parts, pairs = [], {}
+    def lane(ids):
+        """What lane `ids` (C,) examines: (inside ray, outside ray, horizontal, the inside sample's
+        flat pixel index)."""
+        part = sum((ids >= int(b)).astype(jnp.int32) for b in bounds[1:4])
+        horizontal = part < 2
+        r = ids - jnp.asarray(bounds[:4], jnp.int32)[part]
+        cols = jnp.where(horizontal, W - 1, W)
+        y, x = r // cols, r % cols
+        qy, qx = jnp.where(horizontal, y, y + 1), jnp.where(horizontal, x + 1, x)
+        first = (part % 2) == 0
+        iy, ix = jnp.where(first, y, qy), jnp.where(first, x, qx)
+        oy, ox = jnp.where(first, qy, y), jnp.where(first, qx, x)
+        return rays_at(ix, iy), rays_at(ox, oy), horizontal, iy * W + ix
+
+    def steps(horizontal):
+        """The steps of the slope test along and across the lanes' pairs."""
+        pick = lambda a, b: tuple(tuple(jnp.where(horizontal, a[k][i], b[k][i]) for i in range(3)) for k in range(2))  # noqa: E731
+        return pick(step_x, step_y), pick(step_y, step_x)
+
+    def surface(at):
+        """(object index, kind (-1: nothing), triangle or -1) the inside sample sees."""
+        i_in = flat["idx"][at]
+        kd = jnp.where(flat["hit"][at], kind[i_in], -1)
+        return i_in, kd, (jnp.where(kd == 0, flat["prim"][at], -1) if has_mesh else None)
+
+    def find(ids, _):
+        """Which lanes an outline of the inside surface crosses, by its kind, and for a mesh the
+        outline edge (its vertices j, k and orientation, `_mesh_outline`): a discrete search, no
+        gradients."""
+        (oi, di), (oo, do), horizontal, at = jax.lax.stop_gradient(lane(ids))
+        rays = oi, di, oo, do
+        along, across = jax.lax.stop_gradient(steps(horizontal))
+        i_in, kd, pr = surface(at)
+        valid = jnp.zeros(ids.shape, bool)
+        j = k = jnp.zeros(ids.shape, jnp.int32)
+        sigma = jnp.ones(ids.shape, dtype)
+        if has_sphere:
+            cc = tuple(jax.lax.stop_gradient(centers)[:, i][i_in] for i in range(3))
+            ts, vs, f = _sphere_fraction(cc, jax.lax.stop_gradient(radii)[i_in], *rays)
+            valid = jnp.where(kd == 1, vs & _steep(ts, f, *rays, along, across), valid)
+        if has_plane:
+            pt = tuple(jax.lax.stop_gradient(points)[:, i][i_in] for i in range(3))
+            nn = tuple(jax.lax.stop_gradient(normals)[:, i][i_in] for i in range(3))
+            tp, vp, f = _plane_fraction(pt, nn, *rays)
+            valid = jnp.where(kd == 2, vp & _steep(tp, f, *rays, along, across), valid)
+        if has_mesh:
+            vm, j, k, sigma = _mesh_outline(jax.lax.stop_gradient(P), tris, nbr, pr, *rays, along, across)
+            valid = jnp.where(pr >= 0, vm, valid)
+        return valid, j, k, sigma
+
+    def fraction(ids, found):
+        """Where the outlines `find` found cross the lanes' segments, differentiable in the outline
+        (a mesh edge's vertices, a sphere's centre and radius, a plane) and the camera."""
+        valid, j, k, sigma = found
+        (oi, di), (oo, do), _, at = lane(ids)
+        rays = oi, di, oo, do
+        i_in, kd, _ = surface(at)
+        tau = jnp.full(ids.shape, 2.0, dtype)
+        if has_sphere:
+            cc = tuple(centers[:, i][i_in] for i in range(3))
+            ts, vs, _ = _sphere_fraction(cc, radii[i_in], *rays)
+            tau = jnp.where((kd == 1) & vs, ts, tau)
+        if has_plane:
+            pt = tuple(points[:, i][i_in] for i in range(3))
+            nn = tuple(normals[:, i][i_in] for i in range(3))
+            tp, vp, _ = _plane_fraction(pt, nn, *rays)
+            tau = jnp.where((kd == 2) & vp, tp, tau)
+        if has_mesh:
+            vj, vk = (tuple(P[:, ci][e] for ci in range(3)) for e in (j, k))
+            tm, _ = _edge_fraction(vj, vk, sigma, *rays, valid & (kd == 0))
+            tau = jnp.where(kd == 0, tm, tau)
+        return (jnp.where(valid, tau, 2.0),)
+
+    # The candidates: pairs whose samples see different surfaces (a few per cent of an image's),
+    # not joined across a mesh edge, with the lane's inside sample on a surface.
+    cand, pairs = [], {}
     for axis in (1, 0):
         cut = lambda x, first, axis=axis: _cut(x, axis, first)  # noqa: E731
-        cut_d = lambda first, cut=cut: tuple(cut(x, first) for x in d)  # noqa: E731
         hp, hq = cut(hit, True), cut(hit, False)
         differs = (hp != hq) | (hp & (cut(idx, True) != cut(idx, False)))
         if prim is not None:
             pp, pq = cut(prim, True), cut(prim, False)
-            differs = (differs | (hp & (pp != pq))) & ~_joined(P, tris, nbr, pp, pq, cut_d(True), cut_d(False), two_sided)
+            if two_sided:
+                cols, rows = jnp.arange(W)[None, :], jnp.arange(H)[:, None]
+                d_at = lambda first, cut=cut: tuple(cut(jnp.broadcast_to(x, (H, W)), first) for x in rays_at(cols, rows)[1])  # noqa: E731
+                dp, dq = d_at(True), d_at(False)
+            else:
+                dp = dq = None
+            differs = (differs | (hp & (pp != pq))) & ~_joined(P, tris, nbr, pp, pq, dp, dq, two_sided)
         pairs[axis] = (hp, hq, differs)
-        for first in (True, False):  # the inside sample: the pair's first (p) or second (q)
-            h_in, i_in = cut(hit, first), cut(idx, first)
-            lanes = {"oi": tuple(cut(x, first) for x in o), "di": tuple(cut(x, first) for x in d),
-                     "oo": tuple(cut(x, not first) for x in o), "do": tuple(cut(x, not first) for x in d),
-                     "idx": i_in, "kind": jnp.where(h_in, kind[i_in], -1),
-                     "horizontal": jnp.full(h_in.shape, axis == 1), "cand": differs & h_in}
-            if has_mesh:
-                lanes["prim"] = cut(prim, first)
-            parts.append(jax.tree_util.tree_map(lambda x: x.reshape(-1), lanes))
-    sizes = [p["idx"].shape[0] for p in parts]
-    lanes = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
-    tau_all, valid_all = _on_candidates(crossing, {k: v for k, v in lanes.items() if k != "cand"}, lanes["cand"])
-    bounds = np.cumsum([0] + sizes)
+        cand += [(differs & hp).reshape(-1), (differs & hq).reshape(-1)]
+    cand = jnp.concatenate(cand)
+    n = cand.shape[0]
+    count = jnp.sum(cand)
+    (order,) = jnp.nonzero(cand, size=n, fill_value=0)
+    found = _search(lambda ids: find(ids, None), order, count, (False, jnp.int32(0), jnp.int32(0), jnp.ones((), dtype)))
+    (tau_c,) = _chunked(fraction, order, count, found, (jnp.full((), 2.0, dtype),))
+    dest = jnp.where(jnp.arange(order.shape[0]) < count, order, n)  # (dropped: past the end)
+    valid_all = jnp.zeros(n, bool).at[dest].set(found[0], mode="drop")
+    tau_all = jnp.full(n, 2.0, dtype).at[dest].set(tau_c, mode="drop")
     delta = jnp.zeros_like(c)
     for n_axis, axis in enumerate((1, 0)):
         hp, hq, differs = pairs[axis]
         k0, k1 = 2 * n_axis, 2 * n_axis + 1
         ta = tau_all[bounds[k0]:bounds[k0 + 1]].reshape(hp.shape)
-        va = valid_all[bounds[k0]:bounds[k0 + 1]].reshape(hp.shape)
+        va = valid_all[bounds[k0]:bounds[k0 + 1]].reshape(hp.shape) & hp & differs
         tb = tau_all[bounds[k1]:bounds[k1 + 1]].reshape(hp.shape)
-        vb = valid_all[bounds[k1]:bounds[k1 + 1]].reshape(hp.shape)
-        va, vb = va & hp & differs, vb & hq & differs
+        vb = valid_all[bounds[k1]:bounds[k1 + 1]].reshape(hp.shape) & hq & differs
         near_p = _cut(t, axis, True) <= _cut(t, axis, False)
         use_a = va & (~vb | near_p)
         use_b = vb & ~use_a
