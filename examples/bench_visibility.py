@@ -8,7 +8,12 @@ refinement that `TriangleAccel` adds (the watertight test, ties, barycentrics), 
 on every core (bands of rays on a thread pool, as `TriangleAccel` splits them).
 
     python examples/bench_visibility.py [--subdiv 6 8] [--repeats 3] [--width 1920 --height 1080]
-        [--backends embree jax raw] [--shadow]
+        [--backends embree jax raw] [--shadow] [--refit]
+
+--refit (with the jax backend): a deforming mesh's tree (`jaxpbr.deformable`). The sphere is pushed
+in and out by a third of its radius; its tree built at the sphere and refitted in JAX to the new
+shape (`bvh.refit_bvh`, jitted, back to back) against one built on the host at the new shape
+(`build_bvh`), and the primary rays through each (same hits; the refitted tree's boxes are looser).
 
 Subdivision 6 is 81,920 triangles, 7 is 327,680, 8 is 1,310,720.
 """
@@ -73,6 +78,33 @@ def timed(fn, repeats):
     return out, times
 
 
+def refit_rows(v, f, o, d, repeats):
+    """The --refit rows: host build at the deformed shape, the refit in JAX, and rays through each."""
+    from jaxpbr.rendering.bvh import build_bvh, intersect_bvh, refit_bvh
+
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    v1 = (v * (1 + 0.35 * np.sin(3 * u[:, :1]) * np.cos(2 * u[:, 1:2]))).astype(np.float32)
+    v0, f32 = v.astype(np.float32), f.astype(np.int32)
+    start = build_bvh(v0, f32, keep_degenerate=True).to_device()
+    (fresh,), build_s = timed(lambda: (build_bvh(v1, f32, keep_degenerate=True).to_device(),), repeats)
+    refit = jax.jit(refit_bvh)
+    t = time.perf_counter()
+    jax.block_until_ready(refit(start, v1, f32))
+    first = time.perf_counter() - t
+    v1d, fd = jax.device_put(v1), jax.device_put(f32)
+    refitted, refit_s = timed(lambda: jax.block_until_ready(refit(start, v1d, fd)), repeats)
+    trace = jax.jit(lambda b, o, d: intersect_bvh(b, o, d, lanes=1 << 17).prim)
+    jax.block_until_ready(trace(fresh, o, d))
+    want, fresh_s = timed(lambda: jax.block_until_ready(trace(fresh, o, d)), repeats)
+    got, refit_rays_s = timed(lambda: jax.block_until_ready(trace(refitted, o, d)), repeats)
+    print(f"  {len(f)} triangles, deformed: the refitted tree agrees with the one built there on "
+          f"{100 * np.mean(np.asarray(got) == np.asarray(want)):.4f}% of the pixels")
+    return [(len(f), "deformed: build_bvh (host)", min(build_s), None, None, len(o)),
+            (len(f), "deformed: refit_bvh (JAX)", min(refit_s), first, None, len(o)),
+            (len(f), "  rays, tree built there", None, None, fresh_s, len(o)),
+            (len(f), "  rays, refitted tree", None, None, refit_rays_s, len(o))]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--subdiv", type=int, nargs="+", default=[6, 8])
@@ -81,6 +113,7 @@ def main():
     ap.add_argument("--height", type=int, default=1080)
     ap.add_argument("--backends", nargs="+", default=["raw", "embree", "jax"], choices=["raw", "embree", "jax"])
     ap.add_argument("--shadow", action="store_true", help="also time occluded() for shadow rays from the hits")
+    ap.add_argument("--refit", action="store_true", help="also time refitting a deformed mesh's JAX BVH against building it")
     args = ap.parse_args()
     if not embree_available():
         args.backends = [b for b in args.backends if b == "jax"]
@@ -145,6 +178,8 @@ def main():
                 jax.block_until_ready(acc.occluded(so, light))
                 _, st = timed(lambda: jax.block_until_ready(acc.occluded(so, light)), args.repeats)
                 rows.append((len(f), f"{backend} occluded, shadow rays", None, None, st, int(hit.sum())))
+            if args.refit and backend == "jax":
+                rows += refit_rows(v, f, o, d, args.repeats)
     print()
     print(f"{'triangles':>10}  {'backend':<34} {'rays':>8} {'build s':>8} {'1st call s':>10} {'min s':>8} {'median s':>9} {'Mrays/s':>8}")
     for tri, label, build, first, times, rays in rows:

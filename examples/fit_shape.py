@@ -7,7 +7,9 @@ ellipsoid), rendered from `--views` cameras around it (azimuths evenly spaced, e
 alternating +35 / -25 deg) under the procedural sky (its shipped maps, sun split out as a disc
 light). The fit starts from a sphere of a *different* tessellation (an icosphere of 642
 vertices, radius 1) and moves its vertices to match the images with Adam (optax), all views at
-once (`jaxpbr.render_batch` over the cameras inside `jax.jit(jax.value_and_grad(...))`).
+once (`jaxpbr.render_batch` over the cameras inside `jax.jit(jax.value_and_grad(...))`), the scene
+prepared once by `jaxpbr.deformable` (the mesh's topology, and off the CPU its BVH refitted in the
+program: no host round trip per step there).
 
 The silhouettes move because `jaxpbr.render` differentiates where the outlines are (analytic
 antialiasing, docs/gltf.md): without it the image's gradient with respect to a vertex is only its
@@ -199,12 +201,19 @@ def main(argv=None) -> dict:
     def positions(u):
         return M_inv @ u
 
+    # The fitted mesh changes shape, its triangles stay: its topology (and where rays are traced in
+    # the program, as on a GPU, its BVH, refitted each step) is made once here, not per step.
+    base = jp.deformable(make_scene(start, tri, env, args.size))
+
+    def scene_at(u):
+        return base.replace(objects=[base.objects[0].replace(positions=positions(u))])
+
     # The control (--interior-only) renders its steps with antialias="none": the same images without the
     # outlines' blend, and gradients without their motion.
     edges = "none" if args.interior_only else True
 
     def loss_fn(u):
-        imgs = jp.render_batch(make_scene(positions(u), tri, env, args.size), cameras=cams, antialias=edges)
+        imgs = jp.render_batch(scene_at(u), cameras=cams, antialias=edges)
         # log1p: the sun's highlights would otherwise outweigh the rest of the images.
         return jnp.mean((jnp.log1p(imgs) - jnp.log1p(targets)) ** 2), imgs
 
@@ -219,7 +228,7 @@ def main(argv=None) -> dict:
 
     @jax.jit
     def forward(u):
-        return jp.render_batch(make_scene(positions(u), tri, env, args.size), cameras=cams)
+        return jp.render_batch(scene_at(u), cameras=cams)
 
     u, state = u0, opt.init(u0)
     t0 = time.perf_counter()

@@ -40,7 +40,7 @@ from .rendering.animated import posed_geometry, posed_scene
 from .rendering.gltf_scene import load_gltf
 from .rendering.scene_file import load_scene, loads_scene
 from .rendering.mesh import Mesh
-from .rendering.renderer import RenderOptions, bake, clear_caches, render, render_batch
+from .rendering.renderer import RenderOptions, bake, clear_caches, deformable, render, render_batch
 from .rendering.texture import Texture
 from .rendering.textured import TextureSlot
 from .rendering.scene import Camera, Environment, GBuffer, Plane, Scene, Sphere, TexturedMaterial
@@ -78,6 +78,7 @@ __all__ = [
     "Sphere",
     "TexturedMaterial",
     "demo",
+    "deformable",
     "render",
     "render_batch",
     "reference_render",

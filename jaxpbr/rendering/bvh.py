@@ -75,6 +75,7 @@ __all__ = [
     "intersect_bvh",
     "occluded_bvh",
     "pad_rays",
+    "refit_bvh",
     "valid_triangles",
     "watertight_test",
 ]
@@ -452,10 +453,13 @@ def _next_pow2(x: int) -> int:
     return 1 << max(0, int(x) - 1).bit_length()
 
 
-def build_bvh(vertices, triangles, *, leaf_size: int = 2, bins: int = 16, bucket: bool = True, min_triangles: int = 0) -> BVH:
+def build_bvh(vertices, triangles, *, leaf_size: int = 2, bins: int = 16, bucket: bool = True, min_triangles: int = 0,
+              keep_degenerate: bool = False) -> BVH:
     """Build the BVH of a triangle mesh on the host (NumPy arrays in the result; `BVH.to_device`
     moves them). vertices (V, 3) float, triangles (T, 3) int (rows are the triangle ids reported
-    by the traversal). Zero-area and non-finite triangles are left out.
+    by the traversal). Zero-area and non-finite triangles are left out; with keep_degenerate=True
+    only non-finite ones (a tree to be refitted to other positions, `refit_bvh`, where a triangle
+    without area now may have some then; the ray test misses it while it has none).
 
     bucket: pad the node and triangle arrays to powers of two (at least `min_triangles`) and the
     stack to a multiple of 16 (at least 32), so that meshes of similar size share one compiled
@@ -464,7 +468,7 @@ def build_bvh(vertices, triangles, *, leaf_size: int = 2, bins: int = 16, bucket
         raise InputError(f"leaf_size must be in [1, 64], got {leaf_size}")
     v, f = _as_mesh(vertices, triangles)
     tri_all = v[f]  # (T, 3, 3) float32
-    ids = np.nonzero(valid_triangles(tri_all))[0]
+    ids = np.nonzero(np.isfinite(tri_all).all(axis=(1, 2)) if keep_degenerate else valid_triangles(tri_all))[0]
     tri = tri_all[ids]
     t64 = tri.astype(np.float64)
     lo, hi = t64.min(1), t64.max(1)
@@ -522,6 +526,53 @@ def build_bvh(vertices, triangles, *, leaf_size: int = 2, bins: int = 16, bucket
         stack=np.zeros(stack, np.int32),
         lanes=np.arange(leaf_size, dtype=np.int32),
     )
+def refit_bvh(bvh: BVH, vertices, triangles) -> BVH:
+    """The BVH's tree with its triangles moved to `vertices` (V, 3) (the same `triangles` (T, 3) it
+    was built from, ids unchanged): the rows' vertices gathered again and every box recomputed
+    bottom-up, rounded outwards as `build_bvh` rounds them. In JAX (jit-able, on any backend, no
+    host round trip): for meshes that deform (a fit's vertices, a skinned pose) the tree built once
+    on the host is kept and refitted in the program. Traversal of the result answers exactly as a
+    tree built at `vertices` would (the boxes bound their triangles); only its speed degrades as
+    the shape departs from the one the tree was built for. Build it with keep_degenerate=True: a
+    triangle left out at build time is never hit. No gradients (visibility has none)."""
+    bvh = _as_bvh(bvh)
+    vertices = jax.lax.stop_gradient(jnp.asarray(vertices, jnp.float32))
+    prim = bvh.prim
+    live = prim >= 0
+    v = vertices[jnp.asarray(triangles, jnp.int32)[jnp.maximum(prim, 0)]]  # (R, 3, 3)
+    tri = jnp.where(live[:, None], v.reshape(-1, 9), jnp.asarray(bvh.tri, jnp.float32))
+    inf = jnp.float32(jnp.inf)
+    row_lo = jnp.where(live[:, None], v.min(1), inf)
+    row_hi = jnp.where(live[:, None], v.max(1), -inf)
+    child, count = bvh.links[:, :2], bvh.links[:, 2:]
+    inner = (count == 0) & (child >= 0)
+    # A leaf child's box: the union of its rows (at most leaf_size); an empty child's is empty.
+    rows = jnp.clip(child[..., None] + jnp.arange(bvh.leaf_size), 0, prim.shape[0] - 1)  # (M, 2, L)
+    in_leaf = (~inner[..., None] & (jnp.arange(bvh.leaf_size) < count[..., None]))[..., None]
+    leaf_lo = jnp.min(jnp.where(in_leaf, row_lo[rows], inf), axis=2)  # (M, 2, 3)
+    leaf_hi = jnp.max(jnp.where(in_leaf, row_hi[rows], -inf), axis=2)
+    kid = jnp.maximum(child, 0)
+
+    def children(node_lo, node_hi):
+        return (jnp.where(inner[..., None], node_lo[kid], leaf_lo), jnp.where(inner[..., None], node_hi[kid], leaf_hi))
+
+    def body(state):
+        k, lo, hi, _ = state
+        c_lo, c_hi = children(lo, hi)
+        new_lo, new_hi = c_lo.min(1), c_hi.max(1)
+        return k + 1, new_lo, new_hi, jnp.any(new_lo != lo) | jnp.any(new_hi != hi)
+
+    # Every node's box from its children's, over and over: exact after as many rounds as the tree
+    # is deep (the stack is deeper than the tree), and stopped when a round changes nothing.
+    M = child.shape[0]
+    state = (jnp.int32(0), jnp.full((M, 3), inf), jnp.full((M, 3), -inf), jnp.bool_(True))
+    _, lo, hi, _ = jax.lax.while_loop(lambda s: s[3] & (s[0] <= bvh.stack_size), body, state)
+    c_lo, c_hi = children(lo, hi)
+    c_lo, c_hi = jnp.nextafter(c_lo, -inf), jnp.nextafter(c_hi, inf)
+    nodes = jnp.concatenate([c_lo[:, 0], c_hi[:, 0], c_lo[:, 1], c_hi[:, 1]], axis=1)
+    return BVH(nodes=nodes, links=bvh.links, tri=tri, prim=prim, stack=bvh.stack, lanes=bvh.lanes)
+
+
 # --------------------------------------------------------------------------------------------------
 # traversal (JAX)
 

@@ -29,7 +29,9 @@ from .execution import EXECUTION, Execution
 from .options import RenderOptions, _options
 from .plan import RenderPlan, check_memory, plan_for, split_environment
 from .scene import Scene
-from .mesh import Mesh, device_accel
+from ..errors import InputError
+from .bvh import build_bvh
+from .mesh import Mesh, device_accel, device_traceable
 from .edges import NEIGHBOURS
 from .stages import AccelScene, _render_jit, _render_pass, scene_host_arrays, staged_outlines
 
@@ -194,16 +196,49 @@ def _supersampled(scene: Scene, opts: RenderOptions, one_pass):
 def _with_device_accel(scene: Scene, execution: Execution) -> Scene:
     """The scene with its opaque meshes' device BVH (`stages.AccelScene`) where `execution` traces
     on the device and the meshes allow it (`mesh.device_accel`), else the scene itself."""
-    if scene.gbuffer is not None or not execution.traces_on_device():
+    if scene.gbuffer is not None or not execution.traces_on_device() or isinstance(scene, AccelScene):
         return scene
     accel = device_accel([ob for ob in scene.objects if isinstance(ob, Mesh)])
     if accel is None:
         return scene
     host = scene_host_arrays(scene, jnp.float32)
     nbr = None if host is None else jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"], host["parts"]))
-    return unchecked(AccelScene, **{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel, neighbours=nbr)
+    return unchecked(AccelScene, **{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel, neighbours=nbr, refit=False)
 
 
+
+
+def deformable(scene: Scene) -> Scene:
+    """`scene` prepared for renders whose meshes change shape -- their vertices' positions move,
+    their triangles stay -- under `jax.jit` / `jax.grad` (a shape fit's steps, a pose of a skinned
+    mesh): it carries what `render` otherwise makes per mesh content on the host, made once here
+    from the meshes as they are:
+    - the meshes' topology (neighbours across edges, vertices welded by position), which the
+      outlines' antialiasing and derivatives (`edges`) read: with positions traced it would come
+      from a host callback every step;
+    - where rays of opaque meshes are traced in the program (`Execution.device_visibility`, the
+      default off the CPU), their BVH, built keeping zero-area triangles and refitted in the
+      program to the positions each render is given (`bvh.refit_bvh`): no host round trip and no
+      rebuild per step. On the CPU the host's ray engine (Embree) answers instead, faster there.
+    Render the result with new positions as any scene: `render(s.replace(objects=[mesh.replace(
+    positions=p)]))`. Only positions may change: a mesh with another triangle count is refused
+    at render time; other triangles of the same count are not detected (their topology would be
+    the old one's). The topology is the starting shape's: vertices welded at the start stay one."""
+    if not isinstance(scene, Scene):
+        raise TypeError(f"deformable expects a jaxpbr.Scene, got {type(scene).__name__}")
+    meshes = [ob for ob in scene.objects if isinstance(ob, Mesh)]
+    if not meshes or scene.gbuffer is not None:
+        return scene
+    host = scene_host_arrays(scene, jnp.float32)
+    if host is None:
+        raise InputError("deformable needs the meshes' arrays themselves, not traced values: call it once outside "
+                         "jax.jit / jax.grad, on the meshes' starting shape, and render the result with new positions inside")
+    nbr = jax.device_put(NEIGHBOURS.get(host["positions"], host["triangles"], host["parts"]))
+    accel = None
+    if EXECUTION.traces_on_device() and device_traceable(meshes):
+        accel = build_bvh(host["positions"], host["triangles"], keep_degenerate=True).to_device()
+    fields = {f.name: getattr(scene, f.name) for f in fields_of(Scene)}
+    return unchecked(AccelScene, **fields, accel=accel, neighbours=nbr, refit=True)
 
 
 def _staged() -> bool:

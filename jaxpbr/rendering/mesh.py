@@ -565,7 +565,7 @@ def device_accel(meshes):
     (float32 positions, triangle ids in that order), or None where the in-program traversal does
     not apply: a mesh with a traced position, a MASK or BLEND mesh, a transmissive one (those
     walk their hits on the host). Built once per content (`ACCELS`)."""
-    if not meshes or any(m.alpha_mode != "OPAQUE" or transmits(m.material) for m in meshes):
+    if not meshes or not device_traceable(meshes):
         return None
     if not all(is_concrete(m.positions) and is_concrete(m.triangles) for m in meshes):
         return None
@@ -583,6 +583,12 @@ def device_accel(meshes):
     _DEVICE_ACCELS.clear()  # the latest scene only: a BVH's arrays are large
     _DEVICE_ACCELS[key] = ([weakref.ref(a) for a in arrays], bvh)
     return bvh
+
+
+def device_traceable(meshes) -> bool:
+    """Whether the in-program traversal (`_device_cast`) answers for these meshes: all opaque (MASK
+    and BLEND meshes, and transmissive ones, walk their hits on the host)."""
+    return all(m.alpha_mode == "OPAQUE" and not transmits(m.material) for m in meshes)
 
 
 def _immutable(a) -> bool:

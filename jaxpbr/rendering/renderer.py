@@ -40,7 +40,7 @@ from __future__ import annotations
 from .assets import bake  # noqa: F401
 from .batching import BATCH_CHUNK_PIXELS, render_batch  # noqa: F401
 from .cache import ASSETS, AssetCache, content_key  # noqa: F401
-from .execute import EXECUTION, Execution, clear_caches, render  # noqa: F401
+from .execute import EXECUTION, Execution, clear_caches, deformable, render  # noqa: F401
 from .options import RenderOptions  # noqa: F401
 from .plan import DEFAULT_PREFILTER_SIZE, RenderPlan, check_memory, plan, prefilter_size  # noqa: F401
 from .stages import UNROLL_MAX_SPHERES, gbuffer  # noqa: F401
@@ -51,6 +51,7 @@ __all__ = [
     "RenderPlan",
     "bake",
     "clear_caches",
+    "deformable",
     "gbuffer",
     "plan",
     "render",

@@ -20,9 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._api import keyword_only
+from ..errors import InputError
 from .._numerics import cpu_cond, pack3, safe_normalize, safe_sqrt, small_sq, unpack3, vcross, vdot, vnormalize
 from .._program_cache import LOOP_EMITTERS, cached_jit, is_ahead, running_now
-from .._pytree import evolve, fields_of, leaf, subtree, unchecked
+from .._pytree import evolve, fields_of, leaf, static, subtree, unchecked
 from ..ibl.cubemap import padded
 from ..ibl.shade import disc_multiscatter, shade_ibl
 from ..shading.layered import emission_soa
@@ -30,7 +31,9 @@ from ..shading.lights import shade_direct
 from ..shading.material import Material
 from . import texture
 from .assets import PendingAssets
+from .bvh import refit_bvh
 from .edges import NEIGHBOURS, antialias_pass
+from .execution import EXECUTION
 from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_parts, mesh_surface, transmits
 from .options import RenderOptions, _options
 from .plan import RenderPlan, plan
@@ -289,16 +292,26 @@ def _mesh_arrays(scene: Scene, dtype):
         return None
     arrays = concat_meshes(meshes, dtype)
     arrays["bvh"] = scene.accel if isinstance(scene, AccelScene) else None
+    if isinstance(scene, AccelScene) and scene.refit:
+        made = int(np.shape(scene.neighbours)[0])
+        if arrays["triangles"].shape[0] != made:
+            raise InputError(f"the scene's meshes have {arrays['triangles'].shape[0]} triangles; its structure (jaxpbr.deformable) was "
+                             f"made for {made}: only the vertices' positions may change. Call jaxpbr.deformable on the new meshes.")
+        if arrays["bvh"] is not None:
+            arrays["bvh"] = refit_bvh(arrays["bvh"], arrays["positions"], arrays["triangles"]) if EXECUTION.traces_on_device() else None
     return arrays
 
 
 class AccelScene(Scene):
     """A scene carrying the device BVH of its meshes (`mesh.device_accel`) as arrays of the pytree:
     `render` makes one where it runs as one program off the CPU, so that its opaque meshes are traced
-    in the program rather than through a host callback (`execute.Execution.device_visibility`)."""
+    in the program rather than through a host callback (`execute.Execution.device_visibility`).
+    refit: the meshes' positions may differ from those the BVH and the topology (`neighbours`)
+    were made from (`execute.deformable`): the BVH is refitted to them in the program."""
 
     accel: Any = subtree(None)
     neighbours: Any = leaf(None, rank=2)
+    refit: bool = static(False)
 
 
 def _layer_kwargs(g, m: Material, dtype) -> dict:
