@@ -151,3 +151,7 @@ def test_deformable_refuses_traced_meshes_and_other_triangle_counts(execution):
     other = sc.objects[0].replace(positions=P, triangles=T)
     with pytest.raises(InputError, match="jaxpbr.deformable"):
         jp.render(d.replace(objects=[other]))
+    execution.staged, execution.device_visibility = None, None  # (staged on the CPU: the edge stage refuses it)
+    d = jp.deformable(sc)
+    with pytest.raises(InputError, match="jaxpbr.deformable"):
+        jp.render(d.replace(objects=[other]))

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._numerics import safe_div, safe_sqrt, vcross, vdot
+from ..errors import InputError
 from .mesh import Mesh, concat_geometry, mesh_parts
 from .scene import Plane, Sphere, camera_basis
 
@@ -596,7 +597,10 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
         P, tris = concat_geometry([ob for ob in objects if isinstance(ob, Mesh)], dtype)
         two_sided = any(ob.double_sided for ob in objects if isinstance(ob, Mesh))
         if nbr is None:
-            nbr = getattr(scene, "neighbours", None)  # (`stages.AccelScene`: made with its BVH)
+            nbr = getattr(scene, "neighbours", None)  # (`stages.AccelScene`: made with its BVH, or by `deformable`)
+            if nbr is not None and nbr.shape[0] != tris.shape[0]:
+                raise InputError(f"the scene's meshes have {tris.shape[0]} triangles; its topology (jaxpbr.deformable) was made "
+                                 f"for {nbr.shape[0]}: only the vertices' positions may change. Call jaxpbr.deformable on the new meshes.")
         if nbr is None:
             nbr = neighbours(P, tris, mesh_parts([ob for ob in objects if isinstance(ob, Mesh)]))
     h = 0.5 / samples

@@ -206,8 +206,6 @@ def _with_device_accel(scene: Scene, execution: Execution) -> Scene:
     return unchecked(AccelScene, **{f.name: getattr(scene, f.name) for f in fields_of(Scene)}, accel=accel, neighbours=nbr, refit=False)
 
 
-
-
 def deformable(scene: Scene) -> Scene:
     """`scene` prepared for renders whose meshes change shape -- their vertices' positions move,
     their triangles stay -- under `jax.jit` / `jax.grad` (a shape fit's steps, a pose of a skinned
