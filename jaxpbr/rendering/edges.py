@@ -237,6 +237,15 @@ def neighbours(positions, triangles, parts=None):
                              vmap_method="sequential")
 
 
+def check_topology(nbr, triangles: int) -> None:
+    """Refuse a topology (or a structure made with it, `execute.deformable`) made for meshes of
+    another triangle count than the scene's `triangles`."""
+    made = int(np.shape(nbr)[0])
+    if made != triangles:
+        raise InputError(f"the scene's meshes have {triangles} triangles; their structure (jaxpbr.deformable) was made for "
+                         f"{made}: only the vertices' positions may change. Call jaxpbr.deformable on the new meshes.")
+
+
 # ------------------------------------------------------------------------------------------
 # The camera's rays on the image plane
 # ------------------------------------------------------------------------------------------
@@ -598,9 +607,8 @@ def antialias_pass(scene, dtype, offset, c, surf, samples: int, nbr=None, *, ble
         two_sided = any(ob.double_sided for ob in objects if isinstance(ob, Mesh))
         if nbr is None:
             nbr = getattr(scene, "neighbours", None)  # (`stages.AccelScene`: made with its BVH, or by `deformable`)
-            if nbr is not None and nbr.shape[0] != tris.shape[0]:
-                raise InputError(f"the scene's meshes have {tris.shape[0]} triangles; its topology (jaxpbr.deformable) was made "
-                                 f"for {nbr.shape[0]}: only the vertices' positions may change. Call jaxpbr.deformable on the new meshes.")
+            if nbr is not None:
+                check_topology(nbr, tris.shape[0])
         if nbr is None:
             nbr = neighbours(P, tris, mesh_parts([ob for ob in objects if isinstance(ob, Mesh)]))
     h = 0.5 / samples

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._api import keyword_only
-from ..errors import InputError
 from .._numerics import cpu_cond, pack3, safe_normalize, safe_sqrt, small_sq, unpack3, vcross, vdot, vnormalize
 from .._program_cache import LOOP_EMITTERS, cached_jit, is_ahead, running_now
 from .._pytree import evolve, fields_of, leaf, static, subtree, unchecked
@@ -32,7 +31,7 @@ from ..shading.material import Material
 from . import texture
 from .assets import PendingAssets
 from .bvh import refit_bvh
-from .edges import NEIGHBOURS, antialias_pass
+from .edges import NEIGHBOURS, antialias_pass, check_topology
 from .execution import EXECUTION
 from .mesh import Mesh, _host_cast, cast, concat_meshes, mesh_parts, mesh_surface, transmits
 from .options import RenderOptions, _options
@@ -293,10 +292,7 @@ def _mesh_arrays(scene: Scene, dtype):
     arrays = concat_meshes(meshes, dtype)
     arrays["bvh"] = scene.accel if isinstance(scene, AccelScene) else None
     if isinstance(scene, AccelScene) and scene.refit:
-        made = int(np.shape(scene.neighbours)[0])
-        if arrays["triangles"].shape[0] != made:
-            raise InputError(f"the scene's meshes have {arrays['triangles'].shape[0]} triangles; its structure (jaxpbr.deformable) was "
-                             f"made for {made}: only the vertices' positions may change. Call jaxpbr.deformable on the new meshes.")
+        check_topology(scene.neighbours, arrays["triangles"].shape[0])
         if arrays["bvh"] is not None:
             arrays["bvh"] = refit_bvh(arrays["bvh"], arrays["positions"], arrays["triangles"]) if EXECUTION.traces_on_device() else None
     return arrays
