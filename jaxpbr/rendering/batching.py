@@ -118,7 +118,8 @@ def _batched_geometry(scene: Scene, geometry) -> tuple[int, dict]:
             raise ValueError(f"geometry: object {k} is not a mesh of the scene")
         mesh = scene.objects[k]
         if not isinstance(fields, dict) or not fields or set(fields) - set(_GEOMETRY_FIELDS):
-            raise ValueError(f"geometry[{k}] must be a dict of {sorted(_GEOMETRY_FIELDS)}, got {fields!r:.80}")
+            got = f"the fields {sorted(map(str, fields))}" if isinstance(fields, dict) else f"a {type(fields).__name__}"
+            raise ValueError(f"geometry[{k}] must be a dict of {sorted(_GEOMETRY_FIELDS)}, got {got}")
         for name, x in fields.items():
             want = (mesh.num_vertices, _GEOMETRY_FIELDS[name])
             if np.ndim(x) != 3 or tuple(np.shape(x)[1:]) != want:
